@@ -1,0 +1,302 @@
+"""Cameras and the one place where camera conventions are converted.
+
+Ours (docs/conventions.md): OpenCV camera frame (x right, y down, z forward), world-to-
+camera ``viewmats`` [C, 4, 4], pinhole intrinsics ``Ks`` [C, 3, 3] in pixels with pixel
+centres at +0.5, so ``cx = W/2`` is the image centre. World is right-handed with +Z up;
+spherical poses put the eye at ``r (cos el cos az, cos el sin az, sin el)`` looking at the
+origin, so azimuth 0 looks at an object's front when its front faces +X.
+
+Converters: OpenGL/pyrender (camera-to-world with y up and z backward), Mitsuba (camera-
+to-world with x left, y up, z forward, horizontal fov) and COLMAP (world-to-camera,
+OpenCV axes, quaternion wxyz, PINHOLE parameters).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+_CV_TO_GL = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+_CV_TO_MI = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64))
+
+
+def intrinsics(fovy_deg: Tensor | float, width: int, height: int, dtype=torch.float32) -> Tensor:
+    """Square-pixel pinhole K [..., 3, 3] with vertical field of view ``fovy_deg`` and centred principal point."""
+    fovy = torch.as_tensor(fovy_deg, dtype=torch.float64)
+    if bool(((fovy <= 0) | (fovy >= 180)).any()):
+        raise ValueError(f"fovy_deg: expected degrees in (0, 180), got {fovy.tolist()}")
+    f = 0.5 * height / torch.tan(torch.deg2rad(fovy) / 2)
+    K = torch.zeros(fovy.shape + (3, 3), dtype=torch.float64)
+    K[..., 0, 0] = f
+    K[..., 1, 1] = f
+    K[..., 0, 2] = width / 2
+    K[..., 1, 2] = height / 2
+    K[..., 2, 2] = 1.0
+    return K.to(dtype)
+
+
+def look_at(eye: Tensor, target: Tensor | None = None, up: Tensor | None = None) -> Tensor:
+    """World-to-camera OpenCV viewmats [..., 4, 4] looking from ``eye`` [..., 3] at ``target`` (default origin).
+
+    ``up`` defaults to +Z. When the view direction is parallel to ``up`` (looking straight
+    down or up) the world +Y axis is used as the up hint instead, so the result is always
+    a proper rotation.
+    """
+    eye = torch.as_tensor(eye)
+    dtype = eye.dtype if eye.is_floating_point() else torch.float32
+    eye = eye.to(dtype)
+    target = torch.zeros_like(eye) if target is None else torch.as_tensor(target, dtype=dtype).expand_as(eye)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype) if up is None else torch.as_tensor(up, dtype=dtype)
+    up = up.expand_as(eye)
+    fwd = target - eye
+    norm = fwd.norm(dim=-1, keepdim=True)
+    if bool((norm < 1e-12).any()):
+        raise ValueError("eye: coincides with target, the view direction is undefined")
+    fwd = fwd / norm
+    right = torch.linalg.cross(fwd, up)
+    degenerate = right.norm(dim=-1, keepdim=True) < 1e-6
+    alt = torch.linalg.cross(fwd, torch.tensor([0.0, 1.0, 0.0], dtype=dtype).expand_as(fwd))
+    right = torch.where(degenerate, alt, right)
+    right = right / right.norm(dim=-1, keepdim=True)
+    down = torch.linalg.cross(fwd, right)
+    c2w_R = torch.stack([right, down, fwd], dim=-1)  # columns: camera axes in world
+    view = torch.zeros(eye.shape[:-1] + (4, 4), dtype=dtype)
+    view[..., :3, :3] = c2w_R.transpose(-1, -2)
+    view[..., :3, 3] = -(c2w_R.transpose(-1, -2) @ eye[..., None])[..., 0]
+    view[..., 3, 3] = 1.0
+    return view
+
+
+def spherical_to_eye(azimuth_deg: Tensor, elevation_deg: Tensor, radius: Tensor) -> Tensor:
+    az, el = torch.deg2rad(azimuth_deg), torch.deg2rad(elevation_deg)
+    return (
+        torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)], -1)
+        * radius[..., None]
+    )
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """A batch of C pinhole cameras sharing one image size."""
+
+    viewmats: Tensor
+    """[C, 4, 4] world-to-camera, OpenCV axes."""
+    Ks: Tensor
+    """[C, 3, 3] intrinsics in pixels."""
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.viewmats, Tensor) or self.viewmats.dim() != 3 or self.viewmats.shape[1:] != (4, 4):
+            raise ValueError(
+                f"viewmats: expected a tensor of shape [C, 4, 4], got {getattr(self.viewmats, 'shape', None)}"
+            )
+        c = self.viewmats.shape[0]
+        if not isinstance(self.Ks, Tensor) or tuple(self.Ks.shape) != (c, 3, 3):
+            raise ValueError(f"Ks: expected shape [{c}, 3, 3], got {getattr(self.Ks, 'shape', None)}")
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}: expected a positive int, got {v!r}")
+
+    def __len__(self) -> int:
+        return self.viewmats.shape[0]
+
+    def __getitem__(self, index) -> Cameras:
+        v, k = self.viewmats[index], self.Ks[index]
+        if v.dim() == 2:
+            v, k = v[None], k[None]
+        return Cameras(v, k, self.width, self.height)
+
+    def to(self, *args, **kwargs) -> Cameras:
+        return Cameras(self.viewmats.to(*args, **kwargs), self.Ks.to(*args, **kwargs), self.width, self.height)
+
+    @classmethod
+    def cat(cls, cams: list[Cameras]) -> Cameras:
+        sizes = {(c.width, c.height) for c in cams}
+        if len(sizes) != 1:
+            raise ValueError(f"cams: expected one image size, got {sorted(sizes)}")
+        return cls(torch.cat([c.viewmats for c in cams]), torch.cat([c.Ks for c in cams]), *sizes.pop())
+
+    @classmethod
+    def from_look_at(
+        cls, eyes: Tensor, fovy_deg: float | Tensor, width: int, height: int, target: Tensor | None = None
+    ) -> Cameras:
+        eyes = torch.as_tensor(eyes, dtype=torch.float32).reshape(-1, 3)
+        fov = torch.as_tensor(fovy_deg, dtype=torch.float32).expand(eyes.shape[0])
+        return cls(look_at(eyes, target), intrinsics(fov, width, height), width, height)
+
+    @property
+    def centers(self) -> Tensor:
+        """Camera centres in world coordinates [C, 3]."""
+        R, t = self.viewmats[:, :3, :3], self.viewmats[:, :3, 3]
+        return -(R.transpose(1, 2) @ t[..., None])[..., 0]
+
+    @property
+    def camtoworlds(self) -> Tensor:
+        return torch.linalg.inv(self.viewmats)
+
+    def fovy_deg(self) -> Tensor:
+        return torch.rad2deg(2 * torch.atan(0.5 * self.height / self.Ks[:, 1, 1]))
+
+    def fovx_deg(self) -> Tensor:
+        return torch.rad2deg(2 * torch.atan(0.5 * self.width / self.Ks[:, 0, 0]))
+
+    def resized(self, width: int, height: int) -> Cameras:
+        """Same poses and fields of view at another resolution."""
+        K = self.Ks.clone()
+        K[:, 0] *= width / self.width
+        K[:, 1] *= height / self.height
+        return Cameras(self.viewmats, K, width, height)
+
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Pixel coordinates [C, P, 2] and camera z [C, P] of world points [P, 3] (pinhole, no clamp)."""
+        pc = points.to(self.viewmats) @ self.viewmats[:, :3, :3].transpose(1, 2) + self.viewmats[:, None, :3, 3]
+        uv = pc @ self.Ks.transpose(1, 2)
+        return uv[..., :2] / uv[..., 2:3], pc[..., 2]
+
+    # ----------------------------------------------------------------- converters
+    def to_opengl(self) -> tuple[Tensor, Tensor]:
+        """(camera-to-world poses [C, 4, 4] with OpenGL axes (x right, y up, z back), Ks [C, 3, 3]).
+
+        This is the pose pyrender's ``IntrinsicsCamera(fx, fy, cx, cy)`` takes; its cx, cy
+        are measured from the top-left corner like ours.
+        """
+        c2w = torch.linalg.inv(self.viewmats.double()) @ _CV_TO_GL
+        return c2w.to(self.viewmats.dtype), self.Ks
+
+    def to_mitsuba(self) -> list[dict]:
+        """Per camera: ``to_world`` [4, 4] (Mitsuba axes: x left, y up, z forward), the
+        horizontal ``fov`` in degrees and the principal point offsets as fractions of the
+        image size (Mitsuba's ``principal_point_offset_x/y``)."""
+        c2w = torch.linalg.inv(self.viewmats.double()) @ _CV_TO_MI
+        out = []
+        for i in range(len(self)):
+            K = self.Ks[i].double()
+            out.append(
+                {
+                    "to_world": c2w[i],
+                    "fov": float(torch.rad2deg(2 * torch.atan(0.5 * self.width / K[0, 0]))),
+                    "fov_axis": "x",
+                    "principal_point_offset_x": float((K[0, 2] - self.width / 2) / self.width),
+                    "principal_point_offset_y": float((K[1, 2] - self.height / 2) / self.height),
+                    "width": self.width,
+                    "height": self.height,
+                }
+            )
+        return out
+
+    def to_colmap(self) -> list[dict]:
+        """Per camera: COLMAP's world-to-camera ``qvec`` (wxyz), ``tvec`` and PINHOLE ``params``
+        (fx, fy, cx, cy). COLMAP's pixel centres are at +0.5 too, so K carries over unchanged."""
+        out = []
+        for i in range(len(self)):
+            R = self.viewmats[i, :3, :3].double()
+            out.append(
+                {
+                    "qvec": rotmat_to_quat(R),
+                    "tvec": self.viewmats[i, :3, 3].double(),
+                    "params": self.Ks[i, [0, 1, 0, 1], [0, 1, 2, 2]].double(),
+                    "width": self.width,
+                    "height": self.height,
+                }
+            )
+        return out
+
+
+def rotmat_to_quat(R: Tensor) -> Tensor:
+    """Unit quaternion wxyz (w >= 0) of a rotation matrix [3, 3] (Shepperd's method)."""
+    m = R
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    cands = torch.stack([tr, m[0, 0], m[1, 1], m[2, 2]])
+    k = int(torch.argmax(cands))
+    if k == 0:
+        s = torch.sqrt(tr + 1.0) * 2
+        q = torch.stack([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
+    elif k == 1:
+        s = torch.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = torch.stack([(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s])
+    elif k == 2:
+        s = torch.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = torch.stack([(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s])
+    else:
+        s = torch.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = torch.stack([(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s])
+    return q if q[0] >= 0 else -q
+
+
+@dataclass(frozen=True)
+class SphericalPoses:
+    """Cameras on spheres around the origin, described by angles (degrees) and radius."""
+
+    azimuth: Tensor
+    """[C] degrees, 0 = looking from +X."""
+    elevation: Tensor
+    """[C] degrees above the XY plane."""
+    radius: Tensor
+    """[C] distance to the origin."""
+    fovy: Tensor
+    """[C] vertical field of view, degrees."""
+
+    def __len__(self) -> int:
+        return self.azimuth.shape[0]
+
+    def cameras(self, width: int, height: int) -> Cameras:
+        eyes = spherical_to_eye(self.azimuth.double(), self.elevation.double(), self.radius.double())
+        return Cameras(look_at(eyes).float(), intrinsics(self.fovy, width, height), width, height)
+
+    @classmethod
+    def sample(
+        cls,
+        n: int,
+        *,
+        generator: torch.Generator,
+        radius: float | tuple[float, float] = 1.0,
+        fovy_range: tuple[float, float] = (40.0, 70.0),
+        azimuth_range: tuple[float, float] = (-180.0, 180.0),
+        elevation_range: tuple[float, float] = (-45.0, 45.0),
+    ) -> SphericalPoses:
+        """The paper's random training poses: each quantity uniform in its range."""
+        if n < 1:
+            raise ValueError(f"n: expected at least one pose, got {n}")
+        r = (radius, radius) if isinstance(radius, (int, float)) else radius
+        for name, (lo, hi) in (("radius", r), ("fovy_range", fovy_range), ("azimuth_range", azimuth_range),
+                               ("elevation_range", elevation_range)):  # fmt: skip
+            if lo > hi:
+                raise ValueError(f"{name}: expected (low, high) with low <= high, got ({lo}, {hi})")
+        if not (-90.0 < elevation_range[0] and elevation_range[1] < 90.0):
+            raise ValueError(f"elevation_range: expected degrees inside (-90, 90), got {elevation_range}")
+        if r[0] <= 0:
+            raise ValueError(f"radius: expected a positive distance, got {radius}")
+        if not (0.0 < fovy_range[0] and fovy_range[1] < 180.0):
+            raise ValueError(f"fovy_range: expected degrees inside (0, 180), got {fovy_range}")
+
+        def uniform(lo: float, hi: float) -> Tensor:
+            return lo + (hi - lo) * torch.rand(n, generator=generator, dtype=torch.float64)
+
+        return cls(
+            azimuth=uniform(*azimuth_range),
+            elevation=uniform(*elevation_range),
+            radius=uniform(*r),
+            fovy=uniform(*fovy_range),
+        )
+
+    @classmethod
+    def orbit(
+        cls, n: int, *, radius: float = 1.0, elevation: float = 15.0, fovy: float = 50.0, start: float = 0.0
+    ) -> SphericalPoses:
+        """n poses evenly spaced in azimuth (360/n degrees apart) at one elevation: turntables, scoring."""
+        if n < 1:
+            raise ValueError(f"n: expected at least one pose, got {n}")
+        az = start + torch.arange(n, dtype=torch.float64) * (360.0 / n)
+        az = (az + 180.0) % 360.0 - 180.0
+        full = torch.full((n,), 1.0, dtype=torch.float64)
+        return cls(az, elevation * full, radius * full, fovy * full)
+
+
+def fovy_for_radius(object_radius: float, distance: float, margin: float = 1.15) -> float:
+    """Vertical fov (degrees) at which a ball of ``object_radius`` at ``distance`` fills the frame."""
+    return math.degrees(2 * math.asin(min(1.0, margin * object_radius / distance)))

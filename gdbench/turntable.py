@@ -1,0 +1,92 @@
+"""Turntables: render a scene from an orbit and write a GIF, an MP4 and a contact sheet."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .camera import Cameras, SphericalPoses
+from .scene import GaussianScene
+
+
+@dataclass
+class TurntableResult:
+    frames: np.ndarray
+    """[F, H, W, 3] uint8."""
+    seconds_per_frame: list[float]
+    paths: dict[str, Path]
+
+
+def render_views(
+    scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
+) -> torch.Tensor:
+    """Render cameras in batches without gradients; returns [C, H, W, 3] in [0, 1]."""
+    from renderers.splat import rasterize
+
+    bg = torch.as_tensor(background, dtype=scene.means.dtype, device=scene.means.device)
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(cams), batch):
+            c = cams[i : i + batch].to(scene.means.device)
+            r = rasterize(**scene.render_args(), viewmats=c.viewmats, Ks=c.Ks, width=c.width, height=c.height,
+                          background=bg, outputs=("rgb",), **kwargs)  # fmt: skip
+            out.append(r.rgb.clamp(0, 1))
+    return torch.cat(out)
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    return (images.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def contact_sheet(frames: np.ndarray, columns: int = 6) -> np.ndarray:
+    """Tile [F, H, W, 3] frames into one image, ``columns`` per row (white padding)."""
+    f, h, w, c = frames.shape
+    columns = max(1, min(columns, f))
+    rows = (f + columns - 1) // columns
+    sheet = np.full((rows * h, columns * w, c), 255, dtype=np.uint8)
+    for i in range(f):
+        r, col = divmod(i, columns)
+        sheet[r * h : (r + 1) * h, col * w : (col + 1) * w] = frames[i]
+    return sheet
+
+
+def write_turntable(
+    scene: GaussianScene,
+    out_dir: str | Path,
+    *,
+    frames: int = 36,
+    size: int = 256,
+    radius: float = 1.3,
+    elevation: float = 20.0,
+    fovy: float = 45.0,
+    background=(1.0, 1.0, 1.0),
+    fps: int = 12,
+    mp4: bool = True,
+    stem: str = "turntable",
+) -> TurntableResult:
+    """Render ``frames`` views on a circle and write ``{stem}.gif``, ``.mp4`` and ``_sheet.png``."""
+    import imageio.v3 as iio
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cams = SphericalPoses.orbit(frames, radius=radius, elevation=elevation, fovy=fovy).cameras(size, size)
+    times, imgs = [], []
+    for i in range(frames):
+        t0 = time.perf_counter()
+        imgs.append(render_views(scene, cams[i], background=background))
+        times.append(time.perf_counter() - t0)
+    arr = to_uint8(torch.cat(imgs))
+    paths = {"gif": out_dir / f"{stem}.gif", "sheet": out_dir / f"{stem}_sheet.png"}
+    iio.imwrite(paths["gif"], arr, duration=1000 / fps, loop=0)
+    iio.imwrite(paths["sheet"], contact_sheet(arr[:: max(1, frames // 12)][:12]))
+    if mp4:
+        try:
+            iio.imwrite(out_dir / f"{stem}.mp4", arr, fps=fps, codec="libx264", plugin="pyav")
+            paths["mp4"] = out_dir / f"{stem}.mp4"
+        except Exception as e:  # pyav missing or without x264: the GIF is still there
+            print(f"note: MP4 not written ({type(e).__name__}: {e}); install `av` for MP4 output")
+    return TurntableResult(arr, times, paths)

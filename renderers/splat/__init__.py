@@ -1,0 +1,11 @@
+"""The system under test: a PyTorch 3D Gaussian splatting renderer.
+
+Stages, one file each: ``project`` (EWA projection), ``bin_tiles`` (tile lists sorted by
+depth), ``composite`` (front-to-back blending with a hand-written backward, wrapped in
+``autograd``), ``rasterize`` (the entry point). ``reference`` is the slow dense float64
+twin used as the test oracle and benchmark baseline.
+"""
+
+from .rasterize import OUTPUTS, RenderOutput, rasterize
+
+__all__ = ["OUTPUTS", "RenderOutput", "rasterize"]

@@ -1,0 +1,219 @@
+"""``rasterize``: the entry point of the splat renderer (project -> bin_tiles -> composite)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from jaxtyping import Bool, Float
+from torch import Tensor
+
+from . import _checks as ck
+from .autograd import composite
+from .bin_tiles import bin_tiles
+from .composite import BlendParams, Splats
+from .project import project, view_dirs
+from .sh import eval_sh, num_sh_bases
+
+OUTPUTS = ("rgb", "alpha", "depth", "weight_sq", "means2d", "radii", "visible")
+
+
+class RenderOutput(NamedTuple):
+    """Renderer outputs; a field is None unless it was asked for in ``outputs``."""
+
+    rgb: Float[Tensor, "*B C H W D"] | None = None
+    """Composited features (RGB or any D channels), background blended in."""
+    alpha: Float[Tensor, "*B C H W 1"] | None = None
+    """1 - T_final."""
+    depth: Float[Tensor, "*B C H W 1"] | None = None
+    """Expected camera-space z, sum_i w_i z_i / alpha (0 where alpha is 0)."""
+    weight_sq: Float[Tensor, "*B C H W 1"] | None = None
+    """sum_i w_i^2, the variance of a composite of unit-variance iid colours."""
+    means2d: Float[Tensor, "*B C N 2"] | None = None
+    """Projected means, part of the graph (call ``retain_grad()`` for densification)."""
+    radii: Float[Tensor, "*B C N 2"] | None = None
+    """Screen half-extents in pixels, 0 where culled."""
+    visible: Bool[Tensor, "*B C N"] | None = None
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, background):
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+               "viewmats": viewmats, "Ks": Ks}  # fmt: skip
+    if background is not None:
+        tensors["background"] = background
+    for name, x in tensors.items():  # types first, then devices, then shapes, then values
+        ck.check_tensor(name, x, finite=False)
+    ck.check_same(tensors)
+    if means.dim() < 2 or means.shape[-1] != 3:
+        raise ValueError(f"means: expected shape [*B, N, 3], got {list(means.shape)}")
+    batch = tuple(means.shape[:-2])
+    N = means.shape[-2]
+    ck.check_shape("quats", quats, (N, 4), batch)
+    ck.check_shape("scales", scales, (N, 3), batch)
+    ck.check_shape("opacities", opacities, (N,), batch)
+    if viewmats.dim() != len(batch) + 3 or viewmats.shape[-2:] != (4, 4):
+        raise ValueError(f"viewmats: expected shape [*B, C, 4, 4] with *B = {list(batch)}, got {list(viewmats.shape)}")
+    ck.check_shape("viewmats", viewmats, ("C", 4, 4), batch)
+    C = viewmats.shape[-3]
+    ck.check_shape("Ks", Ks, (C, 3, 3), batch)
+    sh = sh_degree is not None
+    if sh and sh_degree not in (0, 1, 2, 3):
+        raise ValueError(f"sh_degree: expected None or 0..3, got {sh_degree}")
+    tail = 3 if sh else 2  # [N, K, D] or [N, D]
+    if colors.dim() == len(batch) + tail:
+        per_camera = False
+    elif colors.dim() == len(batch) + tail + 1:
+        per_camera = True
+    else:
+        want = "[*B, (C,) N, K, D]" if sh else "[*B, (C,) N, D]"
+        raise ValueError(f"colors: expected shape {want} with *B = {list(batch)}, got {list(colors.shape)}")
+    lead = batch + ((C,) if per_camera else ())
+    if sh:
+        K = num_sh_bases(sh_degree)
+        if colors.shape[-2] < K:
+            raise ValueError(f"colors: sh_degree={sh_degree} needs K >= {K} SH coefficients, got {colors.shape[-2]}")
+        ck.check_shape("colors", colors, (N, "K", "D"), lead)
+    else:
+        ck.check_shape("colors", colors, (N, "D"), lead)
+    D = colors.shape[-1]
+    if background is not None and background.shape != (D,):
+        ck.check_shape("background", background, (C, D), batch)
+    ck.check_size("width", width)
+    ck.check_size("height", height)
+    for name, x in tensors.items():
+        ck.check_tensor(name, x, finite=True)
+    if scales.numel() and bool((scales < 0).any()):
+        raise ValueError("scales: expected non-negative linear scales (pass exp(log_scales))")
+    if opacities.numel() and bool(((opacities < 0) | (opacities > 1)).any()):
+        raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
+    return batch, N, C, D, per_camera
+
+
+def check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, outputs) -> tuple[str, ...]:
+    ck.check_range("near_plane", near_plane, 0.0, float("inf"), lo_open=True)
+    ck.check_range("far_plane", far_plane, near_plane, float("inf"), lo_open=True)
+    ck.check_range("eps2d", eps2d, 0.0, float("inf"))
+    ck.check_range("alpha_min", alpha_min, 0.0, 1.0, lo_open=True)
+    ck.check_range("alpha_max", alpha_max, alpha_min, 1.0, lo_open=True)
+    if alpha_max >= 1.0:
+        raise ValueError(f"alpha_max: expected a value below 1 (T would reach 0), got {alpha_max}")
+    ck.check_range("t_min", t_min, 0.0, 1.0)
+    if isinstance(outputs, str) or not isinstance(outputs, Sequence):
+        raise TypeError(f"outputs: expected a tuple of names from {OUTPUTS}, got {outputs!r}")
+    bad = [o for o in outputs if o not in OUTPUTS]
+    if bad:
+        raise ValueError(f"outputs: unknown names {bad}; expected names from {OUTPUTS}")
+    return tuple(outputs)
+
+
+def rasterize(
+    means: Float[Tensor, "*B N 3"],
+    quats: Float[Tensor, "*B N 4"],
+    scales: Float[Tensor, "*B N 3"],
+    opacities: Float[Tensor, "*B N"],
+    colors: Tensor,
+    viewmats: Float[Tensor, "*B C 4 4"],
+    Ks: Float[Tensor, "*B C 3 3"],
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None = None,
+    background: Tensor | None = None,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    alpha_min: float = 1.0 / 255.0,
+    alpha_max: float = 0.99,
+    t_min: float = 1e-4,
+    outputs: Sequence[str] = ("rgb", "alpha"),
+    tile_size: int = 16,
+    chunk_budget: int = 1 << 22,
+    backend: str = "auto",
+) -> RenderOutput:
+    """Render N 3D Gaussians into C cameras with the 3DGS image formation model.
+
+    Inputs are activated values: linear ``scales`` (>= 0), ``opacities`` in [0, 1],
+    quaternions wxyz (any norm; zero means identity). ``colors`` is ``[*B, (C,) N, D]``
+    plain features, or with ``sh_degree`` set, ``[*B, (C,) N, K, D]`` SH coefficients
+    evaluated along the camera-to-mean direction (``renderers.splat.sh``).
+    ``background`` is ``[D]`` or ``[*B, C, D]`` (default: none, i.e. black).
+
+    The model and its constants are in ``composite.py`` and ``project.py`` and in
+    docs/renderer.md; the camera conventions in docs/conventions.md. Only the outputs
+    named in ``outputs`` are computed (see ``OUTPUTS``). Images are [*B, C, H, W, ...].
+    ``chunk_budget`` bounds the elements of one compositing chunk of the torch backend
+    (memory, not results). ``backend`` picks the compositor: "cpp" (C++/OpenMP, CPU),
+    "torch" (any device) or "auto" (cpp on CPU when it builds, else torch); the two agree
+    to float rounding (tested).
+    """
+    batch, N, C, D, per_camera = _check_inputs(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, background
+    )
+    outputs = check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, outputs)
+    ck.check_size("tile_size", tile_size)
+    ck.check_size("chunk_budget", chunk_budget)
+    want = set(outputs)
+
+    proj = project(
+        means, quats, scales, opacities, viewmats, Ks, width, height,
+        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, alpha_min=alpha_min,
+    )  # fmt: skip
+    result = {
+        "means2d": proj.means2d if "means2d" in want else None,
+        "radii": proj.radii if "radii" in want else None,
+        "visible": proj.visible if "visible" in want else None,
+    }
+    images = want & {"rgb", "alpha", "depth", "weight_sq"}
+    if not images:
+        return RenderOutput(**result)
+
+    I = C * int(torch.Size(batch).numel())
+    if sh_degree is not None:
+        coeffs = colors if per_camera else colors[..., None, :, :, :].expand(batch + (C, N) + colors.shape[-2:])
+        feats = eval_sh(sh_degree, coeffs, view_dirs(means, viewmats))
+    else:
+        feats = colors if per_camera else colors[..., None, :, :].expand(batch + (C, N, D))
+
+    flat = Splats(
+        proj.means2d.reshape(I * N, 2),
+        proj.conics.reshape(I * N, 3),
+        opacities[..., None, :].expand(batch + (C, N)).reshape(I * N),
+        feats.reshape(I * N, D),
+        proj.depths.reshape(I * N),
+    )
+    bins = bin_tiles(
+        proj.means2d.detach().reshape(I, N, 2), proj.radii.reshape(I, N, 2), proj.depths.detach().reshape(I, N),
+        proj.visible.reshape(I, N), width, height, tile_size,
+    )  # fmt: skip
+    out = composite(
+        flat, bins, I, BlendParams(alpha_min, alpha_max, t_min),
+        features="rgb" in want, depth="depth" in want, weight_sq="weight_sq" in want, budget=chunk_budget,
+        backend=backend,
+    )  # fmt: skip
+
+    def untile(x: Tensor) -> Tensor:
+        ts = tile_size
+        x = x.reshape(I, bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 1, 3, 2, 4, 5)
+        x = x.reshape(I, bins.tiles_y * ts, bins.tiles_x * ts, -1)[:, :height, :width]
+        return x.reshape(batch + (C, height, width, x.shape[-1]))
+
+    T = untile(out.transmittance)
+    alpha = 1.0 - T
+    if "rgb" in want:
+        rgb = untile(out.features)
+        if background is not None:
+            bg = background if background.dim() == 1 else background[..., None, None, :]
+            rgb = rgb + T * bg
+        result["rgb"] = rgb
+    if "alpha" in want:
+        result["alpha"] = alpha
+    if "depth" in want:
+        acc = untile(out.depth)
+        covered = alpha > 0
+        result["depth"] = torch.where(
+            covered, acc / torch.where(covered, alpha, torch.ones_like(alpha)), torch.zeros_like(acc)
+        )
+    if "weight_sq" in want:
+        result["weight_sq"] = untile(out.weight_sq)
+    return RenderOutput(**result)

@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# One-stop set-up, idempotent and quick when nothing is missing:
+#   1. Debian packages the reference stack needs (installed when run as root, else listed);
+#   2. a virtual environment in .venv;
+#   3. torch==2.13.0 first (the CPU build on these machines), then gdbench with test extras;
+#   4. the C++ CPU compositor, compiled once into torch's extension cache.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON=${PYTHON:-python3}
+TORCH_SPEC=${TORCH_SPEC:-torch==2.13.0}
+# libllvm19: Dr.Jit's LLVM backend (Mitsuba); libosmesa6: pyrender offscreen;
+# libusb-1.0-0, libvulkan1, mesa-vulkan-drivers: Open3D (open3d-cpu) import and offscreen rendering.
+DEBS="libllvm19 libosmesa6 libusb-1.0-0 libvulkan1 mesa-vulkan-drivers"
+
+missing=()
+if command -v dpkg >/dev/null 2>&1; then
+  for p in $DEBS; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+fi
+if [ ${#missing[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing Debian packages: ${missing[*]}"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+  else
+    echo "setup: warning: missing Debian packages (the reference renderers need them): ${missing[*]}"
+    echo "       install them with: sudo apt-get install ${missing[*]}"
+  fi
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating .venv"
+  "$PYTHON" -m venv .venv
+fi
+PIP=(.venv/bin/python -m pip --disable-pip-version-check -q)
+
+if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
+  echo "setup: installing $TORCH_SPEC"
+  "${PIP[@]}" install "$TORCH_SPEC"
+fi
+
+stamp=.venv/.gdbench-installed
+want=$(cat pyproject.toml constraints.txt scripts/setup.sh | sha256sum | cut -c1-16)
+if [ "$(cat "$stamp" 2>/dev/null || true)" != "$want" ]; then
+  echo "setup: installing gdbench and its test extras"
+  "${PIP[@]}" install -c constraints.txt -e ".[test]" 2>&1 | grep -v "is ignored: it is neither" || true
+  .venv/bin/python -c "import gdbench, renderers.splat" || { echo "setup: gdbench did not install"; exit 1; }
+  echo "$want" > "$stamp"
+fi
+
+# Build (or find in the cache) the C++ compositor; the pure-torch path is the fallback.
+.venv/bin/python -m renderers.splat._ext >/dev/null 2>&1 \
+  || echo "setup: warning: the C++ compositor did not build; the slower pure-torch path will be used"

@@ -1,0 +1,67 @@
+"""Shared builders for the tests: random scenes and cameras with explicit generators."""
+
+from __future__ import annotations
+
+import torch
+
+from gdbench.camera import Cameras, intrinsics, look_at
+
+
+def random_gaussians(
+    n: int,
+    *,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float32,
+    batch: tuple[int, ...] = (),
+    spread: float = 0.3,
+    scale: tuple[float, float] = (0.01, 0.09),
+    opacity: tuple[float, float] = (0.05, 1.0),
+    d: int = 3,
+    sh_degree: int | None = None,
+) -> dict[str, torch.Tensor]:
+    """Random anisotropic Gaussians: means ~ N(0, spread^2), random rotations and scales."""
+    g = torch.Generator().manual_seed(seed)
+    shape = batch + (n,)
+    out = {
+        "means": torch.randn(shape + (3,), generator=g, dtype=torch.float64) * spread,
+        "quats": torch.randn(shape + (4,), generator=g, dtype=torch.float64),
+        "scales": scale[0] + (scale[1] - scale[0]) * torch.rand(shape + (3,), generator=g, dtype=torch.float64),
+        "opacities": opacity[0] + (opacity[1] - opacity[0]) * torch.rand(shape, generator=g, dtype=torch.float64),
+    }
+    if sh_degree is None:
+        out["colors"] = torch.rand(shape + (d,), generator=g, dtype=torch.float64)
+    else:
+        k = (sh_degree + 1) ** 2
+        out["colors"] = torch.randn(shape + (k, d), generator=g, dtype=torch.float64) * 0.4
+    return {k: v.to(dtype) for k, v in out.items()}
+
+
+def ring_cameras(
+    c: int, width: int, height: int, *, radius: float = 1.6, fovy: float = 50.0, dtype=torch.float32, seed: int = 0
+) -> Cameras:
+    """C cameras looking at the origin from jittered directions around it."""
+    g = torch.Generator().manual_seed(seed + 1000)
+    az = torch.linspace(0, 2 * torch.pi, c + 1, dtype=torch.float64)[:-1] + 0.3 * torch.rand(
+        c, generator=g, dtype=torch.float64
+    )
+    el = (torch.rand(c, generator=g, dtype=torch.float64) - 0.5) * 1.2
+    eyes = radius * torch.stack([el.cos() * az.cos(), el.cos() * az.sin(), el.sin()], -1)
+    return Cameras(look_at(eyes).to(dtype), intrinsics(torch.full((c,), fovy), width, height, dtype), width, height)
+
+
+def axis_camera(z: float, f: float, width: int, height: int, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """A camera at the origin looking down +z (identity viewmat) with focal length f: (viewmats [1,4,4], Ks [1,3,3])."""
+    del z
+    vm = torch.eye(4, dtype=dtype)[None]
+    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=dtype)[None]
+    return vm, K
+
+
+def cotangent_loss(out, names, seed: int = 0) -> torch.Tensor:
+    """sum_k <out_k, r_k> with fixed random cotangents r_k (STYLE rule 5)."""
+    total = 0.0
+    for i, name in enumerate(names):
+        x = getattr(out, name)
+        g = torch.Generator().manual_seed(seed + i)
+        total = total + (x * torch.randn(x.shape, generator=g, dtype=torch.float64).to(x.dtype)).sum()
+    return total

@@ -1,0 +1,168 @@
+"""GaussianScene (validation, transforms) and 3DGS PLY input/output."""
+
+import numpy as np
+import pytest
+import torch
+
+from gdbench.scene import GaussianScene, sphere_init
+from renderers.splat.sh import C0
+
+
+def _scene(n=20, degree=1, seed=0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    k = (degree + 1) ** 2
+    return GaussianScene(
+        torch.randn(n, 3, generator=g, dtype=dtype),
+        torch.randn(n, 4, generator=g, dtype=dtype),
+        torch.randn(n, 3, generator=g, dtype=dtype),
+        torch.randn(n, generator=g, dtype=dtype),
+        torch.randn(n, k, 3, generator=g, dtype=dtype),
+    )
+
+
+def _fields(s):
+    return [s.means, s.quats, s.log_scales, s.opacity_logits, s.sh]
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("quats", torch.zeros(20, 3), r"GaussianScene.quats: expected shape \[20, 4\], got \[20, 3\]"),
+        ("means", torch.zeros(20, 2), r"GaussianScene.means: expected shape \[N, 3\]"),
+        ("sh", torch.zeros(20, 5, 3), r"GaussianScene.sh: expected shape \[20, K, 3\] with K in"),
+        ("opacity_logits", torch.zeros(19), r"GaussianScene.opacity_logits: expected shape \[20\]"),
+        ("log_scales", torch.full((20, 3), float("nan")), "GaussianScene.log_scales: expected finite"),
+        ("means", torch.zeros(20, 3, dtype=torch.int64), "GaussianScene.means: expected dtype"),
+        ("sh", torch.zeros(20, 4, 3, dtype=torch.float64), "GaussianScene.sh: expected torch.float32"),
+        ("quats", np.zeros((20, 4)), "GaussianScene.quats: expected a torch.Tensor"),
+    ],
+)
+def test_validation_names_the_field(field, value, match):
+    s = _scene()
+    kw = {f: getattr(s, f) for f in ("means", "quats", "log_scales", "opacity_logits", "sh")}
+    kw[field] = value
+    with pytest.raises((ValueError, TypeError), match=match):
+        GaussianScene(**kw)
+
+
+def test_activations_and_render_args():
+    s = _scene()
+    torch.testing.assert_close(s.scales, torch.exp(s.log_scales))
+    torch.testing.assert_close(s.opacities, torch.sigmoid(s.opacity_logits))
+    torch.testing.assert_close(s.colors, s.sh[:, 0] * C0 + 0.5)
+    args = s.render_args()
+    assert args["sh_degree"] == 1 and args["colors"] is s.sh
+    rgb = torch.rand(5, 3)
+    t = GaussianScene.from_activated(torch.zeros(5, 3), torch.full((5, 3), 0.1), torch.full((5,), 0.3), rgb)
+    torch.testing.assert_close(t.colors, rgb)
+    torch.testing.assert_close(t.opacities, torch.full((5,), 0.3))
+
+
+def test_subset_cat_detach_to():
+    a, b = _scene(10, degree=0, seed=1), _scene(7, degree=2, seed=2)
+    c = GaussianScene.cat([a, b])
+    assert len(c) == 17 and c.sh_degree == 2
+    torch.testing.assert_close(c.sh[:10, 1:], torch.zeros(10, 8, 3))  # padded bands
+    torch.testing.assert_close(c.subset(torch.arange(10, 17)).means, b.means)
+    mask = torch.zeros(17, dtype=torch.bool)
+    mask[3] = True
+    assert len(c.subset(mask)) == 1
+    with pytest.raises(ValueError, match="index: expected a boolean mask"):
+        c.subset(torch.ones(3, dtype=torch.bool))
+    p = _scene()
+    p = GaussianScene(*(x.requires_grad_(True) for x in _fields(p)))
+    assert not any(x.requires_grad for x in _fields(p.detach()))
+    d = p.detach().to(torch.float64)
+    assert d.means.dtype == torch.float64 and d.sh.dtype == torch.float64
+    assert p.with_sh_degree(0).sh.shape == (20, 1, 3) and p.with_sh_degree(3).sh.shape == (20, 16, 3)
+
+
+def test_sphere_init_paper_defaults():
+    s = sphere_init(4096, generator=torch.Generator().manual_seed(0))
+    assert len(s) == 4096 and float(s.means.norm(dim=-1).max()) <= 0.5
+    torch.testing.assert_close(s.opacities, torch.full((4096,), 0.1))
+    torch.testing.assert_close(s.colors, torch.full((4096, 3), 0.5))
+    # uniform in the ball: the fraction inside radius 0.25 is (1/2)^3
+    inside = float((s.means.norm(dim=-1) < 0.25).float().mean())
+    assert abs(inside - 0.125) < 4 * (0.125 * 0.875 / 4096) ** 0.5
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_ply_round_trip_is_exact(tmp_path, degree):
+    s = _scene(33, degree=degree)
+    path = s.save_ply(tmp_path / "s.ply")
+    r = GaussianScene.load_ply(path)
+    for a, b in zip(_fields(s), _fields(r)):
+        assert torch.equal(a, b)
+
+
+def test_ply_layout_is_the_inria_one(tmp_path):
+    from plyfile import PlyData
+
+    s = _scene(4, degree=1)
+    s.save_ply(tmp_path / "s.ply")
+    v = PlyData.read(str(tmp_path / "s.ply"))["vertex"].data
+    names = list(v.dtype.names)
+    assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    assert names[-8:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    # f_rest is channel-major: f_rest_0..2 are the red coefficients of bands 1, f_rest_3.. green
+    assert float(v["f_rest_1"][2]) == float(s.sh[2, 2, 0]) and float(v["f_rest_3"][2]) == float(s.sh[2, 1, 1])
+    assert float(v["opacity"][1]) == float(s.opacity_logits[1]) and float(v["scale_2"][0]) == float(s.log_scales[0, 2])
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        (b"not a ply at all\n", "not a readable PLY"),
+        (b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n", "no 'vertex'"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
+            b"end_header\n0 0 0\n",
+            "missing vertex properties",
+        ),
+    ],
+)
+def test_malformed_ply(tmp_path, content, match):
+    p = tmp_path / "bad.ply"
+    p.write_bytes(content)
+    with pytest.raises(ValueError, match=match):
+        GaussianScene.load_ply(p)
+
+
+def test_truncated_ply(tmp_path):
+    path = _scene(50, degree=2).save_ply(tmp_path / "s.ply")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 100])
+    with pytest.raises(ValueError, match="not a readable PLY"):
+        GaussianScene.load_ply(path)
+    with pytest.raises(FileNotFoundError, match="no PLY file"):
+        GaussianScene.load_ply(tmp_path / "missing.ply")
+
+
+def test_reads_and_is_read_by_open3d(tmp_path):
+    o3d = pytest.importorskip("open3d", reason="open3d-cpu is installed by `make setup`")
+    o3c = o3d.core
+    g = np.random.default_rng(0)
+    n = 9
+    arrays = {
+        "positions": g.normal(size=(n, 3)), "scale": g.uniform(0.01, 1.0, size=(n, 3)), "rot": g.normal(size=(n, 4)),
+        "opacity": g.normal(size=(n, 1)), "f_dc": g.normal(size=(n, 3)), "f_rest": g.normal(size=(n, 15, 3)),
+    }  # fmt: skip
+    pc = o3d.t.geometry.PointCloud()
+    for k, a in arrays.items():
+        pc.point[k] = o3c.Tensor(a.astype(np.float32))
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "o3d.ply"), pc)
+    s = GaussianScene.load_ply(tmp_path / "o3d.ply")
+    f32 = lambda a: torch.from_numpy(a.astype(np.float32))  # noqa: E731
+    assert torch.equal(s.means, f32(arrays["positions"]))
+    assert torch.equal(s.sh[:, 0], f32(arrays["f_dc"]))
+    assert torch.equal(s.sh[:, 1:], f32(arrays["f_rest"]))
+    assert torch.equal(s.quats, f32(arrays["rot"]))
+    # Open3D holds linear scales in memory and writes their log, as the 3DGS layout wants
+    torch.testing.assert_close(s.log_scales, torch.log(f32(arrays["scale"])))
+    assert torch.equal(s.opacity_logits, f32(arrays["opacity"][:, 0]))
+    # and Open3D reads ours
+    s.save_ply(tmp_path / "ours.ply")
+    back = o3d.t.io.read_point_cloud(str(tmp_path / "ours.ply"))
+    np.testing.assert_array_equal(back.point["f_rest"].numpy(), arrays["f_rest"].astype(np.float32))
+    np.testing.assert_array_equal(back.point["opacity"].numpy()[:, 0], arrays["opacity"][:, 0].astype(np.float32))
