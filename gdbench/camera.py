@@ -263,8 +263,12 @@ class SphericalPoses:
         if n < 1:
             raise ValueError(f"n: expected at least one pose, got {n}")
         r = (radius, radius) if isinstance(radius, (int, float)) else radius
-        for name, (lo, hi) in (("radius", r), ("fovy_range", fovy_range), ("azimuth_range", azimuth_range),
-                               ("elevation_range", elevation_range)):  # fmt: skip
+        for name, (lo, hi) in (
+            ("radius", r),
+            ("fovy_range", fovy_range),
+            ("azimuth_range", azimuth_range),
+            ("elevation_range", elevation_range),
+        ):
             if lo > hi:
                 raise ValueError(f"{name}: expected (low, high) with low <= high, got ({lo}, {hi})")
         if not (-90.0 < elevation_range[0] and elevation_range[1] < 90.0):

@@ -75,8 +75,17 @@ def read_ply(path: str | Path) -> GaussianScene:
     except Exception as e:  # plyfile raises several types for truncated or malformed files
         raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e})") from e
     names = set(v.dtype.names or ())
-    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", *(f"scale_{i}" for i in range(3)),
-                *(f"rot_{i}" for i in range(4))]  # fmt: skip
+    required = [
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        *(f"scale_{i}" for i in range(3)),
+        *(f"rot_{i}" for i in range(4)),
+    ]
     missing = [r for r in required if r not in names]
     if missing:
         raise ValueError(f"{path}: not a 3DGS PLY, missing vertex properties {missing}")

@@ -32,8 +32,16 @@ def render_views(
     with torch.no_grad():
         for i in range(0, len(cams), batch):
             c = cams[i : i + batch].to(scene.means.device)
-            r = rasterize(**scene.render_args(), viewmats=c.viewmats, Ks=c.Ks, width=c.width, height=c.height,
-                          background=bg, outputs=("rgb",), **kwargs)  # fmt: skip
+            r = rasterize(
+                **scene.render_args(),
+                viewmats=c.viewmats,
+                Ks=c.Ks,
+                width=c.width,
+                height=c.height,
+                background=bg,
+                outputs=("rgb",),
+                **kwargs,
+            )
             out.append(r.rgb.clamp(0, 1))
     return torch.cat(out)
 

@@ -90,8 +90,9 @@ def test_orbit_spacing():
     cams = SphericalPoses.orbit(100, radius=1.5, elevation=10.0).cameras(32, 32)
     c = cams.centers.double()
     torch.testing.assert_close(c.norm(dim=-1), torch.full((100,), 1.5, dtype=torch.float64), atol=1e-5, rtol=0)
-    torch.testing.assert_close(c[:, 2], torch.full((100,), 1.5 * math.sin(math.radians(10)), dtype=torch.float64),
-                               atol=1e-5, rtol=0)  # fmt: skip
+    torch.testing.assert_close(
+        c[:, 2], torch.full((100,), 1.5 * math.sin(math.radians(10)), dtype=torch.float64), atol=1e-5, rtol=0
+    )
     az = torch.rad2deg(torch.atan2(c[:, 1], c[:, 0]))
     step = (az.roll(-1) - az + 180) % 360 - 180
     torch.testing.assert_close(step, torch.full((100,), 3.6, dtype=torch.float64), atol=1e-4, rtol=0)

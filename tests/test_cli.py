@@ -25,8 +25,9 @@ def test_demo_writes_turntable_that_matches_a_direct_render(tmp_path):
     # oracle: the first tile equals a direct render of the first orbit camera
     scene = demo_scene(400, seed=0)
     cams = SphericalPoses.orbit(4, radius=1.3, elevation=20.0, fovy=45.0).cameras(48, 48)
-    out = rasterize(**scene.render_args(), viewmats=cams.viewmats[:1], Ks=cams.Ks[:1], width=48, height=48,
-                    background=torch.ones(3))  # fmt: skip
+    out = rasterize(
+        **scene.render_args(), viewmats=cams.viewmats[:1], Ks=cams.Ks[:1], width=48, height=48, background=torch.ones(3)
+    )
     direct = (out.rgb[0].clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
     assert np.array_equal(sheet[:, :48], direct)
     assert direct.std() > 10  # not a blank frame
@@ -43,3 +44,13 @@ def test_import_is_cheap():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def test_noise_preview_writes_figure_with_unit_variance(tmp_path):
+    from gdbench.cli import Noise
+
+    stats = main(Noise(preview=True, out=tmp_path / "p.png", res=48, n_gaussians=800, scale=0.04))
+    assert (tmp_path / "p.png").stat().st_size > 10_000
+    assert 0.3 < stats["coverage"] <= 1.0
+    assert abs(stats["var"] - 1.0) < 0.05 and abs(stats["mean"]) < 0.05
+    assert stats["ks_statistic"] < 0.02

@@ -93,8 +93,9 @@ def test_early_termination(compositor, t_min, kept):
 
 
 def test_weight_sq_closed_form(compositor):
-    out = _render([(2.0, (0, 0), 2.0, 0.6, [1, 1, 1]), (3.0, (0, 0), 2.0, 0.5, [1, 1, 1])], compositor,
-                  outputs=("weight_sq",))  # fmt: skip
+    out = _render(
+        [(2.0, (0, 0), 2.0, 0.6, [1, 1, 1]), (3.0, (0, 0), 2.0, 0.5, [1, 1, 1])], compositor, outputs=("weight_sq",)
+    )
     assert float(out.weight_sq[0, 16, 16, 0]) == pytest.approx(0.6**2 + (0.4 * 0.5) ** 2, rel=1e-12)
 
 
@@ -110,8 +111,16 @@ def test_cpp_and_torch_compositors_agree(dtype):
     names = ("rgb", "alpha", "depth", "weight_sq")
     res = {}
     for backend in ("cpp", "torch"):
-        out = rasterize(*params, cams.viewmats, cams.Ks, 50, 37, outputs=names, backend=backend,
-                        background=torch.tensor([0.3, 0.2, 0.1], dtype=dtype))  # fmt: skip
+        out = rasterize(
+            *params,
+            cams.viewmats,
+            cams.Ks,
+            50,
+            37,
+            outputs=names,
+            backend=backend,
+            background=torch.tensor([0.3, 0.2, 0.1], dtype=dtype),
+        )
         res[backend] = (out, torch.autograd.grad(cotangent_loss(out, names), params))
     tol = {torch.float32: dict(rtol=1e-4, atol=1e-5), torch.float64: dict(rtol=1e-10, atol=1e-11)}[dtype]
     assert float(res["cpp"][0].alpha.detach().max()) > 0.5

@@ -14,8 +14,9 @@ OUTS = ("rgb", "alpha", "depth", "weight_sq")
 @pytest.mark.parametrize("param", ["means", "quats", "scales", "opacities", "colors", "background"])
 @pytest.mark.parametrize("sh_degree", [None, 1])
 def test_gradcheck(compositor, param, sh_degree):
-    gs = random_gaussians(6, seed=11, dtype=torch.float64, spread=0.15, scale=(0.05, 0.15), opacity=(0.3, 0.8),
-                          sh_degree=sh_degree)  # fmt: skip
+    gs = random_gaussians(
+        6, seed=11, dtype=torch.float64, spread=0.15, scale=(0.05, 0.15), opacity=(0.3, 0.8), sh_degree=sh_degree
+    )
     cams = ring_cameras(2, 10, 8, dtype=torch.float64, fovy=40.0)
     bg = torch.tensor([0.3, 0.6, 0.2], dtype=torch.float64)
     inputs = dict(gs, background=bg)
@@ -23,8 +24,17 @@ def test_gradcheck(compositor, param, sh_degree):
     def f(x):
         args = dict(inputs, **{param: x})
         bgx = args.pop("background")
-        out = rasterize(**args, viewmats=cams.viewmats, Ks=cams.Ks, width=10, height=8, sh_degree=sh_degree,
-                        background=bgx, outputs=OUTS, backend=compositor)  # fmt: skip
+        out = rasterize(
+            **args,
+            viewmats=cams.viewmats,
+            Ks=cams.Ks,
+            width=10,
+            height=8,
+            sh_degree=sh_degree,
+            background=bgx,
+            outputs=OUTS,
+            backend=compositor,
+        )
         return tuple(getattr(out, k) for k in OUTS)
 
     base = f(inputs[param])

@@ -189,8 +189,9 @@ def test_opacity_logits_extreme(compositor, logit):
     gs = _single(2.0, 0.2)
     logits = torch.full((1,), logit, requires_grad=True)
     vm, K = axis_camera(1.0, 30.0, 33, 33, dtype=torch.float32)  # odd: a pixel centre on the mean
-    out = rasterize(gs["means"], gs["quats"], gs["scales"], torch.sigmoid(logits), gs["colors"], vm, K, 33, 33,
-                    backend=compositor)  # fmt: skip
+    out = rasterize(
+        gs["means"], gs["quats"], gs["scales"], torch.sigmoid(logits), gs["colors"], vm, K, 33, 33, backend=compositor
+    )
     ref = rasterize_reference(
         gs["means"], gs["quats"], gs["scales"], torch.sigmoid(logits), gs["colors"], vm, K, 33, 33
     )

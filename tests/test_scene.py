@@ -145,9 +145,13 @@ def test_reads_and_is_read_by_open3d(tmp_path):
     g = np.random.default_rng(0)
     n = 9
     arrays = {
-        "positions": g.normal(size=(n, 3)), "scale": g.uniform(0.01, 1.0, size=(n, 3)), "rot": g.normal(size=(n, 4)),
-        "opacity": g.normal(size=(n, 1)), "f_dc": g.normal(size=(n, 3)), "f_rest": g.normal(size=(n, 15, 3)),
-    }  # fmt: skip
+        "positions": g.normal(size=(n, 3)),
+        "scale": g.uniform(0.01, 1.0, size=(n, 3)),
+        "rot": g.normal(size=(n, 4)),
+        "opacity": g.normal(size=(n, 1)),
+        "f_dc": g.normal(size=(n, 3)),
+        "f_rest": g.normal(size=(n, 15, 3)),
+    }
     pc = o3d.t.geometry.PointCloud()
     for k, a in arrays.items():
         pc.point[k] = o3c.Tensor(a.astype(np.float32))

@@ -6,6 +6,6 @@ depth), ``composite`` (front-to-back blending with a hand-written backward, wrap
 twin used as the test oracle and benchmark baseline.
 """
 
-from .rasterize import OUTPUTS, RenderOutput, rasterize
+from .rasterize import OUTPUTS, Prepared, RenderOutput, composite_features, prepare, rasterize
 
-__all__ = ["OUTPUTS", "RenderOutput", "rasterize"]
+__all__ = ["OUTPUTS", "Prepared", "RenderOutput", "composite_features", "prepare", "rasterize"]

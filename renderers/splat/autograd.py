@@ -93,9 +93,15 @@ class _Composite(torch.autograd.Function):
         if ctx.backend == "cpp":
             empty = ref.new_zeros(0)
             per_pair = load_extension().composite_backward(
-                *splats, bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y, bins.tile_size, *ctx.blend,
+                *splats,
+                bins.gauss_ids,
+                bins.tile_start,
+                bins.tiles_x,
+                bins.tiles_y,
+                bins.tile_size,
+                *ctx.blend,
                 *(g.contiguous() if g is not None else empty for g in grads),
-            )  # fmt: skip
+            )
             g = Splats(
                 *(torch.zeros_like(x).index_add_(0, bins.gauss_ids, pg) for x, pg in zip(splats, per_pair, strict=True))
             )

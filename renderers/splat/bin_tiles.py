@@ -64,7 +64,8 @@ def bin_tiles(
     ids = torch.nonzero(visible.reshape(-1), as_tuple=False).squeeze(1)
     order = torch.sort(depths.reshape(-1)[ids], stable=True).indices
     ids = ids[order]
-    ids = ids[torch.sort(torch.div(ids, N, rounding_mode="floor"), stable=True).indices]
+    if I > 1:
+        ids = ids[torch.sort(torch.div(ids, N, rounding_mode="floor"), stable=True).indices]
 
     x0, x1, y0, y1 = (r.reshape(-1)[ids] for r in tile_ranges(means2d, radii, tiles_x, tiles_y, tile_size))
     w = x1 - x0 + 1

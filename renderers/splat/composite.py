@@ -149,9 +149,16 @@ def _chunk_weights(chunk: Chunk, splats: Splats, bins: TileBins, blend: BlendPar
 
 @torch.no_grad()
 def composite_forward(
-    splats: Splats, bins: TileBins, chunks: list[Chunk], n_images: int, blend: BlendParams,
-    *, features: bool = True, depth: bool = False, weight_sq: bool = False,
-) -> Outputs:  # fmt: skip
+    splats: Splats,
+    bins: TileBins,
+    chunks: list[Chunk],
+    n_images: int,
+    blend: BlendParams,
+    *,
+    features: bool = True,
+    depth: bool = False,
+    weight_sq: bool = False,
+) -> Outputs:
     """Composite every tile; outputs in tile layout [T, tile_area(, D)]."""
     n_tiles = n_images * bins.tiles_x * bins.tiles_y
     area = bins.tile_size**2

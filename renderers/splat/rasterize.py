@@ -10,10 +10,10 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from . import _checks as ck
-from .autograd import composite
-from .bin_tiles import bin_tiles
+from .autograd import composite, resolve_backend
+from .bin_tiles import TileBins, bin_tiles
 from .composite import BlendParams, Splats
-from .project import project, view_dirs
+from .project import Projection, project, view_dirs
 from .sh import eval_sh, num_sh_bases
 
 OUTPUTS = ("rgb", "alpha", "depth", "weight_sq", "means2d", "radii", "visible")
@@ -37,11 +37,17 @@ class RenderOutput(NamedTuple):
     visible: Bool[Tensor, "*B C N"] | None = None
 
 
-def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, background):
-    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
-               "viewmats": viewmats, "Ks": Ks}  # fmt: skip
-    if background is not None:
-        tensors["background"] = background
+def _check_geometry(means, quats, scales, opacities, viewmats, Ks, width, height, extra: dict[str, Tensor]):
+    """Types, devices, shapes and values of the geometry; returns (batch, N, C)."""
+    tensors = {
+        "means": means,
+        "quats": quats,
+        "scales": scales,
+        "opacities": opacities,
+        "viewmats": viewmats,
+        "Ks": Ks,
+        **extra,
+    }
     for name, x in tensors.items():  # types first, then devices, then shapes, then values
         ck.check_tensor(name, x, finite=False)
     ck.check_same(tensors)
@@ -57,6 +63,22 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     ck.check_shape("viewmats", viewmats, ("C", 4, 4), batch)
     C = viewmats.shape[-3]
     ck.check_shape("Ks", Ks, (C, 3, 3), batch)
+    ck.check_size("width", width)
+    ck.check_size("height", height)
+    return batch, N, C
+
+
+def _check_values(tensors: dict[str, Tensor], scales: Tensor | None, opacities: Tensor | None) -> None:
+    for name, x in tensors.items():
+        ck.check_tensor(name, x, finite=True)
+    if scales is not None and scales.numel() and bool((scales < 0).any()):
+        raise ValueError("scales: expected non-negative linear scales (pass exp(log_scales))")
+    if opacities is not None and opacities.numel() and bool(((opacities < 0) | (opacities > 1)).any()):
+        raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
+
+
+def _check_colors(colors, background, batch, N, C, sh_degree) -> tuple[int, bool]:
+    """Shape of colours / SH coefficients and background; returns (D, per_camera)."""
     sh = sh_degree is not None
     if sh and sh_degree not in (0, 1, 2, 3):
         raise ValueError(f"sh_degree: expected None or 0..3, got {sh_degree}")
@@ -79,15 +101,7 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     D = colors.shape[-1]
     if background is not None and background.shape != (D,):
         ck.check_shape("background", background, (C, D), batch)
-    ck.check_size("width", width)
-    ck.check_size("height", height)
-    for name, x in tensors.items():
-        ck.check_tensor(name, x, finite=True)
-    if scales.numel() and bool((scales < 0).any()):
-        raise ValueError("scales: expected non-negative linear scales (pass exp(log_scales))")
-    if opacities.numel() and bool(((opacities < 0) | (opacities > 1)).any()):
-        raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
-    return batch, N, C, D, per_camera
+    return D, per_camera
 
 
 def check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, outputs) -> tuple[str, ...]:
@@ -105,6 +119,216 @@ def check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, ou
     if bad:
         raise ValueError(f"outputs: unknown names {bad}; expected names from {OUTPUTS}")
     return tuple(outputs)
+
+
+class Prepared(NamedTuple):
+    """The colour-independent part of a render: projection and tile lists of N Gaussians in
+    C cameras. Render any number of feature sets with ``composite_features``; the tile lists
+    are reused, and gradients reach the geometry through ``projection``."""
+
+    projection: Projection
+    bins: TileBins
+    opacities: Tensor
+    """[I * N] opacities, one copy per image."""
+    batch: tuple[int, ...]
+    n_cameras: int
+    n: int
+    width: int
+    height: int
+    blend: BlendParams
+    chunk_budget: int
+    backend: str
+
+
+def _prepare(
+    means,
+    quats,
+    scales,
+    opacities,
+    viewmats,
+    Ks,
+    width,
+    height,
+    batch,
+    C,
+    N,
+    *,
+    near_plane,
+    far_plane,
+    eps2d,
+    alpha_min,
+    alpha_max,
+    t_min,
+    tile_size,
+    chunk_budget,
+    backend,
+) -> Prepared:
+    proj = project(
+        means,
+        quats,
+        scales,
+        opacities,
+        viewmats,
+        Ks,
+        width,
+        height,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        alpha_min=alpha_min,
+    )
+    I = C * int(torch.Size(batch).numel())
+    bins = bin_tiles(
+        proj.means2d.detach().reshape(I, N, 2),
+        proj.radii.reshape(I, N, 2),
+        proj.depths.detach().reshape(I, N),
+        proj.visible.reshape(I, N),
+        width,
+        height,
+        tile_size,
+    )
+    opac = opacities[..., None, :].expand(batch + (C, N)).reshape(I * N)
+    blend = BlendParams(alpha_min, alpha_max, t_min)
+    return Prepared(proj, bins, opac, batch, C, N, width, height, blend, chunk_budget, backend)
+
+
+def prepare(
+    means: Float[Tensor, "*B N 3"],
+    quats: Float[Tensor, "*B N 4"],
+    scales: Float[Tensor, "*B N 3"],
+    opacities: Float[Tensor, "*B N"],
+    viewmats: Float[Tensor, "*B C 4 4"],
+    Ks: Float[Tensor, "*B C 3 3"],
+    width: int,
+    height: int,
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    alpha_min: float = 1.0 / 255.0,
+    alpha_max: float = 0.99,
+    t_min: float = 1e-4,
+    tile_size: int = 16,
+    chunk_budget: int = 1 << 22,
+    backend: str = "auto",
+    check_values: bool = True,
+) -> Prepared:
+    """Project and bin once; then ``composite_features(prepared, features)`` per feature set.
+
+    Same arguments and checks as ``rasterize`` minus the colours. ``check_values=False``
+    skips the value scans (finite, ranges) for geometry that was checked before, such as a
+    fixed noise cloud rendered every step; types and shapes are always checked.
+    """
+    batch, N, C = _check_geometry(means, quats, scales, opacities, viewmats, Ks, width, height, {})
+    check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, ())
+    if check_values:
+        _check_values(
+            {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "viewmats": viewmats, "Ks": Ks},
+            scales,
+            opacities,
+        )
+    ck.check_size("tile_size", tile_size)
+    ck.check_size("chunk_budget", chunk_budget)
+    resolve_backend(backend, means.device)
+    return _prepare(
+        means,
+        quats,
+        scales,
+        opacities,
+        viewmats,
+        Ks,
+        width,
+        height,
+        batch,
+        C,
+        N,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        alpha_min=alpha_min,
+        alpha_max=alpha_max,
+        t_min=t_min,
+        tile_size=tile_size,
+        chunk_budget=chunk_budget,
+        backend=backend,
+    )
+
+
+def composite_features(
+    prepared: Prepared,
+    features: Tensor,
+    *,
+    background: Tensor | None = None,
+    outputs: Sequence[str] = ("rgb", "alpha"),
+) -> RenderOutput:
+    """Blend per-Gaussian features ``[*B, (C,) N, D]`` over a ``prepare``d projection."""
+    p = prepared
+    outputs = check_settings(0.01, 1e10, 0.0, p.blend.alpha_min, p.blend.alpha_max, p.blend.t_min, outputs)
+    ck.check_tensor("features", features, finite=False)
+    if background is not None:
+        ck.check_tensor("background", background, finite=False)
+    D, per_camera = _check_colors(features, background, p.batch, p.n, p.n_cameras, None)
+    extra = {"features": features} | ({"background": background} if background is not None else {})
+    ck.check_same({"means2d": p.projection.means2d, **extra})
+    _check_values(extra, None, None)
+    return _composite_images(p, features, per_camera, D, background, set(outputs))
+
+
+def _composite_images(p: Prepared, feats: Tensor, per_camera: bool, D: int, background, want: set) -> RenderOutput:
+    batch, C, N, width, height = p.batch, p.n_cameras, p.n, p.width, p.height
+    proj, bins = p.projection, p.bins
+    result = {
+        "means2d": proj.means2d if "means2d" in want else None,
+        "radii": proj.radii if "radii" in want else None,
+        "visible": proj.visible if "visible" in want else None,
+    }
+    if not want & {"rgb", "alpha", "depth", "weight_sq"}:
+        return RenderOutput(**result)
+    I = C * int(torch.Size(batch).numel())
+    feats = feats if per_camera else feats[..., None, :, :].expand(batch + (C, N, D))
+    flat = Splats(
+        proj.means2d.reshape(I * N, 2),
+        proj.conics.reshape(I * N, 3),
+        p.opacities,
+        feats.reshape(I * N, D),
+        proj.depths.reshape(I * N),
+    )
+    out = composite(
+        flat,
+        bins,
+        I,
+        p.blend,
+        features="rgb" in want,
+        depth="depth" in want,
+        weight_sq="weight_sq" in want,
+        budget=p.chunk_budget,
+        backend=p.backend,
+    )
+
+    def untile(x: Tensor) -> Tensor:
+        ts = bins.tile_size
+        x = x.reshape(I, bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 1, 3, 2, 4, 5)
+        x = x.reshape(I, bins.tiles_y * ts, bins.tiles_x * ts, -1)[:, :height, :width]
+        return x.reshape(batch + (C, height, width, x.shape[-1]))
+
+    T = untile(out.transmittance)
+    alpha = 1.0 - T
+    if "rgb" in want:
+        rgb = untile(out.features)
+        if background is not None:
+            bg = background if background.dim() == 1 else background[..., None, None, :]
+            rgb = rgb + T * bg
+        result["rgb"] = rgb
+    if "alpha" in want:
+        result["alpha"] = alpha
+    if "depth" in want:
+        acc = untile(out.depth)
+        covered = alpha > 0
+        safe = torch.where(covered, alpha, torch.ones_like(alpha))
+        result["depth"] = torch.where(covered, acc / safe, torch.zeros_like(acc))
+    if "weight_sq" in want:
+        result["weight_sq"] = untile(out.weight_sq)
+    return RenderOutput(**result)
 
 
 def rasterize(
@@ -147,73 +371,53 @@ def rasterize(
     "torch" (any device) or "auto" (cpp on CPU when it builds, else torch); the two agree
     to float rounding (tested).
     """
-    batch, N, C, D, per_camera = _check_inputs(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, background
+    extra = {"colors": colors} | ({"background": background} if background is not None else {})
+    batch, N, C = _check_geometry(means, quats, scales, opacities, viewmats, Ks, width, height, extra)
+    D, per_camera = _check_colors(colors, background, batch, N, C, sh_degree)
+    _check_values(
+        {
+            "means": means,
+            "quats": quats,
+            "scales": scales,
+            "opacities": opacities,
+            "viewmats": viewmats,
+            "Ks": Ks,
+            **extra,
+        },
+        scales,
+        opacities,
     )
     outputs = check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, outputs)
     ck.check_size("tile_size", tile_size)
     ck.check_size("chunk_budget", chunk_budget)
+    resolve_backend(backend, means.device)
     want = set(outputs)
-
-    proj = project(
-        means, quats, scales, opacities, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, alpha_min=alpha_min,
-    )  # fmt: skip
-    result = {
-        "means2d": proj.means2d if "means2d" in want else None,
-        "radii": proj.radii if "radii" in want else None,
-        "visible": proj.visible if "visible" in want else None,
-    }
-    images = want & {"rgb", "alpha", "depth", "weight_sq"}
-    if not images:
-        return RenderOutput(**result)
-
-    I = C * int(torch.Size(batch).numel())
-    if sh_degree is not None:
-        coeffs = colors if per_camera else colors[..., None, :, :, :].expand(batch + (C, N) + colors.shape[-2:])
-        feats = eval_sh(sh_degree, coeffs, view_dirs(means, viewmats))
-    else:
-        feats = colors if per_camera else colors[..., None, :, :].expand(batch + (C, N, D))
-
-    flat = Splats(
-        proj.means2d.reshape(I * N, 2),
-        proj.conics.reshape(I * N, 3),
-        opacities[..., None, :].expand(batch + (C, N)).reshape(I * N),
-        feats.reshape(I * N, D),
-        proj.depths.reshape(I * N),
-    )
-    bins = bin_tiles(
-        proj.means2d.detach().reshape(I, N, 2), proj.radii.reshape(I, N, 2), proj.depths.detach().reshape(I, N),
-        proj.visible.reshape(I, N), width, height, tile_size,
-    )  # fmt: skip
-    out = composite(
-        flat, bins, I, BlendParams(alpha_min, alpha_max, t_min),
-        features="rgb" in want, depth="depth" in want, weight_sq="weight_sq" in want, budget=chunk_budget,
+    p = _prepare(
+        means,
+        quats,
+        scales,
+        opacities,
+        viewmats,
+        Ks,
+        width,
+        height,
+        batch,
+        C,
+        N,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        alpha_min=alpha_min,
+        alpha_max=alpha_max,
+        t_min=t_min,
+        tile_size=tile_size,
+        chunk_budget=chunk_budget,
         backend=backend,
-    )  # fmt: skip
-
-    def untile(x: Tensor) -> Tensor:
-        ts = tile_size
-        x = x.reshape(I, bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 1, 3, 2, 4, 5)
-        x = x.reshape(I, bins.tiles_y * ts, bins.tiles_x * ts, -1)[:, :height, :width]
-        return x.reshape(batch + (C, height, width, x.shape[-1]))
-
-    T = untile(out.transmittance)
-    alpha = 1.0 - T
-    if "rgb" in want:
-        rgb = untile(out.features)
-        if background is not None:
-            bg = background if background.dim() == 1 else background[..., None, None, :]
-            rgb = rgb + T * bg
-        result["rgb"] = rgb
-    if "alpha" in want:
-        result["alpha"] = alpha
-    if "depth" in want:
-        acc = untile(out.depth)
-        covered = alpha > 0
-        result["depth"] = torch.where(
-            covered, acc / torch.where(covered, alpha, torch.ones_like(alpha)), torch.zeros_like(acc)
-        )
-    if "weight_sq" in want:
-        result["weight_sq"] = untile(out.weight_sq)
-    return RenderOutput(**result)
+    )
+    feats = colors
+    if sh_degree is not None and "rgb" in want:
+        coeffs = colors if per_camera else colors[..., None, :, :, :].expand(batch + (C, N) + colors.shape[-2:])
+        feats, per_camera = eval_sh(sh_degree, coeffs, view_dirs(means, viewmats)), True
+    elif sh_degree is not None:
+        feats = colors[..., 0, :]  # SH is only evaluated for rgb; the other outputs ignore features
+    return _composite_images(p, feats, per_camera, D, background, want)

@@ -68,10 +68,25 @@ def project_reference(means, quats, scales, viewmat, K, width, height, *, near_p
 
 
 def render_image(
-    means, quats, scales, opacities, feats, viewmat, K, width, height, *,
-    background=None, near_plane=0.01, far_plane=1e10, eps2d=0.3,
-    alpha_min=1.0 / 255.0, alpha_max=0.99, t_min=1e-4, pixel_chunk=None,
-) -> dict[str, Tensor]:  # fmt: skip
+    means,
+    quats,
+    scales,
+    opacities,
+    feats,
+    viewmat,
+    K,
+    width,
+    height,
+    *,
+    background=None,
+    near_plane=0.01,
+    far_plane=1e10,
+    eps2d=0.3,
+    alpha_min=1.0 / 255.0,
+    alpha_max=0.99,
+    t_min=1e-4,
+    pixel_chunk=None,
+) -> dict[str, Tensor]:
     """One camera, N Gaussians with per-Gaussian features [N, D]; returns [H, W, *] images."""
     mean2, cov2, z, ok = project_reference(
         means, quats, scales, viewmat, K, width, height, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d
@@ -113,12 +128,28 @@ def render_image(
 
 
 def rasterize_reference(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
-    sh_degree=None, background=None, near_plane=0.01, far_plane=1e10, eps2d=0.3,
-    alpha_min=1.0 / 255.0, alpha_max=0.99, t_min=1e-4,
-    outputs: Sequence[str] = ("rgb", "alpha"), dtype: torch.dtype | None = torch.float64,
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    *,
+    sh_degree=None,
+    background=None,
+    near_plane=0.01,
+    far_plane=1e10,
+    eps2d=0.3,
+    alpha_min=1.0 / 255.0,
+    alpha_max=0.99,
+    t_min=1e-4,
+    outputs: Sequence[str] = ("rgb", "alpha"),
+    dtype: torch.dtype | None = torch.float64,
     pixel_chunk: int | None = None,
-) -> RenderOutput:  # fmt: skip
+) -> RenderOutput:
     """Same call as ``renderers.splat.rasterize``; computed densely in ``dtype`` (None keeps the input's).
 
     Gradients flow back to the inputs in their own dtype. Returns image outputs only
@@ -151,10 +182,24 @@ def rasterize_reference(
             if background is not None:
                 bg = cast(background) if background.dim() == 1 else at(background, b)[c]
             out = render_image(
-                m, q, s, o, feats, vm[c], ks[c], width, height, background=bg,
-                near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
-                alpha_min=alpha_min, alpha_max=alpha_max, t_min=t_min, pixel_chunk=pixel_chunk,
-            )  # fmt: skip
+                m,
+                q,
+                s,
+                o,
+                feats,
+                vm[c],
+                ks[c],
+                width,
+                height,
+                background=bg,
+                near_plane=near_plane,
+                far_plane=far_plane,
+                eps2d=eps2d,
+                alpha_min=alpha_min,
+                alpha_max=alpha_max,
+                t_min=t_min,
+                pixel_chunk=pixel_chunk,
+            )
             for k in images:
                 images[k].append(out[k])
     shape = batch + (C, height, width)

@@ -1,0 +1,307 @@
+"""Rendering speed and memory of the splat renderer against the dense all-pairs path.
+
+Sweep: N in {1k, 10k, 100k} x resolution in {64, 256, 512} x path x {forward, forward+backward}.
+Paths: ``splat`` (C++ compositor), ``splat-torch`` (the pure-torch compositor, the CUDA path)
+and ``dense`` (``renderers.splat.reference`` in float32: every Gaussian at every pixel).
+Dense runs only where it fits in time and memory (see ``DENSE_LIMITS``); skipped cells are
+written with the reason. Each case runs in its own process so that its peak RSS is its own.
+
+    python -m gdbench.bench.bm_render --out bench_results/render.csv       # full sweep
+    python -m gdbench.bench.bm_render --quick --inprocess --out /tmp/r.csv # smoke
+
+Writes the CSV, ``<stem>_summary.json`` (targets, fits) and ``<stem>_fit.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from .common import environment, peak_rss_mb, random_cloud, rss_mb, timeit, write_csv, write_json
+
+PATHS = ("splat", "splat-torch", "dense")
+MODES = ("fwd", "fwd+bwd")
+FULL = {"n": (1_000, 10_000, 100_000), "res": (64, 256, 512)}
+QUICK = {"n": (300, 1_000), "res": (32, 64)}
+# Dense all-pairs cost is N x pixels; beyond these it takes minutes (fwd) or tens of GB (bwd).
+DENSE_LIMITS = {"fwd": 7e8, "fwd+bwd": 3e7}
+TARGETS = {
+    "dense_over_splat_fwd_10k_256": 20.0,  # splat forward at least 20x faster than dense
+    "splat_fwdbwd_10k_256_s": 0.5,  # forward+backward under 0.5 s
+    "splat_peak_rss_mb_100k_512": 2048.0,  # 100k Gaussians at 512x512 within 2 GB
+}
+
+
+def _camera(res: int, device: str):
+    from gdbench.camera import SphericalPoses
+
+    return SphericalPoses.orbit(1, radius=1.5, elevation=20.0, fovy=50.0).cameras(res, res).to(device)
+
+
+def count_intersections(scene: dict, cams, tile_size: int = 16) -> int:
+    """Tile-Gaussian intersections of the scene in these cameras (the splat renderer's work)."""
+    from renderers.splat.bin_tiles import bin_tiles
+    from renderers.splat.project import project
+
+    with torch.no_grad():
+        p = project(
+            scene["means"],
+            scene["quats"],
+            scene["scales"],
+            scene["opacities"],
+            cams.viewmats,
+            cams.Ks,
+            cams.width,
+            cams.height,
+        )
+        return int(
+            bin_tiles(p.means2d, p.radii, p.depths, p.visible, cams.width, cams.height, tile_size).gauss_ids.numel()
+        )
+
+
+def setup(path: str, n: int, res: int, mode: str, device: str = "cpu", seed: int = 0) -> Callable[[], object]:
+    """The closure that renders (and back-propagates) one case."""
+    from renderers.splat import rasterize
+    from renderers.splat.reference import rasterize_reference
+
+    scene = {k: v.to(device) for k, v in random_cloud(n, seed=seed).items()}
+    cams = _camera(res, device)
+    view = dict(viewmats=cams.viewmats, Ks=cams.Ks, width=res, height=res)
+    if path == "dense":
+
+        def render(**s):
+            return rasterize_reference(**s, **view, dtype=torch.float32, pixel_chunk=8192 if mode == "fwd" else None)
+    else:
+        backend = "cpp" if path == "splat" else "torch"
+
+        def render(**s):
+            return rasterize(**s, **view, backend=backend)
+
+    if mode == "fwd":
+
+        def fwd():
+            with torch.no_grad():
+                return render(**scene).rgb
+
+        return fwd
+    params = {k: v.clone().requires_grad_(True) for k, v in scene.items()}
+    g = torch.Generator(device=device).manual_seed(seed)
+    cot = torch.randn(1, res, res, 3, generator=g, device=device)
+
+    def fwd_bwd():
+        for p in params.values():
+            p.grad = None
+        out = render(**params)
+        ((out.rgb * cot).sum() + out.alpha.sum()).backward()
+
+    return fwd_bwd
+
+
+def run_case(path: str, n: int, res: int, mode: str, device: str = "cpu") -> dict:
+    """Time one case in this process; returns one CSV row."""
+    row = {"path": path, "n": n, "res": res, "mode": mode, "device": device, "pixels": res * res}
+    fn = setup(path, n, res, mode, device)
+    row["intersections"] = count_intersections(
+        {k: v.to(device) for k, v in random_cloud(n).items()}, _camera(res, device)
+    )
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    base = rss_mb()
+    dense = path == "dense"
+    t = timeit(fn, device=device, warmup=1 if dense else 2, min_repeats=1 if dense else 3, budget_s=2.0)
+    row.update(t)
+    row["peak_rss_mb"] = peak_rss_mb()
+    row["peak_above_start_mb"] = max(0.0, row["peak_rss_mb"] - base)
+    if device == "cuda":
+        row["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    row["status"] = "ok"
+    return row
+
+
+def _skip_reason(path: str, n: int, res: int, mode: str) -> str | None:
+    if path == "dense" and n * res * res > DENSE_LIMITS[mode]:
+        return f"skipped: dense {mode} of N x pixels = {n * res * res:.1e} > {DENSE_LIMITS[mode]:.0e}"
+    return None
+
+
+def _fit(rows: list[dict], key: str) -> dict:
+    """Least-squares time = a + b * rows[key]; returns a, b and R^2."""
+    x = torch.tensor([float(r[key]) for r in rows], dtype=torch.float64)
+    y = torch.tensor([float(r["median_s"]) for r in rows], dtype=torch.float64)
+    A = torch.stack([torch.ones_like(x), x], 1)
+    coef = torch.linalg.lstsq(A, y[:, None]).solution[:, 0]
+    resid = y - A @ coef
+    r2 = 1 - float((resid**2).sum() / ((y - y.mean()) ** 2).sum()) if len(rows) > 2 else float("nan")
+    return {"intercept_s": float(coef[0]), "slope_s": float(coef[1]), "r2": r2, "points": len(rows)}
+
+
+def summarise(rows: list[dict]) -> dict:
+    ok = [r for r in rows if r.get("status") == "ok"]
+
+    def find(path, n, res, mode):
+        return next((r for r in ok if (r["path"], int(r["n"]), int(r["res"]), r["mode"]) == (path, n, res, mode)), None)
+
+    out: dict = {"environment": environment(), "targets": {}, "fits": {}}
+    s, d = find("splat", 10_000, 256, "fwd"), find("dense", 10_000, 256, "fwd")
+    if s and d:
+        ratio = float(d["median_s"]) / float(s["median_s"])
+        target = TARGETS["dense_over_splat_fwd_10k_256"]
+        out["targets"]["dense_over_splat_fwd_10k_256"] = {
+            "value": ratio,
+            "target": f">= {target}",
+            "met": ratio >= target,
+        }
+    fb = find("splat", 10_000, 256, "fwd+bwd")
+    if fb:
+        v, target = float(fb["median_s"]), TARGETS["splat_fwdbwd_10k_256_s"]
+        out["targets"]["splat_fwdbwd_10k_256_s"] = {"value": v, "target": f"< {target}", "met": v < target}
+    big = [r for r in (find("splat", 100_000, 512, m) for m in MODES) if r]
+    if big:
+        v, target = max(float(r["peak_rss_mb"]) for r in big), TARGETS["splat_peak_rss_mb_100k_512"]
+        out["targets"]["splat_peak_rss_mb_100k_512"] = {"value": v, "target": f"<= {target}", "met": v <= target}
+    for path in ("splat", "splat-torch"):
+        for mode in MODES:
+            sel = [r for r in ok if r["path"] == path and r["mode"] == mode]
+            if len(sel) >= 3:
+                for r in sel:
+                    r["n_x_pixels"] = int(r["n"]) * int(r["pixels"])
+                out["fits"][f"{path} {mode}"] = {
+                    "vs_intersections": _fit(sel, "intersections"),
+                    "vs_n_x_pixels": _fit(sel, "n_x_pixels"),
+                }
+    return out
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in rows if r.get("status") == "ok"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for ax, key, label in ((axes[0], "intersections", "tile-Gaussian intersections"), (axes[1], None, "N x pixels")):
+        for p, marker in zip(PATHS, "os^"):
+            for mode, fill in zip(MODES, ("full", "none")):
+                sel = [r for r in ok if r["path"] == p and r["mode"] == mode]
+                if not sel:
+                    continue
+                x = [float(r[key]) if key else int(r["n"]) * int(r["pixels"]) for r in sel]
+                ax.loglog(x, [float(r["median_s"]) for r in sel], marker, fillstyle=fill, label=f"{p} {mode}")
+        ax.set_xlabel(label)
+        ax.set_ylabel("median time (s)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("renderers.splat: time against work (one process per case)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def sweep(
+    out: Path,
+    *,
+    quick: bool = False,
+    inprocess: bool = False,
+    paths=PATHS,
+    device: str = "cpu",
+    timeout_s: float = 1800.0,
+) -> list[dict]:
+    grid = QUICK if quick else FULL
+    cases = list(itertools.product(paths, grid["n"], grid["res"], MODES))
+    rows: list[dict] = []
+    try:
+        from tqdm import tqdm
+
+        it = tqdm(cases, desc="bm_render", unit="case")
+    except ImportError:  # pragma: no cover
+        it = cases
+    for path, n, res, mode in it:
+        reason = _skip_reason(path, n, res, mode)
+        if reason:
+            rows.append({"path": path, "n": n, "res": res, "mode": mode, "device": device, "status": reason})
+            continue
+        t0 = time.perf_counter()
+        if inprocess:
+            row = run_case(path, n, res, mode, device)
+        else:
+            spec = json.dumps({"path": path, "n": n, "res": res, "mode": mode, "device": device})
+            try:
+                proc = subprocess.run(
+                    [sys.executable, "-m", "gdbench.bench.bm_render", "--worker", spec],
+                    capture_output=True,
+                    text=True,
+                    timeout=timeout_s,
+                )
+                row = (
+                    json.loads(proc.stdout.strip().splitlines()[-1])
+                    if proc.returncode == 0
+                    else {
+                        "path": path,
+                        "n": n,
+                        "res": res,
+                        "mode": mode,
+                        "device": device,
+                        "status": "failed: " + (proc.stderr.strip().splitlines() or [str(proc.returncode)])[-1],
+                    }
+                )
+            except subprocess.TimeoutExpired:
+                row = {
+                    "path": path,
+                    "n": n,
+                    "res": res,
+                    "mode": mode,
+                    "device": device,
+                    "status": f"timeout after {timeout_s:.0f} s",
+                }
+        row["wall_s"] = time.perf_counter() - t0
+        rows.append(row)
+        write_csv(rows, out)  # incremental: an interrupted sweep keeps what it measured
+    summary = summarise(rows)
+    write_json(summary, out.with_name(out.stem + "_summary.json"))
+    plot(rows, out.with_name(out.stem + "_fit.png"))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("bench_results/render.csv"), help="CSV to write")
+    ap.add_argument("--quick", action="store_true", help="small sweep (N 300/1000, 32/64 px) for smoke tests")
+    ap.add_argument("--inprocess", action="store_true", help="run cases in this process (peak memory is shared)")
+    ap.add_argument("--backend", choices=("all", *PATHS), default="all", help="one path only")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        spec = json.loads(args.worker)
+        print(json.dumps(run_case(**spec)))
+        return 0
+    paths = PATHS if args.backend == "all" else (args.backend,)
+    rows = sweep(args.out, quick=args.quick, inprocess=args.inprocess, paths=paths, device=args.device)
+    summary = json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text())
+    print(f"\n{'path':12s} {'N':>7s} {'res':>4s} {'mode':8s} {'median s':>9s} {'peak MB':>8s}  status")
+    for r in rows:
+        t = f"{float(r['median_s']):9.4f}" if "median_s" in r else " " * 9
+        m = f"{float(r['peak_rss_mb']):8.0f}" if "peak_rss_mb" in r else " " * 8
+        print(f"{r['path']:12s} {r['n']:>7d} {r['res']:>4d} {r['mode']:8s} {t} {m}  {r['status']}")
+    for k, v in summary["targets"].items():
+        print(f"target {k}: {v['value']:.4g} (want {v['target']}) -> {'met' if v['met'] else 'NOT met'}")
+    for k, v in summary["fits"].items():
+        r2i, r2n = v["vs_intersections"]["r2"], v["vs_n_x_pixels"]["r2"]
+        print(f"fit {k}: R^2 vs intersections {r2i:.3f}, vs N x pixels {r2n:.3f}")
+    print(f"wrote {args.out}, {args.out.stem}_summary.json, {args.out.stem}_fit.png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,112 @@
+"""Shared pieces of the benchmarks: timing with warm-up and synchronisation, peak memory,
+scene generators, and CSV/JSON writing."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import platform
+import resource
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+
+def sync(device: torch.device | str) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+def rss_mb() -> float:
+    """Current resident set size of this process in MB (Linux /proc; 0 elsewhere)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        return 0.0
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far in MB (ru_maxrss is in KB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def timeit(
+    fn: Callable[[], object],
+    *,
+    device: torch.device | str = "cpu",
+    warmup: int = 2,
+    min_repeats: int = 3,
+    max_repeats: int = 10,
+    budget_s: float = 2.0,
+) -> dict[str, float]:
+    """Median and min wall time of ``fn`` after ``warmup`` calls, synchronising CUDA.
+
+    Repeats until ``budget_s`` is spent (between ``min_repeats`` and ``max_repeats`` runs).
+    """
+    for _ in range(warmup):
+        fn()
+        sync(device)
+    times: list[float] = []
+    start = time.perf_counter()
+    while len(times) < max_repeats and (len(times) < min_repeats or time.perf_counter() - start < budget_s):
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return {"median_s": statistics.median(times), "min_s": min(times), "repeats": len(times)}
+
+
+def random_cloud(n: int, *, seed: int = 0, radius: float = 0.5, dtype=torch.float32) -> dict[str, torch.Tensor]:
+    """n anisotropic Gaussians uniform in a ball, sized like a converged scene: scales are
+    log-normal around half the mean point spacing, so the covered area stays about constant as
+    n grows. Opacities in [0.3, 1], random rotations and colours."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    means = d * radius * torch.rand(n, 1, generator=g) ** (1 / 3)
+    s0 = 0.5 * radius * (4 / 3 * math.pi / max(n, 1)) ** (1 / 3)
+    return {
+        "means": means.to(dtype),
+        "quats": torch.randn(n, 4, generator=g).to(dtype),
+        "scales": (s0 * torch.exp(0.5 * torch.randn(n, 3, generator=g))).to(dtype),
+        "opacities": (0.3 + 0.7 * torch.rand(n, generator=g)).to(dtype),
+        "colors": torch.rand(n, 3, generator=g).to(dtype),
+    }
+
+
+def environment() -> dict[str, object]:
+    return {
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        "python": platform.python_version(),
+        "cuda": torch.cuda.is_available(),
+    }
+
+
+def write_csv(rows: list[dict], path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
+    return path
+
+
+def write_json(obj: object, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=str))
+    os.replace(tmp, path)
+    return path
