@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import subprocess
 import sys
 import time
@@ -143,6 +144,13 @@ def _fit(rows: list[dict], key: str) -> dict:
     return {"intercept_s": float(coef[0]), "slope_s": float(coef[1]), "r2": r2, "points": len(rows)}
 
 
+def _loglog(rows: list[dict], key: str) -> dict:
+    """Fit log(time) = c + k log(rows[key]): k ~ 1 means time proportional to that quantity."""
+    logged = [{"x": math.log(float(r[key])), "median_s": math.log(float(r["median_s"]))} for r in rows]
+    f = _fit(logged, "x")
+    return {"exponent": f["slope_s"], "r2": f["r2"], "points": f["points"]}
+
+
 def summarise(rows: list[dict]) -> dict:
     ok = [r for r in rows if r.get("status") == "ok"]
 
@@ -176,6 +184,8 @@ def summarise(rows: list[dict]) -> dict:
                 out["fits"][f"{path} {mode}"] = {
                     "vs_intersections": _fit(sel, "intersections"),
                     "vs_n_x_pixels": _fit(sel, "n_x_pixels"),
+                    "loglog_vs_intersections": _loglog(sel, "intersections"),
+                    "loglog_vs_n_x_pixels": _loglog(sel, "n_x_pixels"),
                 }
     return out
 
@@ -281,14 +291,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backend", choices=("all", *PATHS), default="all", help="one path only")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--summarise", action="store_true", help="recompute summary and plot from an existing --out CSV")
     args = ap.parse_args(argv)
     if args.worker:
         spec = json.loads(args.worker)
         print(json.dumps(run_case(**spec)))
         return 0
+    if args.summarise:
+        import csv
+
+        rows = [{k: v for k, v in r.items() if v != ""} for r in csv.DictReader(args.out.open())]
+        for r in rows:
+            r["n"], r["res"] = int(r["n"]), int(r["res"])
+        write_json(summarise(rows), args.out.with_name(args.out.stem + "_summary.json"))
+        plot(rows, args.out.with_name(args.out.stem + "_fit.png"))
+        report(rows, json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text()), args.out)
+        return 0
     paths = PATHS if args.backend == "all" else (args.backend,)
     rows = sweep(args.out, quick=args.quick, inprocess=args.inprocess, paths=paths, device=args.device)
-    summary = json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text())
+    report(rows, json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text()), args.out)
+    return 0
+
+
+def report(rows: list[dict], summary: dict, out: Path) -> None:
     print(f"\n{'path':12s} {'N':>7s} {'res':>4s} {'mode':8s} {'median s':>9s} {'peak MB':>8s}  status")
     for r in rows:
         t = f"{float(r['median_s']):9.4f}" if "median_s" in r else " " * 9
@@ -298,9 +323,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"target {k}: {v['value']:.4g} (want {v['target']}) -> {'met' if v['met'] else 'NOT met'}")
     for k, v in summary["fits"].items():
         r2i, r2n = v["vs_intersections"]["r2"], v["vs_n_x_pixels"]["r2"]
-        print(f"fit {k}: R^2 vs intersections {r2i:.3f}, vs N x pixels {r2n:.3f}")
-    print(f"wrote {args.out}, {args.out.stem}_summary.json, {args.out.stem}_fit.png")
-    return 0
+        ki, kn = v["loglog_vs_intersections"]["exponent"], v["loglog_vs_n_x_pixels"]["exponent"]
+        print(
+            f"fit {k}: linear R^2 vs intersections {r2i:.3f}, vs N x pixels {r2n:.3f}; "
+            f"time ~ intersections^{ki:.2f}, ~ (N x pixels)^{kn:.2f}"
+        )
+    print(f"wrote {out}, {out.stem}_summary.json, {out.stem}_fit.png")
 
 
 if __name__ == "__main__":
