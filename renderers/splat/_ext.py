@@ -10,6 +10,7 @@ pure-torch path.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import warnings
 from pathlib import Path
@@ -30,8 +31,11 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
             from torch.utils.cpp_extension import load
 
             src = Path(__file__).parent / "csrc" / "composite_cpu.cpp"
+            # the name carries a hash of the source, so checkouts with different sources never
+            # overwrite each other's build in the shared cache, and identical ones share it
+            digest = hashlib.sha256(src.read_bytes()).hexdigest()[:10]
             module = load(
-                name="gdbench_splat_cpu",
+                name=f"gdbench_splat_cpu_{digest}",
                 sources=[str(src)],
                 extra_cflags=["-O3", "-fopenmp"],
                 extra_ldflags=["-fopenmp"],

@@ -1,0 +1,1 @@
+"""Procedural assets (meshes for the paper's prompts) and the image banks rendered from them."""

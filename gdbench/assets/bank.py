@@ -1,0 +1,136 @@
+"""Image banks: an asset rendered by pyrender over a grid of views, cached on disk.
+
+A bank holds, for V = azimuths x elevations views on a sphere of radius ``radius``:
+rgb [V, H, W, 3] in [0, 1] on the training background, camera-space depth z [V, H, W]
+(0 where empty), coverage alpha [V, H, W], and the view angles. Banks are cached as .npz
+under ``$GDBENCH_CACHE`` (default ``~/.cache/gdbench``)/banks, keyed by a hash of the caption,
+the settings and the asset code version; the build time is printed when one is built.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..camera import SphericalPoses
+
+ASSET_VERSION = 1  # bump when the meshes or the lighting change: old caches are then ignored
+
+
+@dataclass(frozen=True)
+class BankConfig:
+    resolution: int = 64
+    """Image width and height."""
+    azimuths: int = 72
+    """Views per turn (360/azimuths degrees apart), starting at azimuth 0 (the front)."""
+    elevations: tuple[float, ...] = (-40.0, -20.0, 0.0, 20.0, 40.0)
+    """Elevation rings in degrees (the training range is [-45, 45])."""
+    radius: float = 1.0
+    fovy: float = 55.0
+    """Vertical field of view (degrees); the middle of the paper's 40-70 range."""
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if self.resolution < 8:
+            raise ValueError(f"resolution: expected at least 8 px, got {self.resolution}")
+        if self.azimuths < 1 or not self.elevations:
+            raise ValueError("azimuths, elevations: expected at least one view")
+        if any(not -90 < e < 90 for e in self.elevations):
+            raise ValueError(f"elevations: expected degrees inside (-90, 90), got {self.elevations}")
+
+    def poses(self) -> SphericalPoses:
+        az = torch.arange(self.azimuths, dtype=torch.float64) * (360.0 / self.azimuths)
+        az = (az + 180.0) % 360.0 - 180.0
+        el = torch.tensor(self.elevations, dtype=torch.float64)
+        A, E = torch.meshgrid(az, el, indexing="ij")
+        n = A.numel()
+        return SphericalPoses(A.reshape(-1), E.reshape(-1), torch.full((n,), self.radius, dtype=torch.float64),
+                              torch.full((n,), self.fovy, dtype=torch.float64))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Bank:
+    caption: str
+    config: BankConfig
+    images: torch.Tensor
+    """[V, H, W, 3] float32 in [0, 1]."""
+    depth: torch.Tensor
+    """[V, H, W] camera-space z, 0 where empty."""
+    alpha: torch.Tensor
+    """[V, H, W] coverage in [0, 1]."""
+    azimuth: torch.Tensor
+    """[V] degrees in [-180, 180)."""
+    elevation: torch.Tensor
+    """[V] degrees."""
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+    def subset(self, index: torch.Tensor) -> Bank:
+        return Bank(self.caption, self.config, self.images[index], self.depth[index], self.alpha[index],
+                    self.azimuth[index], self.elevation[index])  # fmt: skip
+
+    def cameras(self):
+        return self.config.poses().cameras(self.config.resolution, self.config.resolution)
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("GDBENCH_CACHE", Path.home() / ".cache" / "gdbench")) / "banks"
+
+
+def bank_key(caption: str, config: BankConfig) -> str:
+    blob = json.dumps({"caption": caption, "config": asdict(config), "version": ASSET_VERSION}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def render_bank(caption: str, config: BankConfig) -> Bank:
+    """Render the bank (no cache)."""
+    from renderers.pyrender_points.mesh import render_mesh
+
+    from .library import build
+
+    mesh = build(caption)
+    poses = config.poses()
+    cams = poses.cameras(config.resolution, config.resolution)
+    pose_gl, K = cams.to_opengl()
+    rgb, depth, alpha = render_mesh(mesh, pose_gl.double().numpy(), K.double().numpy(), config.resolution,
+                                    config.resolution, background=config.background)  # fmt: skip
+    return Bank(caption, config, torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha),
+                poses.azimuth.float(), poses.elevation.float())  # fmt: skip
+
+
+def load_bank(caption: str, config: BankConfig | None = None, *, verbose: bool = True) -> Bank:
+    """The bank of ``caption``, from the cache or rendered (and cached atomically)."""
+    from .library import ASSETS
+
+    config = config or BankConfig()
+    if caption not in ASSETS:
+        raise ValueError(f"caption: unknown asset {caption!r}; known: {sorted(ASSETS)}")
+    path = cache_dir() / f"{caption.replace(' ', '_')}-{bank_key(caption, config)}.npz"
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                return Bank(caption, config, *(torch.from_numpy(z[k]) for k in
+                            ("images", "depth", "alpha", "azimuth", "elevation")))  # fmt: skip
+        except Exception as e:  # a corrupt cache entry is rebuilt, never trusted
+            if verbose:
+                print(f"bank cache {path} unreadable ({type(e).__name__}); rebuilding")
+    t0 = time.perf_counter()
+    bank = render_bank(caption, config)
+    if verbose:
+        print(f"built bank '{caption}': {len(bank)} views at {config.resolution}px in {time.perf_counter() - t0:.1f} s")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+    with os.fdopen(fd, "wb") as f:
+        np.savez(f, images=bank.images.numpy(), depth=bank.depth.numpy(), alpha=bank.alpha.numpy(),
+                 azimuth=bank.azimuth.numpy(), elevation=bank.elevation.numpy())  # fmt: skip
+    os.replace(tmp, path)
+    return bank

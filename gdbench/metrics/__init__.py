@@ -1,0 +1,1 @@
+"""Scores of generated scenes: ground truth against the procedural asset (``gt``)."""

