@@ -52,8 +52,12 @@ class BankConfig:
         el = torch.tensor(self.elevations, dtype=torch.float64)
         A, E = torch.meshgrid(az, el, indexing="ij")
         n = A.numel()
-        return SphericalPoses(A.reshape(-1), E.reshape(-1), torch.full((n,), self.radius, dtype=torch.float64),
-                              torch.full((n,), self.fovy, dtype=torch.float64))  # fmt: skip
+        return SphericalPoses(
+            A.reshape(-1),
+            E.reshape(-1),
+            torch.full((n,), self.radius, dtype=torch.float64),
+            torch.full((n,), self.fovy, dtype=torch.float64),
+        )
 
 
 @dataclass(frozen=True)
@@ -75,8 +79,15 @@ class Bank:
         return self.images.shape[0]
 
     def subset(self, index: torch.Tensor) -> Bank:
-        return Bank(self.caption, self.config, self.images[index], self.depth[index], self.alpha[index],
-                    self.azimuth[index], self.elevation[index])  # fmt: skip
+        return Bank(
+            self.caption,
+            self.config,
+            self.images[index],
+            self.depth[index],
+            self.alpha[index],
+            self.azimuth[index],
+            self.elevation[index],
+        )
 
     def cameras(self):
         return self.config.poses().cameras(self.config.resolution, self.config.resolution)
@@ -101,10 +112,23 @@ def render_bank(caption: str, config: BankConfig) -> Bank:
     poses = config.poses()
     cams = poses.cameras(config.resolution, config.resolution)
     pose_gl, K = cams.to_opengl()
-    rgb, depth, alpha = render_mesh(mesh, pose_gl.double().numpy(), K.double().numpy(), config.resolution,
-                                    config.resolution, background=config.background)  # fmt: skip
-    return Bank(caption, config, torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha),
-                poses.azimuth.float(), poses.elevation.float())  # fmt: skip
+    rgb, depth, alpha = render_mesh(
+        mesh,
+        pose_gl.double().numpy(),
+        K.double().numpy(),
+        config.resolution,
+        config.resolution,
+        background=config.background,
+    )
+    return Bank(
+        caption,
+        config,
+        torch.from_numpy(rgb),
+        torch.from_numpy(depth),
+        torch.from_numpy(alpha),
+        poses.azimuth.float(),
+        poses.elevation.float(),
+    )
 
 
 def load_bank(caption: str, config: BankConfig | None = None, *, verbose: bool = True) -> Bank:
@@ -118,8 +142,11 @@ def load_bank(caption: str, config: BankConfig | None = None, *, verbose: bool =
     if path.is_file():
         try:
             with np.load(path) as z:
-                return Bank(caption, config, *(torch.from_numpy(z[k]) for k in
-                            ("images", "depth", "alpha", "azimuth", "elevation")))  # fmt: skip
+                return Bank(
+                    caption,
+                    config,
+                    *(torch.from_numpy(z[k]) for k in ("images", "depth", "alpha", "azimuth", "elevation")),
+                )
         except Exception as e:  # a corrupt cache entry is rebuilt, never trusted
             if verbose:
                 print(f"bank cache {path} unreadable ({type(e).__name__}); rebuilding")
@@ -130,7 +157,13 @@ def load_bank(caption: str, config: BankConfig | None = None, *, verbose: bool =
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
     with os.fdopen(fd, "wb") as f:
-        np.savez(f, images=bank.images.numpy(), depth=bank.depth.numpy(), alpha=bank.alpha.numpy(),
-                 azimuth=bank.azimuth.numpy(), elevation=bank.elevation.numpy())  # fmt: skip
+        np.savez(
+            f,
+            images=bank.images.numpy(),
+            depth=bank.depth.numpy(),
+            alpha=bank.alpha.numpy(),
+            azimuth=bank.azimuth.numpy(),
+            elevation=bank.elevation.numpy(),
+        )
     os.replace(tmp, path)
     return bank

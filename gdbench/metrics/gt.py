@@ -58,8 +58,9 @@ def asset_views(caption: str, poses: SphericalPoses, size: int, background=(1.0,
 
     cams = poses.cameras(size, size)
     pose_gl, K = cams.to_opengl()
-    rgb, _, _ = render_mesh(build(caption), pose_gl.double().numpy(), K.double().numpy(), size, size,
-                            background=background)  # fmt: skip
+    rgb, _, _ = render_mesh(
+        build(caption), pose_gl.double().numpy(), K.double().numpy(), size, size, background=background
+    )
     return torch.from_numpy(rgb)
 
 

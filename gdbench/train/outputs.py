@@ -49,8 +49,12 @@ def write_curves(history: list[dict], path: Path) -> Path:
 
     steps = [h["step"] for h in history]
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.2))
-    series = [("residual", "denoising residual |D - x|^2", True), ("sigma", "sigma", True), ("n", "Gaussians", False),
-              ("seconds", "seconds per step", False)]  # fmt: skip
+    series = [
+        ("residual", "denoising residual |D - x|^2", True),
+        ("sigma", "sigma", True),
+        ("n", "Gaussians", False),
+        ("seconds", "seconds per step", False),
+    ]
     for ax, (key, label, log) in zip(axes, series):
         ys = [h.get(key, float("nan")) for h in history]
         ax.plot(steps, ys, lw=0.6 if key in ("residual", "sigma") else 1.2)

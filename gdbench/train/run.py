@@ -32,8 +32,9 @@ class RunResult:
     resumed_from: int
 
 
-def train(cfg: TrainConfig, prior=None, *, resume: bool = True, stop_at: int | None = None,
-          write_outputs: bool = True) -> RunResult:  # fmt: skip
+def train(
+    cfg: TrainConfig, prior=None, *, resume: bool = True, stop_at: int | None = None, write_outputs: bool = True
+) -> RunResult:
     """Train (or resume) the run in ``cfg.out``.
 
     ``stop_at`` ends the call after that many total steps with a checkpoint, as if the run had
@@ -85,8 +86,16 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
     scene = state.scene()
     paths = {"ply": scene.save_ply(out / "scene.ply")}
     t0 = time.perf_counter()
-    tt = write_turntable(scene, out, frames=cfg.turntable_frames, size=max(128, cfg.resolution), radius=1.3,
-                         elevation=15.0, fovy=45.0, background=cfg.background)  # fmt: skip
+    tt = write_turntable(
+        scene,
+        out,
+        frames=cfg.turntable_frames,
+        size=max(128, cfg.resolution),
+        radius=1.3,
+        elevation=15.0,
+        fovy=45.0,
+        background=cfg.background,
+    )
     paths |= {f"turntable_{k}": v for k, v in tt.paths.items()}
     paths["curves"] = write_curves(state.history, out / "curves.png")
     steps_s = [h["seconds"] for h in state.history]

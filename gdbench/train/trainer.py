@@ -84,13 +84,25 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
     if cfg.structured_noise:
         cloud = make_noise_cloud(cfg.noise, prior.channels, generator=torch.Generator().manual_seed(cfg.seed + 7919))
         noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
-    return Context(cfg, prior, cond, DensifyStrategy(cfg.densify, SCENE_RADIUS), noise,
-                   torch.tensor(cfg.background, dtype=torch.float32), prior.sigmas.float())  # fmt: skip
+    return Context(
+        cfg,
+        prior,
+        cond,
+        DensifyStrategy(cfg.densify, SCENE_RADIUS),
+        noise,
+        torch.tensor(cfg.background, dtype=torch.float32),
+        prior.sigmas.float(),
+    )
 
 
 def _optimizer(params: dict[str, Tensor], cfg: TrainConfig) -> torch.optim.Adam:
-    lr = {"means": cfg.optim.means, "quats": cfg.optim.quats, "log_scales": cfg.optim.scales,
-          "opacity_logits": cfg.optim.opacities, "sh": cfg.optim.colors}  # fmt: skip
+    lr = {
+        "means": cfg.optim.means,
+        "quats": cfg.optim.quats,
+        "log_scales": cfg.optim.scales,
+        "opacity_logits": cfg.optim.opacities,
+        "sh": cfg.optim.colors,
+    }
     return torch.optim.Adam([{"params": [params[k]], "lr": lr[k], "name": k} for k in PARAM_NAMES], eps=1e-15)
 
 
@@ -134,9 +146,14 @@ def train_step(state: TrainState, ctx: Context) -> dict:
     cfg, g, p = ctx.cfg, state.generator, state.params
     t0 = time.perf_counter()
     R = cfg.resolution
-    poses = SphericalPoses.sample(cfg.views_per_step, generator=g, radius=cfg.camera_radius,
-                                  fovy_range=cfg.fovy_range, azimuth_range=cfg.azimuth_range,
-                                  elevation_range=cfg.elevation_range)  # fmt: skip
+    poses = SphericalPoses.sample(
+        cfg.views_per_step,
+        generator=g,
+        radius=cfg.camera_radius,
+        fovy_range=cfg.fovy_range,
+        azimuth_range=cfg.azimuth_range,
+        elevation_range=cfg.elevation_range,
+    )
     cams = poses.cameras(R, R)
     sigma, w = sample_sigma(ctx, state.step, g)
     means, log_scales = p["means"], p["log_scales"]
@@ -145,8 +162,20 @@ def train_step(state: TrainState, ctx: Context) -> dict:
             means, log_scales, sigma, gamma=cfg.vgs_gamma, scene_radius=SCENE_RADIUS, generator=g
         )
     outputs = ("rgb", "alpha", "means2d", "visible") + (("depth",) if cfg.depth_conditioning else ())
-    out = rasterize(means, p["quats"], log_scales.exp(), torch.sigmoid(p["opacity_logits"]), p["sh"], cams.viewmats,
-                    cams.Ks, R, R, sh_degree=cfg.sh_degree, background=ctx.background, outputs=outputs)  # fmt: skip
+    out = rasterize(
+        means,
+        p["quats"],
+        log_scales.exp(),
+        torch.sigmoid(p["opacity_logits"]),
+        p["sh"],
+        cams.viewmats,
+        cams.Ks,
+        R,
+        R,
+        sh_degree=cfg.sh_degree,
+        background=ctx.background,
+        outputs=outputs,
+    )
     out.means2d.retain_grad()
     x = out.rgb * 2 - 1
     xd = x.detach()
@@ -164,16 +193,27 @@ def train_step(state: TrainState, ctx: Context) -> dict:
             n = mix(n_s, ratio, generator=g)
         else:
             n = torch.randn(xd.shape, generator=g)
-        D = ctx.prior.denoise(xd + sigma * n, torch.full((xd.shape[0],), sigma), ctx.cond,
-                              azimuth=poses.azimuth.float(), elevation=poses.elevation.float(), depth=depth)  # fmt: skip
+        D = ctx.prior.denoise(
+            xd + sigma * n,
+            torch.full((xd.shape[0],), sigma),
+            ctx.cond,
+            azimuth=poses.azimuth.float(),
+            elevation=poses.elevation.float(),
+            depth=depth,
+        )
         score += (D - xd) / sigma / cfg.samples_per_step
         resid += float(((D - xd) ** 2).mean()) / cfg.samples_per_step
     for opt_group in state.optimizer.param_groups:
         opt_group["params"][0].grad = None
     (-(cfg.weight * w) * (score * x).sum()).backward()
     grads_ok = all(bool(torch.isfinite(p[k].grad).all()) for k in PARAM_NAMES if p[k].grad is not None)
-    metrics = {"step": state.step + 1, "sigma": sigma, "residual": resid, "n": int(p["means"].shape[0]),
-               "alpha": float(out.alpha.detach().mean())}  # fmt: skip
+    metrics = {
+        "step": state.step + 1,
+        "sigma": sigma,
+        "residual": resid,
+        "n": int(p["means"].shape[0]),
+        "alpha": float(out.alpha.detach().mean()),
+    }
     if not grads_ok:
         state.bad_steps += 1
         metrics["skipped"] = 1
