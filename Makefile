@@ -9,7 +9,7 @@ setup:
 	@scripts/setup.sh
 
 demo: setup
-	$(PY) -m gdbench.cli demo --out runs/demo
+	$(PY) -m gdbench.cli generate "a yellow duck" --preset gd --out runs/duck
 
 test: setup
 	$(PY) -m ruff check .

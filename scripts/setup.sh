@@ -32,17 +32,25 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 PIP=(.venv/bin/python -m pip --disable-pip-version-check -q)
+# pip, minus the notes about this machine's local package mirrors; pip's own status survives
+quiet_pip() {
+  "${PIP[@]}" "$@" 2>&1 | { grep -v "is ignored: it is neither" || true; }
+  return "${PIPESTATUS[0]}"
+}
 
 if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
   echo "setup: installing $TORCH_SPEC"
-  "${PIP[@]}" install "$TORCH_SPEC"
+  quiet_pip install "$TORCH_SPEC"
 fi
 
 stamp=.venv/.gdbench-installed
 want=$(cat pyproject.toml constraints.txt scripts/setup.sh | sha256sum | cut -c1-16)
 if [ "$(cat "$stamp" 2>/dev/null || true)" != "$want" ]; then
   echo "setup: installing gdbench and its test extras"
-  "${PIP[@]}" install -c constraints.txt -e ".[test]" 2>&1 | grep -v "is ignored: it is neither" || true
+  quiet_pip install -c constraints.txt -e ".[test]"
+  # pyrender pins PyOpenGL 3.1.0, which fails under OSMesa: install it without its dependencies
+  # (pyproject lists the ones it needs, with PyOpenGL 3.1.10)
+  quiet_pip install --no-deps pyrender==0.1.45
   .venv/bin/python -c "import gdbench, renderers.splat" || { echo "setup: gdbench did not install"; exit 1; }
   echo "$want" > "$stamp"
 fi

@@ -65,3 +65,34 @@ def cotangent_loss(out, names, seed: int = 0) -> torch.Tensor:
         g = torch.Generator().manual_seed(seed + i)
         total = total + (x * torch.randn(x.shape, generator=g, dtype=torch.float64).to(x.dtype)).sum()
     return total
+
+
+def tiny_bank(caption: str = "a test blob", res: int = 16, azimuths: int = 8, elevations=(0.0, 20.0)):
+    """A small image bank rendered with the splat renderer from the built-in demo scene."""
+    from gdbench.assets.bank import Bank, BankConfig
+    from gdbench.builtin import demo_scene
+    from renderers.splat import rasterize
+
+    cfg = BankConfig(resolution=res, azimuths=azimuths, elevations=tuple(elevations))
+    cams = cfg.poses().cameras(res, res)
+    scene = demo_scene(300, seed=1)
+    with torch.no_grad():
+        out = rasterize(
+            **scene.render_args(),
+            viewmats=cams.viewmats,
+            Ks=cams.Ks,
+            width=res,
+            height=res,
+            background=torch.ones(3),
+            outputs=("rgb", "alpha", "depth"),
+        )
+    poses = cfg.poses()
+    return Bank(
+        caption,
+        cfg,
+        out.rgb.clamp(0, 1),
+        out.depth[..., 0],
+        out.alpha[..., 0],
+        poses.azimuth.float(),
+        poses.elevation.float(),
+    )

@@ -54,3 +54,28 @@ def test_noise_preview_writes_figure_with_unit_variance(tmp_path):
     assert 0.3 < stats["coverage"] <= 1.0
     assert abs(stats["var"] - 1.0) < 0.05 and abs(stats["mean"]) < 0.05
     assert stats["ks_statistic"] < 0.02
+
+
+def test_generate_then_render(tmp_path):
+    from gdbench.cli import Generate, Render
+    from gdbench.scene import GaussianScene
+
+    out = tmp_path / "duck"
+    s = main(Generate("A Yellow Duck", steps=3, out=out, resolution=16, score=False, progress=False))
+    assert s["steps"] == 3 and (out / "scene.ply").is_file() and (out / "run.json").is_file()
+    scene = GaussianScene.load_ply(out / "scene.ply")
+    assert len(scene) == s["gaussians"]
+    r = main(Render(out, frames=3, size=32))
+    sheet = iio.imread(r["sheet"])
+    assert sheet.shape == (32, 96, 3) and sheet.std() > 1  # the grey initial sphere is visible
+    again = main(Generate("A Yellow Duck", steps=3, out=out, resolution=16, score=False, progress=False))
+    assert again["resumed_from"] == 3  # finished run: resumes at its end, trains nothing
+
+
+def test_render_bad_path(tmp_path):
+    import pytest
+
+    from gdbench.cli import Render
+
+    with pytest.raises(SystemExit, match="run: no PLY"):
+        main(Render(tmp_path / "nothing"))

@@ -61,8 +61,12 @@ def hamburger():
             S.cylinder((0, 0, -0.06), 0.29, 0.08, S.mottled((0.35, 0.18, 0.08), 0.3, 50, 7)),  # patty
             S.cylinder((0, 0, -0.11), 0.27, 0.025, S.checker((0.85, 0.1, 0.08), (0.7, 0.08, 0.05), 0.05)),  # tomato
             S.cylinder((0, 0, -0.17), 0.3, 0.08, S.mottled(bun, 0.1, 30, 8)),  # bottom bun
-            S.cylinder((0.08, 0, 0.3), 0.006, 0.2, S.solid((0.85, 0.75, 0.55))),  # toothpick
-            S.box((0.14, 0, 0.36), (0.1, 0.004, 0.06), S.stripes((0.9, 0.1, 0.1), WHITE, 0, 0.025)),  # front flag
+            S.cylinder((0.16, 0, 0.3), 0.008, 0.24, S.solid((0.85, 0.75, 0.55))),  # toothpick
+            S.box((0.24, 0, 0.38), (0.16, 0.006, 0.09), S.stripes((0.9, 0.1, 0.1), WHITE, 0, 0.03)),  # front flag
+            # the front (+X): a pickle slice sticking out and a ketchup drip, so the burger has a front
+            S.cylinder((0.3, 0, 0.0), 0.07, 0.02, S.spots((0.35, 0.55, 0.15), (0.75, 0.8, 0.4), 0.012, 20, 0.4, 13)),
+            S.ellipsoid((0.29, 0.0, -0.09), (0.03, 0.09, 0.05), S.solid((0.8, 0.05, 0.03))),
+            S.ellipsoid((0.27, 0.09, -0.12), (0.025, 0.03, 0.06), S.solid((0.8, 0.05, 0.03))),
         ]
     )
 

@@ -89,8 +89,10 @@ class TrainConfig:
     """K, perturb-and-average: noise samples averaged per step."""
     weight: float = 1.0
     """Global scale of the score (the 'guidance' multiplier)."""
-    view_prompting: bool = True
-    """View-dependent prompting (front/side/back/overhead buckets; DESIGN.md 'Priors')."""
+    view_prompting: Literal["none", "buckets", "window"] = "buckets"
+    """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
+    of +-``view_window_deg`` around the camera azimuth, or none (DESIGN.md 'Priors')."""
+    view_window_deg: float = 45.0
     depth_conditioning: bool = False
     # the paper's additions
     structured_noise: bool = True

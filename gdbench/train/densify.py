@@ -137,13 +137,19 @@ class DensifyStrategy:
             "opacity_logits": torch.cat([p["opacity_logits"][clone], p["opacity_logits"][si], p["opacity_logits"][si]]),
             "sh": torch.cat([p["sh"][clone], p["sh"][si], p["sh"][si]]),
         }
+        # prune over the densified set, as 3DGS does: transparent or huge Gaussians go, new ones included
         opac = torch.sigmoid(p["opacity_logits"])
-        prune = (opac < c.prune_opacity) | (scale > c.prune_scale * self.scene_radius) | split
+        prune = (opac < c.prune_opacity) | (scale > c.prune_scale * self.scene_radius)
+        new_keep = (torch.sigmoid(new["opacity_logits"]) >= c.prune_opacity) & (
+            new["log_scales"].exp().amax(-1) <= c.prune_scale * self.scene_radius
+        )
         # never prune everything: keep the most opaque Gaussian if all would go
-        if bool(prune.all()) and new["means"].shape[0] == 0:
-            prune[torch.argmax(opac)] = False
-        _edit(params, optimizer, ~prune, new)
-        return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((prune & ~split).sum())}
+        if bool((prune | split).all()) and not bool(new_keep.any()):
+            prune[torch.argmax(torch.where(split, torch.full_like(opac, -1.0), opac))] = False
+            split[torch.argmax(torch.where(split, torch.full_like(opac, -1.0), opac))] = False
+        n_pruned = int((prune & ~split).sum()) + int((~new_keep).sum())
+        _edit(params, optimizer, ~(prune | split), {k: v[new_keep] for k, v in new.items()})
+        return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": n_pruned}
 
 
 def _rotmat(q: Tensor) -> Tensor:

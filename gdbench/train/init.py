@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..scene import GaussianScene, sphere_init
@@ -37,10 +38,10 @@ def from_ply_points(path: Path, n: int, opacity: float, *, generator) -> Gaussia
     except ImportError as e:
         raise ImportError("init='ply' reads point clouds with Open3D: pip install open3d-cpu") from e
     pc = o3d.io.read_point_cloud(str(path))
-    pts = torch.from_numpy(pc.points.__array__()).float() if len(pc.points) else torch.zeros(0, 3)
+    pts = torch.from_numpy(np.asarray(pc.points)).float() if len(pc.points) else torch.zeros(0, 3)
     if pts.shape[0] == 0:
         raise ValueError(f"init_ply: {path} holds no points")
-    cols = torch.from_numpy(pc.colors.__array__()).float() if pc.has_colors() else torch.full_like(pts, 0.5)
+    cols = torch.from_numpy(np.asarray(pc.colors)).float() if pc.has_colors() else torch.full_like(pts, 0.5)
     return from_points(pts, cols, n, opacity, generator=generator)
 
 

@@ -30,6 +30,8 @@ class RunResult:
     paths: dict[str, Path]
     seconds: float
     resumed_from: int
+    caption: str | None = None
+    """The bank caption the prompt matched (empirical prior), else None."""
 
 
 def train(
@@ -68,7 +70,8 @@ def train(
     paths: dict[str, Path] = {"checkpoint": ckpt}
     if write_outputs and state.step >= cfg.steps:
         paths |= write_run_outputs(state, ctx, out, time.perf_counter() - t_start, resumed_from)
-    return RunResult(state, out, paths, time.perf_counter() - t_start, resumed_from)
+    caption = getattr(ctx.cond, "caption", None)
+    return RunResult(state, out, paths, time.perf_counter() - t_start, resumed_from, caption)
 
 
 def _progress(cfg: TrainConfig, start: int, last: int):

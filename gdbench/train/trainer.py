@@ -76,7 +76,8 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         from ..priors.empirical import EmpiricalPrior
 
         prior = EmpiricalPrior(
-            view_mode="buckets" if cfg.view_prompting else "none",
+            view_mode=cfg.view_prompting,
+            window_deg=cfg.view_window_deg,
             depth_weight=1.0 if cfg.depth_conditioning else 0.0,
         )
     cond = prior.encode(cfg.prompt)
@@ -139,8 +140,12 @@ def _means_lr(cfg: TrainConfig, step: int) -> float:
     return math.exp((1 - t) * math.log(cfg.optim.means) + t * math.log(cfg.optim.means_final))
 
 
-def train_step(state: TrainState, ctx: Context) -> dict:
-    """One optimisation step; returns its metrics. Non-finite gradients skip the step."""
+def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:
+    """One optimisation step; returns its metrics. Non-finite gradients skip the step.
+
+    ``update=False`` evaluates the step without changing the parameters, the optimizer or the
+    step count: the same random draws (view, sigma, jitter, noise) give the residual the current
+    parameters have, so a caller can compare before and after an update."""
     from renderers.splat import rasterize
 
     cfg, g, p = ctx.cfg, state.generator, state.params
@@ -180,10 +185,12 @@ def train_step(state: TrainState, ctx: Context) -> dict:
     x = out.rgb * 2 - 1
     xd = x.detach()
     if ctx.noise is not None:
+        colors = state.noise_colors
         if state.step > 0:  # step 0 uses the initial draw
-            nxt = advance_colors(NoiseState(state.noise_colors), cfg.noise.redraw, beta=cfg.noise.ou_beta, generator=g)
-            state.noise_colors = nxt.colors
-        n_s = ctx.noise.render(state.noise_colors, cams, generator=g).noise
+            colors = advance_colors(NoiseState(colors), cfg.noise.redraw, beta=cfg.noise.ou_beta, generator=g).colors
+        if update:
+            state.noise_colors = colors
+        n_s = ctx.noise.render(colors, cams, generator=g).noise
         ratio = ratio_schedule(state.step, cfg.steps, cfg.noise.ratio_start, cfg.noise.ratio_end)
     score = torch.zeros_like(xd)
     resid = 0.0
@@ -203,10 +210,6 @@ def train_step(state: TrainState, ctx: Context) -> dict:
         )
         score += (D - xd) / sigma / cfg.samples_per_step
         resid += float(((D - xd) ** 2).mean()) / cfg.samples_per_step
-    for opt_group in state.optimizer.param_groups:
-        opt_group["params"][0].grad = None
-    (-(cfg.weight * w) * (score * x).sum()).backward()
-    grads_ok = all(bool(torch.isfinite(p[k].grad).all()) for k in PARAM_NAMES if p[k].grad is not None)
     metrics = {
         "step": state.step + 1,
         "sigma": sigma,
@@ -214,6 +217,12 @@ def train_step(state: TrainState, ctx: Context) -> dict:
         "n": int(p["means"].shape[0]),
         "alpha": float(out.alpha.detach().mean()),
     }
+    if not update:
+        return metrics
+    for opt_group in state.optimizer.param_groups:
+        opt_group["params"][0].grad = None
+    (-(cfg.weight * w) * (score * x).sum()).backward()
+    grads_ok = all(bool(torch.isfinite(p[k].grad).all()) for k in PARAM_NAMES if p[k].grad is not None)
     if not grads_ok:
         state.bad_steps += 1
         metrics["skipped"] = 1

