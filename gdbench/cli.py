@@ -118,7 +118,7 @@ class Generate:
     seed: int = 0
     resolution: int = 64
     """Training render size in pixels."""
-    view_prompting: Literal["none", "buckets", "window"] = "buckets"
+    view_prompting: Literal["none", "buckets", "window"] = "window"
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
     init_ply: Path | None = None
     resume: bool = True

@@ -79,3 +79,10 @@ def test_interleaved_timing_alternates():
     order = []
     ta, tb = interleaved(lambda: order.append("a"), lambda: order.append("b"), budget_s=0.0, warmup=1, min_repeats=3)
     assert order == ["a", "b"] * 4 and ta >= 0 and tb >= 0
+
+
+def test_train_benchmark_denoise_row():
+    from gdbench.bench import bm_train
+
+    row = bm_train.denoise_time("window")
+    assert "bank of 360" in row["what"] and 0 < row["seconds"] < 1.0 and row["met"] == (row["seconds"] <= 0.005)

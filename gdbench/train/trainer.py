@@ -221,7 +221,9 @@ def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:
         return metrics
     for opt_group in state.optimizer.param_groups:
         opt_group["params"][0].grad = None
-    (-(cfg.weight * w) * (score * x).sum()).backward()
+    # mean over pixels and channels: Adam does not care about the scale, but densification thresholds
+    # on screen-space gradients then mean what they mean in 3DGS (per-pixel-averaged losses)
+    (-(cfg.weight * w) * (score * x).mean()).backward()
     grads_ok = all(bool(torch.isfinite(p[k].grad).all()) for k in PARAM_NAMES if p[k].grad is not None)
     if not grads_ok:
         state.bad_steps += 1
