@@ -268,3 +268,40 @@ def test_short_duck_run_beats_the_initial_sphere_by_3db(tmp_path):
         sphere_init(4096, generator=torch.Generator().manual_seed(0)), "a yellow duck", reference=ref
     )
     assert trained.psnr >= init.psnr + 3.0, (trained, init)
+
+
+_KILL_SCRIPT = """
+import sys
+from tests.test_train import tiny, CAPTION
+from tests._util import tiny_bank
+from gdbench.priors.empirical import EmpiricalPrior
+from gdbench.train.run import train
+prior = EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
+train(tiny("gd", sys.argv[1], steps=int(sys.argv[2]), checkpoint_every=3), prior, write_outputs=False)
+"""
+
+
+def test_sigkilled_run_resumes_to_the_uninterrupted_result(prior, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    steps = 60
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.Popen([sys.executable, "-c", _KILL_SCRIPT, str(tmp_path / "k"), str(steps)], cwd=root)
+    ckpt = tmp_path / "k" / "checkpoint.pt"
+    deadline = time.time() + 120
+    while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+    torch.load(ckpt, weights_only=False)  # whatever the kill interrupted, the checkpoint on disk is whole
+    resumed = train(tiny("gd", tmp_path / "k", steps=steps, checkpoint_every=3), prior, write_outputs=False)
+    assert 0 < resumed.resumed_from < steps
+    full = train(tiny("gd", tmp_path / "full", steps=steps, checkpoint_every=3), prior, write_outputs=False)
+    for k in PARAM_NAMES:
+        assert torch.equal(full.state.params[k], resumed.state.params[k]), k
