@@ -224,7 +224,26 @@ def run_render(cmd: Render) -> dict:
     return {k: str(v) for k, v in res.paths.items()}
 
 
-COMMANDS = {"generate": Generate, "render": Render, "demo": Demo, "noise": Noise}
+@dataclass
+class Compare:
+    """Run every applicable renderer on fixture scenes; write error-against-time rows (CSV/JSON),
+    error maps and a Pareto plot per scene, and print the table."""
+
+    scene: str = "all"
+    """A fixture name (fixtures/scenes/*.json) or 'all'."""
+    out: Path = Path("runs/compare")
+    backends: tuple[str, ...] = ()
+    """Only these renderers (default: all); the float64 reference always runs."""
+
+
+def run_compare(cmd: Compare) -> dict:
+    from .compare import run
+
+    results = run(cmd.scene, backends=list(cmd.backends) or None, out=cmd.out)
+    return {k: {"rows": len(v.rows), "skipped": len(v.skipped)} for k, v in results.items()}
+
+
+COMMANDS = {"generate": Generate, "render": Render, "compare": Compare, "demo": Demo, "noise": Noise}
 
 
 def main(cmd) -> dict:
@@ -236,6 +255,8 @@ def main(cmd) -> dict:
         return run_generate(cmd)
     if isinstance(cmd, Render):
         return run_render(cmd)
+    if isinstance(cmd, Compare):
+        return run_compare(cmd)
     raise TypeError(f"cmd: unknown command {type(cmd).__name__}")
 
 

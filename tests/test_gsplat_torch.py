@@ -36,7 +36,16 @@ def test_forward_and_gradients_agree(sh_degree):
 def test_default_clamp_differs_as_documented():
     """Ours defaults to Inria's 0.99 clamp; gsplat clamps at 0.999: an opaque core shows it."""
     means = torch.tensor([[0.0, 0.0, 2.0]])
-    args = (means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.2), torch.ones(1), torch.ones(1, 3),
-            torch.eye(4)[None], torch.tensor([[[40.0, 0, 16.5], [0, 40.0, 16.5], [0, 0, 1]]]), 33, 33)  # fmt: skip
+    args = (
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.full((1, 3), 0.2),
+        torch.ones(1),
+        torch.ones(1, 3),
+        torch.eye(4)[None],
+        torch.tensor([[[40.0, 0, 16.5], [0, 40.0, 16.5], [0, 0, 1]]]),
+        33,
+        33,
+    )
     assert float(rasterize(*args).alpha.max()) == pytest.approx(0.99)
     assert float(gsplat_rasterize(*args).alpha.max()) == pytest.approx(0.999)

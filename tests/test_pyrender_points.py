@@ -19,8 +19,18 @@ def test_centres_and_depths_match_the_splat_projection(W, H, fovy):
 
     gs = random_gaussians(150, seed=3, dtype=torch.float64)
     cams = ring_cameras(3, W, H, fovy=fovy, dtype=torch.float64)
-    ours = rasterize(gs["means"], gs["quats"], gs["scales"], gs["opacities"], gs["colors"], cams.viewmats, cams.Ks, W,
-                     H, outputs=("means2d",)).means2d  # fmt: skip
+    ours = rasterize(
+        gs["means"],
+        gs["quats"],
+        gs["scales"],
+        gs["opacities"],
+        gs["colors"],
+        cams.viewmats,
+        cams.Ks,
+        W,
+        H,
+        outputs=("means2d",),
+    ).means2d
     depth = project(gs["means"], gs["quats"], gs["scales"], gs["opacities"], cams.viewmats, cams.Ks, W, H).depths
     gl = render_points(gs["means"], cams.viewmats, cams.Ks, W, H, supersample=16)
     seen = torch.isfinite(gl.depths)

@@ -24,8 +24,21 @@ def _gsplat():
     return _torch_impl
 
 
-def _composite(means2d, conics, opacities, colors, depths, offsets, flatten_ids, width, height, tile_size,
-               want_depth: bool, want_wsq: bool, tiles_per_chunk: int = 64):  # fmt: skip
+def _composite(
+    means2d,
+    conics,
+    opacities,
+    colors,
+    depths,
+    offsets,
+    flatten_ids,
+    width,
+    height,
+    tile_size,
+    want_depth: bool,
+    want_wsq: bool,
+    tiles_per_chunk: int = 64,
+):
     """Front-to-back blending per tile with autograd; inputs flattened over images (I*N)."""
     I, th, tw = offsets.shape
     device, dtype = means2d.device, means2d.dtype
@@ -75,9 +88,12 @@ def _composite(means2d, conics, opacities, colors, depths, offsets, flatten_ids,
         x = torch.cat(parts).reshape(I, th, tw, tile_size, tile_size, ch).permute(0, 1, 3, 2, 4, 5)
         return x.reshape(I, th * tile_size, tw * tile_size, ch)[:, :height, :width]
 
-    return (untile(feats, D), untile([x[..., None] for x in trans], 1),
-            untile([x[..., None] for x in deps], 1) if want_depth else None,
-            untile([x[..., None] for x in wsqs], 1) if want_wsq else None)  # fmt: skip
+    return (
+        untile(feats, D),
+        untile([x[..., None] for x in trans], 1),
+        untile([x[..., None] for x in deps], 1) if want_depth else None,
+        untile([x[..., None] for x in wsqs], 1) if want_wsq else None,
+    )
 
 
 def rasterize(
@@ -120,10 +136,19 @@ def rasterize(
     offsets = ti._isect_offset_encode(isect_ids, C, tw, th)
     want = set(outputs)
     rgb, T, dep, wsq = _composite(
-        means2d.reshape(C * N, 2), conics.reshape(C * N, 3), opacities[None].expand(C, N).reshape(C * N),
-        feats.reshape(C * N, -1), depths.reshape(C * N), offsets, flatten_ids, width, height, tile_size,
-        "depth" in want, "weight_sq" in want,
-    )  # fmt: skip
+        means2d.reshape(C * N, 2),
+        conics.reshape(C * N, 3),
+        opacities[None].expand(C, N).reshape(C * N),
+        feats.reshape(C * N, -1),
+        depths.reshape(C * N),
+        offsets,
+        flatten_ids,
+        width,
+        height,
+        tile_size,
+        "depth" in want,
+        "weight_sq" in want,
+    )
     alpha = 1 - T
     if background is not None:
         rgb = rgb + T * (background if background.dim() == 1 else background[:, None, None, :])

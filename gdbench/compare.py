@@ -1,0 +1,274 @@
+"""``gdbench compare``: every applicable renderer on fixture scenes, error against run time.
+
+For a fixture (``gdbench.fixtures``) it renders the float64 twin (``reference``, the truth of
+the splatting model), then each backend at a ladder of settings, and writes one row per run:
+{scene, renderer, settings, against, quantity, time_s, mean_abs, max_abs, psnr}. Image rows are
+compared with the twin (``against``); the gsplat peer also with ours at gsplat's alpha clamp;
+pyrender points give centre (px) and depth (relative) errors against our projection.
+Backends that do not apply to a scene, or are not installed here, are listed as skipped with
+the reason. Outputs: ``compare.csv``, ``compare.json``, error maps and a Pareto plot per scene.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from .fixtures import Fixture, fixture_names, load_fixture
+
+SPLAT_LADDER: list[dict] = [
+    {},
+    {"t_min": 1e-3},
+    {"t_min": 1e-2},
+    {"alpha_min": 0.02},
+    {"eps2d": 0.1},
+    {"backend": "torch"},
+]
+"""Settings of the splat renderer tried on every scene ({} is the default)."""
+
+
+@dataclass
+class Result:
+    rows: list[dict] = field(default_factory=list)
+    skipped: list[dict] = field(default_factory=list)
+    images: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+def _timed(fn: Callable[[], object], repeats: int = 3) -> tuple[object, float]:
+    out = fn()  # warm-up (and the result)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return out, statistics.median(times)
+
+
+def image_errors(img: torch.Tensor, ref: torch.Tensor) -> dict[str, float]:
+    d = (img.double() - ref.double()).abs()
+    mse = float((d**2).mean())
+    return {
+        "mean_abs": float(d.mean()),
+        "max_abs": float(d.max()),
+        "psnr": float("inf") if mse == 0 else -10 * torch.log10(torch.tensor(mse)).item(),
+    }
+
+
+def _render_args(fx: Fixture) -> dict:
+    c = fx.cameras
+    return dict(
+        **fx.scene.render_args(), viewmats=c.viewmats, Ks=c.Ks, width=c.width, height=c.height, background=fx.background
+    )
+
+
+def run_reference(fx: Fixture, res: Result) -> torch.Tensor:
+    from renderers.splat.reference import rasterize_reference
+
+    out, t = _timed(lambda: rasterize_reference(**_render_args(fx), outputs=("rgb",)).rgb, repeats=1)
+    res.rows.append(
+        {
+            "scene": fx.name,
+            "renderer": "reference",
+            "settings": "float64 dense",
+            "against": "-",
+            "quantity": "rgb",
+            "time_s": t,
+            "mean_abs": 0.0,
+            "max_abs": 0.0,
+            "psnr": float("inf"),
+        }
+    )
+    res.images["reference"] = out
+    return out
+
+
+def run_splat(fx: Fixture, res: Result, truth: torch.Tensor) -> None:
+    from renderers.splat import rasterize
+
+    for settings in SPLAT_LADDER:
+        out, t = _timed(lambda s=settings: rasterize(**_render_args(fx), **s, outputs=("rgb",)).rgb)
+        name = ",".join(f"{k}={v}" for k, v in settings.items()) or "default"
+        res.rows.append(
+            {
+                "scene": fx.name,
+                "renderer": "splat",
+                "settings": name,
+                "against": "reference",
+                "quantity": "rgb",
+                "time_s": t,
+                **image_errors(out, truth),
+            }
+        )
+        res.images[f"splat[{name}]"] = out
+
+
+def run_gsplat(fx: Fixture, res: Result, truth: torch.Tensor) -> None:
+    from renderers.gsplat_torch import ALPHA_MAX
+    from renderers.gsplat_torch import rasterize as gsplat_rasterize
+    from renderers.splat import rasterize
+
+    a = _render_args(fx)
+    out, t = _timed(lambda: gsplat_rasterize(**a).rgb, repeats=1)
+    ours = rasterize(**a, alpha_max=ALPHA_MAX).rgb
+    base = {
+        "scene": fx.name,
+        "renderer": "gsplat_torch",
+        "settings": "gsplat 1.5.3 torch stages",
+        "quantity": "rgb",
+        "time_s": t,
+    }
+    res.rows.append({**base, "against": f"splat[alpha_max={ALPHA_MAX}]", **image_errors(out, ours)})
+    res.rows.append({**base, "against": "reference", **image_errors(out, truth)})
+    res.images["gsplat_torch"] = out
+
+
+def run_points(fx: Fixture, res: Result, truth: torch.Tensor) -> None:
+    from renderers.pyrender_points.points import render_points
+    from renderers.splat.project import project
+
+    c, s = fx.cameras, fx.scene
+    gl, t = _timed(lambda: render_points(s.means, c.viewmats, c.Ks, c.width, c.height), repeats=1)
+    p = project(s.means, s.quats, s.scales, s.opacities, c.viewmats, c.Ks, c.width, c.height)
+    seen = torch.isfinite(gl.depths)
+    if not bool(seen.any()):
+        res.skipped.append({"scene": fx.name, "renderer": "pyrender_points", "reason": "no centre inside the view"})
+        return
+    px = (gl.means2d[seen] - p.means2d.double()[seen]).abs().amax(-1)
+    rel = ((gl.depths[seen] - p.depths.double()[seen]) / p.depths.double()[seen]).abs()
+    base = {
+        "scene": fx.name,
+        "renderer": "pyrender_points",
+        "settings": "16x supersampled points",
+        "against": "splat projection",
+        "time_s": t,
+        "psnr": float("nan"),
+    }
+    res.rows.append({**base, "quantity": "centre_px", "mean_abs": float(px.mean()), "max_abs": float(px.max())})
+    res.rows.append({**base, "quantity": "depth_rel", "mean_abs": float(rel.mean()), "max_abs": float(rel.max())})
+
+
+BACKENDS: dict[str, Callable] = {"splat": run_splat, "gsplat_torch": run_gsplat, "pyrender_points": run_points}
+"""Renderers compared against the reference, written out by hand (Mitsuba joins here)."""
+AVAILABILITY_REFERENCE = {"splat": "reference", "gsplat_torch": "gsplat_torch", "pyrender_points": "pyrender_points"}
+
+
+def available(name: str) -> tuple[bool, str]:
+    """Whether a backend can run on this machine, and if not, what to install."""
+    try:
+        if name == "gsplat_torch":
+            import gsplat.cuda._torch_impl  # noqa: F401
+        elif name == "pyrender_points":
+            from renderers.pyrender_points._lib import available as pyrender_available
+
+            return pyrender_available()
+        return True, ""
+    except ImportError as e:
+        return False, str(e).splitlines()[0]
+
+
+def compare_scene(fx: Fixture, backends: list[str] | None = None) -> Result:
+    res = Result()
+    truth = run_reference(fx, res)
+    for name in backends or list(BACKENDS):
+        reason = fx.skip_reason(AVAILABILITY_REFERENCE.get(name, name))
+        if reason is None:
+            ok, why = available(name)
+            reason = None if ok else f"not available here: {why}"
+        if reason is not None:
+            res.skipped.append({"scene": fx.name, "renderer": name, "reason": reason})
+            continue
+        BACKENDS[name](fx, res, truth)
+    return res
+
+
+def write_report(results: dict[str, Result], out: Path) -> dict[str, Path]:
+    from .bench.common import write_csv, write_json
+
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [r for res in results.values() for r in res.rows]
+    skipped = [s for res in results.values() for s in res.skipped]
+    paths = {
+        "csv": write_csv(rows, out / "compare.csv"),
+        "json": write_json({"rows": rows, "skipped": skipped}, out / "compare.json"),
+    }
+    for scene, res in results.items():
+        paths[f"{scene}_errors"] = _error_maps(res, out / f"{scene}_errors.png")
+        paths[f"{scene}_pareto"] = _pareto(scene, res.rows, out / f"{scene}_pareto.png")
+    return paths
+
+
+def _error_maps(res: Result, path: Path) -> Path:
+    import imageio.v3 as iio
+
+    truth = res.images["reference"][0].float()
+    tiles = [truth.clamp(0, 1)]
+    for name, img in res.images.items():
+        if name == "reference":
+            continue
+        err = (img[0].float() - truth).abs().amax(-1, keepdim=True)
+        scale = max(float(err.max()), 1e-6)
+        tiles.append((err / scale).expand(*err.shape[:2], 3))  # each map normalised to its own max
+    iio.imwrite(path, (torch.cat(tiles, 1) * 255).round().byte().numpy())
+    return path
+
+
+def _pareto(scene: str, rows: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for r in rows:
+        if r["quantity"] != "rgb" or r["against"] != "reference" or r["renderer"] == "reference":
+            continue
+        ax.loglog(max(r["time_s"], 1e-5), max(r["mean_abs"], 1e-9), "o", label=f"{r['renderer']} {r['settings']}")
+    ax.set_xlabel("run time (s)")
+    ax.set_ylabel("mean |error| against the float64 twin")
+    ax.set_title(f"{scene}: error against run time", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def print_table(results: dict[str, Result]) -> None:
+    print(
+        f"{'scene':18s} {'renderer':16s} {'settings':26s} {'against':24s} {'qty':10s} {'time s':>9s} "
+        f"{'mean|e|':>9s} {'max|e|':>9s} {'PSNR':>7s}"
+    )
+    for res in results.values():
+        for r in res.rows:
+            print(
+                f"{r['scene']:18s} {r['renderer']:16s} {r['settings'][:26]:26s} {r['against'][:24]:24s} "
+                f"{r['quantity']:10s} {r['time_s']:9.4f} {r['mean_abs']:9.2e} {r['max_abs']:9.2e} {r['psnr']:7.1f}"
+            )
+        for s in res.skipped:
+            print(f"{s['scene']:18s} {s['renderer']:16s} skipped: {s['reason']}")
+
+
+def run(
+    scenes: str | list[str] = "all",
+    backends: list[str] | None = None,
+    out: Path = Path("runs/compare"),
+    verbose: bool = True,
+) -> dict[str, Result]:
+    names = fixture_names() if scenes == "all" else ([scenes] if isinstance(scenes, str) else list(scenes))
+    unknown = [b for b in backends or [] if b not in BACKENDS]
+    if unknown:
+        raise ValueError(f"backends: unknown {unknown}; known: {sorted(BACKENDS)}")
+    results = {}
+    for n in names:
+        results[n] = compare_scene(load_fixture(n), backends)
+    paths = write_report(results, Path(out))
+    if verbose:
+        print_table(results)
+        print(f"wrote {paths['csv']}, {paths['json']} and per-scene error maps and Pareto plots in {out}")
+    return results

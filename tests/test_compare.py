@@ -1,0 +1,100 @@
+"""Fixture scenes, golden regression of the splat renderer, and the compare harness."""
+
+from pathlib import Path
+
+import imageio.v3 as iio
+import pytest
+import torch
+
+from gdbench.compare import BACKENDS, compare_scene, image_errors, run
+from gdbench.fixtures import fixture_names, load_fixture
+from gdbench.golden import load_golden
+
+FIXTURES = fixture_names()
+
+
+def test_the_required_fixture_scenes_exist():
+    assert {"isotropic", "anisotropic", "crossing", "near_wide", "random_cloud_10k", "subpixel", "procedural"} <= set(
+        FIXTURES
+    )
+    assert len(load_fixture("random_cloud_10k").scene) == 10000
+
+
+def _write_failure(name: str, actual: torch.Tensor, ref: torch.Tensor, out: Path) -> Path:
+    out.mkdir(parents=True, exist_ok=True)
+    err = (actual - ref).abs()
+    tiles = torch.cat([actual[0], ref[0], (err[0] / max(float(err.max()), 1e-9))], 1)
+    path = out / f"{name}_actual_reference_error.png"
+    iio.imwrite(path, (tiles.clamp(0, 1) * 255).round().byte().numpy())
+    return path
+
+
+@pytest.mark.parametrize("name", FIXTURES)
+def test_splat_matches_golden(name, tmp_path):
+    from renderers.splat import rasterize
+
+    fx = load_fixture(name)
+    gold = load_golden(name)
+    c = fx.cameras
+    out = rasterize(
+        **fx.scene.render_args(),
+        viewmats=c.viewmats,
+        Ks=c.Ks,
+        width=c.width,
+        height=c.height,
+        background=fx.background,
+        outputs=("rgb", "alpha"),
+    )
+    tol = fx.tolerance("reference")
+    err = image_errors(out.rgb, gold["rgb"])
+    assert float(gold["alpha"].max()) > 0.3  # the golden image is not empty
+    if err["mean_abs"] > tol["mean_abs"] or err["max_abs"] > tol["max_abs"]:
+        path = _write_failure(name, out.rgb, gold["rgb"], tmp_path)
+        pytest.fail(f"{name}: {err} exceeds {tol}; actual | reference | error written to {path}")
+
+
+def test_harness_rows_tolerances_and_skips(tmp_path):
+    res = compare_scene(load_fixture("anisotropic"))
+    rows = {(r["renderer"], r["settings"], r["against"], r["quantity"]): r for r in res.rows}
+    tol = load_fixture("anisotropic").tolerance("gsplat_torch")
+    peer = next(r for k, r in rows.items() if k[0] == "gsplat_torch" and k[2].startswith("splat["))
+    assert peer["max_abs"] <= tol["max_abs"]
+    default = rows[("splat", "default", "reference", "rgb")]
+    assert default["max_abs"] <= load_fixture("anisotropic").tolerance("reference")["max_abs"]
+    coarse = rows[("splat", "alpha_min=0.02", "reference", "rgb")]
+    assert coarse["max_abs"] > default["max_abs"]  # the ladder moves the error, as it should
+    pts = rows[("pyrender_points", "16x supersampled points", "splat projection", "centre_px")]
+    assert pts["max_abs"] <= 0.05
+    for r in res.rows:
+        assert r["time_s"] > 0
+
+
+def test_run_writes_report_and_lists_skips(tmp_path, monkeypatch):
+    import gdbench.compare as cmp
+
+    monkeypatch.setattr(
+        cmp, "available", lambda name: (False, "pretend it is missing") if name == "gsplat_torch" else (True, "")
+    )
+    results = run("isotropic", out=tmp_path, verbose=False)
+    assert (tmp_path / "compare.csv").is_file() and (tmp_path / "isotropic_pareto.png").stat().st_size > 0
+    assert (tmp_path / "isotropic_errors.png").is_file()
+    skipped = results["isotropic"].skipped
+    assert skipped == [
+        {"scene": "isotropic", "renderer": "gsplat_torch", "reason": "not available here: pretend it is missing"}
+    ]
+
+
+def test_bad_scene_and_backend_names():
+    with pytest.raises(ValueError, match="scene: no fixture named 'nope'"):
+        load_fixture("nope")
+    with pytest.raises(ValueError, match="backends: unknown"):
+        run("isotropic", backends=["blender"], verbose=False)
+    assert set(BACKENDS) >= {"splat", "gsplat_torch", "pyrender_points"}
+
+
+def test_cli_compare(tmp_path, capsys):
+    from gdbench.cli import Compare, main
+
+    summary = main(Compare(scene="near_wide", out=tmp_path, backends=("splat",)))
+    assert summary == {"near_wide": {"rows": 7, "skipped": 0}}
+    assert "near_wide" in capsys.readouterr().out
