@@ -152,9 +152,41 @@ def run_points(fx: Fixture, res: Result, truth: torch.Tensor) -> None:
     res.rows.append({**base, "quantity": "depth_rel", "mean_abs": float(rel.mean()), "max_abs": float(rel.max())})
 
 
-BACKENDS: dict[str, Callable] = {"splat": run_splat, "gsplat_torch": run_gsplat, "pyrender_points": run_points}
+MITSUBA_SPP = (4, 16, 64)
+
+
+def run_mitsuba_ellipsoids(fx: Fixture, res: Result, truth: torch.Tensor) -> None:
+    from renderers.mitsuba.ellipsoids import rasterize as mi_rasterize
+
+    for spp in MITSUBA_SPP:
+        out, t = _timed(lambda s=spp: mi_rasterize(**_render_args(fx), spp=s).rgb, repeats=1)
+        res.rows.append(
+            {
+                "scene": fx.name,
+                "renderer": "mitsuba_ellipsoids",
+                "settings": f"spp={spp}",
+                "against": "reference",
+                "quantity": "rgb",
+                "time_s": t,
+                **image_errors(out, truth),
+            }
+        )
+        res.images[f"mitsuba_ellipsoids[spp={spp}]"] = out
+
+
+BACKENDS: dict[str, Callable] = {
+    "splat": run_splat,
+    "gsplat_torch": run_gsplat,
+    "pyrender_points": run_points,
+    "mitsuba_ellipsoids": run_mitsuba_ellipsoids,
+}
 """Renderers compared against the reference, written out by hand (Mitsuba joins here)."""
-AVAILABILITY_REFERENCE = {"splat": "reference", "gsplat_torch": "gsplat_torch", "pyrender_points": "pyrender_points"}
+AVAILABILITY_REFERENCE = {
+    "splat": "reference",
+    "gsplat_torch": "gsplat_torch",
+    "pyrender_points": "pyrender_points",
+    "mitsuba_ellipsoids": "mitsuba_ellipsoids",
+}
 
 
 def available(name: str) -> tuple[bool, str]:
@@ -162,6 +194,10 @@ def available(name: str) -> tuple[bool, str]:
     try:
         if name == "gsplat_torch":
             import gsplat.cuda._torch_impl  # noqa: F401
+        elif name.startswith("mitsuba"):
+            from renderers.mitsuba._lib import available as mitsuba_available
+
+            return mitsuba_available()
         elif name == "pyrender_points":
             from renderers.pyrender_points._lib import available as pyrender_available
 

@@ -23,21 +23,26 @@ def golden_path(name: str) -> Path:
     return GOLDEN_DIR / f"{name}.npz"
 
 
+GOLDEN_SPP = 256
+"""Samples per pixel of the stored Mitsuba renders."""
+
+
 def render_golden(name: str) -> dict[str, np.ndarray]:
+    """The twin's rgb/alpha and, where the scene declares it, the high-setting Mitsuba render."""
     from renderers.splat.reference import rasterize_reference
 
     fx = load_fixture(name)
     c = fx.cameras
-    out = rasterize_reference(
-        **fx.scene.render_args(),
-        viewmats=c.viewmats,
-        Ks=c.Ks,
-        width=c.width,
-        height=c.height,
-        background=fx.background,
-        outputs=("rgb", "alpha"),
+    args = dict(
+        **fx.scene.render_args(), viewmats=c.viewmats, Ks=c.Ks, width=c.width, height=c.height, background=fx.background
     )
-    return {"rgb": out.rgb.float().numpy(), "alpha": out.alpha.float().numpy()}
+    out = rasterize_reference(**args, outputs=("rgb", "alpha"))
+    gold = {"rgb": out.rgb.float().numpy(), "alpha": out.alpha.float().numpy()}
+    if fx.skip_reason("mitsuba_ellipsoids") is None:
+        from renderers.mitsuba.ellipsoids import rasterize as mi_rasterize
+
+        gold["mitsuba_ellipsoids"] = mi_rasterize(**args, spp=GOLDEN_SPP).rgb.float().numpy()
+    return gold
 
 
 def load_golden(name: str) -> dict[str, torch.Tensor]:
