@@ -42,6 +42,15 @@ def render_golden(name: str) -> dict[str, np.ndarray]:
         from renderers.mitsuba.ellipsoids import rasterize as mi_rasterize
 
         gold["mitsuba_ellipsoids"] = mi_rasterize(**args, spp=GOLDEN_SPP).rgb.float().numpy()
+    from .compare import VOLUME_LADDERS
+
+    for mode in ("analytic", "grid"):  # the exact volume at the harness's high setting
+        if fx.skip_reason(f"mitsuba_volume_{mode}") is None:
+            from renderers.mitsuba.volume import rasterize as vol_rasterize
+
+            gold[f"mitsuba_volume_{mode}"] = (
+                vol_rasterize(**args, mode=mode, **VOLUME_LADDERS[mode][0]).rgb.float().numpy()
+            )
     return gold
 
 

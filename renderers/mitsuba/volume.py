@@ -6,12 +6,17 @@ Density and emitted colour of the mixture:
     c(x)     = sum_i rho_i G_i(x) c_i / rho(x)
     L(ray)   = int T(t) rho(x(t)) c(x(t)) dt + T(inf) background,    T(t) = exp(-int_0^t rho)
 
-Opacity to density: an isolated isotropic Gaussian of scale s seen through its centre has
-optical depth rho_i s sqrt(2 pi); setting 1 - exp(-tau) = o_i gives
+Opacity to density: a Gaussian seen through its centre along an axis of scale s has optical
+depth rho_i s sqrt(2 pi); setting 1 - exp(-tau) = o_i gives
 
-    rho_i = -ln(1 - o_i) / (sqrt(2 pi) s_i),   s_i = (s_x s_y s_z)^(1/3)
+    rho_i = -ln(1 - o_i) / (sqrt(2 pi) s_i)
 
-(exact for isotropic Gaussians; the geometric mean for anisotropic ones). Colours are the
+with s_i the geometric mean of the three scales (``density_from="geomean"``, the default) or
+the smallest scale (``"min"``). Both are exact for isotropic Gaussians (alpha o_i from every
+side). No choice can be exact for anisotropic ones: splatting's alpha does not depend on the
+view, a volume's does. Measured (splat vs volume, mean |error|): the random 10k cloud 0.035
+(geomean) vs 0.052 (min); the needle fixture 0.011 vs 0.034; but the crossing discs (0.01 x
+0.25 x 0.25, opacity 0.7, seen face-on: geomean gives them alpha 0.13) 0.19 vs 0.12. Colours are the
 degree-0 SH colour (c = C0 f_dc + 0.5); higher bands are not supported here.
 
 Rendering: a Python Mitsuba integrator (``RBIntegrator``, path-replay backward) marches S
@@ -41,9 +46,12 @@ MAX_ANALYTIC = 32
 _SQRT_2PI = math.sqrt(2 * math.pi)
 
 
-def density_scale(opacities: Tensor, scales: Tensor) -> Tensor:
+def density_scale(opacities: Tensor, scales: Tensor, density_from: str = "geomean") -> Tensor:
     """rho_i from o_i (see the module docstring); o is clamped below 1 - 1e-6."""
-    s = scales.clamp_min(1e-12).log().mean(-1).exp()
+    if density_from not in ("geomean", "min"):
+        raise ValueError(f"density_from: expected 'geomean' or 'min', got {density_from!r}")
+    s = scales.clamp_min(1e-12)
+    s = s.log().mean(-1).exp() if density_from == "geomean" else s.amin(-1)
     return -torch.log1p(-opacities.clamp(0, 1 - 1e-6)) / (_SQRT_2PI * s)
 
 
@@ -54,12 +62,13 @@ def scene_box(means: Tensor, scales: Tensor, pad: float = 3.5) -> tuple[Tensor, 
 
 
 def build_grid(means, quats, scales, opacities, colors, res: int, lo: Tensor, hi: Tensor,
-               block: int = 8) -> tuple[Tensor, Tensor]:  # fmt: skip
+               block: int | None = None, density_from: str = "geomean") -> tuple[Tensor, Tensor]:  # fmt: skip
     """rho [R, R, R] and rho c [R, R, R, 3] at voxel centres, indexed [z, y, x] (Mitsuba's layout).
 
     Differentiable in torch. Work is blocked: each block of ``block``^3 voxels evaluates only
     the Gaussians whose 4-sigma box overlaps it."""
-    rho_i = density_scale(opacities, scales)
+    block = block or max(8, res // 8)  # at most 8^3 blocks: the loop over blocks runs in Python
+    rho_i = density_scale(opacities, scales, density_from)
     M = covariance_factor(quats, scales)  # Sigma = M M^T
     prec = torch.linalg.inv(M @ M.transpose(-1, -2))
     ext = 4.0 * scales.amax(-1)
@@ -166,6 +175,7 @@ def rasterize(
     resolution: int = 64,
     spp: int = 16,
     seed: int = 0,
+    density_from: str = "geomean",
 ) -> RenderOutput:
     """Emission-absorption render with the same call shape as ``renderers.splat.rasterize``."""
     if mode not in ("grid", "analytic"):
@@ -195,13 +205,14 @@ def rasterize(
                 resolution,
                 lo.float(),
                 hi.float(),
+                density_from=density_from,
             )
             return (rho[..., None].contiguous(), rhoc.contiguous())
     else:
         M = covariance_factor(quats, scales)
         P = torch.linalg.inv(M @ M.transpose(-1, -2))
         prec = torch.stack([P[:, 0, 0], P[:, 1, 1], P[:, 2, 2], P[:, 0, 1], P[:, 0, 2], P[:, 1, 2]], -1)
-        rho_i = density_scale(opacities, scales)
+        rho_i = density_scale(opacities, scales, density_from)
 
         def field_inputs(c):
             return tuple(x.float().reshape(-1).contiguous() for x in (means, prec, rho_i, c))
@@ -228,10 +239,12 @@ def rasterize(
     cams = Cameras(viewmats.float(), Ks.float(), width, height).to_mitsuba()
     want_alpha = "alpha" in outputs or background is not None
     rgbs, alphas = [], []
+    colour_field = field_inputs(cols)  # built once, shared by the cameras
+    unit_field = field_inputs(ones) if want_alpha else None  # unit colour: that image is exactly 1 - T
     for i, cam in enumerate(cams):
-        rgbs.append(renderer(cam, seed + i)(*field_inputs(cols)))
-        if want_alpha:  # unit colour: the image is exactly 1 - T
-            alphas.append(renderer(cam, seed + i)(*field_inputs(ones))[..., :1])
+        rgbs.append(renderer(cam, seed + i)(*colour_field))
+        if unit_field is not None:
+            alphas.append(renderer(cam, seed + i)(*unit_field)[..., :1])
     rgb = torch.stack(rgbs).to(means.dtype)
     alpha = torch.stack(alphas).to(means.dtype) if alphas else None
     if background is not None:
