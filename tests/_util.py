@@ -96,3 +96,15 @@ def tiny_bank(caption: str = "a test blob", res: int = 16, azimuths: int = 8, el
         poses.azimuth.float(),
         poses.elevation.float(),
     )
+
+
+def write_failure_images(name, actual, ref, out):
+    """actual | reference | |error| (normalised) of the first camera, as one PNG; returns its path."""
+    import imageio.v3 as iio
+
+    out.mkdir(parents=True, exist_ok=True)
+    err = (actual - ref).abs()
+    tiles = torch.cat([actual[0], ref[0], err[0] / max(float(err.max()), 1e-9)], 1)
+    path = out / f"{name}_actual_reference_error.png"
+    iio.imwrite(path, (tiles.clamp(0, 1) * 255).round().byte().numpy())
+    return path

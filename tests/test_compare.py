@@ -1,14 +1,11 @@
 """Fixture scenes, golden regression of the splat renderer, and the compare harness."""
 
-from pathlib import Path
-
-import imageio.v3 as iio
 import pytest
-import torch
 
 from gdbench.compare import BACKENDS, compare_scene, image_errors, run
 from gdbench.fixtures import fixture_names, load_fixture
 from gdbench.golden import load_golden
+from tests._util import write_failure_images
 
 FIXTURES = fixture_names()
 
@@ -18,15 +15,6 @@ def test_the_required_fixture_scenes_exist():
         FIXTURES
     )
     assert len(load_fixture("random_cloud_10k").scene) == 10000
-
-
-def _write_failure(name: str, actual: torch.Tensor, ref: torch.Tensor, out: Path) -> Path:
-    out.mkdir(parents=True, exist_ok=True)
-    err = (actual - ref).abs()
-    tiles = torch.cat([actual[0], ref[0], (err[0] / max(float(err.max()), 1e-9))], 1)
-    path = out / f"{name}_actual_reference_error.png"
-    iio.imwrite(path, (tiles.clamp(0, 1) * 255).round().byte().numpy())
-    return path
 
 
 @pytest.mark.parametrize("name", FIXTURES)
@@ -49,7 +37,7 @@ def test_splat_matches_golden(name, tmp_path):
     err = image_errors(out.rgb, gold["rgb"])
     assert float(gold["alpha"].max()) > 0.3  # the golden image is not empty
     if err["mean_abs"] > tol["mean_abs"] or err["max_abs"] > tol["max_abs"]:
-        path = _write_failure(name, out.rgb, gold["rgb"], tmp_path)
+        path = write_failure_images(name, out.rgb, gold["rgb"], tmp_path)
         pytest.fail(f"{name}: {err} exceeds {tol}; actual | reference | error written to {path}")
 
 

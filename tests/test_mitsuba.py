@@ -6,6 +6,7 @@ import torch
 
 from gdbench.fixtures import fixture_names, load_fixture
 from renderers.mitsuba._lib import available
+from tests._util import write_failure_images
 
 pytestmark = pytest.mark.skipif(not available()[0], reason=f"Mitsuba unavailable: {available()[1]}")
 
@@ -67,8 +68,11 @@ def test_splat_vs_mitsuba_ellipsoids_error_does_not_grow(name, tmp_path):
     fx = load_fixture(name)
     tol = fx.tolerance("mitsuba_ellipsoids")
     gold = load_golden(name)["mitsuba_ellipsoids"]
-    err = image_errors(rasterize(**_args(fx), background=fx.background).rgb, gold)
-    assert err["mean_abs"] <= tol["mean_abs"] and err["max_abs"] <= tol["max_abs"], (err, tol)
+    img = rasterize(**_args(fx), background=fx.background).rgb
+    err = image_errors(img, gold)
+    if err["mean_abs"] > tol["mean_abs"] or err["max_abs"] > tol["max_abs"]:
+        path = write_failure_images(f"{name}_ellipsoids", img, gold, tmp_path)
+        pytest.fail(f"{name}: {err} exceeds {tol}; actual | reference | error written to {path}")
 
 
 def test_missing_llvm_names_the_package(monkeypatch):
@@ -164,7 +168,7 @@ def test_volume_gradient_matches_finite_differences(mode):
 
 @pytest.mark.parametrize("key", ["mitsuba_volume_analytic", "mitsuba_volume_grid"])
 @pytest.mark.parametrize("name", fixture_names())
-def test_splat_vs_volume_error_does_not_grow(name, key):
+def test_splat_vs_volume_error_does_not_grow(name, key, tmp_path):
     from gdbench.compare import image_errors
     from gdbench.golden import load_golden
     from renderers.splat import rasterize
@@ -174,8 +178,11 @@ def test_splat_vs_volume_error_does_not_grow(name, key):
     if tol is None:
         assert fx.skip_reason(key)  # not applicable, and the scene says why
         return
-    err = image_errors(rasterize(**_args(fx), background=fx.background).rgb, load_golden(name)[key])
-    assert err["mean_abs"] <= tol["mean_abs"] and err["max_abs"] <= tol["max_abs"], (err, tol)
+    img, gold = rasterize(**_args(fx), background=fx.background).rgb, load_golden(name)[key]
+    err = image_errors(img, gold)
+    if err["mean_abs"] > tol["mean_abs"] or err["max_abs"] > tol["max_abs"]:
+        path = write_failure_images(f"{name}_{key}", img, gold, tmp_path)
+        pytest.fail(f"{name}: {err} exceeds {tol}; actual | reference | error written to {path}")
 
 
 def test_volume_bad_input():
