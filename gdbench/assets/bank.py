@@ -22,7 +22,7 @@ import torch
 
 from ..camera import SphericalPoses
 
-ASSET_VERSION = 2  # bump when the meshes or the lighting change: old caches are then ignored
+ASSET_VERSION = 3  # bump when the meshes or the lighting change: old caches are then ignored
 
 
 @dataclass(frozen=True)
