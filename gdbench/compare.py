@@ -182,14 +182,28 @@ def run_mitsuba_ellipsoids(fx: Fixture, res: Result, truth: torch.Tensor) -> Non
 
 VOLUME_LADDERS = {
     # (high setting, ladder); each ladder entry varies one of S (steps), spp, R (grid resolution)
-    "analytic": ({"steps": 512, "spp": 64},
-                 [{"steps": 16, "spp": 16}, {"steps": 64, "spp": 16}, {"steps": 256, "spp": 16},
-                  {"steps": 128, "spp": 4}, {"steps": 128, "spp": 64}]),
-    "grid": ({"resolution": 128, "steps": 256, "spp": 32},
-             [{"resolution": 16, "steps": 128, "spp": 16}, {"resolution": 32, "steps": 128, "spp": 16},
-              {"resolution": 64, "steps": 128, "spp": 16}, {"resolution": 64, "steps": 32, "spp": 16},
-              {"resolution": 64, "steps": 128, "spp": 4}, {"resolution": 64, "steps": 128, "spp": 32}]),
-}  # fmt: skip
+    "analytic": (
+        {"steps": 512, "spp": 64},
+        [
+            {"steps": 16, "spp": 16},
+            {"steps": 64, "spp": 16},
+            {"steps": 256, "spp": 16},
+            {"steps": 128, "spp": 4},
+            {"steps": 128, "spp": 64},
+        ],
+    ),
+    "grid": (
+        {"resolution": 128, "steps": 256, "spp": 32},
+        [
+            {"resolution": 16, "steps": 128, "spp": 16},
+            {"resolution": 32, "steps": 128, "spp": 16},
+            {"resolution": 64, "steps": 128, "spp": 16},
+            {"resolution": 64, "steps": 32, "spp": 16},
+            {"resolution": 64, "steps": 128, "spp": 4},
+            {"resolution": 64, "steps": 128, "spp": 32},
+        ],
+    ),
+}
 
 
 def _run_volume(mode: str, fx: Fixture, res: Result, truth: torch.Tensor) -> None:

@@ -76,8 +76,9 @@ def _angle_deg(R: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-def score_images(images: np.ndarray, cams: Cameras, workdir: str | Path | None = None, *, seed: int = 0,
-                 max_image_size: int = 512) -> ColmapScore:  # fmt: skip
+def score_images(
+    images: np.ndarray, cams: Cameras, workdir: str | Path | None = None, *, seed: int = 0, max_image_size: int = 512
+) -> ColmapScore:
     """Run COLMAP on uint8 images [K, H, W, 3] taken (in order around the circle) by ``cams``."""
     import imageio.v3 as iio
 
@@ -165,8 +166,9 @@ def score_scene(scene, *, views: int = 100, size: int = 256, workdir=None, seed:
     return score_images(to_uint8(render_views(scene, cams)), cams, workdir, seed=seed)
 
 
-def asset_circle_images(caption: str, cams: Cameras, *, mode: str = "consistent", seed: int = 0,
-                        jitter_deg: float = 12.0) -> np.ndarray:  # fmt: skip
+def asset_circle_images(
+    caption: str, cams: Cameras, *, mode: str = "consistent", seed: int = 0, jitter_deg: float = 12.0
+) -> np.ndarray:
     """Calibration images of a procedural asset on the circle, uint8 [K, H, W, 3].
 
     ``consistent``: the asset as it is; ``two-faced``: views from the back half see the asset

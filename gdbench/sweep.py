@@ -1,0 +1,241 @@
+"""``gdbench sweep``: train and score every (prompt, preset, seed) cell; write the analogue of
+the paper's Tables 1 and 2 (COLMAP variance, registration rate, GT PSNR, iterations, training
+time) as CSV and Markdown.
+
+Resumable: each cell lives in ``out/cells/<prompt>/<preset>/seed<k>``; a finished cell (its
+``cell.json`` present) is skipped, and an interrupted one resumes from its training
+checkpoint. Executors are pluggable: ``local`` (a process pool, default one worker, since one
+training already uses both cores here) or ``ray`` (``--address`` of a cluster, or a local
+instance when empty).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    prompt: str
+    preset: str
+    seed: int
+    steps: int
+    out: str
+    colmap: bool = True
+    colmap_views: int = 100
+    overrides: dict = field(default_factory=dict)
+
+    @property
+    def dir(self) -> Path:
+        slug = "_".join(self.prompt.lower().split())
+        return Path(self.out) / "cells" / slug / self.preset / f"seed{self.seed}"
+
+
+def cell_config(spec: CellSpec):
+    """The TrainConfig of a cell."""
+    from .train.config import preset
+
+    return preset(
+        spec.preset,
+        prompt=spec.prompt,
+        steps=spec.steps,
+        seed=spec.seed,
+        out=spec.dir,
+        progress=False,
+        **spec.overrides,
+    )
+
+
+def run_cell(spec: CellSpec) -> dict:
+    """Train (or resume) and score one cell; writes and returns its row."""
+    from .metrics.run_scores import score_run
+    from .train.outputs import write_json_atomic
+    from .train.run import train
+
+    t0 = time.perf_counter()
+    r = train(cell_config(spec))
+    train_s = sum(h["seconds"] for h in r.state.history)
+    scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
+    col = scores.get("colmap", {})
+    row = {
+        "prompt": spec.prompt,
+        "preset": spec.preset,
+        "seed": spec.seed,
+        "iterations": r.state.step,
+        "train_time_s": train_s,
+        "gaussians": scores["gaussians"],
+        "gt_psnr": scores.get("gt", {}).get("psnr", float("nan")),
+        "gt_ssim": scores.get("gt", {}).get("ssim", float("nan")),
+        "registration_rate": col.get("registration_rate", float("nan")),
+        "var_theta_deg2": col.get("var_theta_deg2", float("nan")),
+        "translation_dir_err_deg": col.get("translation_dir_err_deg", float("nan")),
+        "cell_s": time.perf_counter() - t0,
+    }
+    write_json_atomic({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")
+    return row
+
+
+def _done(spec: CellSpec) -> dict | None:
+    p = spec.dir / "cell.json"
+    if not p.is_file():
+        return None
+    blob = json.loads(p.read_text())
+    return blob["row"] if blob.get("spec") == json.loads(json.dumps(asdict(spec))) else None
+
+
+def _median(xs: list[float]) -> float:
+    xs = [x for x in xs if x == x]  # drop NaN
+    return statistics.median(xs) if xs else math.nan
+
+
+def _mean_std(xs: list[float]) -> str:
+    xs = [x for x in xs if x == x]  # drop NaN
+    if not xs:
+        return "n/a"
+    if len(xs) == 1:
+        return f"{xs[0]:.3g}"
+    return f"{statistics.mean(xs):.3g} ± {statistics.stdev(xs):.2g}"
+
+
+def tables(rows: list[dict], out: Path) -> dict[str, Path]:
+    """Per-cell CSV and the per-preset summary (mean ± std over prompts and seeds) as CSV/Markdown."""
+    from .bench.common import write_csv
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"cells_csv": write_csv(rows, out / "cells.csv")}
+    presets = list(dict.fromkeys(r["preset"] for r in rows))
+    summary = []
+    for p in presets:
+        sel = [r for r in rows if r["preset"] == p]
+        summary.append(
+            {
+                "preset": p,
+                "cells": len(sel),
+                "var_theta_deg2": _mean_std([r["var_theta_deg2"] for r in sel]),
+                "registration_rate": _mean_std([r["registration_rate"] for r in sel]),
+                "gt_psnr": _mean_std([r["gt_psnr"] for r in sel]),
+                "iterations": _mean_std([r["iterations"] for r in sel]),
+                "train_time_s": _mean_std([r["train_time_s"] for r in sel]),
+                "median_var_theta_deg2": _median([r["var_theta_deg2"] for r in sel]),
+            }
+        )
+    paths["summary_csv"] = write_csv(summary, out / "summary.csv")
+    head = [
+        "preset",
+        "cells",
+        "Var(theta) deg^2 (COLMAP)",
+        "median Var",
+        "registration",
+        "GT PSNR dB",
+        "iterations",
+        "train time s",
+    ]
+    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for s in summary:
+        md.append(
+            f"| {s['preset']} | {s['cells']} | {s['var_theta_deg2']} | {s['median_var_theta_deg2']:.3g} | "
+            f"{s['registration_rate']} | {s['gt_psnr']} | {s['iterations']} | {s['train_time_s']} |"
+        )
+    (out / "summary.md").write_text("\n".join(md) + "\n")
+    paths["summary_md"] = out / "summary.md"
+    return paths
+
+
+def sweep(
+    prompts: list[str],
+    presets: list[str],
+    seeds: list[int],
+    *,
+    steps: int = 2000,
+    out: str | Path = "runs/sweep",
+    executor: Literal["local", "ray"] = "local",
+    address: str = "",
+    workers: int = 1,
+    colmap: bool = True,
+    colmap_views: int = 100,
+    overrides: dict | None = None,
+    progress: bool = True,
+) -> list[dict]:
+    from .train.config import PRESETS
+
+    bad = [p for p in presets if p not in PRESETS]
+    if bad:
+        raise ValueError(f"presets: unknown {bad}; expected names from {sorted(PRESETS)}")
+    if not prompts or not seeds:
+        raise ValueError("prompts, seeds: expected at least one of each")
+    out = Path(out)
+    # seeds outermost: a sweep cut short still has every (prompt, preset) for its first seeds
+    specs = [
+        CellSpec(pr, p, s, steps, str(out), colmap, colmap_views, dict(overrides or {}))
+        for s in seeds
+        for pr in prompts
+        for p in presets
+    ]
+    rows: dict[int, dict] = {}
+    todo = []
+    for i, spec in enumerate(specs):
+        done = _done(spec)
+        if done is not None:
+            rows[i] = done
+        else:
+            todo.append(i)
+    if progress:
+        print(f"sweep: {len(specs)} cells, {len(rows)} already finished, {len(todo)} to run ({executor})")
+    for i, row in _execute([specs[i] for i in todo], executor, address, workers):
+        rows[todo[i]] = row
+        tables([rows[k] for k in sorted(rows)], out)
+        if progress:
+            print(
+                f"  done {row['prompt']!r} {row['preset']} seed {row['seed']}: Var {row['var_theta_deg2']:.3g}, "
+                f"reg {row['registration_rate']:.2f}, PSNR {row['gt_psnr']:.2f} ({row['cell_s']:.0f} s)"
+            )
+    ordered = [rows[k] for k in sorted(rows)]
+    tables(ordered, out)
+    return ordered
+
+
+def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):
+    """Yield (index, row) as cells finish."""
+    if executor == "local":
+        if workers <= 1:
+            for i, s in enumerate(specs):
+                yield i, run_cell(s)
+            return
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futs = {pool.submit(run_cell, s): i for i, s in enumerate(specs)}
+            for f in as_completed(futs):
+                yield futs[f], f.result()
+        return
+    if executor == "ray":
+        try:
+            import ray
+        except ImportError as e:
+            raise ImportError("executor='ray' needs Ray: pip install 'ray[default]'") from e
+        started = not ray.is_initialized()
+        if started:
+            ray.init(
+                address=address or None,
+                include_dashboard=False,
+                num_cpus=None if address else max(workers, 1),
+                log_to_driver=False,
+            )
+        try:
+            remote = ray.remote(run_cell)
+            refs = {remote.remote(s): i for i, s in enumerate(specs)}
+            pending = list(refs)
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                yield refs[ready[0]], ray.get(ready[0])
+        finally:
+            if started:
+                ray.shutdown()
+        return
+    raise ValueError(f"executor: expected 'local' or 'ray', got {executor!r}")

@@ -1,0 +1,143 @@
+"""Scores and sweeps (gdbench/metrics/run_scores.py, gdbench/sweep.py): ``gdbench score`` on a
+run folder, the sweep's tables against its own cells, resumability, and the Ray executor
+against the local one (same seed, same cell)."""
+
+import csv
+import json
+import math
+import shutil
+import statistics
+
+import pytest
+
+from gdbench.cli import Score, Sweep, main
+from gdbench.metrics.run_scores import score_run
+from gdbench.sweep import CellSpec, cell_config, run_cell, sweep
+from gdbench.train.run import train
+
+PROMPT = "a yellow duck"
+TINY = {"resolution": 16, "init_points": 150, "checkpoint_every": 2, "turntable_frames": 2}
+
+
+def _read_csv(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def tiny_sweep(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweep")
+    rows = sweep([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    return out, rows
+
+
+def test_sweep_writes_every_cell_and_tables_that_summarise_them(tiny_sweep):
+    out, rows = tiny_sweep
+    assert [(r["preset"], r["seed"]) for r in rows] == [("gd", 0), ("sjc-gs", 0), ("gd", 1), ("sjc-gs", 1)]
+    cells = _read_csv(out / "cells.csv")
+    assert len(cells) == 4
+    for r in rows:
+        run = json.loads((CellSpec(PROMPT, r["preset"], r["seed"], 4, str(out)).dir / "run.json").read_text())
+        assert (run["preset"], run["seed"], run["steps"]) == (r["preset"], r["seed"], 4)
+        assert r["iterations"] == 4 and 5.0 < r["gt_psnr"] < 40.0 and math.isnan(r["var_theta_deg2"])
+        # the row's training time is the run's own record of its steps
+        assert r["train_time_s"] == pytest.approx(run["timings"]["train_steps_s"])
+    # the summary is the mean over seeds of the per-cell values, recomputed here from cells.csv
+    summary = {s["preset"]: s for s in _read_csv(out / "summary.csv")}
+    for p in ("gd", "sjc-gs"):
+        ps = [float(c["gt_psnr"]) for c in cells if c["preset"] == p]
+        mean = float(summary[p]["gt_psnr"].split(" ± ")[0])
+        assert mean == pytest.approx(statistics.mean(ps), rel=2e-3)
+    md = (out / "summary.md").read_text()
+    assert md.count("\n| gd |") == 1 and md.count("\n| sjc-gs |") == 1
+
+
+def test_seeds_give_different_cells_and_the_same_seed_the_same_cell(tiny_sweep, tmp_path):
+    _, rows = tiny_sweep
+    by = {(r["preset"], r["seed"]): r for r in rows}
+    assert by["gd", 0]["gt_psnr"] != by["gd", 1]["gt_psnr"]
+    again = run_cell(CellSpec(PROMPT, "gd", 0, 4, str(tmp_path), colmap=False, overrides=TINY))
+    assert again["gt_psnr"] == by["gd", 0]["gt_psnr"]  # same seed on CPU: bit-identical
+
+
+def test_a_finished_sweep_skips_all_cells_and_an_interrupted_one_continues(tiny_sweep, monkeypatch):
+    out, rows = tiny_sweep
+    import gdbench.sweep as sw
+
+    def boom(spec):
+        raise AssertionError(f"cell {spec} should have been skipped")
+
+    monkeypatch.setattr(sw, "run_cell", boom)
+    again = sweep([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    assert json.dumps(again) == json.dumps(rows)  # (NaN-safe equality)
+    monkeypatch.undo()
+
+    # a cell killed mid-training: only that cell runs again, from its checkpoint, to the same result
+    spec = CellSpec(PROMPT, "sjc-gs", 1, 4, str(out), colmap=False, overrides=TINY)
+    shutil.rmtree(spec.dir)
+    train(cell_config(spec), stop_at=2)
+    ran = []
+    monkeypatch.setattr(sw, "run_cell", lambda s: ran.append(s) or run_cell(s))
+    resumed = sweep([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    assert ran == [spec]
+    assert json.loads((spec.dir / "run.json").read_text())["resumed_from_step"] == 2
+    assert resumed[3]["gt_psnr"] == rows[3]["gt_psnr"]
+
+
+def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep, monkeypatch):
+    out, _ = tiny_sweep
+    import gdbench.sweep as sw
+
+    ran = []
+    monkeypatch.setattr(sw, "run_cell", lambda s: ran.append(s) or {"preset": s.preset})
+    monkeypatch.setattr(sw, "tables", lambda rows, out: {})
+    sweep([PROMPT], ["gd"], [0], steps=6, out=out, colmap=False, overrides=TINY, progress=False)
+    assert [s.steps for s in ran] == [6]
+
+
+def test_sweep_rejects_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="presets: unknown"):
+        sweep([PROMPT], ["gd", "best"], [0], out=tmp_path)
+    with pytest.raises(ValueError, match="prompts, seeds"):
+        sweep([], ["gd"], [0], out=tmp_path)
+    with pytest.raises(ValueError, match="executor"):
+        sweep([PROMPT], ["gd"], [0], out=tmp_path, executor="slurm", steps=1, colmap=False, progress=False)
+
+
+def test_ray_executor_gives_the_local_rows(tiny_sweep, tmp_path):
+    ray = pytest.importorskip("ray")
+    _, rows = tiny_sweep
+    got = sweep(
+        [PROMPT], ["gd"], [1], steps=4, out=tmp_path, executor="ray", colmap=False, overrides=TINY, progress=False
+    )
+    assert not ray.is_initialized()  # the sweep shut down the instance it started
+    local = next(r for r in rows if (r["preset"], r["seed"]) == ("gd", 1))
+    # a Ray worker may run with another thread count: same cell up to float reduction order
+    assert got[0]["gt_psnr"] == pytest.approx(local["gt_psnr"], abs=1e-3)
+    assert got[0]["gaussians"] == local["gaussians"] and got[0]["iterations"] == 4
+
+
+def test_score_cli_writes_scores_next_to_the_run_and_keeps_earlier_ones(tiny_sweep, capsys):
+    out, rows = tiny_sweep
+    run = CellSpec(PROMPT, "gd", 0, 4, str(out)).dir
+    before = json.loads((run / "scores.json").read_text())
+    s = main(Score(run=run, gt=True, colmap=True, views=12, size=64))
+    after = json.loads((run / "scores.json").read_text())
+    # the PLY written by the run scores as the in-memory scene did
+    assert after["gt"]["psnr"] == pytest.approx(rows[0]["gt_psnr"], abs=1e-4)
+    assert 0.0 <= after["colmap"]["registration_rate"] <= 1.0 and after["colmap"]["views"] == 12
+    assert set(before) <= set(after) and s["gaussians"] == rows[0]["gaussians"]
+    assert "PSNR" in capsys.readouterr().out
+
+
+def test_score_names_the_missing_scene(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"run: no scene\.ply"):
+        score_run(tmp_path)
+    with pytest.raises(SystemExit, match="run: expected a run folder"):
+        main(Score(run=tmp_path / "nope"))
+
+
+def test_sweep_cli_prints_the_table(tmp_path, capsys):
+    res = main(Sweep(prompts=(PROMPT,), presets=("sjc-gs",), seeds=(0,), steps=2, out=tmp_path, colmap=False))
+    assert res["cells"] == 1 and (tmp_path / "cells.csv").is_file()
+    assert "| sjc-gs | 1 |" in capsys.readouterr().out
