@@ -317,6 +317,47 @@ def run_sweep(cmd: Sweep) -> dict:
     return {"cells": len(rows), "out": str(cmd.out)}
 
 
+BENCHES = {
+    "render": ("gdbench.bench.bm_render", "render.csv", []),
+    "peers": ("gdbench.bench.bm_render", "peers.csv", ["--peers"]),
+    "error": ("gdbench.bench.bm_error", "error_vs_runtime.csv", []),
+    "stability": ("gdbench.bench.bm_stability", "stability.csv", []),
+    "noise": ("gdbench.bench.bm_noise", "noise.csv", []),
+    "train": ("gdbench.bench.bm_train", "train.csv", []),
+}
+"""Benchmark name -> (module, CSV name, extra arguments)."""
+
+
+@dataclass
+class Bench:
+    """Benchmarks; each writes a CSV with a JSON summary (and a plot or table) to --out.
+
+    render: splat vs the dense all-pairs path over N and resolution (speed, memory);
+    peers: splat vs gsplat_torch vs Mitsuba ellipsoids (target: splat forward >= 10x gsplat at
+    10k Gaussians, 256 px, same run); error: error against run time over all fixtures (Pareto);
+    stability: stiff and extreme cases on every renderer; noise: structured-noise share of a
+    training step; train: denoiser and full-run timings."""
+
+    which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train"]]
+    out: Path = Path("bench_results")
+    """Folder for the CSV/JSON/plots."""
+    quick: bool = False
+    """Small grid (render and peers only): a smoke run, not numbers to publish."""
+
+
+def run_bench(cmd: Bench) -> dict:
+    import importlib
+
+    module, csv_name, extra = BENCHES[cmd.which]
+    argv = ["--out", str(Path(cmd.out) / csv_name), *extra]
+    if cmd.quick:
+        if cmd.which not in ("render", "peers"):
+            raise SystemExit(f"gdbench bench: quick: only render and peers have a quick grid, not {cmd.which!r}")
+        argv.append("--quick")
+    code = importlib.import_module(module).main(argv)
+    return {"bench": cmd.which, "csv": str(Path(cmd.out) / csv_name), "exit": code}
+
+
 COMMANDS = {
     "generate": Generate,
     "render": Render,
@@ -325,6 +366,7 @@ COMMANDS = {
     "noise": Noise,
     "score": Score,
     "sweep": Sweep,
+    "bench": Bench,
 }
 
 
@@ -343,6 +385,8 @@ def main(cmd) -> dict:
         return run_score(cmd)
     if isinstance(cmd, Sweep):
         return run_sweep(cmd)
+    if isinstance(cmd, Bench):
+        return run_bench(cmd)
     raise TypeError(f"cmd: unknown command {type(cmd).__name__}")
 
 

@@ -99,8 +99,41 @@ def _mean_std(xs: list[float]) -> str:
     if not xs:
         return "n/a"
     if len(xs) == 1:
-        return f"{xs[0]:.3g}"
-    return f"{statistics.mean(xs):.3g} ± {statistics.stdev(xs):.2g}"
+        return f"{xs[0]:.4g}"
+    return f"{statistics.mean(xs):.4g} ± {statistics.stdev(xs):.2g}"
+
+
+PAPER_ORDER = (("gd", "gd-no-vgs"), ("gd-no-vgs", "gd-no-sn"), ("gd", "sjc-gs"))
+"""The paper's claims on pose variance: each pair (a, b) says Var(a) < Var(b)."""
+
+
+def paper_ordering(rows: list[dict], metric: str = "var_theta_deg2") -> list[dict]:
+    """For each claimed pair (a, b): mean and median of ``metric`` over the cells of a and b, and
+    the paired count over (prompt, seed) where a < b. ``holds`` needs both the means and the
+    majority of pairs to agree; a pair is undecided when either preset has no finite value."""
+    out = []
+    for a, b in PAPER_ORDER:
+        va = {(r["prompt"], r["seed"]): r[metric] for r in rows if r["preset"] == a and r[metric] == r[metric]}
+        vb = {(r["prompt"], r["seed"]): r[metric] for r in rows if r["preset"] == b and r[metric] == r[metric]}
+        common = sorted(set(va) & set(vb))
+        wins = sum(va[k] < vb[k] for k in common)
+        ma = statistics.mean(va.values()) if va else math.nan
+        mb = statistics.mean(vb.values()) if vb else math.nan
+        holds = None if not (va and vb) else bool(ma < mb and wins * 2 > len(common))
+        out.append(
+            {
+                "claim": f"{a} < {b}",
+                "metric": metric,
+                "mean_a": ma,
+                "mean_b": mb,
+                "median_a": _median(list(va.values())),
+                "median_b": _median(list(vb.values())),
+                "paired_wins": wins,
+                "pairs": len(common),
+                "holds": holds,
+            }
+        )
+    return out
 
 
 def tables(rows: list[dict], out: Path) -> dict[str, Path]:
@@ -141,6 +174,14 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
         md.append(
             f"| {s['preset']} | {s['cells']} | {s['var_theta_deg2']} | {s['median_var_theta_deg2']:.3g} | "
             f"{s['registration_rate']} | {s['gt_psnr']} | {s['iterations']} | {s['train_time_s']} |"
+        )
+    order = paper_ordering(rows)
+    paths["ordering_csv"] = write_csv(order, out / "ordering.csv")
+    md += ["", "| paper's claim (Var(theta)) | mean a | mean b | a < b in pairs | holds |", "|---|---|---|---|---|"]
+    for o in order:
+        verdict = {True: "yes", False: "no", None: "undecided"}[o["holds"]]
+        md.append(
+            f"| {o['claim']} | {o['mean_a']:.3g} | {o['mean_b']:.3g} | {o['paired_wins']}/{o['pairs']} | {verdict} |"
         )
     (out / "summary.md").write_text("\n".join(md) + "\n")
     paths["summary_md"] = out / "summary.md"

@@ -3,6 +3,7 @@ CSV written by `make bench`, never in timed unit tests)."""
 
 import csv
 import json
+import math
 
 import pytest
 import torch
@@ -86,3 +87,72 @@ def test_train_benchmark_denoise_row():
 
     row = bm_train.denoise_time("window")
     assert "bank of 360" in row["what"] and 0 < row["seconds"] < 1.0 and row["met"] == (row["seconds"] <= 0.005)
+
+
+# ------------------------------------------------------------------ peers and stability
+def test_peer_sweep_reports_each_peer_against_splat_in_the_same_run(tmp_path):
+    pytest.importorskip("gsplat")
+    out = tmp_path / "peers.csv"
+    assert bm_render.main(["--quick", "--inprocess", "--peers", "--out", str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    ok = {(r["path"], r["n"], r["res"], r["mode"]): r for r in rows if r["status"] == "ok"}
+    peers = [k for k in ok if k[0] == "gsplat-torch"]
+    assert len(peers) == 2 * 2 * 2
+    for k in peers:
+        base = ok[("splat", *k[1:])]
+        assert float(ok[k]["time_over_splat"]) == pytest.approx(float(ok[k]["median_s"]) / float(base["median_s"]))
+    # Mitsuba is timed forward only, and says so
+    assert all("forward only" in r["status"] for r in rows if r["path"] == "mitsuba" and r["mode"] == "fwd+bwd")
+
+
+def test_stability_cases_agree_with_the_twin_and_flag_non_finite_renderers(tmp_path, monkeypatch):
+    from gdbench.bench import bm_stability as bs
+
+    names = ["anisotropy 1e6", "grazing view: disc edge-on", "fovy 170 deg", "10k Gaussians on one pixel"]
+    rows = bs.run(tmp_path / "stab.csv", ("splat", "splat-torch"), names, progress=False)
+    assert len(rows) == 8
+    for r in rows:
+        assert r["status"] == "ok" and r["twin_finite"] and not r["nan_out"] and not r["nan_grad"]
+        assert r["alpha_max_twin"] > 0.05  # each case draws something
+        assert max(r["max_err_rgb"], r["max_err_alpha"]) < 1e-5 and r["max_rel_err_grad"] < 1e-3
+
+    # a renderer that returns NaN is flagged in its row and in the table
+    from renderers.splat import rasterize
+
+    def broken(*a, **k):
+        out = rasterize(*a, **k)
+        return type(out)(rgb=out.rgb * float("nan"), alpha=out.alpha)
+
+    monkeypatch.setattr(bs, "_renderer", lambda name: (broken, 0.99))
+    bad = bs.run(tmp_path / "bad.csv", ("splat",), names[:1], progress=False)
+    assert bad[0]["nan_out"] and bad[0]["nan_grad"] and bad[0]["status"] == "non-finite"
+    assert "NaN out, NaN grad" in (tmp_path / "bad.md").read_text()
+    with pytest.raises(ValueError, match="cases: unknown"):
+        bs.run(tmp_path / "x.csv", ("splat",), ["no such case"])
+
+
+def test_pareto_flags_keep_exactly_the_non_dominated_runs():
+    from gdbench.bench.bm_error import pareto_flags
+
+    base = {"scene": "s", "quantity": "rgb", "against": "reference"}
+    pts = [(1.0, 0.1), (2.0, 0.05), (3.0, 0.07), (0.5, 0.5), (2.0, 0.05), (4.0, float("nan"))]
+    rows = [base | {"time_s": t, "max_abs": e} for t, e in pts]
+    rows.append({**base, "scene": "other", "time_s": 10.0, "max_abs": 1.0})  # another scene: its own front
+    # (3.0, 0.07) is beaten by (2.0, 0.05); the two equal runs do not dominate each other
+    assert pareto_flags(rows) == [True, True, False, True, True, False, True]
+
+
+def test_error_benchmark_writes_one_csv_with_skips(tmp_path):
+    from gdbench.bench import bm_error
+
+    out = tmp_path / "err.csv"
+    rows = bm_error.run(out, "isotropic", backends=["splat", "pyrender_points"], verbose=False)
+    got = list(csv.DictReader(out.open()))
+    assert len(got) == len(rows) and got[0]["renderer"] == "reference"
+    splat = [r for r in got if r["renderer"] == "splat"]
+    exact = [r for r in splat if r["settings"] in ("default", "backend=torch")]
+    assert len(splat) >= 5 and len(exact) == 2 and all(float(r["max_abs"]) < 1e-5 for r in exact)
+    assert all(math.isfinite(float(r["max_abs"])) for r in splat)
+    assert any(r["pareto"] == "True" for r in splat)
+    summary = json.loads((tmp_path / "err_summary.json").read_text())
+    assert summary["pareto"]["isotropic"]

@@ -1,12 +1,16 @@
-"""Rendering speed and memory of the splat renderer against the dense all-pairs path.
+"""Rendering speed and memory of the splat renderer against the dense all-pairs path and
+the peer renderers.
 
 Sweep: N in {1k, 10k, 100k} x resolution in {64, 256, 512} x path x {forward, forward+backward}.
-Paths: ``splat`` (C++ compositor), ``splat-torch`` (the pure-torch compositor, the CUDA path)
-and ``dense`` (``renderers.splat.reference`` in float32: every Gaussian at every pixel).
-Dense runs only where it fits in time and memory (see ``DENSE_LIMITS``); skipped cells are
-written with the reason. Each case runs in its own process so that its peak RSS is its own.
+Paths: ``splat`` (C++ compositor), ``splat-torch`` (the pure-torch compositor, the CUDA path),
+``dense`` (``renderers.splat.reference`` in float32: every Gaussian at every pixel), and with
+``--peers`` the references: ``gsplat-torch`` (gsplat 1.5.3's torch stages, completed on CPU)
+and ``mitsuba`` (Mitsuba 3 ray-traced ellipsoids, forward only, 4 spp). Slow paths run only
+where they fit in time and memory (``LIMITS``); skipped cells are written with the reason.
+Each case runs in its own process so that its peak RSS is its own.
 
     python -m gdbench.bench.bm_render --out bench_results/render.csv       # full sweep
+    python -m gdbench.bench.bm_render --peers --out bench_results/peers.csv  # vs gsplat, Mitsuba
     python -m gdbench.bench.bm_render --quick --inprocess --out /tmp/r.csv # smoke
 
 Writes the CSV, ``<stem>_summary.json`` (targets, fits) and ``<stem>_fit.png``.
@@ -29,12 +33,24 @@ import torch
 from .common import environment, peak_rss_mb, random_cloud, rss_mb, timeit, write_csv, write_json
 
 PATHS = ("splat", "splat-torch", "dense")
+PEER_PATHS = ("splat", "gsplat-torch", "mitsuba")
+MITSUBA_SPP = 4
 MODES = ("fwd", "fwd+bwd")
 FULL = {"n": (1_000, 10_000, 100_000), "res": (64, 256, 512)}
 QUICK = {"n": (300, 1_000), "res": (32, 64)}
-# Dense all-pairs cost is N x pixels; beyond these it takes minutes (fwd) or tens of GB (bwd).
-DENSE_LIMITS = {"fwd": 7e8, "fwd+bwd": 3e7}
+# Upper limits of N x pixels per (path, mode): dense all-pairs cost is N x pixels, beyond these
+# it takes minutes (fwd) or tens of GB (bwd); gsplat's torch compositing holds a
+# [tiles, 256 px, Gaussians-per-tile] tensor; Mitsuba's ellipsoids are forward-only here.
+LIMITS = {
+    ("dense", "fwd"): 7e8,
+    ("dense", "fwd+bwd"): 3e7,
+    ("gsplat-torch", "fwd"): 7e9,
+    ("gsplat-torch", "fwd+bwd"): 7e8,
+    ("mitsuba", "fwd"): 7e9,
+    ("mitsuba", "fwd+bwd"): 0,
+}
 TARGETS = {
+    "gsplat_over_splat_fwd_10k_256": 10.0,  # splat forward at least 10x faster than gsplat's torch path
     "dense_over_splat_fwd_10k_256": 20.0,  # splat forward at least 20x faster than dense
     "splat_fwdbwd_10k_256_s": 0.5,  # forward+backward under 0.5 s
     "splat_peak_rss_mb_100k_512": 2048.0,  # 100k Gaussians at 512x512 within 2 GB
@@ -80,6 +96,16 @@ def setup(path: str, n: int, res: int, mode: str, device: str = "cpu", seed: int
 
         def render(**s):
             return rasterize_reference(**s, **view, dtype=torch.float32, pixel_chunk=8192 if mode == "fwd" else None)
+    elif path == "gsplat-torch":
+        from renderers.gsplat_torch import rasterize as gsplat_rasterize
+
+        def render(**s):
+            return gsplat_rasterize(**s, **view)
+    elif path == "mitsuba":
+        from renderers.mitsuba.ellipsoids import rasterize as mi_rasterize
+
+        def render(**s):
+            return mi_rasterize(**s, **view, spp=MITSUBA_SPP)
     else:
         backend = "cpp" if path == "splat" else "torch"
 
@@ -116,8 +142,8 @@ def run_case(path: str, n: int, res: int, mode: str, device: str = "cpu") -> dic
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     base = rss_mb()
-    dense = path == "dense"
-    t = timeit(fn, device=device, warmup=1 if dense else 2, min_repeats=1 if dense else 3, budget_s=2.0)
+    slow = path in ("dense", "gsplat-torch", "mitsuba")
+    t = timeit(fn, device=device, warmup=1 if slow else 2, min_repeats=1 if slow else 3, budget_s=2.0)
     row.update(t)
     row["peak_rss_mb"] = peak_rss_mb()
     row["peak_above_start_mb"] = max(0.0, row["peak_rss_mb"] - base)
@@ -128,8 +154,11 @@ def run_case(path: str, n: int, res: int, mode: str, device: str = "cpu") -> dic
 
 
 def _skip_reason(path: str, n: int, res: int, mode: str) -> str | None:
-    if path == "dense" and n * res * res > DENSE_LIMITS[mode]:
-        return f"skipped: dense {mode} of N x pixels = {n * res * res:.1e} > {DENSE_LIMITS[mode]:.0e}"
+    limit = LIMITS.get((path, mode))
+    if limit == 0:
+        return f"skipped: {path} is timed {'forward only' if mode == 'fwd+bwd' else 'backward only'}"
+    if limit is not None and n * res * res > limit:
+        return f"skipped: {path} {mode} of N x pixels = {n * res * res:.1e} > {limit:.0e}"
     return None
 
 
@@ -158,15 +187,19 @@ def summarise(rows: list[dict]) -> dict:
         return next((r for r in ok if (r["path"], int(r["n"]), int(r["res"]), r["mode"]) == (path, n, res, mode)), None)
 
     out: dict = {"environment": environment(), "targets": {}, "fits": {}}
-    s, d = find("splat", 10_000, 256, "fwd"), find("dense", 10_000, 256, "fwd")
-    if s and d:
-        ratio = float(d["median_s"]) / float(s["median_s"])
-        target = TARGETS["dense_over_splat_fwd_10k_256"]
-        out["targets"]["dense_over_splat_fwd_10k_256"] = {
-            "value": ratio,
-            "target": f">= {target}",
-            "met": ratio >= target,
-        }
+    s = find("splat", 10_000, 256, "fwd")
+    for peer in ("dense", "gsplat-torch"):
+        d = find(peer, 10_000, 256, "fwd")
+        if s and d:
+            key = f"{peer.split('-')[0]}_over_splat_fwd_10k_256"
+            ratio, target = float(d["median_s"]) / float(s["median_s"]), TARGETS[key]
+            out["targets"][key] = {"value": ratio, "target": f">= {target}", "met": ratio >= target}
+    # every peer against splat, case by case (same run, same machine state)
+    for r in ok:
+        if r["path"] != "splat":
+            base = find("splat", int(r["n"]), int(r["res"]), r["mode"])
+            if base:
+                r["time_over_splat"] = float(r["median_s"]) / float(base["median_s"])
     fb = find("splat", 10_000, 256, "fwd+bwd")
     if fb:
         v, target = float(fb["median_s"]), TARGETS["splat_fwdbwd_10k_256_s"]
@@ -175,7 +208,7 @@ def summarise(rows: list[dict]) -> dict:
     if big:
         v, target = max(float(r["peak_rss_mb"]) for r in big), TARGETS["splat_peak_rss_mb_100k_512"]
         out["targets"]["splat_peak_rss_mb_100k_512"] = {"value": v, "target": f"<= {target}", "met": v <= target}
-    for path in ("splat", "splat-torch"):
+    for path in ("splat", "splat-torch", "gsplat-torch", "mitsuba"):
         for mode in MODES:
             sel = [r for r in ok if r["path"] == path and r["mode"] == mode]
             if len(sel) >= 3:
@@ -199,7 +232,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     ok = [r for r in rows if r.get("status") == "ok"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for ax, key, label in ((axes[0], "intersections", "tile-Gaussian intersections"), (axes[1], None, "N x pixels")):
-        for p, marker in zip(PATHS, "os^"):
+        for p, marker in zip(PATHS + PEER_PATHS[1:], "os^dv"):
             for mode, fill in zip(MODES, ("full", "none")):
                 sel = [r for r in ok if r["path"] == p and r["mode"] == mode]
                 if not sel:
@@ -277,7 +310,8 @@ def sweep(
         row["wall_s"] = time.perf_counter() - t0
         rows.append(row)
         write_csv(rows, out)  # incremental: an interrupted sweep keeps what it measured
-    summary = summarise(rows)
+    summary = summarise(rows)  # (adds time_over_splat to the peers' rows)
+    write_csv(rows, out)
     write_json(summary, out.with_name(out.stem + "_summary.json"))
     plot(rows, out.with_name(out.stem + "_fit.png"))
     return rows
@@ -288,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("bench_results/render.csv"), help="CSV to write")
     ap.add_argument("--quick", action="store_true", help="small sweep (N 300/1000, 32/64 px) for smoke tests")
     ap.add_argument("--inprocess", action="store_true", help="run cases in this process (peak memory is shared)")
-    ap.add_argument("--backend", choices=("all", *PATHS), default="all", help="one path only")
+    ap.add_argument("--backend", choices=("all", *PATHS, *PEER_PATHS[1:]), default="all", help="one path only")
+    ap.add_argument("--peers", action="store_true", help="splat vs gsplat-torch vs Mitsuba ellipsoids")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--summarise", action="store_true", help="recompute summary and plot from an existing --out CSV")
@@ -307,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
         plot(rows, args.out.with_name(args.out.stem + "_fit.png"))
         report(rows, json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text()), args.out)
         return 0
-    paths = PATHS if args.backend == "all" else (args.backend,)
+    paths = (PEER_PATHS if args.peers else PATHS) if args.backend == "all" else (args.backend,)
     rows = sweep(args.out, quick=args.quick, inprocess=args.inprocess, paths=paths, device=args.device)
     report(rows, json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text()), args.out)
     return 0

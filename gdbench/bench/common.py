@@ -110,3 +110,25 @@ def write_json(obj: object, path: Path) -> Path:
     tmp.write_text(json.dumps(obj, indent=2, default=str))
     os.replace(tmp, path)
     return path
+
+
+def read_csv(path: str | Path) -> list[dict]:
+    """Rows of a CSV written by ``write_csv``, with numbers, booleans and empty cells converted
+    (for the notebooks; empty cells become None)."""
+
+    def convert(v: str):
+        if v == "":
+            return None
+        if v in ("True", "False"):
+            return v == "True"
+        try:
+            return int(v)
+        except ValueError:
+            pass
+        try:
+            return float(v)
+        except ValueError:
+            return v
+
+    with open(path, newline="") as f:
+        return [{k: convert(v) for k, v in r.items()} for r in csv.DictReader(f)]

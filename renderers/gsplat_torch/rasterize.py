@@ -42,6 +42,9 @@ def _composite(
     """Front-to-back blending per tile with autograd; inputs flattened over images (I*N)."""
     I, th, tw = offsets.shape
     device, dtype = means2d.device, means2d.dtype
+    if means2d.shape[0] == 0:  # empty scene: one inert row to index (every lane is masked by `valid`)
+        pad = lambda x: torch.cat([x, x.new_zeros((1, *x.shape[1:]))])  # noqa: E731
+        means2d, conics, opacities, colors, depths = map(pad, (means2d, conics, opacities, colors, depths))
     M = flatten_ids.numel()
     starts = offsets.reshape(-1).long()
     ends = torch.cat([starts[1:], torch.tensor([M], device=device)])
@@ -139,7 +142,7 @@ def rasterize(
         means2d.reshape(C * N, 2),
         conics.reshape(C * N, 3),
         opacities[None].expand(C, N).reshape(C * N),
-        feats.reshape(C * N, -1),
+        feats.reshape(C * N, feats.shape[-1]),  # (explicit: -1 is ambiguous when N = 0)
         depths.reshape(C * N),
         offsets,
         flatten_ids,

@@ -78,6 +78,13 @@ def rasterize(
     from gdbench.camera import Cameras  # the one place conventions are converted
 
     N = means.shape[0]
+    if N == 0:  # Mitsuba cannot build an empty ellipsoids shape: the image is the background
+        C = viewmats.shape[0]
+        zero = sum(t.sum() for t in (means, quats, scales, opacities, colors)) * 0  # keeps the graph
+        alpha = torch.zeros(C, height, width, 1, dtype=means.dtype) + zero
+        bg = torch.zeros(3, dtype=means.dtype) if background is None else background
+        rgb = alpha + (bg if bg.dim() == 1 else bg[:, None, None, :])
+        return RenderOutput(rgb=rgb if "rgb" in outputs else None, alpha=alpha if "alpha" in outputs else None)
     if sh_degree is None:
         sh = ((colors - 0.5) / C0)[:, None, :]
     else:
