@@ -121,6 +121,18 @@ class Generate:
     view_prompting: Literal["none", "buckets", "window"] = "window"
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
     init_ply: Path | None = None
+    prior: Literal["empirical", "sd"] = "empirical"
+    """empirical: the embedded CPU prior; sd: Stable Diffusion from --sd-model (docs/stable_diffusion.md)."""
+    sd_model: str = "tiny"
+    """sd: a local diffusers folder or a repo id in the Hugging Face cache (offline), or 'tiny'."""
+    sd_mode: Literal["rgb", "latent"] = "rgb"
+    """sd: rgb renders RGB and encodes it (GaussianDiffusion); latent renders latents (SJC)."""
+    sd_guidance: float = 100.0
+    sd_controlnet: str | None = None
+    """sd: a depth ControlNet folder, used with --depth-conditioning."""
+    depth_conditioning: bool = False
+    semantic_code: bool = False
+    """sd: 3DFuse's semantic code (image, textual inversion, LoRA), saved in the run."""
     resume: bool = True
     """Continue from --out's checkpoint if there is one."""
     score: bool = True
@@ -159,6 +171,13 @@ def run_generate(cmd: Generate) -> dict:
         init=cmd.init,
         init_ply=cmd.init_ply,
         progress=cmd.progress,
+        prior=cmd.prior,
+        sd_model=cmd.sd_model,
+        sd_mode=cmd.sd_mode,
+        sd_guidance=cmd.sd_guidance,
+        sd_controlnet=cmd.sd_controlnet,
+        depth_conditioning=cmd.depth_conditioning,
+        semantic_code=cmd.semantic_code,
     )
     r = train(cfg, resume=cmd.resume)
     summary = {

@@ -51,6 +51,9 @@ if [ "$(cat "$stamp" 2>/dev/null || true)" != "$want" ]; then
   # pyrender pins PyOpenGL 3.1.0, which fails under OSMesa: install it without its dependencies
   # (pyproject lists the ones it needs, with PyOpenGL 3.1.10)
   quiet_pip install --no-deps pyrender==0.1.45
+  # open_clip only for the BPE vocabulary the CLIP tokenizer is built from; its dependencies
+  # would pull torchvision (and with it possibly another torch build)
+  quiet_pip install --no-deps open_clip_torch==3.3.0
   .venv/bin/python -c "import gdbench, renderers.splat" || { echo "setup: gdbench did not install"; exit 1; }
   echo "$want" > "$stamp"
 fi

@@ -96,6 +96,24 @@ class TrainConfig:
     of +-``view_window_deg`` around the camera azimuth, or none (DESIGN.md 'Priors')."""
     view_window_deg: float = 45.0
     depth_conditioning: bool = False
+    # the prior
+    prior: Literal["empirical", "sd"] = "empirical"
+    """empirical: the embedded CPU prior (image banks of procedural assets); sd: Stable Diffusion."""
+    sd_model: str = "tiny"
+    """sd: a local diffusers folder or a repo id in the Hugging Face cache (offline), or 'tiny'
+    (random weights built from configs: smoke runs and tests, meaningless images)."""
+    sd_mode: Literal["rgb", "latent"] = "rgb"
+    """rgb: render RGB and encode it with the VAE (GaussianDiffusion); latent: render the 4 latent
+    channels directly at 1/8 resolution (SJC)."""
+    sd_guidance: float = 100.0
+    """Classifier-free guidance scale (SJC and DreamFusion use 100 with score distillation)."""
+    sd_controlnet: str | None = None
+    """sd with depth_conditioning: a depth ControlNet folder ('tiny' with the tiny model)."""
+    semantic_code: bool = False
+    """sd: 3DFuse's semantic code sampling (image, textual inversion, LoRA) before training;
+    saved in <out>/semantic and reloaded on resume."""
+    semantic_steps: int = 100
+    """Textual-inversion and LoRA steps of the semantic code."""
     # the paper's additions
     structured_noise: bool = True
     noise: NoiseConfig = field(default_factory=NoiseConfig)
@@ -134,6 +152,14 @@ class TrainConfig:
                 raise ValueError(f"{name}: expected {want}, got {getattr(self, name)!r}")
         if self.init == "ply" and self.init_ply is None:
             raise ValueError("init_ply: init='ply' needs a PLY path (--init-ply FILE)")
+        if self.prior not in ("empirical", "sd"):
+            raise ValueError(f"prior: expected 'empirical' or 'sd', got {self.prior!r}")
+        if self.sd_mode not in ("rgb", "latent"):
+            raise ValueError(f"sd_mode: expected 'rgb' or 'latent', got {self.sd_mode!r}")
+        if self.prior == "sd" and self.resolution % 8:
+            raise ValueError(f"resolution: the sd prior needs a multiple of 8 (latents are 1/8), got {self.resolution}")
+        if self.prior == "sd" and self.sd_guidance < 1:
+            raise ValueError(f"sd_guidance: expected >= 1, got {self.sd_guidance}")
         if self.guidance not in ("sjc", "sds"):
             raise ValueError(f"guidance: expected 'sjc' or 'sds', got {self.guidance!r}")
 

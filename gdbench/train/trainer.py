@@ -50,6 +50,13 @@ class Context:
     background: Tensor
     sigmas: Tensor
     """All of the prior's ticks, ascending."""
+    latent: str | None = None
+    """Stable Diffusion: 'rgb' (render RGB, encode with the VAE) or 'latent' (render latents)."""
+    depth_points: Tensor | None = None
+    """Stable Diffusion with depth conditioning: the initial point cloud whose projected depth
+    conditions the ControlNet (3DFuse)."""
+    latent_background: Tensor | None = None
+    """Latent mode: the latent of the background colour."""
 
 
 @dataclass
@@ -64,14 +71,48 @@ class TrainState:
     bad_steps: int = 0
 
     def scene(self) -> GaussianScene:
-        return GaussianScene(*(self.params[k].detach() for k in PARAM_NAMES))
+        p = {k: self.params[k].detach() for k in PARAM_NAMES}
+        if p["sh"].shape[-1] == 4:  # latent-mode features: colours by the linear latent preview
+            from renderers.splat.sh import C0
+
+            from ..priors.stable_diffusion import latent_to_rgb
+
+            p["sh"] = ((latent_to_rgb(p["sh"][:, 0]) - 0.5) / C0)[:, None]
+        return GaussianScene(*(p[k] for k in PARAM_NAMES))
 
 
 class TrainingDiverged(RuntimeError):
     """Raised when parameters stop being finite or gradients stay non-finite."""
 
 
+def make_sd_prior(cfg: TrainConfig):
+    """The Stable Diffusion prior of a config, with its semantic code (made or reloaded)."""
+    from ..priors.sd_3dfuse import SemanticCodeConfig, load_semantic_code, semantic_code
+    from ..priors.stable_diffusion import StableDiffusionPrior
+
+    kw = dict(guidance_scale=cfg.sd_guidance, view_prompting=cfg.view_prompting != "none")
+    if cfg.sd_model == "tiny":
+        prior = StableDiffusionPrior.tiny(seed=0, controlnet=cfg.depth_conditioning, **kw)
+    else:
+        controlnet = cfg.sd_controlnet if cfg.depth_conditioning else None
+        if cfg.depth_conditioning and controlnet is None:
+            raise ValueError("sd_controlnet: depth_conditioning with Stable Diffusion needs a depth ControlNet folder")
+        prior = StableDiffusionPrior.from_pretrained(cfg.sd_model, controlnet=controlnet, **kw)
+    if cfg.semantic_code:
+        folder = Path(cfg.out) / "semantic"
+        if (folder / "semantic.json").is_file():
+            load_semantic_code(prior, folder)
+        else:
+            sc = SemanticCodeConfig(
+                size=max(64, cfg.resolution), ti_steps=cfg.semantic_steps, lora_steps=cfg.semantic_steps, seed=cfg.seed
+            )
+            semantic_code(prior, cfg.prompt, folder, sc)
+    return prior
+
+
 def make_context(cfg: TrainConfig, prior=None) -> Context:
+    if prior is None and cfg.prior == "sd":
+        prior = make_sd_prior(cfg)
     if prior is None:
         from ..priors.empirical import EmpiricalPrior
 
@@ -81,10 +122,18 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
             depth_weight=1.0 if cfg.depth_conditioning else 0.0,
         )
     cond = prior.encode(cfg.prompt)
+    latent = cfg.sd_mode if hasattr(prior, "encode_images") else None
     noise = None
     if cfg.structured_noise:
         cloud = make_noise_cloud(cfg.noise, prior.channels, generator=torch.Generator().manual_seed(cfg.seed + 7919))
         noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
+    depth_points, latent_bg = None, None
+    if latent is not None and cfg.depth_conditioning:  # 3DFuse: depth of the initial cloud
+        depth_points = initial_scene(cfg, generator=torch.Generator().manual_seed(cfg.seed)).means.detach()
+    if latent == "latent":
+        with torch.no_grad():
+            bg = torch.tensor(cfg.background, dtype=torch.float32).expand(1, 8 * prior.factor, 8 * prior.factor, 3)
+            latent_bg = prior.encode_images(bg * 2 - 1).mean((0, 1, 2)).cpu()
     return Context(
         cfg,
         prior,
@@ -93,6 +142,9 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         noise,
         torch.tensor(cfg.background, dtype=torch.float32),
         prior.sigmas.float(),
+        latent,
+        depth_points,
+        latent_bg,
     )
 
 
@@ -112,7 +164,13 @@ def init_state(ctx: Context) -> TrainState:
     g = torch.Generator().manual_seed(cfg.seed)
     bank = getattr(ctx.prior, "_banks", {}).get(getattr(ctx.cond, "caption", None))
     scene = initial_scene(cfg, generator=g, bank=bank)
-    params = {k: getattr(scene, k).detach().clone().requires_grad_(True) for k in PARAM_NAMES}
+    params = {k: getattr(scene, k).detach().clone() for k in PARAM_NAMES}
+    if ctx.latent == "latent":  # 4 latent features per Gaussian, the latent of the initial colour
+        with torch.no_grad():
+            grey = torch.full((1, 8 * ctx.prior.factor, 8 * ctx.prior.factor, 3), 2 * cfg.init_color - 1)
+            z = ctx.prior.encode_images(grey).mean((0, 1, 2)).cpu()
+        params["sh"] = z.expand(params["means"].shape[0], 1, 4).clone()
+    params = {k: v.requires_grad_(True) for k, v in params.items()}
     colors = init_colors(ctx.noise.cloud, generator=g).colors if ctx.noise is not None else None
     return TrainState(0, params, _optimizer(params, cfg), ctx.strategy.init_state(len(scene)), colors, g)
 
@@ -160,29 +218,41 @@ def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:
         elevation_range=cfg.elevation_range,
     )
     cams = poses.cameras(R, R)
+    # Stable Diffusion works on latents at 1/8: structured noise is rendered there, and the
+    # latent mode renders the Gaussians there too
+    lat = R // ctx.prior.factor if ctx.latent is not None else R
+    cams_x = poses.cameras(lat, lat) if ctx.latent is not None else cams
     sigma, w = sample_sigma(ctx, state.step, g)
     means, log_scales = p["means"], p["log_scales"]
     if cfg.vgs:
         means, log_scales = jitter(
             means, log_scales, sigma, gamma=cfg.vgs_gamma, scene_radius=SCENE_RADIUS, generator=g
         )
-    outputs = ("rgb", "alpha", "means2d", "visible") + (("depth",) if cfg.depth_conditioning else ())
+    depth_from_render = cfg.depth_conditioning and ctx.latent is None
+    outputs = ("rgb", "alpha", "means2d", "visible") + (("depth",) if depth_from_render else ())
+    latent_mode = ctx.latent == "latent"
+    rcams, RR = (cams_x, lat) if latent_mode else (cams, R)
     out = rasterize(
         means,
         p["quats"],
         log_scales.exp(),
         torch.sigmoid(p["opacity_logits"]),
-        p["sh"],
-        cams.viewmats,
-        cams.Ks,
-        R,
-        R,
-        sh_degree=cfg.sh_degree,
-        background=ctx.background,
+        p["sh"][:, 0] if latent_mode else p["sh"],
+        rcams.viewmats,
+        rcams.Ks,
+        RR,
+        RR,
+        sh_degree=None if latent_mode else cfg.sh_degree,
+        background=ctx.latent_background if latent_mode else ctx.background,
         outputs=outputs,
     )
     out.means2d.retain_grad()
-    x = out.rgb * 2 - 1
+    if latent_mode:
+        x = out.rgb  # the 4 latent channels themselves
+    elif ctx.latent == "rgb":
+        x = ctx.prior.encode_images(out.rgb * 2 - 1)  # differentiable: the VAE encoder is in the graph
+    else:
+        x = out.rgb * 2 - 1
     xd = x.detach()
     if ctx.noise is not None:
         colors = state.noise_colors
@@ -190,11 +260,13 @@ def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:
             colors = advance_colors(NoiseState(colors), cfg.noise.redraw, beta=cfg.noise.ou_beta, generator=g).colors
         if update:
             state.noise_colors = colors
-        n_s = ctx.noise.render(colors, cams, generator=g).noise
+        n_s = ctx.noise.render(colors, cams_x, generator=g).noise
         ratio = ratio_schedule(state.step, cfg.steps, cfg.noise.ratio_start, cfg.noise.ratio_end)
     score = torch.zeros_like(xd)
     resid = 0.0
-    depth = out.depth[..., 0].detach() if cfg.depth_conditioning else None
+    depth = out.depth[..., 0].detach() if depth_from_render else None
+    if ctx.depth_points is not None:
+        depth = _point_depth(ctx.depth_points, cams)
     for _ in range(cfg.samples_per_step):
         if ctx.noise is not None:
             n = mix(n_s, ratio, generator=g)
@@ -244,13 +316,34 @@ def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:
                 f"parameters became non-finite at step {state.step + 1}; lower the learning rates "
                 "or the guidance weight. The last checkpoint is intact; nothing was written."
             )
-        state.densify = ctx.strategy.accumulate(state.densify, out.means2d, out.visible, R, R)
+        state.densify = ctx.strategy.accumulate(state.densify, out.means2d, out.visible, RR, RR)
         state.densify, info = ctx.strategy.step(p, state.optimizer, state.densify, state.step + 1, generator=g)
         metrics |= {k: v for k, v in info.items() if v}
     state.step += 1
     metrics["seconds"] = time.perf_counter() - t0
     state.history.append(metrics)
     return metrics
+
+
+def _point_depth(points: Tensor, cams) -> Tensor:
+    """Depth [C, H, W] (0 where empty) of a point cloud drawn as small opaque Gaussians."""
+    from renderers.splat import rasterize
+
+    n = points.shape[0]
+    with torch.no_grad():
+        out = rasterize(
+            points,
+            torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4),
+            torch.full((n, 3), 0.01),
+            torch.full((n,), 0.99),
+            torch.zeros(n, 1),
+            cams.viewmats,
+            cams.Ks,
+            cams.width,
+            cams.height,
+            outputs=("alpha", "depth"),
+        )
+    return torch.where(out.alpha[..., 0] > 0.5, out.depth[..., 0], torch.zeros_like(out.depth[..., 0]))
 
 
 # ----------------------------------------------------------------------------- checkpoints
