@@ -128,6 +128,8 @@ class Generate:
     sd_mode: Literal["rgb", "latent"] = "rgb"
     """sd: rgb renders RGB and encodes it (GaussianDiffusion); latent renders latents (SJC)."""
     sd_guidance: float = 100.0
+    sd_dtype: Literal["float32", "float16"] = "float32"
+    """sd: weights' precision (float16 on CUDA)."""
     sd_controlnet: str | None = None
     """sd: a depth ControlNet folder, used with --depth-conditioning."""
     depth_conditioning: bool = False
@@ -175,6 +177,7 @@ def run_generate(cmd: Generate) -> dict:
         sd_model=cmd.sd_model,
         sd_mode=cmd.sd_mode,
         sd_guidance=cmd.sd_guidance,
+        sd_dtype=cmd.sd_dtype,
         sd_controlnet=cmd.sd_controlnet,
         depth_conditioning=cmd.depth_conditioning,
         semantic_code=cmd.semantic_code,

@@ -250,3 +250,14 @@ def test_both_rendering_modes_with_depth_control_and_semantic_code(mode, tmp_pat
     assert ctx.cond.prompt.endswith("<gd-object>") and ctx.depth_points is not None
     with pytest.raises(ValueError, match="resolution: the sd prior needs a multiple of 8"):
         preset("gd", **(kw | {"resolution": 36}))
+
+
+def test_cli_generate_runs_the_sd_prior_and_does_not_score_it_against_an_asset(tmp_path):
+    import json
+
+    from gdbench.cli import Generate, main
+
+    s = main(Generate(prompt=PROMPT, prior="sd", sd_guidance=7.5, steps=2, resolution=32, out=tmp_path, progress=False))
+    assert s["steps"] == 2 and "gt" not in s
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["config"]["prior"] == "sd" and run["config"]["sd_mode"] == "rgb" and run["caption"] is None

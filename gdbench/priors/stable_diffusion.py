@@ -263,7 +263,7 @@ class StableDiffusionPrior:
         if rgb.shape[1] % self.factor or rgb.shape[2] % self.factor:
             raise ValueError(f"rgb: height and width must be multiples of {self.factor}, got {list(rgb.shape)}")
         z = self.vae.encode(rgb.permute(0, 3, 1, 2).to(self.device, self.dtype)).latent_dist.mean
-        return (z * self.scaling).permute(0, 2, 3, 1).to(rgb.dtype)
+        return (z * self.scaling).permute(0, 2, 3, 1).to(rgb.device, rgb.dtype)
 
     @torch.no_grad()
     def decode_latents(self, z: Tensor) -> Tensor:

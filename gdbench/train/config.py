@@ -109,6 +109,8 @@ class TrainConfig:
     """Classifier-free guidance scale (SJC and DreamFusion use 100 with score distillation)."""
     sd_controlnet: str | None = None
     """sd with depth_conditioning: a depth ControlNet folder ('tiny' with the tiny model)."""
+    sd_dtype: Literal["float32", "float16"] = "float32"
+    """sd: weights' precision (float16 for CUDA; the Gaussians stay float32)."""
     semantic_code: bool = False
     """sd: 3DFuse's semantic code sampling (image, textual inversion, LoRA) before training;
     saved in <out>/semantic and reloaded on resume."""

@@ -90,7 +90,9 @@ def make_sd_prior(cfg: TrainConfig):
     from ..priors.sd_3dfuse import SemanticCodeConfig, load_semantic_code, semantic_code
     from ..priors.stable_diffusion import StableDiffusionPrior
 
-    kw = dict(guidance_scale=cfg.sd_guidance, view_prompting=cfg.view_prompting != "none")
+    kw = dict(
+        guidance_scale=cfg.sd_guidance, view_prompting=cfg.view_prompting != "none", dtype=getattr(torch, cfg.sd_dtype)
+    )
     if cfg.sd_model == "tiny":
         prior = StableDiffusionPrior.tiny(seed=0, controlnet=cfg.depth_conditioning, **kw)
     else:
