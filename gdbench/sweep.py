@@ -185,7 +185,47 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
         )
     (out / "summary.md").write_text("\n".join(md) + "\n")
     paths["summary_md"] = out / "summary.md"
+    paths["plot"] = plot(rows, out / "ablation.png")
     return paths
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    """Per preset, every cell's Var(theta), registration rate and GT PSNR (colour = prompt)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    presets = list(dict.fromkeys(r["preset"] for r in rows))
+    prompts = list(dict.fromkeys(r["prompt"] for r in rows))
+    panels = (
+        ("var_theta_deg2", "Var(theta) deg$^2$ (COLMAP, lower is better)", True),
+        ("registration_rate", "COLMAP registration rate", False),
+        ("gt_psnr", "PSNR against the asset (dB)", False),
+    )
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for ax, (key, label, log) in zip(axes, panels):
+        for j, pr in enumerate(prompts):
+            xs, ys = [], []
+            for i, p in enumerate(presets):
+                for r in rows:
+                    if r["preset"] == p and r["prompt"] == pr and r[key] == r[key]:
+                        xs.append(i + 0.1 * (j - (len(prompts) - 1) / 2))
+                        ys.append(r[key])
+            ax.scatter(xs, ys, s=18, color=f"C{j}", label=pr)
+        means = [_median([r[key] for r in rows if r["preset"] == p]) for p in presets]
+        ax.scatter(range(len(presets)), means, marker="_", s=400, color="k", label="median")
+        ax.set_xticks(range(len(presets)), presets, rotation=20)
+        ax.set_title(label, fontsize=9)
+        if log:
+            ax.set_yscale("log")
+        ax.grid(True, axis="y", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def sweep(
