@@ -86,7 +86,7 @@ class TrainConfig:
     sigma_max: float = 10.0
     anneal: bool = True
     """Anneal sigma: the upper end decays linearly to ``sigma_min`` over the run (measured on the
-    duck: +1 to +1.7 dB; docs/training.md)."""
+    duck: neutral with asset version 3, +1 to +1.7 dB with version 2; docs/training.md)."""
     samples_per_step: int = 1
     """K, perturb-and-average: noise samples averaged per step."""
     weight: float = 1.0
