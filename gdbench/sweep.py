@@ -217,7 +217,9 @@ def plot(rows: list[dict], path: Path) -> Path:
         ax.scatter(range(len(presets)), means, marker="_", s=400, color="k", label="median")
         ax.set_xticks(range(len(presets)), presets, rotation=20)
         ax.set_title(label, fontsize=9)
-        if log:
+        if not any(r[key] == r[key] for r in rows):  # e.g. a sweep run with colmap=False
+            ax.text(0.5, 0.5, "not measured", transform=ax.transAxes, ha="center", color="0.5")
+        elif log and any(r[key] > 0 for r in rows if r[key] == r[key]):
             ax.set_yscale("log")
         ax.grid(True, axis="y", alpha=0.3)
     axes[0].legend(fontsize=7)

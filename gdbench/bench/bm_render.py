@@ -46,7 +46,7 @@ LIMITS = {
     ("dense", "fwd+bwd"): 3e7,
     ("gsplat-torch", "fwd"): 7e9,
     ("gsplat-torch", "fwd+bwd"): 7e8,
-    ("mitsuba", "fwd"): 7e9,
+    ("mitsuba", "fwd"): 3e10,
     ("mitsuba", "fwd+bwd"): 0,
 }
 TARGETS = {
