@@ -320,10 +320,9 @@ def _error_maps(res: Result, path: Path) -> Path:
 
 
 def _pareto(scene: str, rows: list[dict], path: Path) -> Path:
-    import matplotlib
+    from .plotting import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     markers = {
@@ -348,10 +347,7 @@ def _pareto(scene: str, rows: list[dict], path: Path) -> Path:
     ax.grid(True, which="both", alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=100)
 
 
 def print_table(results: dict[str, Result]) -> None:

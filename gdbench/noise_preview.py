@@ -14,10 +14,9 @@ from .noise import NoiseConfig, NoiseRenderer, autocorrelation_length, init_colo
 
 def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, seed: int = 0, draws: int = 64) -> dict:
     """Write the preview PNG; returns its statistics (coverage, KS distance, correlation length)."""
-    import matplotlib
+    from .plotting import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from scipy import stats
 
     cfg = config or NoiseConfig()
@@ -62,10 +61,7 @@ def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, see
         f"correlation length {corr_len:.1f} px",
         fontsize=9,
     )
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    save(fig, out, dpi=100)
     return {
         "path": str(out),
         "coverage": first.coverage_fraction,

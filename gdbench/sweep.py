@@ -191,10 +191,9 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
 
 def plot(rows: list[dict], path: Path) -> Path:
     """Per preset, every cell's Var(theta), registration rate and GT PSNR (colour = prompt)."""
-    import matplotlib
+    from .plotting import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     presets = list(dict.fromkeys(r["preset"] for r in rows))
     prompts = list(dict.fromkeys(r["prompt"] for r in rows))
@@ -223,11 +222,7 @@ def plot(rows: list[dict], path: Path) -> Path:
             ax.set_yscale("log")
         ax.grid(True, axis="y", alpha=0.3)
     axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=110)
 
 
 def sweep(

@@ -195,26 +195,21 @@ def test_depth_unprojection_inverts_the_projection():
 
 
 # ------------------------------------------------------------------ the trainer on the tiny prior
+def _two_sd_steps(out, **extra) -> dict:
+    """TrainConfig fields for a 2-step run at 32 px on the tiny SD prior."""
+    from gdbench.noise import NoiseConfig
+
+    kw = dict(prompt=PROMPT, prior="sd", sd_guidance=7.5, steps=2, resolution=32, init_points=200)
+    kw.update(progress=False, turntable_frames=2, out=out, noise=NoiseConfig(n_gaussians=200, scale=0.05))
+    return kw | extra
+
+
 @pytest.mark.parametrize("name", ["gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs"])
 def test_every_preset_trains_two_steps_on_the_tiny_prior(name, tmp_path):
-    from gdbench.noise import NoiseConfig
     from gdbench.train.config import preset
     from gdbench.train.run import train
 
-    cfg = preset(
-        name,
-        prompt=PROMPT,
-        prior="sd",
-        sd_guidance=7.5,
-        steps=2,
-        resolution=32,
-        init_points=200,
-        progress=False,
-        turntable_frames=2,
-        out=tmp_path,
-        noise=NoiseConfig(n_gaussians=200, scale=0.05),
-    )
-    r = train(cfg)
+    r = train(preset(name, **_two_sd_steps(tmp_path)))
     assert r.state.step == 2 and r.paths["ply"].is_file()
     before = {k: v for k, v in r.state.history[0].items() if k != "seconds"}
     assert all(torch.isfinite(torch.tensor(h["residual"])) for h in r.state.history) and before["residual"] > 0
@@ -222,27 +217,11 @@ def test_every_preset_trains_two_steps_on_the_tiny_prior(name, tmp_path):
 
 @pytest.mark.parametrize("mode", ["rgb", "latent"])
 def test_both_rendering_modes_with_depth_control_and_semantic_code(mode, tmp_path):
-    from gdbench.noise import NoiseConfig
     from gdbench.train.config import preset
     from gdbench.train.run import train
     from gdbench.train.trainer import make_context
 
-    kw = dict(
-        prompt=PROMPT,
-        prior="sd",
-        sd_mode=mode,
-        sd_guidance=7.5,
-        depth_conditioning=True,
-        semantic_code=True,
-        semantic_steps=2,
-        steps=2,
-        resolution=32,
-        init_points=200,
-        progress=False,
-        turntable_frames=2,
-        out=tmp_path,
-        noise=NoiseConfig(n_gaussians=200, scale=0.05),
-    )
+    kw = _two_sd_steps(tmp_path, sd_mode=mode, depth_conditioning=True, semantic_code=True, semantic_steps=2)
     r = train(preset("gd", **kw))
     assert (tmp_path / "semantic" / "semantic.json").is_file()
     assert r.state.params["sh"].shape[-1] == (4 if mode == "latent" else 3)

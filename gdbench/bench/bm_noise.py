@@ -92,10 +92,9 @@ def measure(res: int, *, scene_n: int = 4096, seed: int = 0, budget_s: float = 3
 
 
 def plot(rows: list[dict], path: Path) -> Path:
-    import matplotlib
+    from ..plotting import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     res = [r["res"] for r in rows]
@@ -107,11 +106,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     ax.set_ylabel("structured noise / training render (%)")
     ax.set_title(f"Structured noise overhead (M={rows[0]['noise_gaussians']}, 4k-Gaussian scene)", fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -224,10 +224,9 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def plot(rows: list[dict], path: Path) -> Path:
-    import matplotlib
+    from ..plotting import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ok = [r for r in rows if r.get("status") == "ok"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
@@ -244,11 +243,7 @@ def plot(rows: list[dict], path: Path) -> Path:
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.suptitle("renderers.splat: time against work (one process per case)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=110)
 
 
 def sweep(

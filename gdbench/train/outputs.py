@@ -42,10 +42,9 @@ def package_versions() -> dict[str, str]:
 
 
 def write_curves(history: list[dict], path: Path) -> Path:
-    import matplotlib
+    from ..plotting import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     steps = [h["step"] for h in history]
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.2))
@@ -66,11 +65,7 @@ def write_curves(history: list[dict], path: Path) -> Path:
             ax.set_yscale("log")
         ax.set_title(label, fontsize=9)
         ax.set_xlabel("step")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=100)
 
 
 def write_json_atomic(obj: dict, path: Path) -> Path:
