@@ -307,17 +307,25 @@ class Sweep:
     skipped, an interrupted cell resumes from its checkpoint."""
 
     prompts: tuple[str, ...] = ("a yellow duck", "a corgi", "a penguin")
+    """Prompts (free text; matched to the embedded prior's assets)."""
     presets: tuple[str, ...] = ("gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs")
+    """Training presets to compare (see docs/training.md)."""
     seeds: tuple[int, ...] = (0, 1)
+    """Seeds per (prompt, preset)."""
     steps: int = 2000
+    """Training steps per cell."""
     out: Path = Path("runs/sweep")
+    """Folder for the cells (one run folder each) and the tables."""
     executor: Literal["local", "ray"] = "local"
+    """Where cells run: a local process pool or a Ray cluster."""
     address: str = ""
     """Ray cluster address (ray executor); empty starts a local Ray instance."""
     workers: int = 1
     """Cells run at once (one training already uses both cores of a small machine)."""
     colmap: bool = True
+    """Score each cell with COLMAP consistency (the slow part: ~1 min per cell)."""
     colmap_views: int = 100
+    """Views on the circle rendered for COLMAP."""
 
 
 def run_sweep(cmd: Sweep) -> dict:
@@ -413,7 +421,19 @@ def main(cmd) -> dict:
 
 
 def entrypoint() -> None:
-    main(tyro.extras.subcommand_cli_from_dict(COMMANDS))
+    """Parse the command line and run it. Bad arguments and missing files end with a one-line
+    error and exit code 2; set GDBENCH_DEBUG=1 for the traceback."""
+    import os
+    import sys
+
+    cmd = tyro.extras.subcommand_cli_from_dict(COMMANDS)
+    try:
+        main(cmd)
+    except (ValueError, FileNotFoundError, FileExistsError) as e:
+        if os.environ.get("GDBENCH_DEBUG"):
+            raise
+        print(f"gdbench {type(cmd).__name__.lower()}: error: {e}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

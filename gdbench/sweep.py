@@ -94,6 +94,10 @@ def _median(xs: list[float]) -> float:
     return statistics.median(xs) if xs else math.nan
 
 
+def _fmt(x: float) -> str:
+    return "n/a" if x != x else f"{x:.3g}"
+
+
 def _mean_std(xs: list[float]) -> str:
     xs = [x for x in xs if x == x]  # drop NaN
     if not xs:
@@ -110,9 +114,13 @@ PAPER_ORDER = (("gd", "gd-no-vgs"), ("gd-no-vgs", "gd-no-sn"), ("gd", "sjc-gs"))
 def paper_ordering(rows: list[dict], metric: str = "var_theta_deg2") -> list[dict]:
     """For each claimed pair (a, b): mean and median of ``metric`` over the cells of a and b, and
     the paired count over (prompt, seed) where a < b. ``holds`` needs both the means and the
-    majority of pairs to agree; a pair is undecided when either preset has no finite value."""
+    majority of pairs to agree; a pair is undecided when either preset has no finite value.
+    Claims about presets absent from ``rows`` are left out."""
     out = []
+    ran = {r["preset"] for r in rows}
     for a, b in PAPER_ORDER:
+        if not {a, b} <= ran:  # a claim about presets this sweep did not train
+            continue
         va = {(r["prompt"], r["seed"]): r[metric] for r in rows if r["preset"] == a and r[metric] == r[metric]}
         vb = {(r["prompt"], r["seed"]): r[metric] for r in rows if r["preset"] == b and r[metric] == r[metric]}
         common = sorted(set(va) & set(vb))
@@ -172,7 +180,7 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
     md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in summary:
         md.append(
-            f"| {s['preset']} | {s['cells']} | {s['var_theta_deg2']} | {s['median_var_theta_deg2']:.3g} | "
+            f"| {s['preset']} | {s['cells']} | {s['var_theta_deg2']} | {_fmt(s['median_var_theta_deg2'])} | "
             f"{s['registration_rate']} | {s['gt_psnr']} | {s['iterations']} | {s['train_time_s']} |"
         )
     order = paper_ordering(rows)
@@ -181,7 +189,8 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
     for o in order:
         verdict = {True: "yes", False: "no", None: "undecided"}[o["holds"]]
         md.append(
-            f"| {o['claim']} | {o['mean_a']:.3g} | {o['mean_b']:.3g} | {o['paired_wins']}/{o['pairs']} | {verdict} |"
+            f"| {o['claim']} | {_fmt(o['mean_a'])} | {_fmt(o['mean_b'])} | "
+            f"{o['paired_wins']}/{o['pairs']} | {verdict} |"
         )
     (out / "summary.md").write_text("\n".join(md) + "\n")
     paths["summary_md"] = out / "summary.md"

@@ -141,3 +141,48 @@ def test_sweep_cli_prints_the_table(tmp_path, capsys):
     res = main(Sweep(prompts=(PROMPT,), presets=("sjc-gs",), seeds=(0,), steps=2, out=tmp_path, colmap=False))
     assert res["cells"] == 1 and (tmp_path / "cells.csv").is_file()
     assert "| sjc-gs | 1 |" in capsys.readouterr().out
+
+
+def _cell(preset, prompt, seed, var):
+    return {"preset": preset, "prompt": prompt, "seed": seed, "var_theta_deg2": var}
+
+
+def test_paper_ordering_counts_paired_wins_and_needs_means_and_majority():
+    from gdbench.sweep import paper_ordering
+
+    keys = [("a", 0), ("a", 1), ("b", 0)]
+    gd = [1.0, 1.0, 9.0]  # mean 3.67; beats sjc-gs in 2 of 3 pairs
+    sjc = [2.0, 2.0, 8.0]  # mean 4.0
+    no_vgs = [0.5, 0.5, 0.5]  # gd loses every pair
+    rows = [_cell("gd", p, s, v) for (p, s), v in zip(keys, gd)]
+    rows += [_cell("sjc-gs", p, s, v) for (p, s), v in zip(keys, sjc)]
+    rows += [_cell("gd-no-vgs", p, s, v) for (p, s), v in zip(keys, no_vgs)]
+    rows.append(_cell("gd-no-vgs", "c", 0, math.nan))  # unmeasured cells are ignored
+    by = {o["claim"]: o for o in paper_ordering(rows)}
+    assert set(by) == {"gd < gd-no-vgs", "gd < sjc-gs"}  # gd-no-sn was not trained
+    o = by["gd < sjc-gs"]
+    assert (o["paired_wins"], o["pairs"], o["holds"]) == (2, 3, True)
+    assert math.isclose(o["mean_a"], statistics.mean(gd)) and math.isclose(o["median_b"], 2.0)
+    o = by["gd < gd-no-vgs"]
+    assert (o["paired_wins"], o["pairs"], o["holds"]) == (0, 3, False)
+    # the means agree but only a minority of pairs do: not a hold
+    rows2 = [_cell("gd", p, s, v) for (p, s), v in zip(keys, [3.0, 3.0, 0.1])]
+    rows2 += [_cell("sjc-gs", p, s, v) for (p, s), v in zip(keys, [2.0, 2.0, 9.0])]
+    assert paper_ordering(rows2)[0]["holds"] is False
+    nan_rows = [_cell("gd", "a", 0, math.nan), _cell("sjc-gs", "a", 0, 1.0)]
+    assert paper_ordering(nan_rows)[0]["holds"] is None
+
+
+def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
+    from gdbench.cli import entrypoint
+
+    monkeypatch.delenv("GDBENCH_DEBUG", raising=False)
+    monkeypatch.setattr("sys.argv", ["gdbench", "sweep", "--presets", "gd", "nope"])
+    with pytest.raises(SystemExit) as e:
+        entrypoint()
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("gdbench sweep: error: presets: unknown ['nope']")
+    assert "Traceback" not in err
+    monkeypatch.setenv("GDBENCH_DEBUG", "1")
+    with pytest.raises(ValueError, match="presets: unknown"):
+        entrypoint()
