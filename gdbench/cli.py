@@ -326,6 +326,9 @@ class Sweep:
     """Score each cell with COLMAP consistency (the slow part: ~1 min per cell)."""
     colmap_views: int = 100
     """Views on the circle rendered for COLMAP."""
+    view_prompting: Literal["window", "buckets", "none"] | None = None
+    """Override every preset's view-dependent prompting; 'none' exposes the multi-face failure
+    (DESIGN.md 'Priors'). Default: each preset's own setting."""
 
 
 def run_sweep(cmd: Sweep) -> dict:
@@ -342,6 +345,7 @@ def run_sweep(cmd: Sweep) -> dict:
         workers=cmd.workers,
         colmap=cmd.colmap,
         colmap_views=cmd.colmap_views,
+        overrides={} if cmd.view_prompting is None else {"view_prompting": cmd.view_prompting},
     )
     print((Path(cmd.out) / "summary.md").read_text())
     return {"cells": len(rows), "out": str(cmd.out)}

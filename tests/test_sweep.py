@@ -186,3 +186,17 @@ def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
     monkeypatch.setenv("GDBENCH_DEBUG", "1")
     with pytest.raises(ValueError, match="presets: unknown"):
         entrypoint()
+
+
+def test_sweep_cli_overrides_view_prompting_for_every_cell(tmp_path, capsys):
+    res = main(
+        Sweep(
+            prompts=(PROMPT,), presets=("gd",), seeds=(0,), steps=2, out=tmp_path, colmap=False, view_prompting="none"
+        )
+    )
+    cell = tmp_path / "cells" / "a_yellow_duck" / "gd" / "seed0"
+    assert res["cells"] == 1 and json.loads((cell / "cell.json").read_text())["spec"]["overrides"] == {
+        "view_prompting": "none"
+    }
+    assert json.loads((cell / "run.json").read_text())["config"]["view_prompting"] == "none"
+    assert "none is decidable here" in capsys.readouterr().out
