@@ -6,11 +6,13 @@ from __future__ import annotations
 import json
 import platform
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import tyro
+
+from .train.options import MethodOptions
 
 
 @dataclass
@@ -77,7 +79,8 @@ class Noise:
     preview: bool = False
     """Write the preview figure."""
     out: Path = Path("runs/noise_preview.png")
-    """Where the preview PNG goes."""
+    """Where the preview goes: a .png file, or a folder (existing, or a path without a suffix)
+    that receives noise_preview.png."""
     res: int = 128
     """Resolution of the views."""
     seed: int = 0
@@ -92,8 +95,13 @@ def run_noise(cmd: Noise) -> dict:
     from .noise_preview import preview
 
     if not cmd.preview:
-        raise SystemExit("gdbench noise: nothing to do; pass --preview to write the preview figure")
-    stats = preview(cmd.out, NoiseConfig(n_gaussians=cmd.n_gaussians, scale=cmd.scale), res=cmd.res, seed=cmd.seed)
+        raise ValueError("preview: nothing to do; pass --preview to write the preview figure")
+    out = Path(cmd.out)
+    if out.is_dir() or not out.suffix:
+        out = out / "noise_preview.png"
+    elif out.suffix.lower() != ".png":
+        raise ValueError(f"out: expected a .png file or a folder, got {cmd.out}")
+    stats = preview(out, NoiseConfig(n_gaussians=cmd.n_gaussians, scale=cmd.scale), res=cmd.res, seed=cmd.seed)
     print(
         f"wrote {stats['path']}: coverage {stats['coverage']:.2f}, per-pixel mean {stats['mean']:+.3f}, "
         f"variance {stats['var']:.3f}, KS distance to N(0,1) {stats['ks_statistic']:.4f}, "
@@ -118,7 +126,6 @@ class Generate:
     seed: int = 0
     resolution: int = 64
     """Training render size in pixels."""
-    view_prompting: Literal["none", "buckets", "window"] = "window"
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
     init_ply: Path | None = None
     prior: Literal["empirical", "sd"] = "empirical"
@@ -137,9 +144,12 @@ class Generate:
     """sd: 3DFuse's semantic code (image, textual inversion, LoRA), saved in the run."""
     resume: bool = True
     """Continue from --out's checkpoint if there is one."""
+    overwrite: bool = False
+    """Replace a finished run in --out (its outputs are deleted first)."""
     score: bool = True
     """Score the result against the asset (PSNR/SSIM at held-out poses) into scores.json."""
     progress: bool = True
+    method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
 
 
 @dataclass
@@ -158,8 +168,8 @@ class Render:
 
 
 def run_generate(cmd: Generate) -> dict:
+    from .resources import check_generate_memory
     from .train.config import preset
-    from .train.outputs import write_json_atomic
     from .train.run import train
 
     cfg = preset(
@@ -169,7 +179,6 @@ def run_generate(cmd: Generate) -> dict:
         out=cmd.out,
         seed=cmd.seed,
         resolution=cmd.resolution,
-        view_prompting=cmd.view_prompting,
         init=cmd.init,
         init_ply=cmd.init_ply,
         progress=cmd.progress,
@@ -181,28 +190,25 @@ def run_generate(cmd: Generate) -> dict:
         sd_controlnet=cmd.sd_controlnet,
         depth_conditioning=cmd.depth_conditioning,
         semantic_code=cmd.semantic_code,
+        **cmd.method.overrides(),
     )
-    r = train(cfg, resume=cmd.resume)
+    check_generate_memory(cfg)
+    r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite)
     summary = {
         "out": str(r.out),
+        "caption": r.caption,
+        "caption_similarity": r.similarity,
         "steps": r.state.step,
         "gaussians": len(r.state.scene()),
         "seconds": r.seconds,
         "resumed_from": r.resumed_from,
     }
     if cmd.score and r.caption is not None and r.state.step >= cfg.steps:
-        from .metrics.gt import score_against_asset
+        from .metrics.run_scores import score_run
 
-        caption = r.caption
-        if caption is not None:
-            s = score_against_asset(r.state.scene(), caption)
-            summary["gt"] = {
-                "psnr": s.psnr,
-                "ssim": s.ssim,
-                "offset_deg": s.offset_deg,
-                "psnr_unaligned": s.psnr_unaligned,
-            }
-            write_json_atomic(summary["gt"] | {"caption": caption}, Path(cmd.out) / "scores.json")
+        summary["gt"] = score_run(cmd.out, gt=True, colmap=False)["gt"]
+    if r.caption is not None:
+        print(f"gdbench generate: prompt {cmd.prompt!r} -> asset {r.caption!r} (cosine {r.similarity:.2f})")
     print(
         f"gdbench generate: {summary['steps']} steps, {summary['gaussians']} Gaussians, "
         f"{summary['seconds']:.1f} s (resumed from step {summary['resumed_from']}) -> {cmd.out}"
@@ -218,13 +224,15 @@ def run_generate(cmd: Generate) -> dict:
 
 
 def run_render(cmd: Render) -> dict:
+    from .resources import check_render_memory
     from .scene import GaussianScene
     from .turntable import write_turntable
 
     src = Path(cmd.run)
     ply = src / "scene.ply" if src.is_dir() else src
     if not ply.is_file():
-        raise SystemExit(f"gdbench render: run: no PLY at {ply} (pass a run folder or a .ply file)")
+        raise FileNotFoundError(f"run: no PLY at {ply} (pass a run folder or a .ply file)")
+    check_render_memory(cmd.size, cmd.frames)
     out = cmd.out or ply.parent
     scene = GaussianScene.load_ply(ply)
     res = write_turntable(
@@ -284,7 +292,7 @@ def run_score(cmd: Score) -> dict:
     from .metrics.run_scores import score_run
 
     if not Path(cmd.run).is_dir():
-        raise SystemExit(f"gdbench score: run: expected a run folder, got {cmd.run}")
+        raise FileNotFoundError(f"run: expected a run folder, got {cmd.run}")
     s = score_run(cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size)
     print(f"gdbench score: {cmd.run} ({s['gaussians']} Gaussians) -> {Path(cmd.run) / 'scores.json'}")
     if "gt" in s:
@@ -326,9 +334,8 @@ class Sweep:
     """Score each cell with COLMAP consistency (the slow part: ~1 min per cell)."""
     colmap_views: int = 100
     """Views on the circle rendered for COLMAP."""
-    view_prompting: Literal["window", "buckets", "none"] | None = None
-    """Override every preset's view-dependent prompting; 'none' exposes the multi-face failure
-    (DESIGN.md 'Priors'). Default: each preset's own setting."""
+    method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
+    """Overrides applied to every preset of the sweep."""
 
 
 def run_sweep(cmd: Sweep) -> dict:
@@ -345,7 +352,7 @@ def run_sweep(cmd: Sweep) -> dict:
         workers=cmd.workers,
         colmap=cmd.colmap,
         colmap_views=cmd.colmap_views,
-        overrides={} if cmd.view_prompting is None else {"view_prompting": cmd.view_prompting},
+        overrides=cmd.method.overrides(),
     )
     print((Path(cmd.out) / "summary.md").read_text())
     return {"cells": len(rows), "out": str(cmd.out)}
@@ -386,58 +393,69 @@ def run_bench(cmd: Bench) -> dict:
     argv = ["--out", str(Path(cmd.out) / csv_name), *extra]
     if cmd.quick:
         if cmd.which not in ("render", "peers"):
-            raise SystemExit(f"gdbench bench: quick: only render and peers have a quick grid, not {cmd.which!r}")
+            raise ValueError(f"quick: only render and peers have a quick grid, not {cmd.which!r}")
         argv.append("--quick")
     code = importlib.import_module(module).main(argv)
     return {"bench": cmd.which, "csv": str(Path(cmd.out) / csv_name), "exit": code}
 
 
 COMMANDS = {
-    "generate": Generate,
-    "render": Render,
-    "compare": Compare,
-    "demo": Demo,
-    "noise": Noise,
-    "score": Score,
-    "sweep": Sweep,
-    "bench": Bench,
+    "generate": (Generate, run_generate),
+    "render": (Render, run_render),
+    "compare": (Compare, run_compare),
+    "demo": (Demo, run_demo),
+    "noise": (Noise, run_noise),
+    "score": (Score, run_score),
+    "sweep": (Sweep, run_sweep),
+    "bench": (Bench, run_bench),
 }
+"""Subcommand name -> (its options, the function that runs them)."""
 
 
 def main(cmd) -> dict:
-    if isinstance(cmd, Demo):
-        return run_demo(cmd)
-    if isinstance(cmd, Noise):
-        return run_noise(cmd)
-    if isinstance(cmd, Generate):
-        return run_generate(cmd)
-    if isinstance(cmd, Render):
-        return run_render(cmd)
-    if isinstance(cmd, Compare):
-        return run_compare(cmd)
-    if isinstance(cmd, Score):
-        return run_score(cmd)
-    if isinstance(cmd, Sweep):
-        return run_sweep(cmd)
-    if isinstance(cmd, Bench):
-        return run_bench(cmd)
+    for _, (kind, run) in COMMANDS.items():
+        if type(cmd) is kind:
+            return run(cmd)
     raise TypeError(f"cmd: unknown command {type(cmd).__name__}")
 
 
+def error_line(e: BaseException) -> tuple[str, int]:
+    """(one-line message, exit code) for an error a user can act on; re-raises anything else.
+
+    Exit code 2: bad arguments, missing or broken files, a busy or unwritable folder, a full
+    disk; 130: interrupted (after the run saved its checkpoint)."""
+    from .io import FolderBusy
+    from .train.run import RunInterrupted
+
+    if isinstance(e, RunInterrupted):
+        return str(e), 130
+    if isinstance(e, KeyboardInterrupt):
+        return "interrupted", 130
+    if isinstance(e, (ValueError, FolderBusy, FileNotFoundError, FileExistsError, NotADirectoryError)):
+        return str(e), 2
+    if isinstance(e, OSError):  # read-only file system, permission, disk full, ...
+        where = f"{e.filename}: " if e.filename else ""
+        return f"{where}{e.strerror or e}", 2
+    raise e
+
+
 def entrypoint() -> None:
-    """Parse the command line and run it. Bad arguments and missing files end with a one-line
-    error and exit code 2; set GDBENCH_DEBUG=1 for the traceback."""
+    """Parse the command line and run it. Bad arguments, missing or broken files and unwritable
+    folders end with a one-line error naming what to fix and exit code 2 (Ctrl-C: 130); set
+    GDBENCH_DEBUG=1 for the traceback."""
     import os
     import sys
 
-    cmd = tyro.extras.subcommand_cli_from_dict(COMMANDS)
+    cmd = tyro.extras.subcommand_cli_from_dict({name: kind for name, (kind, _) in COMMANDS.items()})
+    name = next(n for n, (kind, _) in COMMANDS.items() if type(cmd) is kind)
     try:
         main(cmd)
-    except (ValueError, FileNotFoundError, FileExistsError) as e:
+    except (Exception, KeyboardInterrupt) as e:
         if os.environ.get("GDBENCH_DEBUG"):
             raise
-        print(f"gdbench {type(cmd).__name__.lower()}: error: {e}", file=sys.stderr)
-        sys.exit(2)
+        message, code = error_line(e)
+        print(f"gdbench {name}: error: {message}", file=sys.stderr)
+        sys.exit(code)
 
 
 if __name__ == "__main__":

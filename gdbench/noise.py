@@ -12,8 +12,11 @@ and every view of one step sees the same 3D source: pixels that see the same noi
 Gaussians get correlated noise. Pixels with ``V(u) < v_min`` (nothing of the cloud there)
 get iid noise instead; ``coverage`` marks the others.
 
-Mixing keeps unit variance: ``n = r_t n_s + sqrt(1 - r_t^2) n_iid`` with ``r_t`` going from
-``ratio_start`` (0.3) to ``ratio_end`` (0.05) linearly over the run.
+Mixing keeps unit variance: ``n = a_t n_s + sqrt(1 - a_t^2) n_iid`` with the paper's "proportion
+of structured noise" r_t going from ``ratio_start`` (0.3) to ``ratio_end`` (0.05) linearly over
+the run. The proportion has two readings (``ratio_mode``): the amplitude (``a_t = r_t``, so the
+structured share of the variance is r_t^2, 9% at most) or the variance fraction
+(``a_t = sqrt(r_t)``, 30% of the variance at the start); docs/noise.md says which is the default.
 
 When colours are redrawn (``redraw``):
 - ``"step"``: fresh colours every step (independent sources across steps);
@@ -36,6 +39,7 @@ from torch import Tensor
 from .camera import Cameras
 
 Redraw = Literal["step", "run", "ou"]
+RatioMode = Literal["amplitude", "variance"]
 
 
 @dataclass(frozen=True)
@@ -54,14 +58,18 @@ class NoiseConfig:
     """Opacity of each noise Gaussian."""
     azimuth_range: tuple[float, float] = (-180.0, 180.0)
     elevation_range: tuple[float, float] = (-45.0, 45.0)
-    redraw: Redraw = "step"
-    """When colours are redrawn: every step, once per run, or an Ornstein-Uhlenbeck drift."""
+    redraw: Redraw = "run"
+    """When colours are redrawn: once per run (the paper: one fixed source seen from every view),
+    every step (an ablation: no two steps share a source), or an Ornstein-Uhlenbeck drift."""
     ou_beta: float = 0.1
     """b of the OU drift (0 < b <= 1; 1 is the same as 'step')."""
     ratio_start: float = 0.3
     """r_t at the first step."""
     ratio_end: float = 0.05
     """r_t at the last step."""
+    ratio_mode: RatioMode = "amplitude"
+    """How r_t mixes: 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid) or 'variance'
+    (n = sqrt(r) n_s + sqrt(1 - r) n_iid)."""
     v_min: float = 1e-6
     """Pixels with sum_i w_i^2 below this get iid noise."""
 
@@ -80,6 +88,8 @@ class NoiseConfig:
         for name in ("ratio_start", "ratio_end"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name}: expected a value in [0, 1], got {getattr(self, name)}")
+        if self.ratio_mode not in ("amplitude", "variance"):
+            raise ValueError(f"ratio_mode: expected 'amplitude' or 'variance', got {self.ratio_mode!r}")
         if not self.v_min >= 0:
             raise ValueError(f"v_min: expected a non-negative threshold, got {self.v_min}")
 
@@ -228,12 +238,25 @@ def structured_noise(
     return NoiseRenderer(cloud, v_min=v_min, cache_size=1).render(colors, cams, generator=generator)
 
 
-def mix(structured: Tensor, ratio: float, *, generator: torch.Generator) -> Tensor:
-    """n = r n_s + sqrt(1 - r^2) n_iid: unit variance for any r in [0, 1]."""
+def structured_amplitude(ratio: float, mode: RatioMode = "amplitude") -> float:
+    """The weight a of n_s in n = a n_s + sqrt(1 - a^2) n_iid for the proportion ``ratio``."""
     if not 0 <= ratio <= 1:
         raise ValueError(f"ratio: expected a value in [0, 1], got {ratio}")
+    if mode == "amplitude":
+        return ratio
+    if mode == "variance":
+        return math.sqrt(ratio)
+    raise ValueError(f"mode: expected 'amplitude' or 'variance', got {mode!r}")
+
+
+def mix(structured: Tensor, ratio: float, *, generator: torch.Generator, mode: RatioMode = "amplitude") -> Tensor:
+    """n = a n_s + sqrt(1 - a^2) n_iid with a = ``structured_amplitude(ratio, mode)``: unit
+    variance for any ratio in [0, 1]. The iid part is drawn from ``generator`` with the shape of
+    ``structured`` (so a run without structured noise, drawing its noise from the same stream,
+    sees the same iid field)."""
+    a = structured_amplitude(ratio, mode)
     iid = torch.randn(structured.shape, generator=generator, device=generator.device).to(structured)
-    return ratio * structured + math.sqrt(1 - ratio * ratio) * iid
+    return a * structured + math.sqrt(1 - a * a) * iid
 
 
 def ratio_schedule(step: int, total_steps: int, start: float = 0.3, end: float = 0.05) -> float:

@@ -12,8 +12,6 @@ layout. Values are stored as float32, so a float32 scene round-trips exactly.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,56 @@ import torch
 from .scene import GaussianScene
 
 _REST_TO_K = {0: 1, 9: 4, 24: 9, 45: 16}
+
+LOG_SCALE_RANGE = (-30.0, 12.0)
+"""Log-scales a PLY may hold. Above 12 (scales beyond 1.6e5 scene units) the float32 covariance
+loses precision: an anisotropic Gaussian at 15 differs from the float64 twin by 3e-4 in alpha,
+and above ~43 float32 Gaussians vanish (alpha 0 where the twin gives 0.7). Below -30 a Gaussian is
+far under a pixel at any distance and only its 2D dilation is left."""
+
+
+def _check_extent(path: Path, ply) -> None:
+    """The header's vertex count must cover the file exactly: no rows beyond it, no trailing bytes."""
+    if len(ply.elements) != 1:
+        return  # other elements (faces, ...) follow the vertices: their sizes vary, nothing to check
+    el = ply.elements[0]
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(min(size, 1 << 16))
+    end = head.find(b"end_header")
+    if end < 0:
+        return
+    body = end + len(b"end_header") + (2 if head[end + 10 : end + 12] == b"\r\n" else 1)
+    if ply.text:
+        with open(path, "rb") as f:
+            f.seek(body)
+            rows = sum(1 for line in f if line.strip())
+        if rows != el.count:
+            raise ValueError(f"{path}: the header declares {el.count} vertices but the file has {rows} rows")
+        return
+    extra = size - body - el.count * el.data.dtype.itemsize
+    if extra > 0:
+        rows = extra / el.data.dtype.itemsize
+        raise ValueError(
+            f"{path}: {extra} bytes follow the {el.count} vertices the header declares "
+            f"({rows:g} more rows: the header's count is too small, or the file has trailing data)"
+        )
+
+
+def _check_values(path: Path, v, names: list[str]) -> None:
+    for name in names:
+        col = np.asarray(v[name], dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(col))
+        if bad.size:
+            raise ValueError(f"{path}: {name} of vertex {bad[0]} is {col[bad[0]]}; expected finite values")
+        if name.startswith("scale_") and col.size:
+            lo, hi = LOG_SCALE_RANGE
+            out = np.flatnonzero((col < lo) | (col > hi))
+            if out.size:
+                raise ValueError(
+                    f"{path}: {name} of vertex {out[0]} is {col[out[0]]:g} (a log-scale); expected values in "
+                    f"[{lo:g}, {hi:g}] (docs/reliability.md)"
+                )
 
 
 def _names(k: int) -> list[str]:
@@ -33,9 +81,12 @@ def _names(k: int) -> list[str]:
     )
 
 
-def write_ply(scene: GaussianScene, path: str | Path) -> Path:
-    """Write ``scene`` as a binary little-endian 3DGS PLY, atomically (temp file + rename)."""
+def write_ply(scene: GaussianScene, path: str | Path, *, comments: list[str] | None = None) -> Path:
+    """Write ``scene`` as a binary little-endian 3DGS PLY, atomically (temp file + rename);
+    ``comments`` go into the header (gdbench writes the run id there)."""
     from plyfile import PlyData, PlyElement
+
+    from .io import atomic_write
 
     path = Path(path)
     s = scene.detach().to("cpu", torch.float32)
@@ -48,16 +99,8 @@ def write_ply(scene: GaussianScene, path: str | Path) -> Path:
     arr = np.empty(n, dtype=[(name, "<f4") for name in names])
     for i, name in enumerate(names):
         arr[name] = data[:, i]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".ply.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            PlyData([PlyElement.describe(arr, "vertex")], text=False).write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    ply = PlyData([PlyElement.describe(arr, "vertex")], text=False, comments=list(comments or []))
+    return atomic_write(path, ply.write)
 
 
 def read_ply(path: str | Path) -> GaussianScene:
@@ -89,11 +132,13 @@ def read_ply(path: str | Path) -> GaussianScene:
     missing = [r for r in required if r not in names]
     if missing:
         raise ValueError(f"{path}: not a 3DGS PLY, missing vertex properties {missing}")
+    _check_extent(path, ply)
     n_rest = sum(1 for name in names if name.startswith("f_rest_"))
     if n_rest not in _REST_TO_K or any(f"f_rest_{i}" not in names for i in range(n_rest)):
         raise ValueError(f"{path}: expected f_rest_0..f_rest_(n-1) with n in {sorted(_REST_TO_K)}, found {n_rest}")
     k = _REST_TO_K[n_rest]
     n = len(v)
+    _check_values(path, v, required + [f"f_rest_{i}" for i in range(n_rest)])
 
     def col(*keys: str) -> torch.Tensor:
         return torch.from_numpy(np.stack([np.asarray(v[key], dtype=np.float32) for key in keys], axis=1))

@@ -107,10 +107,10 @@ class GaussianScene:
 
         return read_ply(path)
 
-    def save_ply(self, path: str | Path) -> Path:
+    def save_ply(self, path: str | Path, *, comments: list[str] | None = None) -> Path:
         from .ply import write_ply
 
-        return write_ply(self, path)
+        return write_ply(self, path, comments=comments)
 
     # -------------------------------------------------------------------- accessors
     def __len__(self) -> int:

@@ -33,8 +33,52 @@ class CellSpec:
 
     @property
     def dir(self) -> Path:
-        slug = "_".join(self.prompt.lower().split())
-        return Path(self.out) / "cells" / slug / self.preset / f"seed{self.seed}"
+        return Path(self.out) / "cells" / cell_name(self.prompt) / self.preset / f"seed{self.seed}"
+
+
+def cell_name(prompt: str) -> str:
+    """A prompt as a folder name: lower-case letters, digits and '_' only, so no prompt can
+    reach outside the sweep's folder ('../../a duck' -> 'a_duck')."""
+    import re
+
+    name = re.sub(r"[^a-z0-9]+", "_", prompt.lower()).strip("_")
+    if not name:
+        raise ValueError(f"prompts: {prompt!r} has no letters or digits to name its cells by")
+    return name
+
+
+def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], specs: list[CellSpec]) -> None:
+    """Everything a sweep could fail on, checked before the first cell trains: presets, repeated
+    entries, cell folders two prompts would share, prompts no asset matches (or that contradict
+    it), and each cell's config."""
+    from .assets.library import ASSETS, COLOURS
+    from .priors.text import CaptionMatcher, contradiction, normalise
+    from .train.config import PRESETS
+
+    bad = [p for p in presets if p not in PRESETS]
+    if bad:
+        raise ValueError(f"presets: unknown {bad}; expected names from {sorted(PRESETS)}")
+    if not prompts or not presets or not seeds:
+        raise ValueError("prompts, presets, seeds: expected at least one of each")
+    for name, items in (("presets", presets), ("seeds", seeds)):
+        if len(set(items)) != len(items):
+            raise ValueError(f"{name}: {sorted({x for x in items if items.count(x) > 1})} listed more than once")
+    names: dict[str, str] = {}
+    for pr in prompts:
+        n = cell_name(pr)
+        if n in names:
+            raise ValueError(
+                f"prompts: {names[n]!r} and {pr!r} would share the cell folder {n!r}; list each prompt once"
+            )
+        names[n] = pr
+    matcher = CaptionMatcher(sorted(ASSETS))
+    for pr in prompts:
+        caption, sim = matcher.match_scored(pr)
+        why = contradiction(pr, caption, COLOURS.get(caption, frozenset()) | set(normalise(caption).split()))
+        if why is not None:
+            raise ValueError(f"prompts: {pr!r} matched {caption!r} (cosine {sim:.2f}): {why}")
+    for spec in specs:
+        cell_config(spec)  # a bad override raises here, naming the setting
 
 
 def cell_config(spec: CellSpec):
@@ -54,12 +98,18 @@ def cell_config(spec: CellSpec):
 
 def run_cell(spec: CellSpec) -> dict:
     """Train (or resume) and score one cell; writes and returns its row."""
+    from .io import write_json
     from .metrics.run_scores import score_run
-    from .train.outputs import write_json_atomic
+    from .train.checkpoint import CheckpointError
     from .train.run import train
 
     t0 = time.perf_counter()
-    r = train(cell_config(spec))
+    try:
+        r = train(cell_config(spec))
+    except CheckpointError as e:
+        raise CheckpointError(
+            f"{str(e).split(';')[0]}; delete {spec.dir} to retrain this cell, or sweep into another --out"
+        ) from None
     train_s = sum(h["seconds"] for h in r.state.history)
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
     col = scores.get("colmap", {})
@@ -77,7 +127,7 @@ def run_cell(spec: CellSpec) -> dict:
         "translation_dir_err_deg": col.get("translation_dir_err_deg", float("nan")),
         "cell_s": time.perf_counter() - t0,
     }
-    write_json_atomic({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")
+    write_json({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")
     return row
 
 
@@ -251,13 +301,6 @@ def sweep(
     overrides: dict | None = None,
     progress: bool = True,
 ) -> list[dict]:
-    from .train.config import PRESETS
-
-    bad = [p for p in presets if p not in PRESETS]
-    if bad:
-        raise ValueError(f"presets: unknown {bad}; expected names from {sorted(PRESETS)}")
-    if not prompts or not seeds:
-        raise ValueError("prompts, seeds: expected at least one of each")
     out = Path(out)
     # seeds outermost: a sweep cut short still has every (prompt, preset) for its first seeds
     specs = [
@@ -266,6 +309,7 @@ def sweep(
         for pr in prompts
         for p in presets
     ]
+    validate_grid(prompts, presets, seeds, specs)
     rows: dict[int, dict] = {}
     todo = []
     for i, spec in enumerate(specs):

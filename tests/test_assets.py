@@ -25,7 +25,7 @@ def test_assets_fit_and_carry_colours(caption):
 @pytest.mark.parametrize("caption", sorted(ASSETS))
 def test_front_differs_from_back(caption):
     """Each asset has a canonical front at azimuth 0: its front and back views differ."""
-    b = render_bank(caption, BankConfig(resolution=32, azimuths=2, elevations=(10.0,)))
+    b = render_bank(caption, BankConfig(resolution=32, azimuths=2, elevations=(10.0,), fovy=55.0))
     front, back = b.images[b.azimuth == 0][0], b.images[b.azimuth.abs() == 180][0]
     assert float((front - back).abs().mean()) > 0.01
     assert float(b.alpha[0].mean()) > 0.1  # the asset fills part of the view

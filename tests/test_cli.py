@@ -77,5 +77,5 @@ def test_render_bad_path(tmp_path):
 
     from gdbench.cli import Render
 
-    with pytest.raises(SystemExit, match="run: no PLY"):
+    with pytest.raises(FileNotFoundError, match="run: no PLY"):
         main(Render(tmp_path / "nothing"))

@@ -274,6 +274,12 @@ def _good():
         (lambda a: a.__setitem__("alpha_max", 1.0), ValueError, "alpha_max"),
         (lambda a: a.__setitem__("background", torch.ones(4)), ValueError, "background: expected shape"),
         (lambda a: a.__setitem__("backend", "cuda"), ValueError, "backend: expected"),
+        (lambda a: a.update(viewmats=a["viewmats"][:0], Ks=a["Ks"][:0]), ValueError, "viewmats: expected at least one"),
+        (lambda a: a["Ks"].__setitem__((1, 0, 0), 0.0), ValueError, "Ks: expected positive focal lengths"),
+        (lambda a: a["Ks"].__setitem__((0, 1, 1), -5.0), ValueError, "Ks: expected positive focal lengths"),
+        (lambda a: a["viewmats"][0, :3, :3].mul_(2.0), ValueError, "viewmats: expected world-to-camera rigid"),
+        (lambda a: a["viewmats"][1, 0, :3].neg_(), ValueError, r"det R in \[-1"),  # a reflection
+        (lambda a: a["viewmats"].__setitem__((0, 3, 0), 0.5), ValueError, r"last row \[0, 0, 0, 1\]"),
     ],
 )
 def test_bad_input_names_the_argument(change, error, match):

@@ -139,6 +139,45 @@ def test_truncated_ply(tmp_path):
         GaussianScene.load_ply(tmp_path / "missing.ply")
 
 
+def test_header_count_and_trailing_bytes_are_checked(tmp_path):
+    """A header that declares fewer vertices than the file holds, or bytes after the last vertex,
+    used to drop vertices silently."""
+    path = _scene(30, degree=1).save_ply(tmp_path / "s.ply")
+    data = path.read_bytes()
+    (tmp_path / "short.ply").write_bytes(data.replace(b"element vertex 30", b"element vertex 29"))
+    with pytest.raises(ValueError, match=r"short.ply: \d+ bytes follow the 29 vertices the header declares \(1 more"):
+        GaussianScene.load_ply(tmp_path / "short.ply")
+    (tmp_path / "tail.ply").write_bytes(data + b"junk")
+    with pytest.raises(ValueError, match=r"tail.ply: 4 bytes follow the 30 vertices"):
+        GaussianScene.load_ply(tmp_path / "tail.ply")
+    from plyfile import PlyData
+
+    text = PlyData.read(str(path))
+    text.text = True
+    text.write(str(tmp_path / "text.ply"))
+    assert len(GaussianScene.load_ply(tmp_path / "text.ply")) == 30  # ASCII: rows counted too
+    lines = (tmp_path / "text.ply").read_bytes().replace(b"element vertex 30", b"element vertex 28")
+    (tmp_path / "text_short.ply").write_bytes(lines)
+    with pytest.raises(ValueError, match="declares 28 vertices but the file has 30 rows"):
+        GaussianScene.load_ply(tmp_path / "text_short.ply")
+
+
+@pytest.mark.parametrize(("value", "ok"), [(12.0, True), (-30.0, True), (12.5, False), (100.0, False), (-31.0, False)])
+def test_log_scale_range_is_checked_on_read(tmp_path, value, ok):
+    """Log-scales above 12 lose float32 precision and above ~43 vanish (docs/reliability.md)."""
+    from gdbench.ply import LOG_SCALE_RANGE
+
+    assert LOG_SCALE_RANGE == (-30.0, 12.0)
+    s = _scene(12, degree=0)
+    s.log_scales[5, 0] = value
+    path = s.save_ply(tmp_path / "s.ply")
+    if ok:
+        assert float(GaussianScene.load_ply(path).log_scales[5, 0]) == value
+    else:
+        with pytest.raises(ValueError, match=rf"s.ply: scale_0 of vertex 5 is {value:g} \(a log-scale\)"):
+            GaussianScene.load_ply(path)
+
+
 def test_reads_and_is_read_by_open3d(tmp_path):
     o3d = pytest.importorskip("open3d", reason="open3d-cpu is installed by `make setup`")
     o3c = o3d.core

@@ -98,8 +98,10 @@ def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep,
 def test_sweep_rejects_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="presets: unknown"):
         sweep([PROMPT], ["gd", "best"], [0], out=tmp_path)
-    with pytest.raises(ValueError, match="prompts, seeds"):
+    with pytest.raises(ValueError, match="prompts, presets, seeds"):
         sweep([], ["gd"], [0], out=tmp_path)
+    with pytest.raises(ValueError, match=r"seeds: \[1\] listed more than once"):
+        sweep([PROMPT], ["gd"], [0, 1, 1], out=tmp_path)
     with pytest.raises(ValueError, match="executor"):
         sweep([PROMPT], ["gd"], [0], out=tmp_path, executor="slurm", steps=1, colmap=False, progress=False)
 
@@ -133,7 +135,7 @@ def test_score_cli_writes_scores_next_to_the_run_and_keeps_earlier_ones(tiny_swe
 def test_score_names_the_missing_scene(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"run: no scene\.ply"):
         score_run(tmp_path)
-    with pytest.raises(SystemExit, match="run: expected a run folder"):
+    with pytest.raises(FileNotFoundError, match="run: expected a run folder"):
         main(Score(run=tmp_path / "nope"))
 
 
@@ -188,15 +190,19 @@ def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
         entrypoint()
 
 
-def test_sweep_cli_overrides_view_prompting_for_every_cell(tmp_path, capsys):
-    res = main(
-        Sweep(
-            prompts=(PROMPT,), presets=("gd",), seeds=(0,), steps=2, out=tmp_path, colmap=False, view_prompting="none"
-        )
-    )
+def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
+    from gdbench.train.options import MethodOptions
+
+    opts = MethodOptions(view_prompting="none", noise_redraw="ou", views_per_step=2, noise_ratio="variance")
+    res = main(Sweep(prompts=(PROMPT,), presets=("gd",), seeds=(0,), steps=2, out=tmp_path, colmap=False, method=opts))
     cell = tmp_path / "cells" / "a_yellow_duck" / "gd" / "seed0"
     assert res["cells"] == 1 and json.loads((cell / "cell.json").read_text())["spec"]["overrides"] == {
-        "view_prompting": "none"
+        "view_prompting": "none",
+        "noise.redraw": "ou",
+        "noise.ratio_mode": "variance",
+        "views_per_step": 2,
     }
-    assert json.loads((cell / "run.json").read_text())["config"]["view_prompting"] == "none"
+    config = json.loads((cell / "run.json").read_text())["config"]
+    assert config["view_prompting"] == "none" and config["views_per_step"] == 2
+    assert config["noise"]["redraw"] == "ou" and config["noise"]["ratio_mode"] == "variance"
     assert "none is decidable here" in capsys.readouterr().out

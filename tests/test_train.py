@@ -2,6 +2,7 @@
 stiff cases. The slow-marked quality test runs the real duck."""
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -85,10 +86,10 @@ def test_a_step_lowers_the_denoising_residual(name, prior):
     state = init_state(ctx)
     drops = []
     for _ in range(6):
-        g0 = state.generator.get_state()
+        g0 = state.rng_state()
         before = train_step(state, ctx)["residual"]
         state.step -= 1  # evaluate the same step's draws with the updated parameters
-        state.generator.set_state(g0)
+        state.set_rng_state(g0)
         after = train_step(state, ctx, update=False)["residual"]
         state.step += 1
         drops.append(before - after)
@@ -299,9 +300,79 @@ def test_sigkilled_run_resumes_to_the_uninterrupted_result(prior, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
-    torch.load(ckpt, weights_only=False)  # whatever the kill interrupted, the checkpoint on disk is whole
+    torch.load(ckpt, weights_only=True)  # whatever the kill interrupted, the checkpoint on disk is whole
     resumed = train(tiny("gd", tmp_path / "k", steps=steps, checkpoint_every=3), prior, write_outputs=False)
     assert 0 < resumed.resumed_from < steps
     full = train(tiny("gd", tmp_path / "full", steps=steps, checkpoint_every=3), prior, write_outputs=False)
     for k in PARAM_NAMES:
         assert torch.equal(full.state.params[k], resumed.state.params[k]), k
+
+
+# -------------------------------------------------------------------- paired random streams
+def test_presets_with_one_seed_draw_the_same_views_sigmas_and_iid_noise(prior, tmp_path):
+    """gd and sjc-gs differ only in what they ablate: same initial scene, same views and noise
+    levels at every step, and gd's iid noise part is sjc-gs's whole noise."""
+    from gdbench.train.trainer import _noise_fields, sample_views
+
+    ctx_gd = make_context(tiny("gd", views_per_step=2), prior)
+    ctx_sjc = make_context(tiny("sjc-gs", views_per_step=2), prior)
+    a, b = init_state(ctx_gd), init_state(ctx_sjc)
+    for k in PARAM_NAMES:
+        assert torch.equal(a.params[k], b.params[k]), k
+    for _ in range(3):
+        va, vb = sample_views(ctx_gd, a), sample_views(ctx_sjc, b)
+        assert torch.equal(va.poses.azimuth, vb.poses.azimuth) and torch.equal(va.poses.fovy, vb.poses.fovy)
+        assert torch.equal(va.poses.elevation, vb.poses.elevation) and va.sigma == vb.sigma
+        shape = (2, 16, 16, 3)
+        n_gd = _noise_fields(ctx_gd, a, va, shape, update=True)[0]
+        n_sjc = _noise_fields(ctx_sjc, b, vb, shape, update=True)[0]
+        # gd: n = r n_s + sqrt(1 - r^2) n_iid, with n_iid the very field sjc-gs uses
+        r = 0.3  # ratio at step 0
+        ns = ctx_gd.noise.render(a.noise_colors, va.prior_cams, generator=torch.Generator())
+        cov = ns.coverage.bool().expand(shape)  # where the cloud covers nothing, n_s is an iid fill
+        assert cov.float().mean() > 0.5
+        want = r * ns.noise + math.sqrt(1 - r * r) * n_sjc
+        torch.testing.assert_close(n_gd[cov], want[cov], atol=1e-5, rtol=0)
+    # whole runs: the sigma sequences agree step by step
+    ra = train(tiny("gd", tmp_path / "gd", steps=5), prior, write_outputs=False)
+    rb = train(tiny("gd-no-vgs", tmp_path / "nv", steps=5), prior, write_outputs=False)
+    assert [h["sigma"] for h in ra.state.history] == [h["sigma"] for h in rb.state.history]
+
+
+def test_another_seed_draws_other_views():
+    from gdbench.train.streams import STREAMS, stream_seed
+
+    seeds = {stream_seed(s, n) for s in (0, 1) for n in STREAMS}
+    assert len(seeds) == 2 * len(STREAMS)
+    with pytest.raises(ValueError, match="unknown stream"):
+        stream_seed(0, "colour")
+
+
+def test_checkpoint_refuses_pickled_code_and_foreign_files(prior, tmp_path):
+    """weights_only loading: a checkpoint carrying a pickled callable is refused, not run."""
+    from gdbench.train.checkpoint import CheckpointError
+
+    class Boom:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    train(tiny("gd", tmp_path / "a", steps=2), prior, write_outputs=False)
+    ckpt = tmp_path / "a" / "checkpoint.pt"
+    blob = torch.load(ckpt, weights_only=True)
+    blob["history"].append(Boom())
+    torch.save(blob, ckpt)
+    with pytest.raises(CheckpointError, match=r"checkpoint: .* objects other than tensors"):
+        train(tiny("gd", tmp_path / "a", steps=4), prior)
+    for content in (b"", b"PK\x03\x04 truncated"):
+        ckpt.write_bytes(content)
+        with pytest.raises(CheckpointError, match="unreadable"):
+            train(tiny("gd", tmp_path / "a", steps=4), prior)
+    torch.save({"weights": torch.zeros(2)}, ckpt)
+    with pytest.raises(CheckpointError, match="not a gdbench checkpoint"):
+        train(tiny("gd", tmp_path / "a", steps=4), prior)
+
+
+def test_resume_refuses_other_steps_with_the_reason(prior, tmp_path):
+    train(tiny("gd", tmp_path, steps=4), prior, stop_at=2, write_outputs=False)
+    with pytest.raises(ValueError, match=r"fields \['steps'\]\) \(the sigma, noise and learning-rate schedules"):
+        train(tiny("gd", tmp_path, steps=6), prior)

@@ -4,27 +4,51 @@
   poses after the best azimuth alignment (``gt.py``);
 - COLMAP consistency (``colmap_consistency.py``): registration rate, Var(theta) of adjacent
   relative-rotation angles (the headline), translation-direction error.
+
+Scores are tied to the scene they measured: ``scores.json`` records the SHA-256 of
+``scene.ply`` (and the run id), and blocks measured on another scene are dropped, never shown
+beside new ones. A broken ``run.json`` or ``scores.json`` is reported (naming the file) before
+any scoring starts.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
+from ..io import read_json, sha256_file, write_json
 from ..scene import GaussianScene
 
 
-def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256) -> dict:
-    from ..train.outputs import write_json_atomic
+def previous_scores(run: Path, scene_sha: str) -> dict:
+    """The blocks of ``run/scores.json`` that belong to the scene with hash ``scene_sha``."""
+    path = run / "scores.json"
+    if not path.is_file():
+        return {}
+    old = read_json(path, what="scores.json")
+    if old.get("scene_sha256") != scene_sha:
+        return {}  # measured on another scene (or before scores were tied to scenes): stale
+    return old
 
+
+def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256) -> dict:
     run = Path(run)
+    if not run.is_dir():
+        raise FileNotFoundError(f"run: no run folder at {run}")
     ply = run / "scene.ply"
     if not ply.is_file():
         raise FileNotFoundError(f"run: no scene.ply in {run} (is the run finished?)")
-    info = json.loads((run / "run.json").read_text()) if (run / "run.json").is_file() else {}
+    info = read_json(run / "run.json", what="run.json") if (run / "run.json").is_file() else {}
+    scene_sha = sha256_file(ply)
+    previous = previous_scores(run, scene_sha)  # a broken scores.json fails here, before the work
     scene = GaussianScene.load_ply(ply)
-    out: dict = {"run": str(run), "gaussians": len(scene), "caption": info.get("caption")}
+    out: dict = {
+        "run": str(run),
+        "run_id": info.get("run_id"),
+        "scene_sha256": scene_sha,
+        "gaussians": len(scene),
+        "caption": info.get("caption"),
+    }
     t0 = time.perf_counter()
     if gt and info.get("caption"):
         from .gt import score_against_asset
@@ -36,6 +60,5 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
 
         out["colmap"] = score_scene(scene, views=views, size=size).as_dict()
     out["seconds"] = time.perf_counter() - t0
-    previous = json.loads((run / "scores.json").read_text()) if (run / "scores.json").is_file() else {}
-    write_json_atomic(previous | out, run / "scores.json")
-    return out
+    write_json(previous | out, run / "scores.json")
+    return previous | out

@@ -22,6 +22,8 @@ class Prior(Protocol):
 
     channels: int
     sigmas: Tensor
+    factor: int
+    """The prior's input is the render downsampled by this (1 for pixels, 8 for SD latents)."""
 
     def encode(self, prompt: str) -> object:
         """Condition of a prompt (raises ValueError with a clear message for unusable prompts)."""
@@ -36,11 +38,13 @@ class Prior(Protocol):
         azimuth: Tensor | None = None,
         elevation: Tensor | None = None,
         depth: Tensor | None = None,
+        fovy: Tensor | None = None,
     ) -> Tensor:
         """x0 estimate [B, H, W, C] for noisy images x [B, H, W, C] at noise levels sigma [B].
 
         ``azimuth``/``elevation`` [B] (degrees) drive view-dependent prompting; ``depth``
-        [B, H, W] the depth conditioning; priors that do not use them ignore them."""
+        [B, H, W] the depth conditioning; ``fovy`` [B] (degrees) is the query camera's vertical
+        field of view; priors that do not use them ignore them."""
         ...
 
 

@@ -1,33 +1,41 @@
 """The embedded CPU prior: the exact posterior-mean denoiser of a bank of captioned images.
 
 For a bank {y_i} of one caption (rendered from the procedural asset), the data distribution
-is the empirical one, p(x0) = 1/V sum_i delta(x0 - y_i), and for y = x0 + sigma n
+is the empirical one, p(x0) = sum_i pi_i delta(x0 - y_i), and for y = x0 + sigma n
 
-    D(y; sigma) = E[x0 | y] = sum_i softmax_i(-|y - y_i|^2 / (2 sigma^2)) y_i,
+    D(y; sigma) = E[x0 | y] = sum_i softmax_i(log pi_i - |y - y_i|^2 / (2 sigma^2)) y_i,
 
-exactly. Options:
+exactly (pi_i uniform by default). The posterior is taken at the query's camera:
+- field of view (``fovy``): the bank is rendered once at a wide field of view and, for a query
+  at fovy f, zoomed to f about the principal point (``assets/zoom.py``: a change of field of view
+  at one camera position is an exact zoom of a pinhole image). Zoomed banks are cached per
+  ``fov_step`` degrees (the query's fov is rounded to that grid: at 0.5 degrees the zoom is off by
+  at most 0.22 px at the edge of a 64 px image);
 - view-dependent prompting (``view_mode``): the posterior runs over the bank images of the
   camera's view range only: DreamFusion/3DFuse buckets (front |az| < 45, back |az| > 135,
   side otherwise, overhead when elevation > 60), or a window of +-``window_deg`` around the
   camera's azimuth;
 - depth conditioning (the ControlNet role): the joint posterior over (rgb, depth), i.e. the
   logits add ``-depth_weight |d - d_i|^2 / (2 sigma^2)`` for the render's depth d.
-Images are [B, H, W, 3] in [-1, 1]; banks are resized (area) when the resolution differs.
+Images are [B, H, W, 3] in [-1, 1]. Distances are summed in float32 from the differences
+themselves (not |x|^2 - 2 x.y + |y|^2, which cancels catastrophically at small sigma).
 """
 
 from __future__ import annotations
 
+import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Literal
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ..assets.bank import Bank, BankConfig, load_bank
-from ..assets.library import ASSETS
+from ..assets.library import ASSETS, COLOURS
+from ..assets.zoom import zoom_images
 from . import ve_sigmas_from_betas
-from .text import CaptionMatcher
+from .text import CaptionMatcher, contradiction, normalise
 
 ViewMode = Literal["none", "buckets", "window"]
 
@@ -36,11 +44,27 @@ ViewMode = Literal["none", "buckets", "window"]
 class EmpiricalCond:
     caption: str
     images: Tensor
-    """[V, H, W, 3] in [-1, 1]."""
+    """[V, h, w, 3] in [-1, 1], seen at ``fovy``."""
     depth: Tensor
-    """[V, H, W]."""
+    """[V, h, w] camera z, 0 where empty."""
     azimuth: Tensor
     elevation: Tensor
+    fovy: float = 55.0
+    """Vertical field of view (degrees) of the bank images."""
+    alpha: Tensor | None = None
+    """[V, h, w] coverage (weights the depth when it is zoomed)."""
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """In [0, 1]: what a zoom shows beyond the bank's frame."""
+    similarity: float = 1.0
+    """Cosine similarity of the prompt to ``caption`` (1 for an exact match)."""
+
+
+@dataclass(frozen=True)
+class _Level:
+    """A bank at one resolution and field of view, flattened: images [V, H*W*3], depth [V, H*W]."""
+
+    images: Tensor
+    depth: Tensor | None
 
 
 def bucket(azimuth: Tensor, elevation: Tensor) -> Tensor:
@@ -52,6 +76,10 @@ def bucket(azimuth: Tensor, elevation: Tensor) -> Tensor:
 
 class EmpiricalPrior:
     channels = 3
+    factor = 1
+    """The prior's input is the render itself (no latent downsampling)."""
+    encode_images = None
+    """No image encoder: the prior works on pixels."""
 
     def __init__(
         self,
@@ -62,6 +90,8 @@ class EmpiricalPrior:
         bank_config: BankConfig | None = None,
         banks: dict[str, Bank] | None = None,
         threshold: float = 0.5,
+        fov_step: float = 0.5,
+        cache_levels: int = 64,
     ):
         if view_mode not in ("none", "buckets", "window"):
             raise ValueError(f"view_mode: expected 'none', 'buckets' or 'window', got {view_mode!r}")
@@ -69,6 +99,10 @@ class EmpiricalPrior:
             raise ValueError(f"window_deg: expected degrees in (0, 180], got {window_deg}")
         if depth_weight < 0:
             raise ValueError(f"depth_weight: expected a non-negative weight, got {depth_weight}")
+        if not fov_step > 0:
+            raise ValueError(f"fov_step: expected a positive step in degrees, got {fov_step}")
+        if cache_levels < 1:
+            raise ValueError(f"cache_levels: expected at least 1, got {cache_levels}")
         self.view_mode = view_mode
         self.window_deg = window_deg
         self.depth_weight = depth_weight
@@ -76,13 +110,34 @@ class EmpiricalPrior:
         self._banks = dict(banks or {})
         self.matcher = CaptionMatcher(sorted(set(ASSETS) | set(self._banks)), threshold)
         self.sigmas = ve_sigmas_from_betas().float()
-        self._flat_cache: dict[tuple, tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+        self.fov_step = fov_step
+        self.cache_levels = cache_levels
+        self._levels: OrderedDict[tuple, _Level] = OrderedDict()
 
     def encode(self, prompt: str) -> EmpiricalCond:
-        caption = self.matcher.match(prompt)
+        """The condition of the caption nearest to ``prompt``; a prompt that contradicts that
+        asset (a negation, or a colour the asset lacks) raises ValueError saying why."""
+        caption, similarity = self.matcher.match_scored(prompt)
+        why = contradiction(prompt, caption, COLOURS.get(caption, frozenset()) | set(normalise(caption).split()))
+        if why is not None:
+            raise ValueError(f"prompt: {prompt!r} matched {caption!r} (cosine {similarity:.2f}): {why}")
         bank = self._banks.get(caption) or load_bank(caption, self.bank_config)
         self._banks[caption] = bank
-        return EmpiricalCond(caption, bank.images * 2 - 1, bank.depth, bank.azimuth, bank.elevation)
+        return EmpiricalCond(
+            caption,
+            bank.images * 2 - 1,
+            bank.depth,
+            bank.azimuth,
+            bank.elevation,
+            fovy=float(bank.config.fovy),
+            alpha=bank.alpha,
+            background=tuple(float(c) for c in bank.config.background),
+            similarity=similarity,
+        )
+
+    def bank(self, cond: EmpiricalCond) -> Bank | None:
+        """The image bank behind a condition (for initialisation from its depth maps)."""
+        return self._banks.get(cond.caption)
 
     def _allowed(self, cond: EmpiricalCond, azimuth: Tensor | None, elevation: Tensor | None, B: int) -> Tensor:
         """[B, V] mask of bank views each query may use."""
@@ -98,6 +153,10 @@ class EmpiricalPrior:
         # a query whose range holds no bank view falls back to the whole bank
         return torch.where(mask.any(1, keepdim=True), mask, torch.ones_like(mask))
 
+    def fov_level(self, fovy: float) -> float:
+        """The field of view (degrees) a query at ``fovy`` is served at: rounded to ``fov_step``."""
+        return round(fovy / self.fov_step) * self.fov_step
+
     def denoise(
         self,
         x: Tensor,
@@ -107,35 +166,77 @@ class EmpiricalPrior:
         azimuth: Tensor | None = None,
         elevation: Tensor | None = None,
         depth: Tensor | None = None,
+        fovy: Tensor | None = None,
     ) -> Tensor:
+        """Posterior mean [B, H, W, 3]; ``fovy`` [B] (degrees) is the query cameras' vertical field
+        of view (None: the bank's own)."""
         if x.dim() != 4 or x.shape[-1] != 3:
             raise ValueError(f"x: expected shape [B, H, W, 3], got {list(x.shape)}")
         B, H, W, _ = x.shape
         sigma = torch.as_tensor(sigma, dtype=torch.float64).reshape(-1).expand(B)
         if bool((sigma <= 0).any()) or not bool(torch.isfinite(sigma).all()):
             raise ValueError(f"sigma: expected positive finite noise levels, got {sigma.tolist()}")
-        Yf, Ysq, Zf, Zsq = self._flat(cond, H, W)
-        xf = x.reshape(B, -1).double()
-        # squared distances in float64: |x|^2 ~ 1e4, and at sigma ~ 0.03 the logits need ~1e-4 absolute
-        d2 = (xf * xf).sum(1, keepdim=True) - 2 * xf @ Yf.T + Ysq[None]
-        if depth is not None and self.depth_weight > 0:
-            zf = depth.reshape(B, -1).double()
-            d2 = d2 + self.depth_weight * ((zf * zf).sum(1, keepdim=True) - 2 * zf @ Zf.T + Zsq[None])
-        logits = -d2.clamp_min(0) / (2 * sigma[:, None] ** 2)
+        fovs = [None] * B
+        if fovy is not None:
+            f = torch.as_tensor(fovy, dtype=torch.float64).reshape(-1).expand(B)
+            if not bool(((f > 0) & (f < 180)).all()):
+                raise ValueError(f"fovy: expected degrees in (0, 180), got {f.tolist()}")
+            fovs = [self.fov_level(float(v)) for v in f]
+        use_depth = depth is not None and self.depth_weight > 0
         mask = self._allowed(cond, azimuth, elevation, B)
-        logits = logits.masked_fill(~mask, float("-inf"))
-        w = torch.softmax(logits, dim=1)
-        return (w @ Yf).to(x.dtype).reshape(B, H, W, 3)
+        xf = x.reshape(B, -1).float()
+        out = torch.empty(B, H * W * 3, dtype=torch.float32)
+        for b in range(B):
+            level = self._level(cond, H, W, fovs[b], use_depth)
+            idx = None if bool(mask[b].all()) else torch.nonzero(mask[b]).squeeze(1)
+            Y = level.images if idx is None else level.images.index_select(0, idx)
+            d2 = _sqdist(xf[b : b + 1], Y)
+            if use_depth:
+                Z = level.depth if idx is None else level.depth.index_select(0, idx)
+                d2 = d2 + self.depth_weight * _sqdist(depth[b].reshape(1, -1).float(), Z)
+            w = torch.softmax(-d2 / (2 * float(sigma[b]) ** 2), dim=0)
+            out[b] = w.float() @ Y
+        return out.to(x.dtype).reshape(B, H, W, 3)
 
-    def _flat(self, cond: EmpiricalCond, H: int, W: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Bank images and depths at H x W, flattened to float64 with their squared norms (cached)."""
-        key = (cond.caption, H, W, id(cond.images))
-        if key not in self._flat_cache:
-            Y, Dz = cond.images, cond.depth
-            if Y.shape[1:3] != (H, W):
-                Y = F.interpolate(Y.permute(0, 3, 1, 2), size=(H, W), mode="area").permute(0, 2, 3, 1)
-                Dz = F.interpolate(Dz[:, None], size=(H, W), mode="area")[:, 0]
-            Yf = Y.reshape(Y.shape[0], -1).double().contiguous()
-            Zf = Dz.reshape(Dz.shape[0], -1).double().contiguous()
-            self._flat_cache[key] = (Yf, (Yf * Yf).sum(1), Zf, (Zf * Zf).sum(1))
-        return self._flat_cache[key]
+    def _level(self, cond: EmpiricalCond, H: int, W: int, fovy: float | None, with_depth: bool) -> _Level:
+        """The bank zoomed to ``fovy`` at H x W, flattened (LRU cache of ``cache_levels``)."""
+        key = (cond.caption, id(cond.images), H, W, fovy)
+        level = self._levels.get(key)
+        if level is not None and (level.depth is not None or not with_depth):
+            self._levels.move_to_end(key)
+            return level
+        src = cond.fovy
+        dst = src if fovy is None else fovy
+        V = cond.images.shape[0]
+        bg = torch.tensor(cond.background, dtype=torch.float32) * 2 - 1
+        images = level.images if level is not None else zoom_images(cond.images, src, dst, H, W, background=bg)
+        Z = None
+        if with_depth:
+            a = cond.alpha if cond.alpha is not None else (cond.depth > 0).float()
+            za = zoom_images(torch.stack([cond.depth * a, a], -1), src, dst, H, W)
+            Z = torch.where(za[..., 1] > 1e-6, za[..., 0] / za[..., 1].clamp_min(1e-6), torch.zeros_like(za[..., 0]))
+            Z = Z.reshape(V, -1).float().contiguous()
+        level = _Level(images.reshape(V, -1).float().contiguous(), Z)
+        self._levels[key] = level
+        while len(self._levels) > self.cache_levels:
+            self._levels.popitem(last=False)
+        return level
+
+
+def _sqdist(x: Tensor, Y: Tensor) -> Tensor:
+    """Squared distances [V] (float64) of one flattened image x [1, P] to the rows of Y [V, P],
+    summed from the differences (float32, relative error ~1e-6)."""
+    d = torch.cdist(x, Y, compute_mode="donot_use_mm_for_euclid_dist")[0].double()
+    return d * d
+
+
+def bank_config_for(resolution: int, fovy_range: tuple[float, float], **kw) -> BankConfig:
+    """The bank a trainer at ``resolution`` px and fovy in ``fovy_range`` needs: rendered at the
+    widest field of view, with enough pixels that the narrowest one still gets at least
+    ``resolution`` source pixels across (rounded up to a multiple of 8)."""
+    lo, hi = fovy_range
+    if not 0 < lo <= hi < 180:
+        raise ValueError(f"fovy_range: expected 0 < min <= max < 180 degrees, got {fovy_range}")
+    ratio = math.tan(math.radians(hi) / 2) / math.tan(math.radians(lo) / 2)
+    res = int(math.ceil(resolution * ratio / 8 - 1e-9) * 8)
+    return BankConfig(resolution=res, fovy=hi, **kw)

@@ -232,8 +232,10 @@ class StableDiffusionPrior:
         azimuth: Tensor | None = None,
         elevation: Tensor | None = None,
         depth: Tensor | None = None,
+        fovy: Tensor | None = None,
     ) -> Tensor:
-        """x0 estimate [B, h, w, 4] of SD latents x [B, h, w, 4] at noise levels sigma [B]."""
+        """x0 estimate [B, h, w, 4] of SD latents x [B, h, w, 4] at noise levels sigma [B].
+        ``fovy`` is ignored: Stable Diffusion has no notion of the camera's field of view."""
         if x.dim() != 4 or x.shape[-1] != 4:
             raise ValueError(f"x: expected SD latents [B, h, w, 4], got {list(x.shape)}")
         B = x.shape[0]

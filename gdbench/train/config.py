@@ -9,7 +9,8 @@ reset every 400 steps. One departure, for the 2-core CPU: the training resolutio
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
 
@@ -66,6 +67,8 @@ class TrainConfig:
     resolution: int = 64
     """Training render size (CPU-sized; the paper uses 512 with Stable Diffusion)."""
     views_per_step: int = 1
+    """Views rendered per step; they share one jitter, one sigma and one draw of the noise cloud's
+    colours (so one step already couples views through the structured noise)."""
     # initialisation
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
     init_points: int = 4096
@@ -121,6 +124,10 @@ class TrainConfig:
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     vgs: bool = True
     vgs_gamma: float = 0.15
+    """gamma of the jitter theta' = theta + gamma s(sigma) eps (means in ``vgs_unit``s, log-scales as is)."""
+    vgs_unit: Literal["scene", "pixel"] = "scene"
+    """Length unit of the means' jitter: the scene radius (0.5) or the training pixel's footprint at
+    the origin (2 r tan(fovy/2) / resolution at the middle fovy), which follows the resolution."""
     # optimisation
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
@@ -148,6 +155,7 @@ class TrainConfig:
             ("checkpoint_every", self.checkpoint_every >= 1, "an int >= 1"),
             ("camera_radius", self.camera_radius > 0, "a positive distance"),
             ("sh_degree", self.sh_degree in (0, 1, 2, 3), "0..3"),
+            ("vgs_unit", self.vgs_unit in ("scene", "pixel"), "'scene' or 'pixel'"),
         ]
         for name, ok, want in checks:
             if not ok:
@@ -176,7 +184,33 @@ PRESETS: dict[str, TrainConfig] = {
 """The paper's method, its two ablations and two baselines, written out by hand."""
 
 
+NESTED = {"noise": NoiseConfig, "optim": OptimConfig, "densify": DensifyConfig}
+"""Nested config groups an override may reach with a dotted key ('noise.redraw')."""
+
+
+def apply_overrides(cfg: TrainConfig, overrides: Mapping[str, object]) -> TrainConfig:
+    """``cfg`` with ``overrides`` applied: keys are TrainConfig fields, or 'group.field' for the
+    nested groups in ``NESTED``; unknown keys raise ValueError naming them."""
+    top: dict[str, object] = {}
+    nested: dict[str, dict[str, object]] = {}
+    for key, value in overrides.items():
+        group, dot, name = key.partition(".")
+        if dot:
+            if group not in NESTED or name not in {f.name for f in fields(NESTED[group])}:
+                raise ValueError(f"overrides: unknown setting {key!r}")
+            nested.setdefault(group, {})[name] = value
+        elif key not in {f.name for f in fields(TrainConfig)}:
+            raise ValueError(f"overrides: unknown setting {key!r}")
+        else:
+            top[key] = value
+    for group, values in nested.items():
+        top[group] = replace(top.get(group, getattr(cfg, group)), **values)
+    return replace(cfg, **top)
+
+
 def preset(name: str, **overrides) -> TrainConfig:
+    """The named preset with ``overrides`` (``apply_overrides``; pass dotted keys as a dict:
+    ``preset("gd", **{"noise.redraw": "ou"})``)."""
     if name not in PRESETS:
         raise ValueError(f"preset: unknown {name!r}; expected one of {sorted(PRESETS)}")
-    return replace(PRESETS[name], **overrides)
+    return apply_overrides(PRESETS[name], overrides)

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
 import platform
 from pathlib import Path
 
@@ -66,10 +64,3 @@ def write_curves(history: list[dict], path: Path) -> Path:
         ax.set_title(label, fontsize=9)
         ax.set_xlabel("step")
     return save(fig, path, dpi=100)
-
-
-def write_json_atomic(obj: dict, path: Path) -> Path:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=str))
-    os.replace(tmp, path)
-    return path

@@ -1,16 +1,27 @@
 """``train``: the loop around ``train_step`` with a progress bar, atomic checkpoints every
-``checkpoint_every`` steps, resume, and the run folder's outputs."""
+``checkpoint_every`` steps, resume, and the run folder's outputs.
+
+A run folder holds one run. While a run trains, it holds the folder's lock (``io.FolderLock``);
+a finished run (its ``run.json`` present) is never replaced unless ``overwrite=True``, and then
+every old output goes first. Every output names the run it belongs to: ``run.json`` carries the
+run id (a hash of the config) and the scene's hash, ``scene.ply`` the run id in a header comment,
+``scores.json`` both. Ctrl-C saves a checkpoint before it stops the run.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from ..io import FolderLock, read_json, sha256_file, sha256_json, write_json
 from .config import TrainConfig
-from .outputs import config_dict, package_versions, write_curves, write_json_atomic
+from .outputs import config_dict, package_versions, write_curves
 from .trainer import (
     Context,
     TrainState,
@@ -22,6 +33,22 @@ from .trainer import (
     train_step,
 )
 
+RUN_OUTPUTS = (
+    "run.json",
+    "scores.json",
+    "scene.ply",
+    "turntable.gif",
+    "turntable.mp4",
+    "turntable_sheet.png",
+    "curves.png",
+    "checkpoint.pt",
+)
+"""What a run writes into its folder (removed before an overwrite)."""
+
+
+class RunInterrupted(RuntimeError):
+    """Ctrl-C during training: the checkpoint was saved first."""
+
 
 @dataclass
 class RunResult:
@@ -32,10 +59,44 @@ class RunResult:
     resumed_from: int
     caption: str | None = None
     """The bank caption the prompt matched (empirical prior), else None."""
+    similarity: float | None = None
+    """Cosine similarity of the prompt to that caption (1 for an exact match)."""
+
+
+def run_id(cfg: TrainConfig) -> str:
+    """A short hash of everything in the config that changes the result."""
+    from .checkpoint import RESUME_IGNORES
+
+    return sha256_json({k: v for k, v in config_dict(cfg).items() if k not in RESUME_IGNORES})[:16]
+
+
+def _check_finished(out: Path, cfg: TrainConfig, overwrite: bool, resume: bool) -> None:
+    """Refuse to replace a finished run, unless asked to (then its outputs go first)."""
+    run_json = out / "run.json"
+    if not run_json.is_file():
+        return
+    if overwrite:
+        for name in RUN_OUTPUTS:
+            (out / name).unlink(missing_ok=True)
+        return
+    old = read_json(run_json, what="run.json")
+    same = old.get("run_id") == run_id(cfg)
+    if same and resume and checkpoint_path(cfg).is_file():
+        return  # the same run: resuming it rewrites the same outputs
+    what = f"'{old.get('prompt')}' (preset {old.get('preset')}, seed {old.get('seed')}, run {old.get('run_id')})"
+    raise FileExistsError(
+        f"out: {out} holds a finished run of {what}; pass --overwrite to replace it, or use another --out"
+    )
 
 
 def train(
-    cfg: TrainConfig, prior=None, *, resume: bool = True, stop_at: int | None = None, write_outputs: bool = True
+    cfg: TrainConfig,
+    prior=None,
+    *,
+    resume: bool = True,
+    stop_at: int | None = None,
+    write_outputs: bool = True,
+    overwrite: bool = False,
 ) -> RunResult:
     """Train (or resume) the run in ``cfg.out``.
 
@@ -45,33 +106,63 @@ def train(
     """
     t_start = time.perf_counter()
     out = Path(cfg.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: {out} is a file; expected a folder (or a path that does not exist)")
     ctx = make_context(cfg, prior)  # bad prompts fail here, before anything is written
-    ckpt = checkpoint_path(cfg)
-    if resume and ckpt.is_file():
-        state = load_checkpoint(ckpt, ctx)
-    else:
-        state = init_state(ctx)
-    resumed_from = state.step
-    last = min(cfg.steps, stop_at) if stop_at is not None else cfg.steps
-    bar = _progress(cfg, state.step, last)
-    try:
-        while state.step < last:
-            m = train_step(state, ctx)
-            if bar is not None:
-                bar.update(1)
-                if state.step % cfg.log_every == 0 or state.step == last:
-                    bar.set_postfix(resid=f"{m['residual']:.3g}", sigma=f"{m['sigma']:.3g}", N=m["n"])
-            if state.step % cfg.checkpoint_every == 0:
-                save_checkpoint(state, ctx, ckpt)
-    finally:
-        if bar is not None:
-            bar.close()
-    save_checkpoint(state, ctx, ckpt)
-    paths: dict[str, Path] = {"checkpoint": ckpt}
-    if write_outputs and state.step >= cfg.steps:
-        paths |= write_run_outputs(state, ctx, out, time.perf_counter() - t_start, resumed_from)
+    with FolderLock(out):
+        _check_finished(out, cfg, overwrite, resume)
+        ckpt = checkpoint_path(cfg)
+        state = load_checkpoint(ckpt, ctx) if resume and ckpt.is_file() else init_state(ctx)
+        resumed_from = state.step
+        last = min(cfg.steps, stop_at) if stop_at is not None else cfg.steps
+        _loop(state, ctx, ckpt, last)
+        save_checkpoint(state, ctx, ckpt)
+        paths: dict[str, Path] = {"checkpoint": ckpt}
+        if write_outputs and state.step >= cfg.steps:
+            paths |= write_run_outputs(state, ctx, out, time.perf_counter() - t_start, resumed_from)
     caption = getattr(ctx.cond, "caption", None)
-    return RunResult(state, out, paths, time.perf_counter() - t_start, resumed_from, caption)
+    similarity = getattr(ctx.cond, "similarity", None)
+    return RunResult(state, out, paths, time.perf_counter() - t_start, resumed_from, caption, similarity)
+
+
+def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
+    """Steps until ``last``. Ctrl-C (SIGINT) is deferred to the end of the step it lands in, so
+    the checkpoint saved then holds a whole step, and the run resumes exactly where it stopped."""
+    cfg = ctx.cfg
+    bar = _progress(cfg, state.step, last)
+    interrupted = []
+    with _defer_sigint(interrupted):
+        try:
+            while state.step < last and not interrupted:
+                m = train_step(state, ctx)
+                if bar is not None:
+                    bar.update(1)
+                    if state.step % cfg.log_every == 0 or state.step == last:
+                        bar.set_postfix(resid=f"{m['residual']:.3g}", sigma=f"{m['sigma']:.3g}", N=m["n"])
+                if state.step % cfg.checkpoint_every == 0 and not interrupted:
+                    save_checkpoint(state, ctx, ckpt)
+        finally:
+            if bar is not None:
+                bar.close()
+    if interrupted:
+        save_checkpoint(state, ctx, ckpt)
+        raise RunInterrupted(
+            f"interrupted at step {state.step} of {cfg.steps}; checkpoint saved to {ckpt}; "
+            "run the same command again to resume"
+        )
+
+
+@contextlib.contextmanager
+def _defer_sigint(flag: list):
+    """While active, SIGINT appends to ``flag`` instead of raising (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, lambda *_: flag.append(True))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _progress(cfg: TrainConfig, start: int, last: int):
@@ -86,8 +177,9 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
     from ..turntable import write_turntable
 
     cfg = ctx.cfg
+    rid = run_id(cfg)
     scene = state.scene()
-    paths = {"ply": scene.save_ply(out / "scene.ply")}
+    paths = {"ply": scene.save_ply(out / "scene.ply", comments=[f"gdbench run {rid}"])}
     t0 = time.perf_counter()
     tt = write_turntable(
         scene,
@@ -103,8 +195,11 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
     paths["curves"] = write_curves(state.history, out / "curves.png")
     steps_s = [h["seconds"] for h in state.history]
     run = {
+        "run_id": rid,
+        "scene_sha256": sha256_file(paths["ply"]),
         "prompt": cfg.prompt,
         "caption": getattr(ctx.cond, "caption", None),
+        "caption_similarity": getattr(ctx.cond, "similarity", None),
         "preset": cfg.preset,
         "seed": cfg.seed,
         "config": config_dict(cfg),
@@ -124,5 +219,5 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
         "threads": torch.get_num_threads(),
         "outputs": {k: str(v) for k, v in paths.items()},
     }
-    paths["run_json"] = write_json_atomic(run, out / "run.json")
+    paths["run_json"] = write_json(run, out / "run.json")
     return paths

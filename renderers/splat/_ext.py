@@ -1,22 +1,78 @@
 """Loader of the optional C++/OpenMP CPU compositor (``csrc/composite_cpu.cpp``).
 
-It is compiled on first use with ``torch.utils.cpp_extension.load`` (needs a C++ compiler
-and the ``ninja`` package) and cached in ``$TORCH_EXTENSIONS_DIR`` (default
-``~/.cache/torch_extensions``); ``make setup`` builds it ahead of time with
-``python -m renderers.splat._ext``. When it cannot be built, the pure-torch compositor runs
-instead and ``extension_status()`` says why. ``GDBENCH_SPLAT_BACKEND=torch`` forces the
-pure-torch path.
+The built module lives in one file, ``<cache>/gdbench_splat_cpu_<hash of the source>.so``
+(``<cache>`` is ``$GDBENCH_CACHE/ext/torch<version>-py<version>``, default under
+``~/.cache/gdbench``), and is imported from there directly: no build system runs once it
+exists, so checkouts with the same source share it and never rebuild it in turn. When it is
+missing, it is compiled with ``torch.utils.cpp_extension.load`` (needs a C++ compiler and
+``ninja``) in a private temporary folder and moved into place with one rename: concurrent
+builds cannot corrupt it, and no build lock is shared, so a lock left by a killed build can
+never hang a run. ``make setup`` builds it ahead of time (``python -m renderers.splat._ext``).
+When it cannot be built, the pure-torch compositor runs instead and ``extension_status()``
+says why. ``GDBENCH_SPLAT_BACKEND=torch`` forces the pure-torch path.
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
+import shutil
+import sys
+import tempfile
+import time
 import warnings
 from pathlib import Path
 from types import ModuleType
 
 _STATE: dict[str, object] = {}
+SOURCE = Path(__file__).parent / "csrc" / "composite_cpu.cpp"
+
+
+def module_name() -> str:
+    return f"gdbench_splat_cpu_{hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:10]}"
+
+
+def build_dir() -> Path:
+    import torch
+
+    root = Path(os.environ.get("GDBENCH_CACHE", Path.home() / ".cache" / "gdbench")) / "ext"
+    return root / f"torch{torch.__version__.split('+')[0]}-py{sys.version_info.major}{sys.version_info.minor}"
+
+
+def _import_file(name: str, path: Path) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot import {path}")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _build(name: str, target: Path, verbose: bool) -> ModuleType:
+    """Compile in a private temporary folder, then rename the library into ``target``."""
+    from torch.utils.cpp_extension import load
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    for old in target.parent.glob(".build-*"):  # leftovers of killed builds (older than an hour)
+        if time.time() - old.stat().st_mtime > 3600:
+            shutil.rmtree(old, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=target.parent))
+    try:
+        module = load(
+            name=name,
+            sources=[str(SOURCE)],
+            extra_cflags=["-O3", "-fopenmp"],
+            extra_ldflags=["-fopenmp"],
+            build_directory=str(tmp),
+            verbose=verbose,
+        )
+        built = tmp / f"{name}.so"
+        os.chmod(built, 0o755)
+        os.replace(built, target)
+        return module
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def load_extension(verbose: bool = False) -> ModuleType | None:
@@ -27,22 +83,20 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
     if os.environ.get("GDBENCH_SPLAT_BACKEND", "auto") == "torch":
         _STATE["reason"] = "disabled by GDBENCH_SPLAT_BACKEND=torch"
     else:
+        name = module_name()
+        target = build_dir() / f"{name}.so"
         try:
-            from torch.utils.cpp_extension import load
-
-            src = Path(__file__).parent / "csrc" / "composite_cpu.cpp"
-            # the name carries a hash of the source, so checkouts with different sources never
-            # overwrite each other's build in the shared cache, and identical ones share it
-            digest = hashlib.sha256(src.read_bytes()).hexdigest()[:10]
-            module = load(
-                name=f"gdbench_splat_cpu_{digest}",
-                sources=[str(src)],
-                extra_cflags=["-O3", "-fopenmp"],
-                extra_ldflags=["-fopenmp"],
-                verbose=verbose,
-            )
-            _STATE["reason"] = "loaded"
-        except Exception as e:  # compiler, ninja or headers missing
+            if target.is_file():
+                try:
+                    module = _import_file(name, target)
+                    _STATE["reason"] = "loaded"
+                except ImportError:  # a broken or foreign library: build it again
+                    target.unlink(missing_ok=True)
+            if module is None:
+                module = _build(name, target, verbose)
+                _STATE["reason"] = "loaded (built now)"
+        except Exception as e:  # compiler, ninja or headers missing; an unwritable cache
+            module = None
             _STATE["reason"] = f"build failed: {type(e).__name__}: {e}".splitlines()[0]
             warnings.warn(
                 "renderers.splat: the C++ CPU compositor could not be built, using the slower pure-torch "
@@ -50,6 +104,7 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
                 stacklevel=2,
             )
     _STATE["module"] = module
+    _STATE["path"] = str(build_dir() / f"{module_name()}.so") if module is not None else None
     return module
 
 
@@ -60,5 +115,5 @@ def extension_status() -> str:
 
 if __name__ == "__main__":
     mod = load_extension(verbose=True)
-    print("renderers.splat C++ compositor:", extension_status())
+    print("renderers.splat C++ compositor:", extension_status(), _STATE.get("path") or "")
     raise SystemExit(0 if mod is not None else 1)

@@ -62,6 +62,8 @@ def _check_geometry(means, quats, scales, opacities, viewmats, Ks, width, height
         raise ValueError(f"viewmats: expected shape [*B, C, 4, 4] with *B = {list(batch)}, got {list(viewmats.shape)}")
     ck.check_shape("viewmats", viewmats, ("C", 4, 4), batch)
     C = viewmats.shape[-3]
+    if C < 1:
+        raise ValueError(f"viewmats: expected at least one camera, got shape {list(viewmats.shape)}")
     ck.check_shape("Ks", Ks, (C, 3, 3), batch)
     ck.check_size("width", width)
     ck.check_size("height", height)
@@ -75,6 +77,32 @@ def _check_values(tensors: dict[str, Tensor], scales: Tensor | None, opacities: 
         raise ValueError("scales: expected non-negative linear scales (pass exp(log_scales))")
     if opacities is not None and opacities.numel() and bool(((opacities < 0) | (opacities > 1)).any()):
         raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
+    if "viewmats" in tensors and "Ks" in tensors:
+        _check_cameras(tensors["viewmats"], tensors["Ks"])
+
+
+def _check_cameras(viewmats: Tensor, Ks: Tensor, tol: float = 1e-3) -> None:
+    """World-to-camera matrices must be rigid ([R t; 0 1], R a rotation to ``tol``) and the
+    intrinsics a pinhole with positive focal lengths (pixel units)."""
+    if not viewmats.numel():
+        return
+    f = torch.stack([Ks[..., 0, 0], Ks[..., 1, 1]], -1)
+    if bool((f <= 0).any()):
+        raise ValueError(f"Ks: expected positive focal lengths fx, fy (pixels), got minimum {float(f.min()):g}")
+    R = viewmats[..., :3, :3].double()
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    ortho = float((R @ R.transpose(-1, -2) - eye).abs().amax())
+    det = torch.linalg.det(R)
+    if ortho > tol or bool(((det - 1).abs() > tol).any()):
+        raise ValueError(
+            "viewmats: expected world-to-camera rigid transforms whose 3x3 block is a rotation "
+            f"(R R^T = I, det R = 1; got max |R R^T - I| = {ortho:.3g}, det R in "
+            f"[{float(det.min()):.3g}, {float(det.max()):.3g}])"
+        )
+    bottom = viewmats[..., 3, :].double()
+    want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=bottom.dtype, device=bottom.device)
+    if float((bottom - want).abs().amax()) > tol:
+        raise ValueError("viewmats: expected the last row [0, 0, 0, 1]")
 
 
 def _check_colors(colors, background, batch, N, C, sh_degree) -> tuple[int, bool]:

@@ -1,0 +1,68 @@
+"""A change of field of view at one camera position is a zoom of the pinhole image about its
+principal point: this module resamples images between fields of view exactly for a
+piecewise-constant source (area resampling).
+
+A target pixel covers an interval of the normalised image plane, ``[(2 i / n - 1) t,
+(2 (i + 1) / n - 1) t]`` with ``t = tan(fov / 2)`` (principal point at the centre, pixel
+centres at +0.5). Its value is the source averaged over that interval, each source pixel
+weighted by the length it overlaps; whatever falls outside the source frame is background.
+The 2D operator is separable, ``Y' = A_y Y A_x^T`` per channel: at equal fields of view and
+an integer size ratio it is the box filter (``F.interpolate(mode="area")``), at equal sizes
+the identity.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+
+def zoom_matrix(n_out: int, n_in: int, scale: float) -> Tensor:
+    """Area weights A [n_out, n_in] (float64) of a centred zoom along one axis.
+
+    ``scale`` = (target half-extent) / (source half-extent) in the normalised image plane;
+    rows sum to the fraction of the target pixel inside the source frame (1 when ``scale`` <= 1).
+    """
+    if n_out < 1 or n_in < 1:
+        raise ValueError(f"n_out, n_in: expected positive sizes, got {n_out}, {n_in}")
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale: expected a positive ratio of half-extents, got {scale}")
+    edges = (torch.arange(n_out + 1, dtype=torch.float64) * 2 / n_out - 1) * scale  # normalised plane
+    edges = (edges + 1) * (n_in / 2)  # source pixel units, 0..n_in spans the source frame
+    lo, hi = edges[:-1, None], edges[1:, None]
+    j = torch.arange(n_in, dtype=torch.float64)[None]
+    overlap = (torch.minimum(hi, j + 1) - torch.maximum(lo, j)).clamp_min(0)
+    return overlap / (hi - lo)
+
+
+def zoom_images(
+    images: Tensor,
+    src_fovy: float,
+    dst_fovy: float,
+    height: int,
+    width: int,
+    *,
+    background: Tensor | float = 0.0,
+) -> Tensor:
+    """Images [V, h, w, C] seen at vertical field of view ``src_fovy`` (degrees), as a pinhole
+    camera at the same position would see them at ``dst_fovy`` and ``height`` x ``width`` pixels
+    (square pixels, centred principal points). Pixels beyond the source frame get ``background``."""
+    if images.dim() != 4:
+        raise ValueError(f"images: expected shape [V, h, w, C], got {list(images.shape)}")
+    for name, f in (("src_fovy", src_fovy), ("dst_fovy", dst_fovy)):
+        if not 0 < f < 180:
+            raise ValueError(f"{name}: expected degrees in (0, 180), got {f}")
+    _, h, w, C = images.shape
+    ty_src, ty_dst = math.tan(math.radians(src_fovy) / 2), math.tan(math.radians(dst_fovy) / 2)
+    sy = ty_dst / ty_src
+    sx = (ty_dst * width / height) / (ty_src * w / h)
+    Ay, Ax = zoom_matrix(height, h, sy), zoom_matrix(width, w, sx)
+    x = images.double()
+    out = torch.einsum("yh,vhwc,xw->vyxc", Ay, x, Ax)
+    inside = Ay.sum(1)[:, None] * Ax.sum(1)[None, :]  # [height, width]
+    if bool((inside < 1 - 1e-12).any()):
+        bg = torch.as_tensor(background, dtype=torch.float64).reshape(-1)
+        out = out + (1 - inside)[None, :, :, None] * bg.expand(C)
+    return out.to(images.dtype)

@@ -1,0 +1,118 @@
+"""Files a run writes and reads: atomic writes with the user's umask, JSON that names the file
+when it is broken, content hashes, and a lock that keeps two writers out of one run folder."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
+    """Write ``path`` through ``write(f)`` into a temporary file in the same folder, then rename
+    it over ``path``: readers see the old file or the new one, never a part. The file gets the
+    mode a plain ``open()`` would give it (0666 & ~umask), not mkstemp's 0600."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_json(obj: dict, path: str | Path) -> Path:
+    """Atomic JSON (indent 2; non-JSON values written as strings)."""
+    data = json.dumps(obj, indent=2, default=str).encode()
+    return atomic_write(path, lambda f: f.write(data))
+
+
+def read_json(path: str | Path, *, what: str | None = None) -> dict:
+    """A JSON object from ``path``; a broken or non-object file raises ValueError naming it."""
+    path = Path(path)
+    name = what or path.name
+    try:
+        obj = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{name}: {path} is not valid JSON ({e.msg} at line {e.lineno}); fix or delete it") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{name}: {path} is not a text file; fix or delete it") from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"{name}: {path} holds a JSON {type(obj).__name__}, expected an object; fix or delete it")
+    return obj
+
+
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def sha256_json(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+class FolderBusy(RuntimeError):
+    """Another process holds the folder's lock."""
+
+
+class FolderLock:
+    """An exclusive lock on a folder for the lifetime of a run (``fcntl.flock`` on
+    ``<folder>/.gdbench.lock``). The kernel drops it when the holder exits, however it exits,
+    so a lock left by a killed run never blocks the next one. The file names its holder."""
+
+    NAME = ".gdbench.lock"
+
+    def __init__(self, folder: str | Path, what: str = "out"):
+        self.folder = Path(folder)
+        self.what = what
+        self._fd: int | None = None
+
+    def __enter__(self) -> FolderLock:
+        import fcntl
+
+        if self.folder.exists() and not self.folder.is_dir():
+            raise ValueError(f"{self.what}: {self.folder} is a file; expected a folder (or a path that does not exist)")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / self.NAME
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "unknown process"
+            os.close(fd)
+            raise FolderBusy(
+                f"{self.what}: {self.folder} is in use by another gdbench run ({holder}); "
+                "wait for it to finish or use another folder"
+            ) from None
+        os.ftruncate(fd, 0)
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}, since {stamp}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing releases the flock
+            self._fd = None

@@ -1,0 +1,49 @@
+"""The prior a training config asks for: the embedded empirical prior, with a bank that matches
+the trainer's cameras, or Stable Diffusion with its optional ControlNet and semantic code."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+
+def make_prior(cfg):
+    """The prior of a ``TrainConfig`` (``cfg.prior``: 'empirical' or 'sd')."""
+    if cfg.prior == "sd":
+        return make_sd_prior(cfg)
+    from .empirical import EmpiricalPrior, bank_config_for
+
+    return EmpiricalPrior(
+        view_mode=cfg.view_prompting,
+        window_deg=cfg.view_window_deg,
+        depth_weight=1.0 if cfg.depth_conditioning else 0.0,
+        bank_config=bank_config_for(cfg.resolution, cfg.fovy_range, background=tuple(cfg.background)),
+    )
+
+
+def make_sd_prior(cfg):
+    """The Stable Diffusion prior of a config, with its semantic code (made or reloaded)."""
+    from .sd_3dfuse import SemanticCodeConfig, load_semantic_code, semantic_code
+    from .stable_diffusion import StableDiffusionPrior
+
+    kw = dict(
+        guidance_scale=cfg.sd_guidance, view_prompting=cfg.view_prompting != "none", dtype=getattr(torch, cfg.sd_dtype)
+    )
+    if cfg.sd_model == "tiny":
+        prior = StableDiffusionPrior.tiny(seed=0, controlnet=cfg.depth_conditioning, **kw)
+    else:
+        controlnet = cfg.sd_controlnet if cfg.depth_conditioning else None
+        if cfg.depth_conditioning and controlnet is None:
+            raise ValueError("sd_controlnet: depth_conditioning with Stable Diffusion needs a depth ControlNet folder")
+        prior = StableDiffusionPrior.from_pretrained(cfg.sd_model, controlnet=controlnet, **kw)
+    if cfg.semantic_code:
+        folder = Path(cfg.out) / "semantic"
+        if (folder / "semantic.json").is_file():
+            load_semantic_code(prior, folder)
+        else:
+            sc = SemanticCodeConfig(
+                size=max(64, cfg.resolution), ti_steps=cfg.semantic_steps, lora_steps=cfg.semantic_steps, seed=cfg.seed
+            )
+            semantic_code(prior, cfg.prompt, folder, sc)
+    return prior

@@ -1,0 +1,83 @@
+"""Checkpoints: atomic writes, safe loads (tensors and plain data only: ``weights_only=True``,
+so a crafted file cannot run code), and a resume check that refuses a folder whose run had a
+different config (every field that changes the result, ``steps`` included: the sigma, noise
+and learning-rate schedules depend on it)."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import tempfile
+import zipfile
+from pathlib import Path
+
+import torch
+
+RESUME_IGNORES = frozenset({"out", "progress", "checkpoint_every", "log_every", "turntable_frames"})
+"""Config fields that do not change a run's result (so a run may resume under other values)."""
+
+FORMAT = 2
+"""Checkpoint layout version (2: one state per random stream, plain-data config and history)."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used: unreadable, foreign, unsafe or from another config."""
+
+
+def save_blob(blob: dict, path: Path) -> Path:
+    """Atomic: written to a temporary file in the same folder, then renamed over ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".pt.tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save({"format": FORMAT} | blob, f)
+        _umask_mode(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _umask_mode(path: str) -> None:
+    """mkstemp creates files 0600; give them the mode a plain open() would (0666 & ~umask)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
+
+
+def load_blob(path: Path) -> dict:
+    """The checkpoint's contents; a file that is not a gdbench checkpoint raises CheckpointError."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04":  # torch.save writes a zip archive
+        raise CheckpointError(
+            f"checkpoint: {path} is unreadable (empty, truncated or not a checkpoint); "
+            "delete it or start over with --no-resume"
+        )
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise CheckpointError(
+            f"checkpoint: {path} holds objects other than tensors and plain data; refusing to load it "
+            f"(it may run code). Delete it or start over with --no-resume"
+        ) from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as e:
+        raise CheckpointError(
+            f"checkpoint: {path} is unreadable (truncated or not a checkpoint: {type(e).__name__}); "
+            "delete it or start over with --no-resume"
+        ) from None
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        found = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
+        raise CheckpointError(
+            f"checkpoint: {path} is not a gdbench checkpoint of format {FORMAT} (found {found!r}); "
+            "delete it or start over with --no-resume"
+        )
+    return blob
+
+
+def config_diff(saved: dict, now: dict) -> list[str]:
+    """Names of the fields that differ between two config dicts, ignoring ``RESUME_IGNORES``."""
+    return sorted(k for k in set(saved) | set(now) if k not in RESUME_IGNORES and saved.get(k) != now.get(k))
