@@ -298,3 +298,26 @@ def autocorrelation_length(field: Tensor, coverage: Tensor, *, weights: bool = F
             a, b = corr[-2], corr[-1]
             return d - 1 + (a - math.exp(-1)) / (a - b)
     return float(len(corr) - 1)
+
+
+def view_coupling(cloud: NoiseCloud, cams: Cameras, *, v_min: float = 1e-6) -> Tensor:
+    """How much structured noise two views share: for each covered pixel u of view 0, the largest
+    correlation corr(n_s(u), n_s(u')) over the pixels u' of each view (theory:
+    w(u).w(u') / (|w(u)| |w(u')|) with w the blending weights over the M noise Gaussians);
+    returns the mean over u, one value per camera [C] (1 for view 0 itself).
+
+    This is the check that the mechanism can act: with the colours fixed for the run, views
+    30 degrees apart share most of their noise (docs/noise.md). Memory: C H W M floats."""
+    from renderers.splat import composite_features, prepare
+
+    m = len(cloud)
+    c = cloud.to(cams.viewmats.device)
+    with torch.no_grad():
+        p = prepare(c.means, c.quats, c.scales, c.opacities, cams.viewmats, cams.Ks, cams.width, cams.height)
+        eye = torch.eye(m, dtype=cams.viewmats.dtype, device=cams.viewmats.device)
+        w = composite_features(p, eye, outputs=("rgb",)).rgb.reshape(len(cams), -1, m)
+        norm = w.norm(dim=-1, keepdim=True)
+        unit = w / norm.clamp_min(1e-30)
+        covered = norm[0, :, 0] ** 2 >= max(v_min, 1e-30)
+        a = unit[0][covered]
+        return torch.stack([(a @ unit[i].T).amax(1).mean() for i in range(len(cams))])

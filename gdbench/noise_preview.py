@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from .camera import SphericalPoses
-from .noise import NoiseConfig, NoiseRenderer, autocorrelation_length, init_colors, make_noise_cloud
+from .noise import NoiseConfig, NoiseRenderer, autocorrelation_length, init_colors, make_noise_cloud, view_coupling
 
 
 def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, seed: int = 0, draws: int = 64) -> dict:
@@ -39,6 +39,7 @@ def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, see
     values = big.noise[covered].flatten().double()
     ks = stats.kstest(values.numpy()[:: max(1, values.numel() // 200_000)], "norm")
     corr_len = autocorrelation_length(big.noise[0], big.coverage[0])
+    coupling = view_coupling(cloud, poses.cameras(48, 48), v_min=cfg.v_min)
 
     fig = plt.figure(figsize=(13, 3.4))
     for i in range(4):
@@ -58,7 +59,8 @@ def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, see
     fig.suptitle(
         f"Structured noise: one source, 4 views ({res}px, M={cfg.n_gaussians}, scale {cfg.scale}); "
         f"coverage {first.coverage_fraction:.2f} (black: edge of coverage, iid outside); "
-        f"correlation length {corr_len:.1f} px",
+        f"correlation length {corr_len:.1f} px; shared with view 1: "
+        + ", ".join(f"{float(c):.2f} at {float(a):.0f}°" for a, c in zip(az[1:], coupling[1:])),
         fontsize=9,
     )
     save(fig, out, dpi=100)
@@ -68,6 +70,7 @@ def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, see
         "ks_statistic": float(ks.statistic),
         "ks_pvalue": float(ks.pvalue),
         "correlation_length_px": corr_len,
+        "view_coupling": {f"{float(a):.0f}": float(c) for a, c in zip(az, coupling)},
         "mean": float(values.mean()),
         "var": float(values.var()),
     }

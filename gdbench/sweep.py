@@ -1,23 +1,33 @@
-"""``gdbench sweep``: train and score every (prompt, preset, seed) cell; write the analogue of
-the paper's Tables 1 and 2 (COLMAP variance, registration rate, GT PSNR, iterations, training
-time) as CSV and Markdown.
+"""``gdbench sweep``: train and score every (setting, prompt, preset, seed) cell; write the
+ablation's tables (``sweep_tables.py``): per-cell rows, per-preset summaries and the verdict on
+the paper's claims with bootstrap confidence intervals.
 
-Resumable: each cell lives in ``out/cells/<prompt>/<preset>/seed<k>``; a finished cell (its
-``cell.json`` present) is skipped, and an interrupted one resumes from its training
-checkpoint. Executors are pluggable: ``local`` (a process pool, default one worker, since one
-training already uses both cores here) or ``ray`` (``--address`` of a cluster, or a local
-instance when empty).
+Settings (``SETTINGS``) dial the embedded prior's ambiguity: ``easy`` (the presets' own +-45
+degree view window, one variant), ``janus`` (no view prompting and a front-heavy bank: the
+multi-face mechanism) and ``instance`` (three procedural variants per caption). Cells pair by
+(prompt, seed): every preset sees the same views and noise levels (``train/streams.py``).
+
+Resumable: each cell lives in ``out/cells/<setting>/<prompt>/<preset>/seed<k>``; a finished cell
+(its ``cell.json`` matching its spec) is skipped, and an interrupted one resumes from its
+training checkpoint. The whole grid is validated before the first cell. Executors are
+pluggable: ``local`` (a process pool, default one worker, since one training already uses both
+cores here) or ``ray`` (``--address`` of a cluster, or a local instance when empty).
 """
 
 from __future__ import annotations
 
 import json
-import math
-import statistics
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
+
+SETTINGS: dict[str, dict] = {
+    "easy": {},
+    "janus": {"view_prompting": "none", "front_bias": 1.0},
+    "instance": {"variants": 3},
+}
+"""Ambiguity settings: overrides of every preset in the setting (DESIGN.md 'Priors')."""
 
 
 @dataclass(frozen=True)
@@ -30,10 +40,11 @@ class CellSpec:
     colmap: bool = True
     colmap_views: int = 100
     overrides: dict = field(default_factory=dict)
+    setting: str = "easy"
 
     @property
     def dir(self) -> Path:
-        return Path(self.out) / "cells" / cell_name(self.prompt) / self.preset / f"seed{self.seed}"
+        return Path(self.out) / "cells" / self.setting / cell_name(self.prompt) / self.preset / f"seed{self.seed}"
 
 
 def cell_name(prompt: str) -> str:
@@ -82,7 +93,7 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
 
 
 def cell_config(spec: CellSpec):
-    """The TrainConfig of a cell."""
+    """The TrainConfig of a cell: the preset, its setting's overrides, then the sweep's."""
     from .train.config import preset
 
     return preset(
@@ -92,7 +103,7 @@ def cell_config(spec: CellSpec):
         seed=spec.seed,
         out=spec.dir,
         progress=False,
-        **spec.overrides,
+        **(SETTINGS[spec.setting] | spec.overrides),
     )
 
 
@@ -112,19 +123,27 @@ def run_cell(spec: CellSpec) -> dict:
         ) from None
     train_s = sum(h["seconds"] for h in r.state.history)
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
-    col = scores.get("colmap", {})
+    col, views, gt = scores.get("colmap", {}), scores.get("views", {}), scores.get("gt", {})
+    nan = float("nan")
     row = {
+        "setting": spec.setting,
         "prompt": spec.prompt,
         "preset": spec.preset,
         "seed": spec.seed,
         "iterations": r.state.step,
         "train_time_s": train_s,
         "gaussians": scores["gaussians"],
-        "gt_psnr": scores.get("gt", {}).get("psnr", float("nan")),
-        "gt_ssim": scores.get("gt", {}).get("ssim", float("nan")),
-        "registration_rate": col.get("registration_rate", float("nan")),
-        "var_theta_deg2": col.get("var_theta_deg2", float("nan")),
-        "translation_dir_err_deg": col.get("translation_dir_err_deg", float("nan")),
+        "gt_psnr": gt.get("psnr", nan),
+        "gt_ssim": gt.get("ssim", nan),
+        "multi_face_rate": views.get("multi_face_rate", nan),
+        "front_share": views.get("front_share", nan),
+        "instance_inconsistency": 1.0 - views.get("instance_consistency", nan),
+        "majority_variant": views.get("majority_variant", -1),
+        "floaters": views.get("floaters", nan),
+        "registration_rate": col.get("registration_rate", nan),
+        "var_theta_deg2": col.get("var_theta_deg2", nan),
+        "colmap_failure_rate": col.get("failure_rate", nan),
+        "translation_dir_err_deg": col.get("translation_dir_err_deg", nan),
         "cell_s": time.perf_counter() - t0,
     }
     write_json({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")
@@ -137,153 +156,6 @@ def _done(spec: CellSpec) -> dict | None:
         return None
     blob = json.loads(p.read_text())
     return blob["row"] if blob.get("spec") == json.loads(json.dumps(asdict(spec))) else None
-
-
-def _median(xs: list[float]) -> float:
-    xs = [x for x in xs if x == x]  # drop NaN
-    return statistics.median(xs) if xs else math.nan
-
-
-def _fmt(x: float) -> str:
-    return "n/a" if x != x else f"{x:.3g}"
-
-
-def _mean_std(xs: list[float]) -> str:
-    xs = [x for x in xs if x == x]  # drop NaN
-    if not xs:
-        return "n/a"
-    if len(xs) == 1:
-        return f"{xs[0]:.4g}"
-    return f"{statistics.mean(xs):.4g} ± {statistics.stdev(xs):.2g}"
-
-
-PAPER_ORDER = (("gd", "gd-no-vgs"), ("gd-no-vgs", "gd-no-sn"), ("gd", "sjc-gs"))
-"""The paper's claims on pose variance: each pair (a, b) says Var(a) < Var(b)."""
-
-
-def paper_ordering(rows: list[dict], metric: str = "var_theta_deg2") -> list[dict]:
-    """For each claimed pair (a, b): mean and median of ``metric`` over the cells of a and b, and
-    the paired count over (prompt, seed) where a < b. ``holds`` needs both the means and the
-    majority of pairs to agree; a pair is undecided when either preset has no finite value.
-    Claims about presets absent from ``rows`` are left out."""
-    out = []
-    ran = {r["preset"] for r in rows}
-    for a, b in PAPER_ORDER:
-        if not {a, b} <= ran:  # a claim about presets this sweep did not train
-            continue
-        va = {(r["prompt"], r["seed"]): r[metric] for r in rows if r["preset"] == a and r[metric] == r[metric]}
-        vb = {(r["prompt"], r["seed"]): r[metric] for r in rows if r["preset"] == b and r[metric] == r[metric]}
-        common = sorted(set(va) & set(vb))
-        wins = sum(va[k] < vb[k] for k in common)
-        ma = statistics.mean(va.values()) if va else math.nan
-        mb = statistics.mean(vb.values()) if vb else math.nan
-        holds = None if not (va and vb) else bool(ma < mb and wins * 2 > len(common))
-        out.append(
-            {
-                "claim": f"{a} < {b}",
-                "metric": metric,
-                "mean_a": ma,
-                "mean_b": mb,
-                "median_a": _median(list(va.values())),
-                "median_b": _median(list(vb.values())),
-                "paired_wins": wins,
-                "pairs": len(common),
-                "holds": holds,
-            }
-        )
-    return out
-
-
-def tables(rows: list[dict], out: Path) -> dict[str, Path]:
-    """Per-cell CSV and the per-preset summary (mean ± std over prompts and seeds) as CSV/Markdown."""
-    from .bench.common import write_csv
-
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"cells_csv": write_csv(rows, out / "cells.csv")}
-    presets = list(dict.fromkeys(r["preset"] for r in rows))
-    summary = []
-    for p in presets:
-        sel = [r for r in rows if r["preset"] == p]
-        summary.append(
-            {
-                "preset": p,
-                "cells": len(sel),
-                "var_theta_deg2": _mean_std([r["var_theta_deg2"] for r in sel]),
-                "registration_rate": _mean_std([r["registration_rate"] for r in sel]),
-                "gt_psnr": _mean_std([r["gt_psnr"] for r in sel]),
-                "iterations": _mean_std([r["iterations"] for r in sel]),
-                "train_time_s": _mean_std([r["train_time_s"] for r in sel]),
-                "median_var_theta_deg2": _median([r["var_theta_deg2"] for r in sel]),
-            }
-        )
-    paths["summary_csv"] = write_csv(summary, out / "summary.csv")
-    head = [
-        "preset",
-        "cells",
-        "Var(theta) deg^2 (COLMAP)",
-        "median Var",
-        "registration",
-        "GT PSNR dB",
-        "iterations",
-        "train time s",
-    ]
-    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for s in summary:
-        md.append(
-            f"| {s['preset']} | {s['cells']} | {s['var_theta_deg2']} | {_fmt(s['median_var_theta_deg2'])} | "
-            f"{s['registration_rate']} | {s['gt_psnr']} | {s['iterations']} | {s['train_time_s']} |"
-        )
-    order = paper_ordering(rows)
-    paths["ordering_csv"] = write_csv(order, out / "ordering.csv")
-    md += ["", "| paper's claim (Var(theta)) | mean a | mean b | a < b in pairs | holds |", "|---|---|---|---|---|"]
-    if not order:
-        md[-2:] = ["The paper's ordering claims need two of its presets in the sweep; none is decidable here."]
-    for o in order:
-        verdict = {True: "yes", False: "no", None: "undecided"}[o["holds"]]
-        md.append(
-            f"| {o['claim']} | {_fmt(o['mean_a'])} | {_fmt(o['mean_b'])} | "
-            f"{o['paired_wins']}/{o['pairs']} | {verdict} |"
-        )
-    (out / "summary.md").write_text("\n".join(md) + "\n")
-    paths["summary_md"] = out / "summary.md"
-    paths["plot"] = plot(rows, out / "ablation.png")
-    return paths
-
-
-def plot(rows: list[dict], path: Path) -> Path:
-    """Per preset, every cell's Var(theta), registration rate and GT PSNR (colour = prompt)."""
-    from .plotting import pyplot, save
-
-    plt = pyplot()
-
-    presets = list(dict.fromkeys(r["preset"] for r in rows))
-    prompts = list(dict.fromkeys(r["prompt"] for r in rows))
-    panels = (
-        ("var_theta_deg2", "Var(theta) deg$^2$ (COLMAP, lower is better)", True),
-        ("registration_rate", "COLMAP registration rate", False),
-        ("gt_psnr", "PSNR against the asset (dB)", False),
-    )
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    for ax, (key, label, log) in zip(axes, panels):
-        for j, pr in enumerate(prompts):
-            xs, ys = [], []
-            for i, p in enumerate(presets):
-                for r in rows:
-                    if r["preset"] == p and r["prompt"] == pr and r[key] == r[key]:
-                        xs.append(i + 0.1 * (j - (len(prompts) - 1) / 2))
-                        ys.append(r[key])
-            ax.scatter(xs, ys, s=18, color=f"C{j}", label=pr)
-        means = [_median([r[key] for r in rows if r["preset"] == p]) for p in presets]
-        ax.scatter(range(len(presets)), means, marker="_", s=400, color="k", label="median")
-        ax.set_xticks(range(len(presets)), presets, rotation=20)
-        ax.set_title(label, fontsize=9)
-        if not any(r[key] == r[key] for r in rows):  # e.g. a sweep run with colmap=False
-            ax.text(0.5, 0.5, "not measured", transform=ax.transAxes, ha="center", color="0.5")
-        elif log and any(r[key] > 0 for r in rows if r[key] == r[key]):
-            ax.set_yscale("log")
-        ax.grid(True, axis="y", alpha=0.3)
-    axes[0].legend(fontsize=7)
-    return save(fig, path, dpi=110)
 
 
 def sweep(
@@ -300,14 +172,42 @@ def sweep(
     colmap_views: int = 100,
     overrides: dict | None = None,
     progress: bool = True,
+    settings: list[str] | None = None,
+    setting_presets: dict[str, list[str]] | None = None,
+    colmap_presets: list[str] | None = None,
 ) -> list[dict]:
+    """Train and score the grid settings x prompts x presets x seeds; returns the rows.
+
+    ``setting_presets`` restricts the presets of a setting (default: all ``presets``);
+    ``colmap_presets`` restricts COLMAP scoring to those presets (default: all, when ``colmap``)."""
+    from .sweep_tables import tables
+
     out = Path(out)
-    # seeds outermost: a sweep cut short still has every (prompt, preset) for its first seeds
+    settings = list(settings or ["easy"])
+    bad = [s for s in settings if s not in SETTINGS]
+    if bad or len(set(settings)) != len(settings):
+        raise ValueError(f"settings: expected distinct names from {sorted(SETTINGS)}, got {settings}")
+    per = {s: list((setting_presets or {}).get(s, presets)) for s in settings}
+    for s, ps in per.items():
+        if not set(ps) <= set(presets):
+            raise ValueError(f"setting_presets: {s} lists presets outside --presets: {sorted(set(ps) - set(presets))}")
+    # seeds outermost: a sweep cut short still has every (setting, prompt, preset) for its first seeds
     specs = [
-        CellSpec(pr, p, s, steps, str(out), colmap, colmap_views, dict(overrides or {}))
-        for s in seeds
+        CellSpec(
+            pr,
+            p,
+            sd,
+            steps,
+            str(out),
+            colmap and (colmap_presets is None or p in colmap_presets),
+            colmap_views,
+            dict(overrides or {}),
+            st,
+        )
+        for sd in seeds
+        for st in settings
         for pr in prompts
-        for p in presets
+        for p in per[st]
     ]
     validate_grid(prompts, presets, seeds, specs)
     rows: dict[int, dict] = {}
@@ -325,8 +225,9 @@ def sweep(
         tables([rows[k] for k in sorted(rows)], out)
         if progress:
             print(
-                f"  done {row['prompt']!r} {row['preset']} seed {row['seed']}: Var {row['var_theta_deg2']:.3g}, "
-                f"reg {row['registration_rate']:.2f}, PSNR {row['gt_psnr']:.2f} ({row['cell_s']:.0f} s)"
+                f"  done {row['setting']} {row['prompt']!r} {row['preset']} seed {row['seed']}: "
+                f"PSNR {row['gt_psnr']:.2f}, multi-face {row['multi_face_rate']:.2f}, "
+                f"floaters {row['floaters']:.3f}, Var {row['var_theta_deg2']:.3g} ({row['cell_s']:.0f} s)"
             )
     ordered = [rows[k] for k in sorted(rows)]
     tables(ordered, out)

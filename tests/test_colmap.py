@@ -37,6 +37,7 @@ def test_consistent_asset_registers_with_the_true_step(calibration):
     assert s.registration_rate >= 0.95
     assert s.mean_theta_deg == pytest.approx(3.6, abs=0.1)  # 100 views on a circle
     assert s.var_theta_deg2 < 0.5 and s.translation_dir_err_deg < 5
+    assert s.failure_rate <= 0.05  # pairs unregistered or off by > 5 degrees
 
 
 def test_metric_separates_inconsistent_fixtures(calibration):
@@ -46,6 +47,7 @@ def test_metric_separates_inconsistent_fixtures(calibration):
         # variance jumps by orders of magnitude, or views fail to register
         assert bad.var_theta_deg2 > 100 * ok.var_theta_deg2 or bad.registration_rate < 0.8, (mode, bad)
         assert bad.translation_dir_err_deg > 5 * ok.translation_dir_err_deg or bad.registration_rate < 0.8
+        assert bad.failure_rate >= ok.failure_rate + 0.1, (mode, bad.failure_rate, ok.failure_rate)
 
 
 def test_bad_mode():

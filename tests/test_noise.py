@@ -236,3 +236,33 @@ def test_ratio_schedule():
 def test_bad_input(build, match):
     with pytest.raises(ValueError, match=match):
         build()
+
+
+def test_view_coupling_matches_empirical_correlation_of_two_views():
+    """Theory (weights) against an independent estimate: many colour draws rendered in two views
+    30 degrees apart, correlation of the noise at each pixel of view 0 and its best match in view 1."""
+    from gdbench.noise import view_coupling
+
+    cloud = make_noise_cloud(NoiseConfig(n_gaussians=400, scale=0.04), 1, generator=torch.Generator().manual_seed(3))
+    poses = SphericalPoses(
+        torch.tensor([0.0, 30.0, 180.0], dtype=torch.float64),
+        torch.full((3,), 15.0, dtype=torch.float64),
+        torch.ones(3, dtype=torch.float64),
+        torch.full((3,), 55.0, dtype=torch.float64),
+    )
+    cams = poses.cameras(20, 20)
+    theory = view_coupling(cloud, cams)
+    assert float(theory[0]) == pytest.approx(1.0, abs=1e-6)
+    assert 0.3 < float(theory[1]) < 0.95 and float(theory[2]) < float(theory[1])
+    # empirical: K independent colour sets (as K channels of one render)
+    K = 4000
+    many = NoiseCloud(cloud.means, cloud.scales, cloud.opacities, K)
+    colors = torch.randn(len(cloud), K, generator=torch.Generator().manual_seed(4), dtype=torch.float64).float()
+    n = NoiseRenderer(many).render(colors, cams[:2], generator=torch.Generator().manual_seed(5))
+    x = n.noise.reshape(2, -1, K).double()
+    x = (x - x.mean(-1, keepdim=True)) / x.std(-1, keepdim=True)
+    corr = x[0] @ x[1].T / (K - 1)  # [P0, P1] sample correlations
+    covered = n.coverage[0].reshape(-1).bool()
+    empirical = corr[covered].amax(1).mean()
+    # sample correlations have sd ~ 1/sqrt(K) = 0.016; the max over a pixel's neighbours is barely biased
+    assert float(empirical) == pytest.approx(float(theory[1]), abs=0.03)

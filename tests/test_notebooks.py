@@ -22,7 +22,7 @@ def test_notebooks_are_stored_without_outputs(name):
 @pytest.fixture(scope="module")
 def small_results(tmp_path_factory):
     from gdbench.bench import bm_error, bm_render, bm_stability
-    from gdbench.sweep import tables
+    from gdbench.sweep_tables import tables
 
     d = tmp_path_factory.mktemp("results")
     rows = bm_render.sweep(d / "peers.csv", quick=True, inprocess=True, paths=("splat", "gsplat-torch"))
@@ -33,6 +33,7 @@ def small_results(tmp_path_factory):
     rng = random.Random(0)
     cells = [
         {
+            "setting": st,
             "prompt": pr,
             "preset": p,
             "seed": s,
@@ -44,7 +45,12 @@ def small_results(tmp_path_factory):
             "registration_rate": 0.9,
             "var_theta_deg2": (1 + i) * (1 + rng.random()) if (i, s) != (4, 1) else float("nan"),
             "translation_dir_err_deg": 2.0,
+            "multi_face_rate": rng.random() / (1 + i),
+            "instance_inconsistency": rng.random() / 3,
+            "floaters": rng.random() / 10,
+            "colmap_failure_rate": rng.random() / 4,
         }
+        for st in ("easy", "janus")
         for pr in ("a", "b")
         for i, p in enumerate(("gd", "gd-no-vgs", "gd-no-sn", "sjc-gs", "sds-gs"))
         for s in (0, 1)

@@ -209,3 +209,19 @@ def test_fov_levels_and_bank_for_training():
         bank_config_for(64, (70.0, 40.0))
     with pytest.raises(ValueError, match="fovy"):
         p.denoise(torch.zeros(1, 4, 4, 3), torch.tensor([1.0]), p.encode("a pair"), fovy=torch.tensor([0.0]))
+
+
+def test_front_bias_is_a_log_prior_on_the_bank_views():
+    """At a huge sigma the posterior mean is the prior mean: sum_i pi_i y_i with
+    pi_i proportional to exp(kappa cos azimuth_i)."""
+    az = torch.tensor([0.0, 90.0, 180.0, -90.0])
+    imgs = torch.stack([torch.full((4, 4, 3), float(i) / 4) for i in range(4)])
+    y = (imgs * 2 - 1).double()
+    for kappa in (0.0, 1.5):
+        p = EmpiricalPrior(view_mode="none", front_bias=kappa, banks={"four": _bank(imgs, azimuth=az, caption="four")})
+        out = p.denoise(torch.zeros(1, 4, 4, 3), torch.tensor([1e5]), p.encode("four"))
+        pi = torch.exp(kappa * torch.cos(torch.deg2rad(az.double())))
+        want = (pi[:, None, None, None] * y).sum(0) / pi.sum()
+        torch.testing.assert_close(out[0].double(), want, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="front_bias"):
+        EmpiricalPrior(front_bias=-1.0)

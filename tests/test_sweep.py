@@ -49,7 +49,7 @@ def test_sweep_writes_every_cell_and_tables_that_summarise_them(tiny_sweep):
         mean = float(summary[p]["gt_psnr"].split(" ± ")[0])
         assert mean == pytest.approx(statistics.mean(ps), rel=2e-3)
     md = (out / "summary.md").read_text()
-    assert md.count("\n| gd |") == 1 and md.count("\n| sjc-gs |") == 1
+    assert md.count("\n| easy | gd |") == 1 and md.count("\n| easy | sjc-gs |") == 1
 
 
 def test_seeds_give_different_cells_and_the_same_seed_the_same_cell(tiny_sweep, tmp_path):
@@ -90,7 +90,7 @@ def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep,
 
     ran = []
     monkeypatch.setattr(sw, "run_cell", lambda s: ran.append(s) or {"preset": s.preset})
-    monkeypatch.setattr(sw, "tables", lambda rows, out: {})
+    monkeypatch.setattr("gdbench.sweep_tables.tables", lambda rows, out: {})
     sweep([PROMPT], ["gd"], [0], steps=6, out=out, colmap=False, overrides=TINY, progress=False)
     assert [s.steps for s in ran] == [6]
 
@@ -142,37 +142,45 @@ def test_score_names_the_missing_scene(tmp_path):
 def test_sweep_cli_prints_the_table(tmp_path, capsys):
     res = main(Sweep(prompts=(PROMPT,), presets=("sjc-gs",), seeds=(0,), steps=2, out=tmp_path, colmap=False))
     assert res["cells"] == 1 and (tmp_path / "cells.csv").is_file()
-    assert "| sjc-gs | 1 |" in capsys.readouterr().out
+    assert "| easy | sjc-gs | 1 |" in capsys.readouterr().out
 
 
-def _cell(preset, prompt, seed, var):
-    return {"preset": preset, "prompt": prompt, "seed": seed, "var_theta_deg2": var}
+def _row(preset, prompt, seed, value, metric="multi_face_rate", setting="janus"):
+    return {"setting": setting, "preset": preset, "prompt": prompt, "seed": seed, metric: value}
 
 
-def test_paper_ordering_counts_paired_wins_and_needs_means_and_majority():
-    from gdbench.sweep import paper_ordering
+def test_claims_verdict_from_paired_bootstrap_intervals():
+    """Paired differences over (prompt, seed) decide: an interval below 0 holds, above 0 does not,
+    one spanning 0 is undecided, all-zero differences cannot tell the presets apart."""
+    import numpy as np
 
-    keys = [("a", 0), ("a", 1), ("b", 0)]
-    gd = [1.0, 1.0, 9.0]  # mean 3.67; beats sjc-gs in 2 of 3 pairs
-    sjc = [2.0, 2.0, 8.0]  # mean 4.0
-    no_vgs = [0.5, 0.5, 0.5]  # gd loses every pair
-    rows = [_cell("gd", p, s, v) for (p, s), v in zip(keys, gd)]
-    rows += [_cell("sjc-gs", p, s, v) for (p, s), v in zip(keys, sjc)]
-    rows += [_cell("gd-no-vgs", p, s, v) for (p, s), v in zip(keys, no_vgs)]
-    rows.append(_cell("gd-no-vgs", "c", 0, math.nan))  # unmeasured cells are ignored
-    by = {o["claim"]: o for o in paper_ordering(rows)}
-    assert set(by) == {"gd < gd-no-vgs", "gd < sjc-gs"}  # gd-no-sn was not trained
-    o = by["gd < sjc-gs"]
-    assert (o["paired_wins"], o["pairs"], o["holds"]) == (2, 3, True)
-    assert math.isclose(o["mean_a"], statistics.mean(gd)) and math.isclose(o["median_b"], 2.0)
-    o = by["gd < gd-no-vgs"]
-    assert (o["paired_wins"], o["pairs"], o["holds"]) == (0, 3, False)
-    # the means agree but only a minority of pairs do: not a hold
-    rows2 = [_cell("gd", p, s, v) for (p, s), v in zip(keys, [3.0, 3.0, 0.1])]
-    rows2 += [_cell("sjc-gs", p, s, v) for (p, s), v in zip(keys, [2.0, 2.0, 9.0])]
-    assert paper_ordering(rows2)[0]["holds"] is False
-    nan_rows = [_cell("gd", "a", 0, math.nan), _cell("sjc-gs", "a", 0, 1.0)]
-    assert paper_ordering(nan_rows)[0]["holds"] is None
+    from gdbench.metrics.claims import CLAIMS, bootstrap_mean_ci, evaluate
+
+    keys = [(p, s) for p in "abcdef" for s in (0, 1, 2)]
+    rng = np.random.default_rng(0)
+    sn = rng.uniform(0.2, 0.4, len(keys))
+    rows = [_row("gd-no-sn", p, s, v) for (p, s), v in zip(keys, sn)]
+    rows += [_row("gd", p, s, v - 0.15) for (p, s), v in zip(keys, sn)]  # better in every pair
+    rows += [_row("sjc-gs", p, s, v) for (p, s), v in zip(keys, sn)]
+    rows += [_row("gd-no-vgs", p, s, v + rng.normal(0, 0.05)) for (p, s), v in zip(keys, sn)]  # noise only
+    rows.append(_row("gd", "z", 0, 0.1))  # unpaired cells are left out
+    got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(rows)}
+    v = got["gd", "gd-no-sn", "multi_face_rate"]
+    assert v["verdict"] == "holds" and v["pairs"] == 18 and v["a_better_pairs"] == 18
+    assert v["mean_diff"] == pytest.approx(-0.15) and v["ci_low"] <= -0.15 + 1e-9 <= v["ci_high"] + 1e-9
+    assert got["gd-no-vgs", "sjc-gs", "multi_face_rate"]["verdict"] == "undecided (CI spans zero)"
+    assert got["gd", "gd-no-vgs", "floaters"]["verdict"] == "not measured"  # no floaters column
+    flipped = [dict(r, multi_face_rate=-r["multi_face_rate"]) for r in rows]
+    flipped_got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(flipped)}
+    assert flipped_got["gd", "gd-no-sn", "multi_face_rate"]["verdict"] == "does not hold"
+    same = [dict(r, multi_face_rate=0.0) for r in rows]
+    assert evaluate(same)[0]["verdict"] == "does not hold (no difference)"
+    # the interval against its closed form: the mean of n iid differences has sd s/sqrt(n)
+    d = rng.normal(1.0, 2.0, 400)
+    lo, hi = bootstrap_mean_ci(d)
+    half = 1.96 * d.std(ddof=1) / np.sqrt(d.size)
+    assert lo == pytest.approx(d.mean() - half, abs=0.03) and hi == pytest.approx(d.mean() + half, abs=0.03)
+    assert {c.metric for c in CLAIMS} >= {"multi_face_rate", "instance_inconsistency", "floaters", "var_theta_deg2"}
 
 
 def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
@@ -195,7 +203,7 @@ def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
 
     opts = MethodOptions(view_prompting="none", noise_redraw="ou", views_per_step=2, noise_ratio="variance")
     res = main(Sweep(prompts=(PROMPT,), presets=("gd",), seeds=(0,), steps=2, out=tmp_path, colmap=False, method=opts))
-    cell = tmp_path / "cells" / "a_yellow_duck" / "gd" / "seed0"
+    cell = tmp_path / "cells" / "easy" / "a_yellow_duck" / "gd" / "seed0"
     assert res["cells"] == 1 and json.loads((cell / "cell.json").read_text())["spec"]["overrides"] == {
         "view_prompting": "none",
         "noise.redraw": "ou",
@@ -205,4 +213,35 @@ def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
     config = json.loads((cell / "run.json").read_text())["config"]
     assert config["view_prompting"] == "none" and config["views_per_step"] == 2
     assert config["noise"]["redraw"] == "ou" and config["noise"]["ratio_mode"] == "variance"
-    assert "none is decidable here" in capsys.readouterr().out
+    assert "No claim is decidable here" in capsys.readouterr().out
+
+
+def test_settings_dial_the_prior_and_pair_cells(tmp_path):
+    """janus: no view prompting and a front-heavy bank; instance: three variants; every cell
+    scored with the view metrics, and each claim about two presets that ran is in verdict.csv."""
+    rows = sweep(
+        [PROMPT],
+        ["gd", "gd-no-sn", "sjc-gs"],
+        [0],
+        steps=2,
+        out=tmp_path,
+        colmap=False,
+        overrides=TINY,
+        progress=False,
+        settings=["easy", "janus", "instance"],
+        setting_presets={"janus": ["gd", "gd-no-sn"], "instance": ["gd", "gd-no-sn"]},
+    )
+    assert [(r["setting"], r["preset"]) for r in rows] == [
+        ("easy", "gd"), ("easy", "gd-no-sn"), ("easy", "sjc-gs"),
+        ("janus", "gd"), ("janus", "gd-no-sn"), ("instance", "gd"), ("instance", "gd-no-sn"),
+    ]  # fmt: skip
+    cfg = json.loads((CellSpec(PROMPT, "gd", 0, 2, str(tmp_path), setting="janus").dir / "run.json").read_text())
+    assert cfg["config"]["view_prompting"] == "none" and cfg["config"]["front_bias"] == 1.0
+    cfg = json.loads((CellSpec(PROMPT, "gd", 0, 2, str(tmp_path), setting="instance").dir / "run.json").read_text())
+    assert cfg["config"]["variants"] == 3 and cfg["config"]["view_prompting"] == "window"
+    for r in rows:
+        assert 0 <= r["multi_face_rate"] <= 1 and 0 <= r["instance_inconsistency"] <= 1 and 0 <= r["floaters"] <= 1
+    verdicts = _read_csv(tmp_path / "verdict.csv")
+    assert {(v["setting"], v["a"], v["b"]) for v in verdicts} >= {("janus", "gd", "gd-no-sn"), ("easy", "gd", "sjc-gs")}
+    with pytest.raises(ValueError, match="settings: expected distinct names"):
+        sweep([PROMPT], ["gd"], [0], out=tmp_path, settings=["hard"])

@@ -99,18 +99,21 @@ def cache_dir() -> Path:
     return Path(os.environ.get("GDBENCH_CACHE", Path.home() / ".cache" / "gdbench")) / "banks"
 
 
-def bank_key(caption: str, config: BankConfig) -> str:
-    blob = json.dumps({"caption": caption, "config": asdict(config), "version": ASSET_VERSION}, sort_keys=True)
+def bank_key(caption: str, config: BankConfig, variant: int = 0) -> str:
+    key = {"caption": caption, "config": asdict(config), "version": ASSET_VERSION}
+    if variant:
+        key["variant"] = variant
+    blob = json.dumps(key, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def render_bank(caption: str, config: BankConfig) -> Bank:
-    """Render the bank (no cache)."""
+def render_bank(caption: str, config: BankConfig, variant: int = 0) -> Bank:
+    """Render the bank of ``caption`` (procedural variant ``variant``), without the cache."""
     from renderers.pyrender_points.mesh import render_mesh
 
     from .library import build
 
-    mesh = build(caption)
+    mesh = build(caption, variant)
     poses = config.poses()
     cams = poses.cameras(config.resolution, config.resolution)
     pose_gl, K = cams.to_opengl()
@@ -133,14 +136,14 @@ def render_bank(caption: str, config: BankConfig) -> Bank:
     )
 
 
-def load_bank(caption: str, config: BankConfig | None = None, *, verbose: bool = True) -> Bank:
-    """The bank of ``caption``, from the cache or rendered (and cached atomically)."""
+def load_bank(caption: str, config: BankConfig | None = None, *, variant: int = 0, verbose: bool = True) -> Bank:
+    """The bank of ``caption`` (variant ``variant``), from the cache or rendered (and cached atomically)."""
     from .library import ASSETS
 
     config = config or BankConfig()
     if caption not in ASSETS:
         raise ValueError(f"caption: unknown asset {caption!r}; known: {sorted(ASSETS)}")
-    path = cache_dir() / f"{caption.replace(' ', '_')}-{bank_key(caption, config)}.npz"
+    path = cache_dir() / f"{caption.replace(' ', '_')}-{bank_key(caption, config, variant)}.npz"
     if path.is_file():
         try:
             with np.load(path) as z:
@@ -153,9 +156,10 @@ def load_bank(caption: str, config: BankConfig | None = None, *, verbose: bool =
             if verbose:
                 print(f"bank cache {path} unreadable ({type(e).__name__}); rebuilding")
     t0 = time.perf_counter()
-    bank = render_bank(caption, config)
+    bank = render_bank(caption, config, variant)
     if verbose:
-        print(f"built bank '{caption}': {len(bank)} views at {config.resolution}px in {time.perf_counter() - t0:.1f} s")
+        took = time.perf_counter() - t0
+        print(f"built bank '{caption}' (variant {variant}): {len(bank)} views at {config.resolution}px in {took:.1f} s")
     _cache_write(path, bank, verbose)
     return bank
 

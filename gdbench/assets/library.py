@@ -5,6 +5,7 @@ Each mesh fits in a ball of radius 0.45 around the origin."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 from . import shapes as S
@@ -156,8 +157,42 @@ COLOURS: dict[str, frozenset[str]] = {
 """Colour words each asset can honestly answer to (a prompt naming another colour is refused)."""
 
 
-def build(caption: str):
-    """The trimesh mesh (with vertex colours) of a caption in ``ASSETS``."""
+VARIANTS = 3
+"""Procedural variants per caption (instance ambiguity, DESIGN.md 'Priors'): 0 the asset as
+written above; 1 longer front to back and squat, in a warmer, darker shade; 2 compact and tall,
+in a lighter shade, wearing a striped hat. Each is the same caption (same colours by name), and
+each differs from the others at every view, so a result can be matched to its instance."""
+
+
+def build(caption: str, variant: int = 0):
+    """The trimesh mesh (with vertex colours) of a caption in ``ASSETS``, as variant ``variant``."""
     if caption not in ASSETS:
         raise ValueError(f"caption: unknown asset {caption!r}; known: {sorted(ASSETS)}")
-    return ASSETS[caption]()
+    if not 0 <= variant < VARIANTS:
+        raise ValueError(f"variant: expected 0..{VARIANTS - 1}, got {variant}")
+    return _built(caption, variant).copy()
+
+
+@functools.lru_cache(maxsize=32)
+def _built(caption: str, variant: int):
+    mesh = ASSETS[caption]()
+    return mesh if variant == 0 else _variant(mesh, variant)
+
+
+def _variant(mesh, variant: int):
+    import numpy as np
+
+    m = mesh.copy()
+    rgb = m.visual.vertex_colors[:, :3].astype(np.float64) / 255
+    if variant == 1:
+        m.apply_transform(np.diag([1.3, 0.9, 0.78, 1.0]))
+        rgb = rgb * np.array([0.95, 0.8, 0.7])  # warmer and darker
+        parts = [m]
+    else:
+        m.apply_transform(np.diag([0.8, 0.95, 1.25, 1.0]))
+        rgb = rgb + (1 - rgb) * 0.3  # lighter
+        top = m.vertices[np.argmax(m.vertices[:, 2])]
+        hat = S.cone((top[0], top[1], top[2] - 0.01), 0.09, 0.2, S.stripes((0.2, 0.3, 0.85), WHITE, 2, 0.04))
+        parts = [m, hat]
+    m.visual.vertex_colors = np.concatenate([np.round(rgb * 255), np.full((len(rgb), 1), 255)], 1).astype(np.uint8)
+    return S.combine(parts)

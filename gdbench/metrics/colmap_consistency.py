@@ -29,6 +29,9 @@ import torch
 
 from ..camera import Cameras, SphericalPoses
 
+FAIL_DEG = 5.0
+"""An adjacent pair whose relative rotation is off the truth by more than this fails."""
+
 
 @dataclass(frozen=True)
 class ColmapScore:
@@ -40,6 +43,10 @@ class ColmapScore:
     translation_dir_err_deg: float
     points3d: int
     seconds: float
+    failure_rate: float = float("nan")
+    """Share of the K adjacent pairs (i, i+1 around the circle) that are unregistered (either view)
+    or whose relative rotation is off the truth by more than 5 degrees: unlike Var(theta), it
+    counts the views that never registered."""
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -121,7 +128,7 @@ def score_images(
         opts.random_seed = seed
         models = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
     if not models:
-        return ColmapScore(K, 0, 0.0, float("nan"), float("nan"), float("nan"), 0, time.perf_counter() - t0)
+        return ColmapScore(K, 0, 0.0, float("nan"), float("nan"), float("nan"), 0, time.perf_counter() - t0, 1.0)
     rec = max(models.values(), key=lambda r: r.num_reg_images())
     est: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for image in rec.images.values():
@@ -134,6 +141,15 @@ def score_images(
     gt_c = cams.centers.double().numpy()
     reg = sorted(est)
     thetas, dir_errs = [], []
+    gt_R = cams.viewmats[:, :3, :3].double().numpy()
+    failures = 0
+    for i in range(K):
+        j = (i + 1) % K
+        if i not in est or j not in est:
+            failures += 1
+            continue
+        truth = _angle_deg(gt_R[j] @ gt_R[i].T)
+        failures += abs(_angle_deg(est[j][0] @ est[i][0].T) - truth) > FAIL_DEG
     if len(reg) >= 3:
         s, Ra, _ = umeyama(np.stack([est[i][1] for i in reg]), gt_c[reg])  # relative steps need no t
         for i in reg:
@@ -155,6 +171,7 @@ def score_images(
         translation_dir_err_deg=float(np.mean(dir_errs)) if dir_errs else float("nan"),
         points3d=int(rec.num_points3D()),
         seconds=time.perf_counter() - t0,
+        failure_rate=failures / K,
     )
 
 

@@ -50,8 +50,10 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 7) -> torch.Tensor:
     return s.flatten(1).mean(1).float()
 
 
-def asset_views(caption: str, poses: SphericalPoses, size: int, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """The asset rendered by pyrender at ``poses``: [C, H, W, 3] in [0, 1]."""
+def asset_views(
+    caption: str, poses: SphericalPoses, size: int, background=(1.0, 1.0, 1.0), variant: int = 0
+) -> torch.Tensor:
+    """The asset (procedural variant ``variant``) rendered by pyrender at ``poses``: [C, H, W, 3] in [0, 1]."""
     from renderers.pyrender_points.mesh import render_mesh
 
     from ..assets.library import build
@@ -59,7 +61,7 @@ def asset_views(caption: str, poses: SphericalPoses, size: int, background=(1.0,
     cams = poses.cameras(size, size)
     pose_gl, K = cams.to_opengl()
     rgb, _, _ = render_mesh(
-        build(caption), pose_gl.double().numpy(), K.double().numpy(), size, size, background=background
+        build(caption, variant), pose_gl.double().numpy(), K.double().numpy(), size, size, background=background
     )
     return torch.from_numpy(rgb)
 
@@ -73,6 +75,7 @@ def score_against_asset(
     offsets: torch.Tensor | None = None,
     background=(1.0, 1.0, 1.0),
     reference: torch.Tensor | None = None,
+    variant: int = 0,
 ) -> GTScore:
     """PSNR/SSIM of ``scene`` against the asset at held-out poses, best over azimuth offsets.
 
@@ -81,7 +84,7 @@ def score_against_asset(
     from ..turntable import render_views
 
     poses = heldout_poses(n_views)
-    ref = reference if reference is not None else asset_views(caption, poses, size, background)
+    ref = reference if reference is not None else asset_views(caption, poses, size, background, variant)
     offsets = offsets if offsets is not None else torch.arange(0, 360, 5, dtype=torch.float64)
     best = None
     at0 = None

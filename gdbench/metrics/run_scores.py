@@ -32,6 +32,8 @@ def previous_scores(run: Path, scene_sha: str) -> dict:
 
 
 def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256) -> dict:
+    """Scores of a finished run folder into its scores.json; ``gt`` adds the ground-truth blocks
+    (PSNR/SSIM, and the view metrics: multi-face rate, instance consistency, floaters)."""
     run = Path(run)
     if not run.is_dir():
         raise FileNotFoundError(f"run: no run folder at {run}")
@@ -52,9 +54,19 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
     t0 = time.perf_counter()
     if gt and info.get("caption"):
         from .gt import score_against_asset
+        from .views import score_scene as view_scores
 
-        s = score_against_asset(scene, info["caption"])
-        out["gt"] = {"psnr": s.psnr, "ssim": s.ssim, "offset_deg": s.offset_deg, "psnr_unaligned": s.psnr_unaligned}
+        variants = int(info.get("config", {}).get("variants", 1))
+        out["views"] = view_scores(scene, info["caption"], variants=variants).as_dict()
+        v = out["views"]["majority_variant"]  # the instance the run converged to is its ground truth
+        s = score_against_asset(scene, info["caption"], variant=v)
+        out["gt"] = {
+            "psnr": s.psnr,
+            "ssim": s.ssim,
+            "offset_deg": s.offset_deg,
+            "psnr_unaligned": s.psnr_unaligned,
+            "variant": v,
+        }
     if colmap:
         from .colmap_consistency import score_scene
 

@@ -15,6 +15,11 @@ exactly (pi_i uniform by default). The posterior is taken at the query's camera:
   camera's view range only: DreamFusion/3DFuse buckets (front |az| < 45, back |az| > 135,
   side otherwise, overhead when elevation > 60), or a window of +-``window_deg`` around the
   camera's azimuth;
+- a front bias (``front_bias`` = kappa): bank view i gets the prior weight
+  pi_i proportional to exp(kappa cos azimuth_i), as photo collections are front-heavy (the mechanism
+  of multi-face results in Stable Diffusion); kappa = 0 is uniform;
+- instance ambiguity (``variants``): the bank holds the views of that many procedural variants
+  of the caption (``assets/library.py``), so different views may settle on different instances;
 - depth conditioning (the ControlNet role): the joint posterior over (rgb, depth), i.e. the
   logits add ``-depth_weight |d - d_i|^2 / (2 sigma^2)`` for the render's depth d.
 Images are [B, H, W, 3] in [-1, 1]. Distances are summed in float32 from the differences
@@ -57,6 +62,8 @@ class EmpiricalCond:
     """In [0, 1]: what a zoom shows beyond the bank's frame."""
     similarity: float = 1.0
     """Cosine similarity of the prompt to ``caption`` (1 for an exact match)."""
+    variant: Tensor | None = None
+    """[V] the procedural variant of each bank view (None: all variant 0)."""
 
 
 @dataclass(frozen=True)
@@ -92,6 +99,8 @@ class EmpiricalPrior:
         threshold: float = 0.5,
         fov_step: float = 0.5,
         cache_levels: int = 64,
+        front_bias: float = 0.0,
+        variants: int = 1,
     ):
         if view_mode not in ("none", "buckets", "window"):
             raise ValueError(f"view_mode: expected 'none', 'buckets' or 'window', got {view_mode!r}")
@@ -103,6 +112,14 @@ class EmpiricalPrior:
             raise ValueError(f"fov_step: expected a positive step in degrees, got {fov_step}")
         if cache_levels < 1:
             raise ValueError(f"cache_levels: expected at least 1, got {cache_levels}")
+        if not (math.isfinite(front_bias) and front_bias >= 0):
+            raise ValueError(f"front_bias: expected kappa >= 0, got {front_bias}")
+        self.front_bias = front_bias
+        from ..assets.library import VARIANTS
+
+        if not 1 <= variants <= VARIANTS:
+            raise ValueError(f"variants: expected 1..{VARIANTS} procedural variants per caption, got {variants}")
+        self.variants = variants
         self.view_mode = view_mode
         self.window_deg = window_deg
         self.depth_weight = depth_weight
@@ -123,16 +140,19 @@ class EmpiricalPrior:
             raise ValueError(f"prompt: {prompt!r} matched {caption!r} (cosine {similarity:.2f}): {why}")
         bank = self._banks.get(caption) or load_bank(caption, self.bank_config)
         self._banks[caption] = bank
+        banks = [bank] + [load_bank(caption, bank.config, variant=v) for v in range(1, self.variants)]
+        cat = lambda name: torch.cat([getattr(b, name) for b in banks])  # noqa: E731
         return EmpiricalCond(
             caption,
-            bank.images * 2 - 1,
-            bank.depth,
-            bank.azimuth,
-            bank.elevation,
+            cat("images") * 2 - 1,
+            cat("depth"),
+            cat("azimuth"),
+            cat("elevation"),
             fovy=float(bank.config.fovy),
-            alpha=bank.alpha,
+            alpha=cat("alpha"),
             background=tuple(float(c) for c in bank.config.background),
             similarity=similarity,
+            variant=torch.cat([torch.full((len(b),), v) for v, b in enumerate(banks)]),
         )
 
     def bank(self, cond: EmpiricalCond) -> Bank | None:
@@ -194,7 +214,11 @@ class EmpiricalPrior:
             if use_depth:
                 Z = level.depth if idx is None else level.depth.index_select(0, idx)
                 d2 = d2 + self.depth_weight * _sqdist(depth[b].reshape(1, -1).float(), Z)
-            w = torch.softmax(-d2 / (2 * float(sigma[b]) ** 2), dim=0)
+            logits = -d2 / (2 * float(sigma[b]) ** 2)
+            if self.front_bias:
+                az = cond.azimuth if idx is None else cond.azimuth[idx]
+                logits = logits + self.front_bias * torch.cos(torch.deg2rad(az.double()))
+            w = torch.softmax(logits, dim=0)
             out[b] = w.float() @ Y
         return out.to(x.dtype).reshape(B, H, W, 3)
 

@@ -18,6 +18,8 @@ def make_prior(cfg):
         view_mode=cfg.view_prompting,
         window_deg=cfg.view_window_deg,
         depth_weight=1.0 if cfg.depth_conditioning else 0.0,
+        front_bias=cfg.front_bias,
+        variants=cfg.variants,
         bank_config=bank_config_for(cfg.resolution, cfg.fovy_range, background=tuple(cfg.background)),
     )
 

@@ -98,6 +98,12 @@ class TrainConfig:
     """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
     of +-``view_window_deg`` around the camera azimuth, or none (DESIGN.md 'Priors')."""
     view_window_deg: float = 45.0
+    front_bias: float = 0.0
+    variants: int = 1
+    """Empirical prior: procedural variants of the caption in the bank (1..3; the instance setting
+    of the ablation uses 3)."""
+    """Empirical prior: kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform;
+    the Janus setting of the ablation uses it with view prompting off)."""
     depth_conditioning: bool = False
     # the prior
     prior: Literal["empirical", "sd"] = "empirical"
@@ -156,6 +162,7 @@ class TrainConfig:
             ("camera_radius", self.camera_radius > 0, "a positive distance"),
             ("sh_degree", self.sh_degree in (0, 1, 2, 3), "0..3"),
             ("vgs_unit", self.vgs_unit in ("scene", "pixel"), "'scene' or 'pixel'"),
+            ("front_bias", self.front_bias >= 0, "kappa >= 0"),
         ]
         for name, ok, want in checks:
             if not ok:

@@ -32,6 +32,13 @@ class MethodOptions:
     """View-dependent prompting of the prior: a +-45 degree window, DreamFusion buckets, or none
     (exposes the multi-face failure; DESIGN.md 'Priors')."""
 
+    front_bias: float | None = None
+    """Empirical prior: kappa of a front-heavy bank (view weights exp(kappa cos azimuth)), the
+    mechanism of multi-face results; 0 is uniform."""
+
+    variants: int | None = None
+    """Empirical prior: procedural variants per caption in the bank (1..3): instance ambiguity."""
+
     def overrides(self) -> dict[str, object]:
         """The set options as TrainConfig overrides (dotted keys for the noise group)."""
         key = {"noise_redraw": "noise.redraw", "noise_ou_beta": "noise.ou_beta", "noise_ratio": "noise.ratio_mode"}

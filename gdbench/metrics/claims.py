@@ -1,0 +1,101 @@
+"""The paper's claims as paired comparisons with bootstrap confidence intervals.
+
+Each claim says preset ``a`` scores lower than preset ``b`` on a metric where lower is better.
+Over the (prompt, seed) pairs that both presets ran in one setting, the paired differences
+d = metric(a) - metric(b) are resampled (percentile bootstrap, 10,000 resamples of the pairs,
+a fixed seed); the verdict reads the 95% interval of their mean:
+
+- **holds**: the interval lies below 0;
+- **does not hold**: the interval lies above 0 (the opposite holds), or every difference is 0
+  (the metric cannot tell the presets apart in this setting);
+- **undecided**: the interval spans 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Claim:
+    text: str
+    a: str
+    b: str
+    metric: str
+    """A row key; lower is better."""
+
+
+CLAIMS = (
+    Claim("structured noise reduces multi-face failures", "gd", "gd-no-sn", "multi_face_rate"),
+    Claim("structured noise reduces multi-face failures", "gd-no-vgs", "sjc-gs", "multi_face_rate"),
+    Claim("structured noise reduces instance inconsistency", "gd", "gd-no-sn", "instance_inconsistency"),
+    Claim("structured noise reduces instance inconsistency", "gd-no-vgs", "sjc-gs", "instance_inconsistency"),
+    Claim("variational Gaussians reduce floaters", "gd", "gd-no-vgs", "floaters"),
+    Claim("variational Gaussians reduce floaters", "gd-no-sn", "sjc-gs", "floaters"),
+    Claim("gd is more consistent than SJC on COLMAP (variance)", "gd", "sjc-gs", "var_theta_deg2"),
+    Claim("gd is more consistent than SJC on COLMAP (failure rate)", "gd", "sjc-gs", "colmap_failure_rate"),
+    Claim("gd is more consistent than SDS on COLMAP (variance)", "gd", "sds-gs", "var_theta_deg2"),
+    Claim("gd is more consistent than SDS on COLMAP (failure rate)", "gd", "sds-gs", "colmap_failure_rate"),
+)
+"""The paper's claims (section 4) in the ablation's terms."""
+
+
+def bootstrap_mean_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean of ``d`` (resampling its entries)."""
+    d = np.asarray(d, dtype=np.float64)
+    if d.size == 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    means = d[rng.integers(0, d.size, size=(n, d.size))].mean(1)
+    lo, hi = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def verdict(lo: float, hi: float, diffs: np.ndarray) -> str:
+    if diffs.size == 0 or math.isnan(lo):
+        return "not measured"
+    if np.all(diffs == 0):
+        return "does not hold (no difference)"
+    if hi < 0:
+        return "holds"
+    if lo > 0:
+        return "does not hold"
+    return "undecided (CI spans zero)"
+
+
+def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
+    """One result per (setting, claim) whose two presets ran in that setting."""
+    out = []
+    settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
+    for setting in settings:
+        sel = [r for r in rows if r.get("setting", "easy") == setting]
+        ran = {r["preset"] for r in sel}
+        for c in claims:
+            if not {c.a, c.b} <= ran:
+                continue
+            va = {(r["prompt"], r["seed"]): r.get(c.metric, math.nan) for r in sel if r["preset"] == c.a}
+            vb = {(r["prompt"], r["seed"]): r.get(c.metric, math.nan) for r in sel if r["preset"] == c.b}
+            keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
+            d = np.array([va[k] - vb[k] for k in keys], dtype=np.float64)
+            lo, hi = bootstrap_mean_ci(d)
+            out.append(
+                {
+                    "setting": setting,
+                    "claim": c.text,
+                    "a": c.a,
+                    "b": c.b,
+                    "metric": c.metric,
+                    "pairs": len(keys),
+                    "mean_a": float(np.mean([va[k] for k in keys])) if keys else math.nan,
+                    "mean_b": float(np.mean([vb[k] for k in keys])) if keys else math.nan,
+                    "mean_diff": float(d.mean()) if keys else math.nan,
+                    "ci_low": lo,
+                    "ci_high": hi,
+                    "a_better_pairs": int((d < 0).sum()),
+                    "verdict": verdict(lo, hi, d),
+                }
+            )
+    return out

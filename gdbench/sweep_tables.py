@@ -1,0 +1,142 @@
+"""The sweep's tables and figure, rewritten after every cell:
+
+- ``cells.csv``: one row per (setting, prompt, preset, seed) cell;
+- ``summary.csv`` / ``summary.md``: per (setting, preset) the mean ± std over prompts and seeds of
+  every metric, with the median of the heavy-tailed COLMAP variance beside its mean;
+- ``verdict.csv`` (and in ``summary.md``): each of the paper's claims in each setting, as the
+  paired difference with a 95% bootstrap interval (``metrics/claims.py``);
+- ``ablation.png``: every cell's metrics per preset and setting.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from pathlib import Path
+
+COLUMNS = (
+    ("gt_psnr", "GT PSNR dB", False),
+    ("multi_face_rate", "multi-face rate", False),
+    ("instance_inconsistency", "instance inconsistency", False),
+    ("floaters", "floaters", False),
+    ("var_theta_deg2", "Var(theta) deg^2", True),
+    ("colmap_failure_rate", "COLMAP failure rate", False),
+    ("registration_rate", "registration", False),
+    ("train_time_s", "train time s", False),
+)
+"""Summarised metrics: (row key, heading, heavy-tailed: report the median too)."""
+
+
+def _finite(xs: list) -> list[float]:
+    return [float(x) for x in xs if isinstance(x, (int, float)) and x == x]
+
+
+def _median(xs: list[float]) -> float:
+    xs = _finite(xs)
+    return statistics.median(xs) if xs else math.nan
+
+
+def _fmt(x: float) -> str:
+    return "n/a" if x != x else f"{x:.3g}"
+
+
+def _mean_std(xs: list[float]) -> str:
+    xs = _finite(xs)
+    if not xs:
+        return "n/a"
+    if len(xs) == 1:
+        return f"{xs[0]:.4g}"
+    return f"{statistics.mean(xs):.4g} ± {statistics.stdev(xs):.2g}"
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    out = []
+    groups = list(dict.fromkeys((r.get("setting", "easy"), r["preset"]) for r in rows))
+    for setting, preset in groups:
+        sel = [r for r in rows if r.get("setting", "easy") == setting and r["preset"] == preset]
+        s = {"setting": setting, "preset": preset, "cells": len(sel)}
+        for key, _, tailed in COLUMNS:
+            s[key] = _mean_std([r.get(key) for r in sel])
+            if tailed:
+                s[f"median_{key}"] = _median([r.get(key) for r in sel])
+        s["iterations"] = _mean_std([r.get("iterations") for r in sel])
+        out.append(s)
+    return out
+
+
+def markdown(summary: list[dict], verdicts: list[dict]) -> str:
+    head = ["setting", "preset", "cells"]
+    for _key, name, tailed in COLUMNS:
+        head += [name] + ([f"median {name}"] if tailed else [])
+    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for s in summary:
+        cells = [s["setting"], s["preset"], str(s["cells"])]
+        for key, _, tailed in COLUMNS:
+            cells += [s[key]] + ([_fmt(s[f"median_{key}"])] if tailed else [])
+        md.append("| " + " | ".join(cells) + " |")
+    md += ["", "| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% CI] | a better | verdict |"]
+    md.append("|---|---|---|---|---|---|---|---|---|---|")
+    if not verdicts:
+        md[-2:] = ["No claim is decidable here: each needs both of its presets in one setting."]
+    for v in verdicts:
+        ci = f"{_fmt(v['mean_diff'])} [{_fmt(v['ci_low'])}, {_fmt(v['ci_high'])}]"
+        md.append(
+            f"| {v['setting']} | {v['claim']} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
+            f"{_fmt(v['mean_a'])} | {_fmt(v['mean_b'])} | {ci} | {v['a_better_pairs']}/{v['pairs']} | {v['verdict']} |"
+        )
+    return "\n".join(md) + "\n"
+
+
+def tables(rows: list[dict], out: Path) -> dict[str, Path]:
+    from .bench.common import write_csv
+    from .metrics.claims import evaluate
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"cells_csv": write_csv(rows, out / "cells.csv")}
+    summary = summarise(rows)
+    paths["summary_csv"] = write_csv(summary, out / "summary.csv")
+    verdicts = evaluate(rows)
+    paths["verdict_csv"] = write_csv(verdicts, out / "verdict.csv")
+    (out / "summary.md").write_text(markdown(summary, verdicts))
+    paths["summary_md"] = out / "summary.md"
+    paths["plot"] = plot(rows, out / "ablation.png")
+    return paths
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    """Per setting (rows of panels) and metric (columns), every cell per preset (colour = prompt)."""
+    from .plotting import pyplot, save
+
+    plt = pyplot()
+    settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
+    prompts = list(dict.fromkeys(r["prompt"] for r in rows))
+    panels = [c for c in COLUMNS if c[0] != "train_time_s"]
+    fig, axes = plt.subplots(
+        len(settings), len(panels), figsize=(2.6 * len(panels), 2.6 * len(settings)), squeeze=False
+    )
+    for si, setting in enumerate(settings):
+        sel = [r for r in rows if r.get("setting", "easy") == setting]
+        presets = list(dict.fromkeys(r["preset"] for r in sel))
+        for ax, (key, label, log) in zip(axes[si], panels):
+            for j, pr in enumerate(prompts):
+                pts = [
+                    (i + 0.08 * (j - (len(prompts) - 1) / 2), float(r[key]))
+                    for i, p in enumerate(presets)
+                    for r in sel
+                    if r["preset"] == p and r["prompt"] == pr and _finite([r.get(key)])
+                ]
+                if pts:
+                    ax.scatter(*zip(*pts), s=10, color=f"C{j}", label=pr if si == 0 else None)
+            meds = [_median([r.get(key) for r in sel if r["preset"] == p]) for p in presets]
+            ax.scatter(range(len(presets)), meds, marker="_", s=300, color="k")
+            ax.set_xticks(range(len(presets)), presets, rotation=35, fontsize=7)
+            ax.set_title(f"{setting}: {label}", fontsize=8)
+            vals = _finite([r.get(key) for r in sel])
+            if not vals:
+                ax.text(0.5, 0.5, "not measured", transform=ax.transAxes, ha="center", color="0.5")
+            elif log and any(v > 0 for v in vals):
+                ax.set_yscale("log")
+            ax.grid(True, axis="y", alpha=0.3)
+    if prompts:
+        axes[0][0].legend(fontsize=6)
+    return save(fig, path, dpi=100)
