@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 PYTEST := $(PY) -m pytest
 
-.PHONY: setup demo test test-slow test-all bench lint
+.PHONY: setup demo test test-slow test-all bench lint mutants
 
 setup:
 	@scripts/setup.sh
@@ -27,3 +27,6 @@ bench: setup
 lint: setup
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
+
+mutants: setup
+	$(PY) scripts/mutants.py

@@ -67,7 +67,7 @@ class NoiseConfig:
     """r_t at the first step."""
     ratio_end: float = 0.05
     """r_t at the last step."""
-    ratio_mode: RatioMode = "amplitude"
+    ratio_mode: RatioMode = "variance"
     """How r_t mixes: 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid) or 'variance'
     (n = sqrt(r) n_s + sqrt(1 - r) n_iid)."""
     v_min: float = 1e-6

@@ -140,3 +140,32 @@ def plot(rows: list[dict], path: Path) -> Path:
     if prompts:
         axes[0][0].legend(fontsize=6)
     return save(fig, path, dpi=100)
+
+
+def turntable_grid(out: Path, prompt: str, seed: int = 0, frames: int = 6) -> Path | None:
+    """One figure: for ``prompt`` and ``seed``, a row per (setting, preset) cell with ``frames``
+    evenly spaced turntable views (from each cell's turntable.gif). None when no cell has one."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from .plotting import pyplot, save
+    from .sweep import SETTINGS, cell_name
+    from .train.config import PRESETS
+
+    order = lambda p: (list(SETTINGS).index(p.parts[-5]) if p.parts[-5] in SETTINGS else 99,  # noqa: E731
+                       list(PRESETS).index(p.parts[-3]) if p.parts[-3] in PRESETS else 99)  # fmt: skip
+    cells = sorted((Path(out) / "cells").glob(f"*/{cell_name(prompt)}/*/seed{seed}/turntable.gif"), key=order)
+    if not cells:
+        return None
+    plt = pyplot()
+    fig, axes = plt.subplots(len(cells), 1, figsize=(1.6 * frames, 1.7 * len(cells)), squeeze=False)
+    for ax, gif in zip(axes[:, 0], cells):
+        video = iio.imread(gif)
+        pick = np.linspace(0, len(video), frames, endpoint=False).astype(int)
+        ax.imshow(np.concatenate([video[i][..., :3] for i in pick], 1))
+        setting, preset = gif.parts[-5], gif.parts[-3]
+        ax.set_ylabel(f"{setting}\n{preset}", rotation=0, ha="right", va="center", fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9)
+    return save(fig, Path(out) / f"turntables_{cell_name(prompt)}.png", dpi=90)

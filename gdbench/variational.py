@@ -28,7 +28,7 @@ def jitter(
     log_scales: Tensor,
     sigma: float,
     *,
-    gamma: float = 0.15,
+    gamma: float = 0.05,
     scene_radius: float = 0.5,
     generator: torch.Generator,
     parts: Sequence[str] = ("means", "log_scales"),

@@ -19,32 +19,43 @@ def test_quick_sweep_writes_rows_summary_and_plot(tmp_path):
     assert len(rows) == 2 * 2 * 2  # N x res x mode
     for r in rows:
         assert r["status"] == "ok" and float(r["median_s"]) > 0 and float(r["peak_rss_mb"]) > 0
-        # oracle for the work count: an independent count from the projected boxes
+        # oracle for the work count: tile-box pairs counted from the float64 twin's projection (its
+        # own EWA formula); float32 vs float64 may flip a box edge exactly on a tile boundary
         scene = random_cloud(int(r["n"]))
         cams = bm_render._camera(int(r["res"]), "cpu")
-        assert int(r["intersections"]) == _count_by_boxes(scene, cams)
+        expected = _count_by_twin(scene, cams)
+        assert abs(int(r["intersections"]) - expected) <= max(2, 0.002 * expected)
     summary = json.loads((tmp_path / "render_summary.json").read_text())
     assert "splat fwd" in summary["fits"] and (tmp_path / "render_fit.png").stat().st_size > 0
 
 
-def _count_by_boxes(scene, cams, ts=16):
-    from renderers.splat.bin_tiles import tile_ranges
-    from renderers.splat.project import project
+def _count_by_twin(scene, cams, ts=16, alpha_min=1 / 255):
+    """Tile-Gaussian pairs from the float64 twin's projection: each Gaussian's box of
+    alpha >= alpha_min (half-widths sqrt(2 ln(o / alpha_min)) sqrt(diag cov2d)), in tiles."""
+    import math
 
-    p = project(
-        scene["means"],
-        scene["quats"],
-        scene["scales"],
-        scene["opacities"],
-        cams.viewmats,
-        cams.Ks,
-        cams.width,
-        cams.height,
-    )
-    tx = (cams.width + ts - 1) // ts
-    ty = (cams.height + ts - 1) // ts
-    x0, x1, y0, y1 = tile_ranges(p.means2d, p.radii, tx, ty, ts)
-    return int((((x1 - x0 + 1) * (y1 - y0 + 1))[p.visible]).sum())
+    from renderers.splat.reference import project_reference
+
+    d = {k: v.double() for k, v in scene.items()}
+    W, H = cams.width, cams.height
+    tx, ty = (W + ts - 1) // ts, (H + ts - 1) // ts
+    total = 0
+    for c in range(len(cams)):
+        m2, cov, _, ok = project_reference(
+            d["means"], d["quats"], d["scales"], cams.viewmats[c].double(), cams.Ks[c].double(), W, H
+        )
+        o = d["opacities"]
+        ext = torch.sqrt(2 * torch.log((o / alpha_min).clamp_min(1.0)))
+        r = ext[:, None] * torch.sqrt(torch.stack([cov[:, 0, 0], cov[:, 1, 1]], -1))
+        inside = (m2 + r > 0).all(-1) & (m2[:, 0] - r[:, 0] < W) & (m2[:, 1] - r[:, 1] < H)
+        vis = ok & (o >= alpha_min) & inside
+        lo = torch.floor((m2 - r - 1e-3) / ts).long()
+        hi = torch.floor((m2 + r + 1e-3) / ts).long()
+        nx = hi[:, 0].clamp(0, tx - 1) - lo[:, 0].clamp(0, tx - 1) + 1
+        ny = hi[:, 1].clamp(0, ty - 1) - lo[:, 1].clamp(0, ty - 1) + 1
+        total += int((nx * ny)[vis].sum())
+    assert not math.isnan(total)
+    return total
 
 
 def test_dense_cells_beyond_limits_are_skipped_with_a_reason():
@@ -86,7 +97,7 @@ def test_train_benchmark_denoise_row():
     from gdbench.bench import bm_train
 
     row = bm_train.denoise_time("window")
-    assert "bank of 360" in row["what"] and 0 < row["seconds"] < 1.0 and row["met"] == (row["seconds"] <= 0.005)
+    assert "bank of 360" in row["what"] and row["seconds"] > 0 and row["met"] == (row["seconds"] <= row["target_s"])
 
 
 # ------------------------------------------------------------------ peers and stability

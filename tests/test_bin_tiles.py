@@ -86,3 +86,22 @@ def test_equal_depths_keep_gaussian_order():
     depths = torch.tensor([[1.0, 0.5, 1.0]])
     bins = bin_tiles(means2d, radii, depths, torch.ones(1, 3, dtype=torch.bool), 16, 16, 16)
     assert bins.gauss_ids.tolist() == [1, 0, 2]
+
+
+def test_cpu_binning_gives_the_same_lists():
+    from renderers.splat._ext import load_extension
+    from renderers.splat.bin_tiles import bin_tiles_cpu
+
+    if load_extension() is None:
+        import pytest
+
+        pytest.skip("C++ extension unavailable")
+    for dtype in (torch.float32, torch.float64):
+        gs = random_gaussians(400, seed=4, dtype=dtype, scale=(0.002, 0.2))
+        cams = ring_cameras(3, 70, 45, dtype=dtype, seed=2)
+        p = project(gs["means"], gs["quats"], gs["scales"], gs["opacities"], cams.viewmats, cams.Ks, 70, 45)
+        a = bin_tiles(p.means2d, p.radii, p.depths, p.visible, 70, 45, 16)
+        b = bin_tiles_cpu(p.means2d, p.radii, p.depths, p.visible, 70, 45, 16)
+        assert a.gauss_ids.numel() > 1000
+        assert torch.equal(a.tile_start, b.tile_start) and torch.equal(a.gauss_ids, b.gauss_ids)
+        assert (a.tiles_x, a.tiles_y) == (b.tiles_x, b.tiles_y)

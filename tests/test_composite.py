@@ -126,9 +126,22 @@ def test_cpp_and_torch_compositors_agree(dtype):
     assert float(res["cpp"][0].alpha.detach().max()) > 0.5
     for n in names:
         torch.testing.assert_close(getattr(res["cpp"][0], n), getattr(res["torch"][0], n), **tol)
-    for a, b in zip(res["cpp"][1], res["torch"][1]):
-        scale = float(b.abs().max())
-        torch.testing.assert_close(a / scale, b / scale, **tol)
+    if dtype == torch.float64:
+        for a, b in zip(res["cpp"][1], res["torch"][1]):
+            scale = float(b.abs().max())
+            torch.testing.assert_close(a / scale, b / scale, **tol)
+        return
+    # float32: the C++ and torch projections round differently, so each path's gradients are held
+    # against the float64 result (both measured ~2e-5 of the largest entry)
+    p64 = [gs[k].double().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]
+    c64 = ring_cameras(3, 50, 37, dtype=torch.float64)
+    bg = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
+    out = rasterize(*p64, c64.viewmats, c64.Ks, 50, 37, outputs=names, backend="torch", background=bg)
+    ref = torch.autograd.grad(cotangent_loss(out, names), p64)
+    for backend in ("cpp", "torch"):
+        for a, b in zip(res[backend][1], ref):
+            scale = float(b.abs().max())
+            torch.testing.assert_close(a.double() / scale, b / scale, rtol=0, atol=6e-5)
 
 
 def test_chunk_budget_does_not_change_the_image():

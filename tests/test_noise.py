@@ -126,6 +126,20 @@ def test_cross_view_correlation_at_shared_noise_gaussians():
         assert abs(indep) < bound
 
 
+def test_autocorrelation_length_of_a_known_field():
+    """The estimator against a closed form: iid noise blurred by a Gaussian kernel of std s px has
+    correlation exp(-d^2 / (4 s^2)), so its 1/e length is 2 s."""
+    s = 2.0
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2000, 1, 48, 48, generator=g, dtype=torch.float64)
+    r = torch.arange(-8, 9, dtype=torch.float64)
+    k1 = torch.exp(-(r**2) / (2 * s * s))
+    kernel = (k1[:, None] * k1[None, :])[None, None]
+    field = torch.nn.functional.conv2d(x, kernel)[:, 0].permute(1, 2, 0)  # [32, 32, draws]
+    length = autocorrelation_length(field, torch.ones(field.shape[:2]))
+    assert length == pytest.approx(2 * s, rel=0.03)
+
+
 def test_spatial_autocorrelation_length_matches_theory():
     K = 2000
     cloud = _cloud(K)

@@ -326,8 +326,10 @@ def test_presets_with_one_seed_draw_the_same_views_sigmas_and_iid_noise(prior, t
         shape = (2, 16, 16, 3)
         n_gd = _noise_fields(ctx_gd, a, va, shape, update=True)[0]
         n_sjc = _noise_fields(ctx_sjc, b, vb, shape, update=True)[0]
-        # gd: n = r n_s + sqrt(1 - r^2) n_iid, with n_iid the very field sjc-gs uses
-        r = 0.3  # ratio at step 0
+        # gd: n = a n_s + sqrt(1 - a^2) n_iid, with n_iid the very field sjc-gs uses
+        from gdbench.noise import structured_amplitude
+
+        r = structured_amplitude(0.3, ctx_gd.cfg.noise.ratio_mode)  # the proportion at step 0
         ns = ctx_gd.noise.render(a.noise_colors, va.prior_cams, generator=torch.Generator())
         cov = ns.coverage.bool().expand(shape)  # where the cloud covers nothing, n_s is an iid fill
         assert cov.float().mean() > 0.5

@@ -208,18 +208,22 @@ class EmpiricalPrior:
         out = torch.empty(B, H * W * 3, dtype=torch.float32)
         for b in range(B):
             level = self._level(cond, H, W, fovs[b], use_depth)
-            idx = None if bool(mask[b].all()) else torch.nonzero(mask[b]).squeeze(1)
-            Y = level.images if idx is None else level.images.index_select(0, idx)
-            d2 = _sqdist(xf[b : b + 1], Y)
+            runs = _runs(mask[b])  # the allowed views as contiguous row ranges: slices, no copies
+            d2 = torch.cat([_sqdist(xf[b : b + 1], level.images[i:j]) for i, j in runs])
             if use_depth:
-                Z = level.depth if idx is None else level.depth.index_select(0, idx)
-                d2 = d2 + self.depth_weight * _sqdist(depth[b].reshape(1, -1).float(), Z)
+                zb = depth[b].reshape(1, -1).float()
+                d2 = d2 + self.depth_weight * torch.cat([_sqdist(zb, level.depth[i:j]) for i, j in runs])
             logits = -d2 / (2 * float(sigma[b]) ** 2)
             if self.front_bias:
-                az = cond.azimuth if idx is None else cond.azimuth[idx]
+                az = torch.cat([cond.azimuth[i:j] for i, j in runs])
                 logits = logits + self.front_bias * torch.cos(torch.deg2rad(az.double()))
-            w = torch.softmax(logits, dim=0)
-            out[b] = w.float() @ Y
+            w = torch.softmax(logits, dim=0).float()
+            acc, k = None, 0
+            for i, j in runs:
+                part = w[k : k + j - i] @ level.images[i:j]
+                acc = part if acc is None else acc + part
+                k += j - i
+            out[b] = acc
         return out.to(x.dtype).reshape(B, H, W, 3)
 
     def _level(self, cond: EmpiricalCond, H: int, W: int, fovy: float | None, with_depth: bool) -> _Level:
@@ -245,6 +249,18 @@ class EmpiricalPrior:
         while len(self._levels) > self.cache_levels:
             self._levels.popitem(last=False)
         return level
+
+
+def _runs(mask: Tensor) -> list[tuple[int, int]]:
+    """Maximal runs [i, j) of True in a 1D mask (bank views are stored azimuth-major, so a view
+    window is one run, or two where it wraps around 180 degrees)."""
+    idx = torch.nonzero(mask).squeeze(1)
+    if idx.numel() == 0:
+        return []
+    cut = torch.nonzero(idx[1:] != idx[:-1] + 1).squeeze(1)
+    starts = [int(idx[0])] + (idx[cut + 1]).tolist()
+    ends = (idx[cut] + 1).tolist() + [int(idx[-1]) + 1]
+    return list(zip(starts, ends))
 
 
 def _sqdist(x: Tensor, Y: Tensor) -> Tensor:

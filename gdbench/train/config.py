@@ -129,7 +129,7 @@ class TrainConfig:
     structured_noise: bool = True
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     vgs: bool = True
-    vgs_gamma: float = 0.15
+    vgs_gamma: float = 0.05
     """gamma of the jitter theta' = theta + gamma s(sigma) eps (means in ``vgs_unit``s, log-scales as is)."""
     vgs_unit: Literal["scene", "pixel"] = "scene"
     """Length unit of the means' jitter: the scene radius (0.5) or the training pixel's footprint at

@@ -283,11 +283,15 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
 
 
 def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Tensor | None, update: bool):
-    """(score g [B, h, w, C], mean squared residual |D - x|^2) averaged over the K noise samples."""
+    """(score g [B, h, w, C], mean squared residual |D - x|^2, seconds in the noise, seconds in
+    the prior) averaged over the K noise samples."""
     cfg, sigma = ctx.cfg, views.sigma
     score = torch.zeros_like(xd)
     resid = 0.0
-    for n in _noise_fields(ctx, state, views, xd.shape, update):
+    t0 = time.perf_counter()
+    noises = _noise_fields(ctx, state, views, xd.shape, update)
+    t_noise = time.perf_counter() - t0
+    for n in noises:
         D = ctx.prior.denoise(
             xd + sigma * n,
             torch.full((xd.shape[0],), sigma),
@@ -299,7 +303,7 @@ def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Te
         )
         score += (D - xd) / sigma / cfg.samples_per_step
         resid += float(((D - xd) ** 2).mean()) / cfg.samples_per_step
-    return score, resid
+    return score, resid, t_noise, time.perf_counter() - t0 - t_noise
 
 
 def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, score: Tensor) -> dict:
@@ -344,11 +348,14 @@ def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:
     the current parameters have, so a caller can compare before and after an update."""
     t0 = time.perf_counter()
     views = sample_views(ctx, state)
+    t1 = time.perf_counter()
     out, x = render_for_prior(ctx, state, views)
     depth = out.depth[..., 0].detach() if out.depth is not None else None
     if ctx.depth_points is not None:
         depth = _point_depth(ctx.depth_points, views.cams if ctx.mode != "sd-latent" else views.prior_cams)
-    score, resid = distill(ctx, state, views, x.detach(), depth, update)
+    t2 = time.perf_counter()
+    score, resid, t_noise, t_prior = distill(ctx, state, views, x.detach(), depth, update)
+    t3 = time.perf_counter()
     metrics = {
         "step": state.step + 1,
         "sigma": views.sigma,
@@ -360,7 +367,11 @@ def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:
         return metrics
     metrics |= apply_update(state, ctx, views, out, x, score)
     state.step += 1
-    metrics["seconds"] = time.perf_counter() - t0
+    t4 = time.perf_counter()
+    # where the step's time went: views, the render (forward), noise, prior, update (backward,
+    # Adam, densification)
+    metrics |= {"t_views": t1 - t0, "t_render": t2 - t1, "t_noise": t_noise, "t_prior": t_prior, "t_update": t4 - t3}
+    metrics["seconds"] = t4 - t0
     state.history.append(metrics)
     return metrics
 

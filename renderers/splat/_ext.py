@@ -1,6 +1,7 @@
-"""Loader of the optional C++/OpenMP CPU compositor (``csrc/composite_cpu.cpp``).
+"""Loader of the optional C++/OpenMP CPU extension: the compositor (``csrc/composite_cpu.cpp``)
+and the projection and tile binning (``csrc/project_cpu.cpp``).
 
-The built module lives in one file, ``<cache>/gdbench_splat_cpu_<hash of the source>.so``
+The built module lives in one file, ``<cache>/gdbench_splat_cpu_<hash of the sources>.so``
 (``<cache>`` is ``$GDBENCH_CACHE/ext/torch<version>-py<version>``, default under
 ``~/.cache/gdbench``), and is imported from there directly: no build system runs once it
 exists, so checkouts with the same source share it and never rebuild it in turn. When it is
@@ -26,11 +27,17 @@ from pathlib import Path
 from types import ModuleType
 
 _STATE: dict[str, object] = {}
-SOURCE = Path(__file__).parent / "csrc" / "composite_cpu.cpp"
+CSRC = Path(__file__).parent / "csrc"
+SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp")
+HEADERS = (CSRC / "splat_cpu.h",)
 
 
 def module_name() -> str:
-    return f"gdbench_splat_cpu_{hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:10]}"
+    """The module's name carries a hash of every source and header: a changed source is a new library."""
+    h = hashlib.sha256()
+    for path in SOURCES + HEADERS:
+        h.update(path.read_bytes())
+    return f"gdbench_splat_cpu_{h.hexdigest()[:10]}"
 
 
 def build_dir() -> Path:
@@ -61,7 +68,8 @@ def _build(name: str, target: Path, verbose: bool) -> ModuleType:
     try:
         module = load(
             name=name,
-            sources=[str(SOURCE)],
+            sources=[str(p) for p in SOURCES],
+            extra_include_paths=[str(CSRC)],
             extra_cflags=["-O3", "-fopenmp"],
             extra_ldflags=["-fopenmp"],
             build_directory=str(tmp),

@@ -89,3 +89,32 @@ def bin_tiles(
     tile_start = torch.zeros(n_tiles + 1, dtype=torch.long, device=device)
     tile_start[1:] = torch.cumsum(torch.bincount(tile, minlength=n_tiles), 0)
     return TileBins(gauss_ids, tile_start, tiles_x, tiles_y, tile_size)
+
+
+def bin_tiles_cpu(
+    means2d: Float[Tensor, "I N 2"],
+    radii: Float[Tensor, "I N 2"],
+    depths: Float[Tensor, "I N"],
+    visible: Bool[Tensor, "I N"],
+    width: int,
+    height: int,
+    tile_size: int = 16,
+) -> TileBins:
+    """``bin_tiles`` in C++ (``csrc/project_cpu.cpp``): the same lists in the same order."""
+    from ._ext import load_extension
+
+    I, N = depths.shape
+    gids, starts = load_extension().bin_tiles(
+        means2d.detach().contiguous(),
+        radii.detach().contiguous(),
+        depths.detach().contiguous(),
+        visible.contiguous(),
+        I,
+        N,
+        width,
+        height,
+        tile_size,
+    )
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    return TileBins(gids, starts, tiles_x, tiles_y, tile_size)

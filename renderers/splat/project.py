@@ -154,3 +154,68 @@ def view_dirs(means: Float[Tensor, "*B N 3"], viewmats: Float[Tensor, "*B C 4 4"
     t = viewmats[..., :3, 3]
     campos = -torch.einsum("...ji,...j->...i", R, t)  # -R^T t, [*B, C, 3]
     return F.normalize(means[..., None, :, :] - campos[..., :, None, :], dim=-1)
+
+
+class _ProjectCPU(torch.autograd.Function):
+    """``project`` by the C++ extension (``csrc/project_cpu.cpp``), with its hand-written backward
+    (gradients reach means, quats and scales; radii and visibility carry none)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, settings):  # type: ignore[override]
+        from ._ext import load_extension
+
+        ext = load_extension()
+        m2d, con, dep, rad, vis = ext.project_forward(means, quats, scales, opacities, viewmats, Ks, *settings)
+        ctx.save_for_backward(means, quats, scales, viewmats, Ks)
+        ctx.settings = settings
+        ctx.mark_non_differentiable(rad, vis)
+        return m2d, con, dep, rad, vis
+
+    @staticmethod
+    def backward(ctx, g_m2d, g_con, g_dep, _g_rad, _g_vis):  # type: ignore[override]
+        from ._ext import load_extension
+
+        means, quats, scales, viewmats, Ks = ctx.saved_tensors
+        empty = means.new_zeros(0)
+        grads = (g.contiguous() if g is not None else empty for g in (g_m2d, g_con, g_dep))
+        gm, gq, gs = load_extension().project_backward(means, quats, scales, viewmats, Ks, *ctx.settings, *grads)
+        return gm, gq, gs, None, None, None, None
+
+
+def project_cpu(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    alpha_min: float = 1.0 / 255.0,
+) -> Projection:
+    """``project`` fused in C++ (CPU tensors; the C++ extension must be loaded). Same results as
+    ``project`` to float rounding; gradients for means, quats and scales only (not the cameras)."""
+    batch, N, C = means.shape[:-2], means.shape[-2], viewmats.shape[-3]
+    Bt = int(torch.Size(batch).numel())
+    flat = (
+        means.reshape(Bt, N, 3).contiguous(),
+        quats.reshape(Bt, N, 4).contiguous(),
+        scales.reshape(Bt, N, 3).contiguous(),
+        opacities.reshape(Bt, N).contiguous(),
+        viewmats.reshape(Bt, C, 4, 4).contiguous(),
+        Ks.reshape(Bt, C, 3, 3).contiguous(),
+    )
+    settings = (width, height, near_plane, far_plane, eps2d, alpha_min)
+    m2d, con, dep, rad, vis = _ProjectCPU.apply(*flat, settings)
+    lead = batch + (C, N)
+    return Projection(
+        m2d.reshape(lead + (2,)),
+        con.reshape(lead + (3,)),
+        dep.reshape(lead),
+        rad.reshape(lead + (2,)),
+        vis.reshape(lead),
+    )

@@ -11,9 +11,9 @@ from torch import Tensor
 
 from . import _checks as ck
 from .autograd import composite, resolve_backend
-from .bin_tiles import TileBins, bin_tiles
+from .bin_tiles import TileBins, bin_tiles, bin_tiles_cpu
 from .composite import BlendParams, Splats
-from .project import Projection, project, view_dirs
+from .project import Projection, project, project_cpu, view_dirs
 from .sh import eval_sh, num_sh_bases
 
 OUTPUTS = ("rgb", "alpha", "depth", "weight_sq", "means2d", "radii", "visible")
@@ -191,7 +191,10 @@ def _prepare(
     chunk_budget,
     backend,
 ) -> Prepared:
-    proj = project(
+    # the C++ projection and binning go with the C++ compositor (CPU); they give no gradients for
+    # the cameras, so cameras that need them take the torch path
+    fused = resolve_backend(backend, means.device) == "cpp" and not (viewmats.requires_grad or Ks.requires_grad)
+    proj = (project_cpu if fused else project)(
         means,
         quats,
         scales,
@@ -206,7 +209,7 @@ def _prepare(
         alpha_min=alpha_min,
     )
     I = C * int(torch.Size(batch).numel())
-    bins = bin_tiles(
+    bins = (bin_tiles_cpu if fused else bin_tiles)(
         proj.means2d.detach().reshape(I, N, 2),
         proj.radii.reshape(I, N, 2),
         proj.depths.detach().reshape(I, N),

@@ -13,6 +13,8 @@
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
+#include "splat_cpu.h"
+
 #include <algorithm>
 #include <cmath>
 #include <vector>
@@ -321,4 +323,7 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tens
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_forward", &composite_forward, "Tiled front-to-back compositing (CPU)");
   m.def("composite_backward", &composite_backward, "Per-pair gradients of the compositor (CPU)");
+  m.def("project_forward", &project_forward, "EWA projection, radii and culling (CPU)");
+  m.def("project_backward", &project_backward, "Gradients of the projection (CPU)");
+  m.def("bin_tiles", &bin_tiles, "Tile lists in depth order (CPU)");
 }

@@ -1,0 +1,366 @@
+// CPU projection and tile binning of renderers.splat: the same math as project.py and
+// bin_tiles.py, fused per (camera, Gaussian) instead of ~150 small torch operations.
+//
+// project_forward: EWA projection (OpenCV camera, 1.3 tan-fov clamp of the Jacobian, eps2d
+//   dilation, det(Sigma') as a c - b^2 = |t1 x t2|^2 + eps2d (a + c - eps2d)), opacity-aware
+//   radii and culling. Outputs means2d, conics, depths, radii, visible.
+// project_backward: gradients of means, quats and scales from those of means2d, conics and
+//   depths (radii and visibility carry none), summed over the cameras of each Gaussian. It is
+//   the derivative of exactly the forward formula, clamp branches included (checked against
+//   torch autograd through project.py in tests/test_project.py).
+// bin_tiles: every visible Gaussian listed in each tile its box touches, each tile's list in
+//   (depth, id) order: the order of bin_tiles.py's stable sorts.
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <vector>
+
+#include "splat_cpu.h"
+
+namespace {
+
+struct ProjSettings {
+  double near_plane, far_plane, eps2d, alpha_min;
+  int64_t width, height;
+};
+
+template <typename T>
+struct Quat {
+  T w, x, y, z, norm;
+  bool ok;
+};
+
+template <typename T>
+Quat<T> normalise(const T* q) {
+  Quat<T> r;
+  r.norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  r.ok = r.norm > T(1e-12);
+  if (r.ok) {
+    r.w = q[0] / r.norm; r.x = q[1] / r.norm; r.y = q[2] / r.norm; r.z = q[3] / r.norm;
+  } else {
+    r.w = 1; r.x = r.y = r.z = 0;
+  }
+  return r;
+}
+
+template <typename T>
+void rotmat(const Quat<T>& q, T R[9]) {
+  const T w = q.w, x = q.x, y = q.y, z = q.z;
+  R[0] = 1 - 2 * (y * y + z * z); R[1] = 2 * (x * y - w * z); R[2] = 2 * (x * z + w * y);
+  R[3] = 2 * (x * y + w * z); R[4] = 1 - 2 * (x * x + z * z); R[5] = 2 * (y * z - w * x);
+  R[6] = 2 * (x * z - w * y); R[7] = 2 * (y * z + w * x); R[8] = 1 - 2 * (x * x + y * y);
+}
+
+// Everything the forward computes for one (camera, Gaussian), kept for the backward.
+template <typename T>
+struct Local {
+  T R[9], t[3], fx, fy, cx, cy;  // camera
+  T x, y, z, zs;                 // camera-space mean; zs = z when valid, else 1
+  bool valid, in_x, in_y;        // z within the planes; x/zs, y/zs inside the Jacobian clamp
+  T cxv, cyv;                    // the clamped x/zs, y/zs
+  T WM[9];                       // R_view R_q diag(s)
+  T J00, J02, J11, J12;
+  T t1[3], t2[3], a, b, c, det;
+};
+
+template <typename T>
+void project_one(const T* mu, const T* M, const T* V, const T* K, const ProjSettings& s, Local<T>& L) {
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) L.R[3 * i + j] = V[4 * i + j];
+    L.t[i] = V[4 * i + 3];
+  }
+  L.fx = K[0]; L.fy = K[4]; L.cx = K[2]; L.cy = K[5];
+  L.x = L.R[0] * mu[0] + L.R[1] * mu[1] + L.R[2] * mu[2] + L.t[0];
+  L.y = L.R[3] * mu[0] + L.R[4] * mu[1] + L.R[5] * mu[2] + L.t[1];
+  L.z = L.R[6] * mu[0] + L.R[7] * mu[1] + L.R[8] * mu[2] + L.t[2];
+  L.valid = L.z > T(s.near_plane) && L.z < T(s.far_plane);
+  L.zs = L.valid ? L.z : T(1);
+  const T tanx = T(0.5) * T(s.width) / L.fx, tany = T(0.5) * T(s.height) / L.fy;
+  const T lox = -(L.cx / L.fx + T(0.3) * tanx), hix = (T(s.width) - L.cx) / L.fx + T(0.3) * tanx;
+  const T loy = -(L.cy / L.fy + T(0.3) * tany), hiy = (T(s.height) - L.cy) / L.fy + T(0.3) * tany;
+  const T rx = L.x / L.zs, ry = L.y / L.zs;
+  L.in_x = rx >= lox && rx <= hix;  // torch.clamp passes the gradient on the closed interval
+  L.in_y = ry >= loy && ry <= hiy;
+  L.cxv = std::min(std::max(rx, lox), hix);
+  L.cyv = std::min(std::max(ry, loy), hiy);
+  const T tx = L.zs * L.cxv, ty = L.zs * L.cyv, z2 = L.zs * L.zs;
+  L.J00 = L.fx / L.zs; L.J02 = -L.fx * tx / z2; L.J11 = L.fy / L.zs; L.J12 = -L.fy * ty / z2;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      L.WM[3 * i + j] = L.R[3 * i] * M[j] + L.R[3 * i + 1] * M[3 + j] + L.R[3 * i + 2] * M[6 + j];
+  for (int j = 0; j < 3; ++j) {
+    L.t1[j] = L.J00 * L.WM[j] + L.J02 * L.WM[6 + j];
+    L.t2[j] = L.J11 * L.WM[3 + j] + L.J12 * L.WM[6 + j];
+  }
+  const T eps = T(s.eps2d);
+  L.a = L.t1[0] * L.t1[0] + L.t1[1] * L.t1[1] + L.t1[2] * L.t1[2] + eps;
+  L.c = L.t2[0] * L.t2[0] + L.t2[1] * L.t2[1] + L.t2[2] * L.t2[2] + eps;
+  L.b = L.t1[0] * L.t2[0] + L.t1[1] * L.t2[1] + L.t1[2] * L.t2[2];
+  const T c0 = L.t1[1] * L.t2[2] - L.t1[2] * L.t2[1];
+  const T c1 = L.t1[2] * L.t2[0] - L.t1[0] * L.t2[2];
+  const T c2 = L.t1[0] * L.t2[1] - L.t1[1] * L.t2[0];
+  L.det = (c0 * c0 + c1 * c1 + c2 * c2) + eps * (L.a + L.c - eps);
+}
+
+// M = R(q) diag(s) of Gaussian n, row-major 3x3.
+template <typename T>
+void factor(const T* q, const T* sc, T M[9], T Rq[9], Quat<T>& qn) {
+  qn = normalise(q);
+  rotmat(qn, Rq);
+  for (int i = 0; i < 3; ++i)
+    for (int k = 0; k < 3; ++k) M[3 * i + k] = Rq[3 * i + k] * sc[k];
+}
+
+template <typename T>
+void forward_impl(const torch::Tensor& means, const torch::Tensor& quats, const torch::Tensor& scales,
+                  const torch::Tensor& opac, const torch::Tensor& viewmats, const torch::Tensor& Ks,
+                  const ProjSettings& s, torch::Tensor& m2d, torch::Tensor& con, torch::Tensor& dep,
+                  torch::Tensor& rad, torch::Tensor& vis) {
+  const int64_t Bt = means.size(0), N = means.size(1), C = viewmats.size(1);
+  const T* pm = means.data_ptr<T>();
+  const T* pq = quats.data_ptr<T>();
+  const T* ps = scales.data_ptr<T>();
+  const T* po = opac.data_ptr<T>();
+  const T* pv = viewmats.data_ptr<T>();
+  const T* pk = Ks.data_ptr<T>();
+  T* om = m2d.data_ptr<T>();
+  T* oc = con.data_ptr<T>();
+  T* oz = dep.data_ptr<T>();
+  T* orr = rad.data_ptr<T>();
+  bool* ov = vis.data_ptr<bool>();
+  const T amin = T(s.alpha_min);
+  at::parallel_for(0, Bt * N, 256, [&](int64_t g0, int64_t g1) {
+    Local<T> L;
+    T M[9], Rq[9];
+    Quat<T> qn;
+    for (int64_t g = g0; g < g1; ++g) {
+      const int64_t b = g / N, n = g % N;
+      factor(pq + 4 * g, ps + 3 * g, M, Rq, qn);
+      const T o = po[g];
+      const T ratio = o >= amin ? o / amin : T(1);
+      const T ext = std::sqrt(T(2) * std::log(ratio));
+      for (int64_t c = 0; c < C; ++c) {
+        const int64_t bc = b * C + c, q = bc * N + n;
+        project_one(pm + 3 * g, M, pv + 16 * bc, pk + 9 * bc, s, L);
+        const T u = L.fx * L.x / L.zs + L.cx, v = L.fy * L.y / L.zs + L.cy;
+        const T A = L.c / L.det, B = -L.b / L.det, Cc = L.a / L.det;
+        T rx = ext * std::sqrt(L.a), ry = ext * std::sqrt(L.c);
+        const bool inside = (u + rx > 0) && (u - rx < T(s.width)) && (v + ry > 0) && (v - ry < T(s.height));
+        const bool finite = std::isfinite(A) && std::isfinite(B) && std::isfinite(Cc);
+        const bool visible = L.valid && (o >= amin) && inside && finite;
+        if (!visible) rx = ry = 0;
+        om[2 * q] = u; om[2 * q + 1] = v;
+        oc[3 * q] = A; oc[3 * q + 1] = B; oc[3 * q + 2] = Cc;
+        oz[q] = L.z;
+        orr[2 * q] = rx; orr[2 * q + 1] = ry;
+        ov[q] = visible;
+      }
+    }
+  });
+}
+
+template <typename T>
+void backward_impl(const torch::Tensor& means, const torch::Tensor& quats, const torch::Tensor& scales,
+                   const torch::Tensor& viewmats, const torch::Tensor& Ks, const ProjSettings& s,
+                   const torch::Tensor& g_m2d, const torch::Tensor& g_con, const torch::Tensor& g_dep,
+                   torch::Tensor& g_means, torch::Tensor& g_quats, torch::Tensor& g_scales) {
+  const int64_t Bt = means.size(0), N = means.size(1), C = viewmats.size(1);
+  const T* pm = means.data_ptr<T>();
+  const T* pq = quats.data_ptr<T>();
+  const T* ps = scales.data_ptr<T>();
+  const T* pv = viewmats.data_ptr<T>();
+  const T* pk = Ks.data_ptr<T>();
+  const T* gu = g_m2d.numel() ? g_m2d.data_ptr<T>() : nullptr;
+  const T* gk = g_con.numel() ? g_con.data_ptr<T>() : nullptr;
+  const T* gz = g_dep.numel() ? g_dep.data_ptr<T>() : nullptr;
+  T* oM = g_means.data_ptr<T>();
+  T* oQ = g_quats.data_ptr<T>();
+  T* oS = g_scales.data_ptr<T>();
+  at::parallel_for(0, Bt * N, 256, [&](int64_t g0, int64_t g1) {
+    Local<T> L;
+    T M[9], Rq[9];
+    Quat<T> qn;
+    for (int64_t g = g0; g < g1; ++g) {
+      const int64_t b = g / N, n = g % N;
+      factor(pq + 4 * g, ps + 3 * g, M, Rq, qn);
+      T gM[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+      T gmu[3] = {0, 0, 0};
+      for (int64_t c = 0; c < C; ++c) {
+        const int64_t bc = b * C + c, q = bc * N + n;
+        project_one(pm + 3 * g, M, pv + 16 * bc, pk + 9 * bc, s, L);
+        T gx = 0, gy = 0, gzs = 0, gzr = gz ? gz[q] : T(0);
+        if (gu) {  // means2d = (fx x / zs + cx, fy y / zs + cy)
+          gx += gu[2 * q] * L.fx / L.zs;
+          gy += gu[2 * q + 1] * L.fy / L.zs;
+          gzs -= (gu[2 * q] * L.fx * L.x + gu[2 * q + 1] * L.fy * L.y) / (L.zs * L.zs);
+        }
+        if (gk) {  // conic = (c, -b, a) / det with det = a c - b^2
+          const T gA = gk[3 * q], gB = gk[3 * q + 1], gC = gk[3 * q + 2];
+          const T gdet = -(gA * L.c - gB * L.b + gC * L.a) / (L.det * L.det);
+          const T ga = gC / L.det + gdet * L.c;
+          const T gc = gA / L.det + gdet * L.a;
+          const T gb = -gB / L.det - T(2) * L.b * gdet;
+          T gt1[3], gt2[3];
+          for (int j = 0; j < 3; ++j) {
+            gt1[j] = T(2) * ga * L.t1[j] + gb * L.t2[j];
+            gt2[j] = T(2) * gc * L.t2[j] + gb * L.t1[j];
+          }
+          // t1 = J00 WM0 + J02 WM2, t2 = J11 WM1 + J12 WM2 (WMi: rows)
+          T gWM[9];
+          T gJ00 = 0, gJ02 = 0, gJ11 = 0, gJ12 = 0;
+          for (int j = 0; j < 3; ++j) {
+            gWM[j] = L.J00 * gt1[j];
+            gWM[3 + j] = L.J11 * gt2[j];
+            gWM[6 + j] = L.J02 * gt1[j] + L.J12 * gt2[j];
+            gJ00 += gt1[j] * L.WM[j];
+            gJ02 += gt1[j] * L.WM[6 + j];
+            gJ11 += gt2[j] * L.WM[3 + j];
+            gJ12 += gt2[j] * L.WM[6 + j];
+          }
+          // WM = R M: dM += R^T dWM
+          for (int k = 0; k < 3; ++k)
+            for (int j = 0; j < 3; ++j)
+              gM[3 * k + j] += L.R[k] * gWM[j] + L.R[3 + k] * gWM[3 + j] + L.R[6 + k] * gWM[6 + j];
+          // J00 = fx/zs, J11 = fy/zs, J02 = -fx tx/zs^2, J12 = -fy ty/zs^2 with tx = zs clamp(x/zs)
+          const T z2 = L.zs * L.zs, z3 = z2 * L.zs;
+          const T tx = L.zs * L.cxv, ty = L.zs * L.cyv;
+          gzs += -gJ00 * L.fx / z2 - gJ11 * L.fy / z2;
+          gzs += gJ02 * T(2) * L.fx * tx / z3 + gJ12 * T(2) * L.fy * ty / z3;
+          const T gtx = -gJ02 * L.fx / z2, gty = -gJ12 * L.fy / z2;
+          if (L.in_x) gx += gtx; else gzs += gtx * L.cxv;
+          if (L.in_y) gy += gty; else gzs += gty * L.cyv;
+        }
+        const T gzc = gzr + (L.valid ? gzs : T(0));
+        // (x, y, z) = R mu + t
+        for (int k = 0; k < 3; ++k) gmu[k] += L.R[k] * gx + L.R[3 + k] * gy + L.R[6 + k] * gzc;
+      }
+      for (int k = 0; k < 3; ++k) oM[3 * g + k] = gmu[k];
+      // M = Rq diag(s)
+      const T* sc = ps + 3 * g;
+      T gR[9];
+      for (int k = 0; k < 3; ++k) {
+        oS[3 * g + k] = gM[k] * Rq[k] + gM[3 + k] * Rq[3 + k] + gM[6 + k] * Rq[6 + k];
+        for (int i = 0; i < 3; ++i) gR[3 * i + k] = gM[3 * i + k] * sc[k];
+      }
+      // Rq(w, x, y, z) of the unit quaternion
+      const T w = qn.w, x = qn.x, y = qn.y, z = qn.z;
+      const T gw = 2 * (-z * gR[1] + y * gR[2] + z * gR[3] - x * gR[5] - y * gR[6] + x * gR[7]);
+      const T gxq = 2 * (y * gR[1] + z * gR[2] + y * gR[3] - 2 * x * gR[4] - w * gR[5] + z * gR[6] + w * gR[7] -
+                         2 * x * gR[8]);
+      const T gyq = 2 * (-2 * y * gR[0] + x * gR[1] + w * gR[2] + x * gR[3] + z * gR[5] - w * gR[6] + z * gR[7] -
+                         2 * y * gR[8]);
+      const T gzq = 2 * (-2 * z * gR[0] - w * gR[1] + x * gR[2] + w * gR[3] - 2 * z * gR[4] + y * gR[5] +
+                         x * gR[6] + y * gR[7]);
+      if (qn.ok) {  // q / |q|: d = (g - qn (qn . g)) / |q|
+        const T dot = w * gw + x * gxq + y * gyq + z * gzq;
+        oQ[4 * g] = (gw - w * dot) / qn.norm;
+        oQ[4 * g + 1] = (gxq - x * dot) / qn.norm;
+        oQ[4 * g + 2] = (gyq - y * dot) / qn.norm;
+        oQ[4 * g + 3] = (gzq - z * dot) / qn.norm;
+      } else {
+        for (int k = 0; k < 4; ++k) oQ[4 * g + k] = 0;
+      }
+    }
+  });
+}
+
+template <typename T>
+void tile_box(const T* m, const T* r, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t out[4]) {
+  const T margin = T(1e-3);
+  auto clampi = [](int64_t v, int64_t hi) { return std::min<int64_t>(std::max<int64_t>(v, 0), hi); };
+  out[0] = clampi(int64_t(std::floor((m[0] - r[0] - margin) / T(ts))), tiles_x - 1);
+  out[1] = clampi(int64_t(std::floor((m[0] + r[0] + margin) / T(ts))), tiles_x - 1);
+  out[2] = clampi(int64_t(std::floor((m[1] - r[1] - margin) / T(ts))), tiles_y - 1);
+  out[3] = clampi(int64_t(std::floor((m[1] + r[1] + margin) / T(ts))), tiles_y - 1);
+}
+
+template <typename T>
+std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tensor& rad, const torch::Tensor& dep,
+                                    const torch::Tensor& vis, int64_t I, int64_t N, int64_t width, int64_t height,
+                                    int64_t ts) {
+  const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts, per_img = tiles_x * tiles_y;
+  const int64_t n_tiles = I * per_img;
+  const T* pm = m2d.data_ptr<T>();
+  const T* pr = rad.data_ptr<T>();
+  const T* pz = dep.data_ptr<T>();
+  const bool* pv = vis.data_ptr<bool>();
+  std::vector<int64_t> ids;
+  ids.reserve(I * N);
+  for (int64_t g = 0; g < I * N; ++g)
+    if (pv[g]) ids.push_back(g);
+  std::stable_sort(ids.begin(), ids.end(), [&](int64_t a, int64_t b) { return pz[a] < pz[b]; });
+  auto tile_start = torch::zeros({n_tiles + 1}, torch::kInt64);
+  int64_t* ts_ = tile_start.data_ptr<int64_t>();
+  std::vector<int64_t> boxes(4 * ids.size());
+  for (size_t k = 0; k < ids.size(); ++k) {
+    const int64_t g = ids[k], img = g / N;
+    int64_t* bx = &boxes[4 * k];
+    tile_box(pm + 2 * g, pr + 2 * g, ts, tiles_x, tiles_y, bx);
+    for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
+      for (int64_t tx = bx[0]; tx <= bx[1]; ++tx) ++ts_[img * per_img + ty * tiles_x + tx + 1];
+  }
+  for (int64_t t = 0; t < n_tiles; ++t) ts_[t + 1] += ts_[t];
+  auto gauss_ids = torch::empty({ts_[n_tiles]}, torch::kInt64);
+  int64_t* out = gauss_ids.data_ptr<int64_t>();
+  std::vector<int64_t> cursor(ts_, ts_ + n_tiles);
+  for (size_t k = 0; k < ids.size(); ++k) {  // depth order: each tile's list comes out sorted
+    const int64_t g = ids[k], img = g / N;
+    const int64_t* bx = &boxes[4 * k];
+    for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
+      for (int64_t tx = bx[0]; tx <= bx[1]; ++tx) out[cursor[img * per_img + ty * tiles_x + tx]++] = g;
+  }
+  return {gauss_ids, tile_start};
+}
+
+ProjSettings settings(int64_t width, int64_t height, double near_plane, double far_plane, double eps2d,
+                      double alpha_min) {
+  return ProjSettings{near_plane, far_plane, eps2d, alpha_min, width, height};
+}
+
+}  // namespace
+
+std::vector<torch::Tensor> project_forward(const torch::Tensor& means, const torch::Tensor& quats,
+                                           const torch::Tensor& scales, const torch::Tensor& opac,
+                                           const torch::Tensor& viewmats, const torch::Tensor& Ks, int64_t width,
+                                           int64_t height, double near_plane, double far_plane, double eps2d,
+                                           double alpha_min) {
+  const int64_t Bt = means.size(0), N = means.size(1), C = viewmats.size(1);
+  auto opts = means.options();
+  auto m2d = torch::empty({Bt, C, N, 2}, opts);
+  auto con = torch::empty({Bt, C, N, 3}, opts);
+  auto dep = torch::empty({Bt, C, N}, opts);
+  auto rad = torch::empty({Bt, C, N, 2}, opts);
+  auto vis = torch::empty({Bt, C, N}, opts.dtype(torch::kBool));
+  const auto s = settings(width, height, near_plane, far_plane, eps2d, alpha_min);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
+    forward_impl<scalar_t>(means, quats, scales, opac, viewmats, Ks, s, m2d, con, dep, rad, vis);
+  });
+  return {m2d, con, dep, rad, vis};
+}
+
+std::vector<torch::Tensor> project_backward(const torch::Tensor& means, const torch::Tensor& quats,
+                                            const torch::Tensor& scales, const torch::Tensor& viewmats,
+                                            const torch::Tensor& Ks, int64_t width, int64_t height,
+                                            double near_plane, double far_plane, double eps2d, double alpha_min,
+                                            const torch::Tensor& g_m2d, const torch::Tensor& g_con,
+                                            const torch::Tensor& g_dep) {
+  auto gm = torch::empty_like(means), gq = torch::empty_like(quats), gs = torch::empty_like(scales);
+  const auto s = settings(width, height, near_plane, far_plane, eps2d, alpha_min);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
+    backward_impl<scalar_t>(means, quats, scales, viewmats, Ks, s, g_m2d, g_con, g_dep, gm, gq, gs);
+  });
+  return {gm, gq, gs};
+}
+
+std::vector<torch::Tensor> bin_tiles(const torch::Tensor& m2d, const torch::Tensor& rad, const torch::Tensor& dep,
+                                     const torch::Tensor& vis, int64_t I, int64_t N, int64_t width, int64_t height,
+                                     int64_t tile_size) {
+  std::vector<torch::Tensor> out;
+  AT_DISPATCH_FLOATING_TYPES(m2d.scalar_type(), "bin_tiles", [&] {
+    out = bin_impl<scalar_t>(m2d, rad, dep, vis, I, N, width, height, tile_size);
+  });
+  return out;
+}

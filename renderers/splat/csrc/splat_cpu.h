@@ -1,0 +1,23 @@
+// Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp
+// (composite_cpu.cpp holds the compositor and the Python bindings).
+#pragma once
+#include <torch/extension.h>
+
+#include <vector>
+
+std::vector<torch::Tensor> project_forward(const torch::Tensor& means, const torch::Tensor& quats,
+                                           const torch::Tensor& scales, const torch::Tensor& opac,
+                                           const torch::Tensor& viewmats, const torch::Tensor& Ks, int64_t width,
+                                           int64_t height, double near_plane, double far_plane, double eps2d,
+                                           double alpha_min);
+
+std::vector<torch::Tensor> project_backward(const torch::Tensor& means, const torch::Tensor& quats,
+                                            const torch::Tensor& scales, const torch::Tensor& viewmats,
+                                            const torch::Tensor& Ks, int64_t width, int64_t height,
+                                            double near_plane, double far_plane, double eps2d, double alpha_min,
+                                            const torch::Tensor& g_m2d, const torch::Tensor& g_con,
+                                            const torch::Tensor& g_dep);
+
+std::vector<torch::Tensor> bin_tiles(const torch::Tensor& m2d, const torch::Tensor& rad, const torch::Tensor& dep,
+                                     const torch::Tensor& vis, int64_t I, int64_t N, int64_t width, int64_t height,
+                                     int64_t tile_size);

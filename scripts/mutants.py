@@ -1,0 +1,158 @@
+"""Mutation test of the renderer suite: apply one plausible renderer bug at a time to a copy of
+the project and check that the renderer tests catch it (fail).
+
+    .venv/bin/python scripts/mutants.py [--only NAME ...] [--list]      (make mutants)
+
+Each mutation replaces one exact snippet (it must occur exactly once, so a refactor that moves
+the code makes this script fail loudly instead of testing nothing). C++ mutations rebuild the
+extension in the copy (about a minute each). Exit code 0 when every mutation is caught.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TESTS = [
+    "tests/test_sh.py",
+    "tests/test_project.py",
+    "tests/test_bin_tiles.py",
+    "tests/test_composite.py",
+    "tests/test_rasterize.py",
+    "tests/test_gradcheck.py",
+]
+"""The renderer suite (the gsplat peer test is left out on purpose: the oracles must not need it)."""
+
+
+@dataclass(frozen=True)
+class Mutation:
+    name: str
+    file: str
+    old: str
+    new: str
+    why: str
+
+
+MUTATIONS = [
+    Mutation("sh-sign-degree-2", "renderers/splat/sh.py", "C2[1] * y * z", "-C2[1] * y * z",
+             "flips the sign of one degree-2 basis function"),
+    Mutation("sh-sign-degree-3", "renderers/splat/sh.py", "C3[5] * z * (xx - yy)", "C3[5] * z * (yy - xx)",
+             "flips the sign of one degree-3 basis function"),
+    Mutation("naive-det-torch", "renderers/splat/project.py",
+             "det = (cross * cross).sum(-1) + eps2d * (a + c - eps2d)", "det = a * c - b * b",
+             "det(Sigma') as a difference of two large numbers (torch projection)"),
+    Mutation("naive-det-cpp", "renderers/splat/csrc/project_cpu.cpp",
+             "L.det = (c0 * c0 + c1 * c1 + c2 * c2) + eps * (L.a + L.c - eps);", "L.det = L.a * L.c - L.b * L.b;",
+             "det(Sigma') as a difference of two large numbers (C++ projection)"),
+    Mutation("conic-b-sign", "renderers/splat/project.py", "conics = torch.stack([c / det, -b / det, a / det], dim=-1)",
+             "conics = torch.stack([c / det, b / det, a / det], dim=-1)", "the off-diagonal conic term's sign"),
+    Mutation("eps2d-one-axis", "renderers/splat/project.py", "c = (t2 * t2).sum(-1) + eps2d", "c = (t2 * t2).sum(-1)",
+             "the 2D dilation added to one axis only"),
+    Mutation("jacobian-clamp-off", "renderers/splat/project.py",
+             "tx = zs * torch.clamp(x / zs, min=-(cx / fx + 0.3 * tan_fovx), max=(width - cx) / fx + 0.3 * tan_fovx)",
+             "tx = x", "no tan-fov clamp of the Jacobian (x)"),
+    Mutation("quat-unnormalised", "renderers/splat/project.py", "return quat_to_rotmat(normalize_quats(quats)) * scales[..., None, :]",
+             "return quat_to_rotmat(quats) * scales[..., None, :]", "quaternions used without normalising"),
+    Mutation("radius-3-sigma", "renderers/splat/project.py", "extend = torch.sqrt(2.0 * torch.log(ratio))",
+             "extend = torch.full_like(ratio, 3.0)", "a fixed 3-sigma screen radius instead of the opacity-aware one"),
+    Mutation("depth-sort-reversed", "renderers/splat/bin_tiles.py",
+             "order = torch.sort(depths.reshape(-1)[ids], stable=True).indices",
+             "order = torch.sort(depths.reshape(-1)[ids], stable=True, descending=True).indices",
+             "tiles composited back to front"),
+    Mutation("clamp-gradient-torch", "renderers/splat/composite.py", "return _ChunkState(dx, dy, G, alpha, unclamped & (alpha > 0), T, w, T_final)",
+             "return _ChunkState(dx, dy, G, alpha, alpha > 0, T, w, T_final)",
+             "the gradient let through the alpha_max clamp (torch compositor)"),
+    Mutation("clamp-gradient-cpp", "renderers/splat/csrc/composite_cpu.cpp", "            if (unclamped) {\n              const scalar_t behind",
+             "            if (true) {\n              const scalar_t behind",
+             "the gradient let through the alpha_max clamp (C++ compositor)"),
+    Mutation("early-stop-adds", "renderers/splat/composite.py", "kept = T_incl >= blend.t_min", "kept = T_incl >= 0",
+             "no early termination at T < t_min (torch compositor)"),
+    Mutation("early-stop-cpp", "renderers/splat/csrc/composite_cpu.cpp",
+             "            if (nT < tmin) { done[p] = 1; ++n_done; continue; }\n            const scalar_t w = alpha * T[p];\n            for (int64_t d = 0; d < D; ++d) acc",
+             "            if (nT < scalar_t(-1)) { done[p] = 1; ++n_done; continue; }\n            const scalar_t w = alpha * T[p];\n            for (int64_t d = 0; d < D; ++d) acc",
+             "no early termination at T < t_min (C++ forward)"),
+    Mutation("alpha-floor-off", "renderers/splat/composite.py",
+             "alpha = torch.where(alpha >= blend.alpha_min, alpha, torch.zeros_like(alpha))", "",
+             "Gaussians below alpha_min not skipped (torch compositor)"),
+    Mutation("pixel-centre", "renderers/splat/project.py", "means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)",
+             "means2d = torch.stack([fx * x / zs + cx - 0.5, fy * y / zs + cy - 0.5], dim=-1)",
+             "pixel centres at integers instead of +0.5"),
+]  # fmt: skip
+
+
+def copy_project(dst: Path) -> None:
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    files += subprocess.run(
+        ["git", "ls-files", "--others", "--exclude-standard"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.split()
+    for f in files:
+        src = ROOT / f
+        if src.is_file():
+            (dst / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dst / f)
+
+
+def apply(root: Path, m: Mutation) -> None:
+    path = root / m.file
+    text = path.read_text()
+    n = text.count(m.old)
+    if n != 1:
+        raise SystemExit(
+            f"mutants: {m.name}: the snippet occurs {n} times in {m.file} (expected once); update the list"
+        )
+    path.write_text(text.replace(m.old, m.new))
+
+
+def run_one(m: Mutation, python: str, timeout: int) -> tuple[bool, float, str]:
+    with tempfile.TemporaryDirectory(prefix=f"mutant-{m.name}-") as tmp:
+        root = Path(tmp)
+        copy_project(root)
+        apply(root, m)
+        env = dict(
+            os.environ,
+            PYTHONPATH=str(root),
+            GDBENCH_CACHE=os.environ.get("GDBENCH_CACHE", str(Path.home() / ".cache" / "gdbench")),
+        )
+        cmd = [python, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *TESTS]
+        t0 = time.perf_counter()
+        try:
+            r = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=timeout)
+            caught, tail = r.returncode != 0, (r.stdout + r.stderr).strip().splitlines()[-1:]
+        except subprocess.TimeoutExpired:
+            caught, tail = True, ["timed out (counted as caught)"]
+        return caught, time.perf_counter() - t0, tail[0] if tail else ""
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--only", nargs="*", default=None, help="run only these mutations")
+    ap.add_argument("--list", action="store_true", help="list the mutations and exit")
+    ap.add_argument("--timeout", type=int, default=1200)
+    args = ap.parse_args(argv)
+    todo = [m for m in MUTATIONS if args.only is None or m.name in args.only]
+    if args.list:
+        for m in MUTATIONS:
+            print(f"{m.name:22s} {m.file}: {m.why}")
+        return 0
+    python = sys.executable
+    survived = []
+    print(f"mutants: {len(todo)} mutations against {' '.join(TESTS)}")
+    for m in todo:
+        caught, seconds, tail = run_one(m, python, args.timeout)
+        print(f"  {'caught  ' if caught else 'SURVIVED'} {m.name:22s} ({seconds:5.0f} s) {m.why}: {tail}", flush=True)
+        if not caught:
+            survived.append(m.name)
+    print(f"mutants: {len(todo) - len(survived)}/{len(todo)} caught" + (f"; survived: {survived}" if survived else ""))
+    return 1 if survived else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
