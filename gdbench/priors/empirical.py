@@ -98,7 +98,7 @@ class EmpiricalPrior:
         banks: dict[str, Bank] | None = None,
         threshold: float = 0.5,
         fov_step: float = 0.5,
-        cache_levels: int = 64,
+        cache_bytes: int = 4 << 30,
         front_bias: float = 0.0,
         variants: int = 1,
     ):
@@ -110,8 +110,8 @@ class EmpiricalPrior:
             raise ValueError(f"depth_weight: expected a non-negative weight, got {depth_weight}")
         if not fov_step > 0:
             raise ValueError(f"fov_step: expected a positive step in degrees, got {fov_step}")
-        if cache_levels < 1:
-            raise ValueError(f"cache_levels: expected at least 1, got {cache_levels}")
+        if cache_bytes < 1:
+            raise ValueError(f"cache_bytes: expected a positive size, got {cache_bytes}")
         if not (math.isfinite(front_bias) and front_bias >= 0):
             raise ValueError(f"front_bias: expected kappa >= 0, got {front_bias}")
         self.front_bias = front_bias
@@ -128,7 +128,7 @@ class EmpiricalPrior:
         self.matcher = CaptionMatcher(sorted(set(ASSETS) | set(self._banks)), threshold)
         self.sigmas = ve_sigmas_from_betas().float()
         self.fov_step = fov_step
-        self.cache_levels = cache_levels
+        self.cache_bytes = cache_bytes
         self._levels: OrderedDict[tuple, _Level] = OrderedDict()
 
     def encode(self, prompt: str) -> EmpiricalCond:
@@ -227,7 +227,8 @@ class EmpiricalPrior:
         return out.to(x.dtype).reshape(B, H, W, 3)
 
     def _level(self, cond: EmpiricalCond, H: int, W: int, fovy: float | None, with_depth: bool) -> _Level:
-        """The bank zoomed to ``fovy`` at H x W, flattened (LRU cache of ``cache_levels``)."""
+        """The bank zoomed to ``fovy`` at H x W, flattened (LRU cache of at most ``cache_bytes``: all 61
+        levels of the default 64 px bank take 1.1 GB, of three variants 3.2 GB)."""
         key = (cond.caption, id(cond.images), H, W, fovy)
         level = self._levels.get(key)
         if level is not None and (level.depth is not None or not with_depth):
@@ -246,7 +247,8 @@ class EmpiricalPrior:
             Z = Z.reshape(V, -1).float().contiguous()
         level = _Level(images.reshape(V, -1).float().contiguous(), Z)
         self._levels[key] = level
-        while len(self._levels) > self.cache_levels:
+        size = lambda lv: lv.images.nbytes + (lv.depth.nbytes if lv.depth is not None else 0)  # noqa: E731
+        while len(self._levels) > 1 and sum(size(v) for v in self._levels.values()) > self.cache_bytes:
             self._levels.popitem(last=False)
         return level
 

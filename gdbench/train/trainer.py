@@ -253,6 +253,7 @@ def render_for_prior(ctx: Context, state: TrainState, views: Views):
         sh_degree=None if latent else cfg.sh_degree,
         background=ctx.latent_background if latent else ctx.background,
         outputs=("rgb", "alpha", "means2d", "visible") + (("depth",) if depth else ()),
+        check_values=False,  # the parameters are checked after every update (apply_update)
     )
     out.means2d.retain_grad()
     if latent:
@@ -314,7 +315,7 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
     # mean over pixels and channels: Adam does not care about the scale, but densification thresholds
     # on screen-space gradients then mean what they mean in 3DGS (per-pixel-averaged losses)
     (-(cfg.weight * views.weight) * (score * x).mean()).backward()
-    if not all(bool(torch.isfinite(p[k].grad).all()) for k in PARAM_NAMES if p[k].grad is not None):
+    if not _all_finite([p[k].grad for k in PARAM_NAMES if p[k].grad is not None]):
         state.bad_steps += 1
         if state.bad_steps > cfg.max_bad_steps:
             raise TrainingDiverged(
@@ -327,7 +328,7 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
         if opt_group["name"] == "means":
             opt_group["lr"] = _means_lr(cfg, state.step)
     state.optimizer.step()
-    if not all(bool(torch.isfinite(p[k]).all()) for k in PARAM_NAMES):
+    if not _all_finite([p[k] for k in PARAM_NAMES]):
         raise TrainingDiverged(
             f"parameters became non-finite at step {state.step + 1}; lower the learning rates "
             "or the guidance weight. The last checkpoint is intact; nothing was written."
@@ -338,6 +339,14 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
         p, state.optimizer, state.densify, state.step + 1, generator=state.streams["densify"]
     )
     return {k: v for k, v in info.items() if v}
+
+
+def _all_finite(tensors: list[Tensor]) -> bool:
+    """Whether every entry is finite, in one check: a sum is NaN or Inf as soon as one entry is
+    (or, for huge finite entries, when it overflows: then the step is skipped, which is safe)."""
+    if not tensors:
+        return True
+    return bool(torch.isfinite(torch.stack([t.detach().sum(dtype=torch.float64) for t in tensors])).all())
 
 
 def train_step(state: TrainState, ctx: Context, *, update: bool = True) -> dict:

@@ -385,6 +385,7 @@ def rasterize(
     tile_size: int = 16,
     chunk_budget: int = 1 << 22,
     backend: str = "auto",
+    check_values: bool = True,
 ) -> RenderOutput:
     """Render N 3D Gaussians into C cameras with the 3DGS image formation model.
 
@@ -400,24 +401,27 @@ def rasterize(
     ``chunk_budget`` bounds the elements of one compositing chunk of the torch backend
     (memory, not results). ``backend`` picks the compositor: "cpp" (C++/OpenMP, CPU),
     "torch" (any device) or "auto" (cpp on CPU when it builds, else torch); the two agree
-    to float rounding (tested).
+    to float rounding (tested). ``check_values=False`` skips the value scans (finite values,
+    ranges, rigid cameras) for inputs the caller has checked (a training loop checks its
+    parameters after every update); types and shapes are always checked.
     """
     extra = {"colors": colors} | ({"background": background} if background is not None else {})
     batch, N, C = _check_geometry(means, quats, scales, opacities, viewmats, Ks, width, height, extra)
     D, per_camera = _check_colors(colors, background, batch, N, C, sh_degree)
-    _check_values(
-        {
-            "means": means,
-            "quats": quats,
-            "scales": scales,
-            "opacities": opacities,
-            "viewmats": viewmats,
-            "Ks": Ks,
-            **extra,
-        },
-        scales,
-        opacities,
-    )
+    if check_values:
+        _check_values(
+            {
+                "means": means,
+                "quats": quats,
+                "scales": scales,
+                "opacities": opacities,
+                "viewmats": viewmats,
+                "Ks": Ks,
+                **extra,
+            },
+            scales,
+            opacities,
+        )
     outputs = check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, outputs)
     ck.check_size("tile_size", tile_size)
     ck.check_size("chunk_budget", chunk_budget)
