@@ -334,6 +334,8 @@ class Sweep:
     """Presets of the instance setting (default: all of --presets)."""
     colmap_presets: tuple[str, ...] = ()
     """Score only these presets with COLMAP (default: all, when --colmap)."""
+    colmap_settings: tuple[str, ...] = ()
+    """Score with COLMAP only in these settings (default: all, when --colmap)."""
     steps: int = 2000
     """Training steps per cell."""
     out: Path = Path("runs/sweep")
@@ -371,6 +373,7 @@ def run_sweep(cmd: Sweep) -> dict:
         settings=list(cmd.settings),
         setting_presets={k: list(v) for k, v in per.items() if v},
         colmap_presets=list(cmd.colmap_presets) or None,
+        colmap_settings=list(cmd.colmap_settings) or None,
     )
     print((Path(cmd.out) / "summary.md").read_text())
     return {"cells": len(rows), "out": str(cmd.out)}

@@ -175,11 +175,13 @@ def sweep(
     settings: list[str] | None = None,
     setting_presets: dict[str, list[str]] | None = None,
     colmap_presets: list[str] | None = None,
+    colmap_settings: list[str] | None = None,
 ) -> list[dict]:
     """Train and score the grid settings x prompts x presets x seeds; returns the rows.
 
     ``setting_presets`` restricts the presets of a setting (default: all ``presets``);
-    ``colmap_presets`` restricts COLMAP scoring to those presets (default: all, when ``colmap``)."""
+    ``colmap_presets`` and ``colmap_settings`` restrict COLMAP scoring (default: every cell, when
+    ``colmap``)."""
     from .sweep_tables import tables
 
     out = Path(out)
@@ -199,7 +201,9 @@ def sweep(
             sd,
             steps,
             str(out),
-            colmap and (colmap_presets is None or p in colmap_presets),
+            colmap
+            and (colmap_presets is None or p in colmap_presets)
+            and (colmap_settings is None or st in colmap_settings),
             colmap_views,
             dict(overrides or {}),
             st,

@@ -19,6 +19,7 @@ true cameras by a similarity (Umeyama on camera centres) and report:
 from __future__ import annotations
 
 import math
+import os
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -57,10 +58,16 @@ def circle_poses(k: int = 100, radius: float = 1.2, elevation: float = 15.0, fov
 
 
 def _import_pycolmap():
+    # COLMAP logs every image it reads to stderr (glog); keep warnings and errors only
+    os.environ.setdefault("GLOG_minloglevel", "1")
     try:
         import pycolmap
     except ImportError as e:
         raise ImportError("COLMAP scoring needs pycolmap: pip install pycolmap==4.2.1 (CPU wheels)") from e
+    try:
+        pycolmap.logging.minloglevel = int(os.environ["GLOG_minloglevel"])
+    except (AttributeError, ValueError):
+        pass
     return pycolmap
 
 

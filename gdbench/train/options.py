@@ -39,9 +39,19 @@ class MethodOptions:
     variants: int | None = None
     """Empirical prior: procedural variants per caption in the bank (1..3): instance ambiguity."""
 
+    densify_start: int | None = None
+    """First step that densifies (default 300: the paper's)."""
+    densify_stop: int | None = None
+    """Last step that densifies (default 1500)."""
+    densify_every: int | None = None
+    """Densify every this many steps (default 50: the paper's)."""
+    densify_reset_every: int | None = None
+    """Opacity reset interval (default 400: the paper's); scale the schedule with --steps."""
+
     def overrides(self) -> dict[str, object]:
         """The set options as TrainConfig overrides (dotted keys for the noise group)."""
         key = {"noise_redraw": "noise.redraw", "noise_ou_beta": "noise.ou_beta", "noise_ratio": "noise.ratio_mode"}
+        key |= {f"densify_{k}": f"densify.{k}" for k in ("start", "stop", "every", "reset_every")}
         return {
             key.get(f.name, f.name): getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None
         }
