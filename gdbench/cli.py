@@ -12,7 +12,8 @@ from typing import Literal
 
 import tyro
 
-from .train.options import MethodOptions
+from .train.config import PRESETS
+from .train.options import MethodOptions, train_options
 
 
 @dataclass
@@ -114,45 +115,36 @@ def run_noise(cmd: Noise) -> dict:
     return stats
 
 
+PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+"""The presets' names, from the one place they are defined (train/config.py)."""
+GenerateTrain = train_options(("prompt", "preset", "out", "progress"))
+"""Every other TrainConfig field as an optional override of the preset."""
+
+
 @dataclass
 class Generate:
-    """Text to a 3D Gaussian scene: score distillation on the embedded CPU prior.
+    """Text to a 3D Gaussian scene: score distillation on the embedded CPU prior (or Stable
+    Diffusion with --prior sd).
 
     Writes scene.ply, turntable.{gif,mp4}, turntable_sheet.png, curves.png, run.json and a
-    checkpoint to --out; an interrupted run resumes from its checkpoint."""
+    checkpoint to --out; an interrupted run resumes from its checkpoint. Every training setting
+    is an option; unset ones keep the preset's value (docs/training.md)."""
 
     prompt: tyro.conf.Positional[str]
     """What to generate: one of the built-in assets' captions or a paraphrase of one."""
-    preset: Literal["gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs"] = "gd"
+    preset: PresetName = "gd"
     """gd: structured noise + VGS (the paper); the others are its ablations and baselines."""
-    steps: int = 2000
     out: Path = Path("runs/duck")
-    seed: int = 0
-    resolution: int = 64
-    """Training render size in pixels."""
-    init: Literal["sphere", "ply", "bank-depth"] = "sphere"
-    init_ply: Path | None = None
-    prior: Literal["empirical", "sd"] = "empirical"
-    """empirical: the embedded CPU prior; sd: Stable Diffusion from --sd-model (docs/stable_diffusion.md)."""
-    sd_model: str = "tiny"
-    """sd: a local diffusers folder or a repo id in the Hugging Face cache (offline), or 'tiny'."""
-    sd_mode: Literal["rgb", "latent"] = "rgb"
-    """sd: rgb renders RGB and encodes it (GaussianDiffusion); latent renders latents (SJC)."""
-    sd_guidance: float = 100.0
-    sd_dtype: Literal["float32", "float16"] = "float32"
-    """sd: weights' precision (float16 on CUDA)."""
-    sd_controlnet: str | None = None
-    """sd: a depth ControlNet folder, used with --depth-conditioning."""
-    depth_conditioning: bool = False
-    semantic_code: bool = False
-    """sd: 3DFuse's semantic code (image, textual inversion, LoRA), saved in the run."""
+    """The run folder."""
     resume: bool = True
     """Continue from --out's checkpoint if there is one."""
     overwrite: bool = False
     """Replace a finished run in --out (its outputs are deleted first)."""
     score: bool = True
-    """Score the result against the asset (PSNR/SSIM at held-out poses) into scores.json."""
+    """Score the result against the asset (PSNR/SSIM and view metrics) into scores.json."""
     progress: bool = True
+    """Show a progress bar."""
+    train: tyro.conf.OmitArgPrefixes[GenerateTrain] = field(default_factory=GenerateTrain)
     method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
 
 
@@ -176,26 +168,8 @@ def run_generate(cmd: Generate) -> dict:
     from .train.config import preset
     from .train.run import train
 
-    cfg = preset(
-        cmd.preset,
-        prompt=cmd.prompt,
-        steps=cmd.steps,
-        out=cmd.out,
-        seed=cmd.seed,
-        resolution=cmd.resolution,
-        init=cmd.init,
-        init_ply=cmd.init_ply,
-        progress=cmd.progress,
-        prior=cmd.prior,
-        sd_model=cmd.sd_model,
-        sd_mode=cmd.sd_mode,
-        sd_guidance=cmd.sd_guidance,
-        sd_dtype=cmd.sd_dtype,
-        sd_controlnet=cmd.sd_controlnet,
-        depth_conditioning=cmd.depth_conditioning,
-        semantic_code=cmd.semantic_code,
-        **cmd.method.overrides(),
-    )
+    overrides = cmd.train.overrides() | cmd.method.overrides()
+    cfg = preset(cmd.preset, prompt=cmd.prompt, out=cmd.out, progress=cmd.progress, **overrides)
     check_generate_memory(cfg)
     r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite)
     summary = {
@@ -312,6 +286,9 @@ def run_score(cmd: Score) -> dict:
     return s
 
 
+SweepTrain = train_options(("prompt", "preset", "out", "progress", "seed", "steps"))
+
+
 @dataclass
 class Sweep:
     """Train and score every (setting, prompt, preset, seed) cell; write cells.csv, summary.csv,
@@ -321,7 +298,7 @@ class Sweep:
 
     prompts: tuple[str, ...] = ("a yellow duck", "a corgi", "a penguin")
     """Prompts (free text; matched to the embedded prior's assets)."""
-    presets: tuple[str, ...] = ("gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs")
+    presets: tuple[str, ...] = tuple(PRESETS)
     """Training presets to compare (see docs/training.md)."""
     seeds: tuple[int, ...] = (0, 1)
     """Seeds per (setting, prompt, preset); cells with one seed and prompt are paired."""
@@ -350,8 +327,9 @@ class Sweep:
     """Score cells with COLMAP consistency (the slow part: ~1 min per cell)."""
     colmap_views: int = 100
     """Views on the circle rendered for COLMAP."""
-    method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
+    train: tyro.conf.OmitArgPrefixes[SweepTrain] = field(default_factory=SweepTrain)
     """Overrides applied to every cell (after its setting's)."""
+    method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
 
 
 def run_sweep(cmd: Sweep) -> dict:
@@ -369,7 +347,7 @@ def run_sweep(cmd: Sweep) -> dict:
         workers=cmd.workers,
         colmap=cmd.colmap,
         colmap_views=cmd.colmap_views,
-        overrides=cmd.method.overrides(),
+        overrides=cmd.train.overrides() | cmd.method.overrides(),
         settings=list(cmd.settings),
         setting_presets={k: list(v) for k, v in per.items() if v},
         colmap_presets=list(cmd.colmap_presets) or None,

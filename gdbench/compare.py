@@ -114,7 +114,9 @@ def run_splat(fx: Fixture, res: Result, truth: torch.Tensor) -> None:
 
 
 def run_gsplat(fx: Fixture, res: Result, truth: torch.Tensor) -> None:
-    from renderers.gsplat_torch import ALPHA_MAX
+    from .backends import get
+
+    ALPHA_MAX = get("gsplat_torch").alpha_max
     from renderers.gsplat_torch import rasterize as gsplat_rasterize
     from renderers.splat import rasterize
 
@@ -247,7 +249,8 @@ BACKENDS: dict[str, Callable] = {
     "mitsuba_volume_analytic": run_volume_analytic,
     "mitsuba_volume_grid": run_volume_grid,
 }
-"""Renderers compared against the reference, written out by hand (Mitsuba joins here)."""
+"""How each registered backend (``gdbench/backends.py``) is compared against the reference:
+the fixture-specific work (settings ladders, error rows), by the registry's names."""
 
 
 def scene_key(backend: str) -> str:
@@ -256,21 +259,10 @@ def scene_key(backend: str) -> str:
 
 
 def available(name: str) -> tuple[bool, str]:
-    """Whether a backend can run on this machine, and if not, what to install."""
-    try:
-        if name == "gsplat_torch":
-            import gsplat.cuda._torch_impl  # noqa: F401
-        elif name.startswith("mitsuba"):
-            from renderers.mitsuba._lib import available as mitsuba_available
+    """Whether a backend can run on this machine, and if not, what to install (the registry's)."""
+    from .backends import get
 
-            return mitsuba_available()
-        elif name == "pyrender_points":
-            from renderers.pyrender_points._lib import available as pyrender_available
-
-            return pyrender_available()
-        return True, ""
-    except ImportError as e:
-        return False, str(e).splitlines()[0]
+    return get(name).available()
 
 
 def compare_scene(fx: Fixture, backends: list[str] | None = None) -> Result:

@@ -189,9 +189,9 @@ class NoiseRenderer:
     def __init__(self, cloud: NoiseCloud, *, v_min: float = 1e-6, cache_size: int = 4):
         if cloud.channels < 1 or len(cloud) < 1:
             raise ValueError("cloud: expected a non-empty noise cloud with at least one channel")
-        from renderers.splat.rasterize import _check_values
+        from renderers.splat._checks import check_values
 
-        _check_values({"cloud.means": cloud.means, "cloud.scales": cloud.scales}, cloud.scales, cloud.opacities)
+        check_values({"cloud.means": cloud.means, "cloud.scales": cloud.scales}, cloud.scales, cloud.opacities)
         self.cloud = cloud
         self.v_min = v_min
         self.cache_size = cache_size

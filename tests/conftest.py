@@ -20,3 +20,16 @@ def compositor(request) -> str:
 
         pytest.skip(f"C++ compositor unavailable: {extension_status()}")
     return request.param
+
+
+@pytest.fixture(params=["splat", "splat_torch", "gsplat_torch", "mitsuba_ellipsoids"])
+def backend(request):
+    """Every registered backend with a rasterize-signature render function (gdbench/backends.py);
+    skipped with the registry's reason where it cannot run here."""
+    from gdbench.backends import get
+
+    b = get(request.param)
+    ok, why = b.available()
+    if not ok:
+        pytest.skip(f"{b.name} unavailable: {why}")
+    return b

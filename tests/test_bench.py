@@ -107,7 +107,7 @@ def test_peer_sweep_reports_each_peer_against_splat_in_the_same_run(tmp_path):
     assert bm_render.main(["--quick", "--inprocess", "--peers", "--out", str(out)]) == 0
     rows = list(csv.DictReader(out.open()))
     ok = {(r["path"], r["n"], r["res"], r["mode"]): r for r in rows if r["status"] == "ok"}
-    peers = [k for k in ok if k[0] == "gsplat-torch"]
+    peers = [k for k in ok if k[0] == "gsplat_torch"]
     assert len(peers) == 2 * 2 * 2
     for k in peers:
         base = ok[("splat", *k[1:])]
@@ -120,7 +120,7 @@ def test_stability_cases_agree_with_the_twin_and_flag_non_finite_renderers(tmp_p
     from gdbench.bench import bm_stability as bs
 
     names = ["anisotropy 1e6", "grazing view: disc edge-on", "fovy 170 deg", "10k Gaussians on one pixel"]
-    rows = bs.run(tmp_path / "stab.csv", ("splat", "splat-torch"), names, progress=False)
+    rows = bs.run(tmp_path / "stab.csv", ("splat", "splat_torch"), names, progress=False)
     assert len(rows) == 8
     for r in rows:
         assert r["status"] == "ok" and r["twin_finite"] and not r["nan_out"] and not r["nan_grad"]

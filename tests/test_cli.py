@@ -61,14 +61,20 @@ def test_generate_then_render(tmp_path):
     from gdbench.scene import GaussianScene
 
     out = tmp_path / "duck"
-    s = main(Generate("A Yellow Duck", steps=3, out=out, resolution=16, score=False, progress=False))
+    from gdbench.cli import GenerateTrain
+
+    s = main(
+        Generate("A Yellow Duck", out=out, score=False, progress=False, train=GenerateTrain(steps=3, resolution=16))
+    )
     assert s["steps"] == 3 and (out / "scene.ply").is_file() and (out / "run.json").is_file()
     scene = GaussianScene.load_ply(out / "scene.ply")
     assert len(scene) == s["gaussians"]
     r = main(Render(out, frames=3, size=32))
     sheet = iio.imread(r["sheet"])
     assert sheet.shape == (32, 96, 3) and sheet.std() > 1  # the grey initial sphere is visible
-    again = main(Generate("A Yellow Duck", steps=3, out=out, resolution=16, score=False, progress=False))
+    again = main(
+        Generate("A Yellow Duck", out=out, score=False, progress=False, train=GenerateTrain(steps=3, resolution=16))
+    )
     assert again["resumed_from"] == 3  # finished run: resumes at its end, trains nothing
 
 

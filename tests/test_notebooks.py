@@ -25,10 +25,10 @@ def small_results(tmp_path_factory):
     from gdbench.sweep_tables import tables
 
     d = tmp_path_factory.mktemp("results")
-    rows = bm_render.sweep(d / "peers.csv", quick=True, inprocess=True, paths=("splat", "gsplat-torch"))
+    rows = bm_render.sweep(d / "peers.csv", quick=True, inprocess=True, paths=("splat", "gsplat_torch"))
     assert any(r.get("time_over_splat") for r in rows)
     bm_error.run(d / "error_vs_runtime.csv", "isotropic", backends=["splat", "pyrender_points"], verbose=False)
-    bm_stability.run(d / "stability.csv", ("splat", "splat-torch"), ["anisotropy 1e6", "fovy 1 deg"], progress=False)
+    bm_stability.run(d / "stability.csv", ("splat", "splat_torch"), ["anisotropy 1e6", "fovy 1 deg"], progress=False)
     # sweep cells: the notebook only reads cells.csv, so these are drawn, not trained
     rng = random.Random(0)
     cells = [

@@ -364,3 +364,23 @@ def test_chunked_backward_matches_the_twin():
     for name, x, y in zip(PARAMS, torch.autograd.grad(cotangent_loss(a, IMAGES), params),
                           torch.autograd.grad(cotangent_loss(b, IMAGES), params)):  # fmt: skip
         torch.testing.assert_close(x, y, rtol=1e-9, atol=1e-11, msg=name)
+
+
+def test_settings_object_and_keywords_are_one_thing():
+    from renderers.splat import RasterSettings
+
+    gs = random_gaussians(50, seed=6)
+    cams = ring_cameras(2, 24, 20)
+    args = (*_args(gs), cams.viewmats, cams.Ks, 24, 20)
+    s = RasterSettings(alpha_max=0.9, eps2d=0.5, tile_size=8)
+    a = rasterize(*args, settings=s)
+    b = rasterize(*args, alpha_max=0.9, eps2d=0.5, tile_size=8)
+    c = rasterize(*args, settings=RasterSettings(alpha_max=0.9), eps2d=0.5, tile_size=8)  # keywords override
+    d = rasterize(*args)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.rgb, c.rgb) and not torch.equal(a.rgb, d.rgb)
+    ref = rasterize_reference(*args, settings=s)
+    torch.testing.assert_close(a.rgb.double(), ref.rgb, **FWD_TOL["rgb"])
+    with pytest.raises(TypeError, match=r"unexpected keyword arguments \['alpha_maximum'\]"):
+        rasterize(*args, alpha_maximum=0.9)
+    with pytest.raises(ValueError, match="t_min"):
+        RasterSettings(t_min=2.0)

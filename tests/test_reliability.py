@@ -246,7 +246,11 @@ def test_generate_prints_the_matched_caption(prior, monkeypatch, capsys, tmp_pat
 
     real = run_mod.make_context
     monkeypatch.setattr(run_mod, "make_context", lambda cfg, p=None: real(cfg, prior))
-    s = main(Generate(CAPTION, steps=2, out=tmp_path / "r", resolution=16, score=False, progress=False))
+    from gdbench.cli import GenerateTrain
+
+    s = main(
+        Generate(CAPTION, out=tmp_path / "r", score=False, progress=False, train=GenerateTrain(steps=2, resolution=16))
+    )
     assert s["caption"] == CAPTION and s["caption_similarity"] == 1.0
     assert f"prompt {CAPTION!r} -> asset {CAPTION!r} (cosine 1.00)" in capsys.readouterr().out
     assert json.loads((tmp_path / "r" / "run.json").read_text())["caption_similarity"] == 1.0

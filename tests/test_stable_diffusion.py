@@ -234,9 +234,10 @@ def test_both_rendering_modes_with_depth_control_and_semantic_code(mode, tmp_pat
 def test_cli_generate_runs_the_sd_prior_and_does_not_score_it_against_an_asset(tmp_path):
     import json
 
-    from gdbench.cli import Generate, main
+    from gdbench.cli import Generate, GenerateTrain, main
 
-    s = main(Generate(prompt=PROMPT, prior="sd", sd_guidance=7.5, steps=2, resolution=32, out=tmp_path, progress=False))
+    train = GenerateTrain(prior="sd", sd_guidance=7.5, steps=2, resolution=32)
+    s = main(Generate(prompt=PROMPT, out=tmp_path, progress=False, train=train))
     assert s["steps"] == 2 and "gt" not in s
     run = json.loads((tmp_path / "run.json").read_text())
     assert run["config"]["prior"] == "sd" and run["config"]["sd_mode"] == "rgb" and run["caption"] is None

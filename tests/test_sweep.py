@@ -199,16 +199,29 @@ def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
 
 
 def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
+    from gdbench.cli import SweepTrain
     from gdbench.train.options import MethodOptions
 
-    opts = MethodOptions(view_prompting="none", noise_redraw="ou", views_per_step=2, noise_ratio="variance")
-    res = main(Sweep(prompts=(PROMPT,), presets=("gd",), seeds=(0,), steps=2, out=tmp_path, colmap=False, method=opts))
+    opts = MethodOptions(noise_redraw="ou", noise_ratio="variance")
+    train = SweepTrain(view_prompting="none", views_per_step=2)
+    res = main(
+        Sweep(
+            prompts=(PROMPT,),
+            presets=("gd",),
+            seeds=(0,),
+            steps=2,
+            out=tmp_path,
+            colmap=False,
+            method=opts,
+            train=train,
+        )
+    )
     cell = tmp_path / "cells" / "easy" / "a_yellow_duck" / "gd" / "seed0"
     assert res["cells"] == 1 and json.loads((cell / "cell.json").read_text())["spec"]["overrides"] == {
         "view_prompting": "none",
+        "views_per_step": 2,
         "noise.redraw": "ou",
         "noise.ratio_mode": "variance",
-        "views_per_step": 2,
     }
     config = json.loads((cell / "run.json").read_text())["config"]
     assert config["view_prompting"] == "none" and config["views_per_step"] == 2

@@ -2,10 +2,10 @@
 the peer renderers.
 
 Sweep: N in {1k, 10k, 100k} x resolution in {64, 256, 512} x path x {forward, forward+backward}.
-Paths: ``splat`` (C++ compositor), ``splat-torch`` (the pure-torch compositor, the CUDA path),
+Paths: ``splat`` (C++ compositor), ``splat_torch`` (the pure-torch compositor, the CUDA path),
 ``dense`` (``renderers.splat.reference`` in float32: every Gaussian at every pixel), and with
-``--peers`` the references: ``gsplat-torch`` (gsplat 1.5.3's torch stages, completed on CPU)
-and ``mitsuba`` (Mitsuba 3 ray-traced ellipsoids, forward only, 4 spp). Slow paths run only
+``--peers`` the references: ``gsplat_torch`` (gsplat 1.5.3's torch stages, completed on CPU)
+and ``mitsuba_ellipsoids`` (Mitsuba 3 ray-traced ellipsoids, forward only, 4 spp). Slow paths run only
 where they fit in time and memory (``LIMITS``); skipped cells are written with the reason.
 Each case runs in its own process so that its peak RSS is its own.
 
@@ -32,8 +32,8 @@ import torch
 
 from .common import environment, peak_rss_mb, random_cloud, rss_mb, timeit, write_csv, write_json
 
-PATHS = ("splat", "splat-torch", "dense")
-PEER_PATHS = ("splat", "gsplat-torch", "mitsuba")
+PATHS = ("splat", "splat_torch", "dense")
+PEER_PATHS = ("splat", "gsplat_torch", "mitsuba_ellipsoids")
 MITSUBA_SPP = 4
 MODES = ("fwd", "fwd+bwd")
 FULL = {"n": (1_000, 10_000, 100_000), "res": (64, 256, 512)}
@@ -44,10 +44,10 @@ QUICK = {"n": (300, 1_000), "res": (32, 64)}
 LIMITS = {
     ("dense", "fwd"): 7e8,
     ("dense", "fwd+bwd"): 3e7,
-    ("gsplat-torch", "fwd"): 7e9,
-    ("gsplat-torch", "fwd+bwd"): 7e8,
-    ("mitsuba", "fwd"): 3e10,
-    ("mitsuba", "fwd+bwd"): 0,
+    ("gsplat_torch", "fwd"): 7e9,
+    ("gsplat_torch", "fwd+bwd"): 7e8,
+    ("mitsuba_ellipsoids", "fwd"): 3e10,
+    ("mitsuba_ellipsoids", "fwd+bwd"): 0,
 }
 TARGETS = {
     "gsplat_over_splat_fwd_10k_256": 10.0,  # splat forward at least 10x faster than gsplat's torch path
@@ -86,7 +86,6 @@ def count_intersections(scene: dict, cams, tile_size: int = 16) -> int:
 
 def setup(path: str, n: int, res: int, mode: str, device: str = "cpu", seed: int = 0) -> Callable[[], object]:
     """The closure that renders (and back-propagates) one case."""
-    from renderers.splat import rasterize
     from renderers.splat.reference import rasterize_reference
 
     scene = {k: v.to(device) for k, v in random_cloud(n, seed=seed).items()}
@@ -96,21 +95,13 @@ def setup(path: str, n: int, res: int, mode: str, device: str = "cpu", seed: int
 
         def render(**s):
             return rasterize_reference(**s, **view, dtype=torch.float32, pixel_chunk=8192 if mode == "fwd" else None)
-    elif path == "gsplat-torch":
-        from renderers.gsplat_torch import rasterize as gsplat_rasterize
-
-        def render(**s):
-            return gsplat_rasterize(**s, **view)
-    elif path == "mitsuba":
-        from renderers.mitsuba.ellipsoids import rasterize as mi_rasterize
-
-        def render(**s):
-            return mi_rasterize(**s, **view, spp=MITSUBA_SPP)
     else:
-        backend = "cpp" if path == "splat" else "torch"
+        from ..backends import get
+
+        backend = get(path)
 
         def render(**s):
-            return rasterize(**s, **view, backend=backend)
+            return backend.render(**s, **view, speed=True)
 
     if mode == "fwd":
 
@@ -142,7 +133,7 @@ def run_case(path: str, n: int, res: int, mode: str, device: str = "cpu") -> dic
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     base = rss_mb()
-    slow = path in ("dense", "gsplat-torch", "mitsuba")
+    slow = path in ("dense", "gsplat_torch", "mitsuba_ellipsoids")
     t = timeit(fn, device=device, warmup=1 if slow else 2, min_repeats=1 if slow else 3, budget_s=2.0)
     row.update(t)
     row["peak_rss_mb"] = peak_rss_mb()
@@ -188,10 +179,10 @@ def summarise(rows: list[dict]) -> dict:
 
     out: dict = {"environment": environment(), "targets": {}, "fits": {}}
     s = find("splat", 10_000, 256, "fwd")
-    for peer in ("dense", "gsplat-torch"):
+    for peer in ("dense", "gsplat_torch"):
         d = find(peer, 10_000, 256, "fwd")
         if s and d:
-            key = f"{peer.split('-')[0]}_over_splat_fwd_10k_256"
+            key = f"{peer.split('_')[0]}_over_splat_fwd_10k_256"
             ratio, target = float(d["median_s"]) / float(s["median_s"]), TARGETS[key]
             out["targets"][key] = {"value": ratio, "target": f">= {target}", "met": ratio >= target}
     # every peer against splat, case by case (same run, same machine state)
@@ -208,7 +199,7 @@ def summarise(rows: list[dict]) -> dict:
     if big:
         v, target = max(float(r["peak_rss_mb"]) for r in big), TARGETS["splat_peak_rss_mb_100k_512"]
         out["targets"]["splat_peak_rss_mb_100k_512"] = {"value": v, "target": f"<= {target}", "met": v <= target}
-    for path in ("splat", "splat-torch", "gsplat-torch", "mitsuba"):
+    for path in ("splat", "splat_torch", "gsplat_torch", "mitsuba_ellipsoids"):
         for mode in MODES:
             sel = [r for r in ok if r["path"] == path and r["mode"] == mode]
             if len(sel) >= 3:

@@ -7,8 +7,8 @@ twin (``renderers.splat.reference``, run at the renderer's own alpha clamp), and
 gradient error relative to the twin's largest gradient. The twin itself is checked for
 finiteness too.
 
-Renderers: ``splat`` (C++ compositor), ``splat-torch``, ``gsplat-torch`` (gsplat 1.5.3's torch
-stages) and ``mitsuba`` (ray-traced ellipsoids, 16 spp; a different image model, so its error
+Renderers: ``splat`` (C++ compositor), ``splat_torch``, ``gsplat_torch`` (gsplat 1.5.3's torch
+stages) and ``mitsuba_ellipsoids`` (ray-traced ellipsoids, 16 spp; a different image model, so its error
 measures model difference and Monte Carlo noise as well; it has no near plane). Not run: the
 exact volume (its grid cannot resolve sub-voxel or 1e6-anisotropic Gaussians, and the analytic
 field is too slow at 10k Gaussians) and pyrender points (centres only; no images).
@@ -32,7 +32,7 @@ import torch
 from .common import environment, write_csv, write_json
 
 F64 = torch.float64
-RENDERERS = ("splat", "splat-torch", "gsplat-torch", "mitsuba")
+RENDERERS = ("splat", "splat_torch", "gsplat_torch", "mitsuba_ellipsoids")
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
 
@@ -126,21 +126,14 @@ def cases() -> dict[str, Callable[[], tuple[dict, dict]]]:
 
 
 def _renderer(name: str) -> tuple[Callable, float]:
-    """(render function taking the rasterize signature, the alpha clamp its twin uses)."""
-    if name in ("splat", "splat-torch"):
-        from renderers.splat import rasterize
+    """(render function taking the rasterize signature, the alpha clamp its twin uses), from the
+    backend registry with its comparable settings."""
+    from ..backends import get
 
-        backend = "cpp" if name == "splat" else "torch"
-        return (lambda *a, **k: rasterize(*a, **k, backend=backend)), 0.99
-    if name == "gsplat-torch":
-        from renderers.gsplat_torch import ALPHA_MAX, rasterize
-
-        return rasterize, ALPHA_MAX
-    if name == "mitsuba":
-        from renderers.mitsuba.ellipsoids import rasterize
-
-        return (lambda *a, **k: rasterize(*a, **k, spp=16)), 0.99
-    raise ValueError(f"renderer: expected one of {RENDERERS}, got {name!r}")
+    if name not in RENDERERS:
+        raise ValueError(f"renderer: expected one of {RENDERERS}, got {name!r}")
+    b = get(name)
+    return b.render, b.alpha_max
 
 
 def _render_with_grads(fn: Callable, gs: dict, cam: dict, dtype) -> tuple[dict, dict]:
@@ -233,7 +226,6 @@ def table(rows: list[dict]) -> str:
 
 
 def run(out: Path, renderers=RENDERERS, only: list[str] | None = None, progress: bool = True) -> list[dict]:
-    from gdbench.compare import available
 
     names = only or list(cases())
     unknown = [c for c in names if c not in cases()]
@@ -247,9 +239,10 @@ def run(out: Path, renderers=RENDERERS, only: list[str] | None = None, progress:
         it = tqdm(todo, desc="bm_stability", unit="run", disable=not progress)
     except ImportError:  # pragma: no cover
         it = todo
-    peer = {"gsplat-torch": "gsplat_torch", "mitsuba": "mitsuba_ellipsoids"}
+    from ..backends import get
+
     for case, r in it:
-        ok, why = available(peer[r]) if r in peer else (True, "")
+        ok, why = get(r).available() if r != "splat_torch" else (True, "")
         if not ok:
             rows.append({"case": case, "renderer": r, "status": f"skipped: {why}"})
             continue

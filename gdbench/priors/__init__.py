@@ -24,6 +24,13 @@ class Prior(Protocol):
     sigmas: Tensor
     factor: int
     """The prior's input is the render downsampled by this (1 for pixels, 8 for SD latents)."""
+    encode_images: object
+    """None for pixel priors; else a function mapping RGB renders [B, H, W, 3] in [-1, 1] to the
+    prior's input space (the VAE encoder of Stable Diffusion), differentiable."""
+
+    def bank(self, cond: object) -> object | None:
+        """The image bank behind a condition (initialisation from its depth maps), or None."""
+        ...
 
     def encode(self, prompt: str) -> object:
         """Condition of a prompt (raises ValueError with a clear message for unusable prompts)."""

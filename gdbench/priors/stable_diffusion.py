@@ -258,6 +258,10 @@ class StableDiffusionPrior:
             e = eu + self.guidance_scale * (ec - eu)
         return (xc - s * e).permute(0, 2, 3, 1).to(x.dtype).to(x.device)
 
+    def bank(self, cond) -> None:
+        """Stable Diffusion has no image bank."""
+        return None
+
     # ------------------------------------------------------------------ the VAE
     def encode_images(self, rgb: Tensor) -> Tensor:
         """RGB [B, H, W, 3] in [-1, 1] -> latents [B, H/8, W/8, 4] (the posterior mean, scaled);

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import torch
 
+from .streams import make_streams, set_stream_states
+
 RESUME_IGNORES = frozenset({"out", "progress", "checkpoint_every", "log_every", "turntable_frames"})
 """Config fields that do not change a run's result (so a run may resume under other values)."""
 
@@ -81,3 +83,52 @@ def load_blob(path: Path) -> dict:
 def config_diff(saved: dict, now: dict) -> list[str]:
     """Names of the fields that differ between two config dicts, ignoring ``RESUME_IGNORES``."""
     return sorted(k for k in set(saved) | set(now) if k not in RESUME_IGNORES and saved.get(k) != now.get(k))
+
+
+def checkpoint_path(cfg) -> Path:
+    return Path(cfg.out) / "checkpoint.pt"
+
+
+def save_checkpoint(state, ctx, path: Path) -> Path:
+    """Atomic (temporary file + rename); tensors and plain data only."""
+    from .outputs import config_dict
+
+    return save_blob(
+        {
+            "step": state.step,
+            "params": {k: v.detach() for k, v in state.params.items()},
+            "optimizer": state.optimizer.state_dict(),
+            "densify": state.densify.state_dict(),
+            "noise_colors": state.noise_colors,
+            "streams": state.rng_state(),
+            "history": state.history,
+            "bad_steps": state.bad_steps,
+            "config": config_dict(ctx.cfg),
+        },
+        path,
+    )
+
+
+def load_checkpoint(path: Path, ctx):
+    """The ``TrainState`` saved at ``path``, after checking it belongs to ``ctx``'s config."""
+    from .densify import DensifyState
+    from .outputs import config_dict
+    from .trainer import TrainState, _optimizer
+
+    blob = load_blob(path)
+    diff = config_diff(blob["config"], config_dict(ctx.cfg))
+    if diff:
+        why = " (the sigma, noise and learning-rate schedules depend on steps)" if "steps" in diff else ""
+        raise CheckpointError(
+            f"out: {path.parent} holds a run with a different config (fields {diff}){why}; "
+            "use another --out, or --no-resume to start over"
+        )
+    params = {k: v.clone().requires_grad_(True) for k, v in blob["params"].items()}
+    opt = _optimizer(params, ctx.cfg)
+    opt.load_state_dict(blob["optimizer"])
+    streams = make_streams(ctx.cfg.seed)
+    set_stream_states(streams, blob["streams"])
+    dens = DensifyState(blob["densify"]["grad2d"], blob["densify"]["count"])
+    return TrainState(
+        blob["step"], params, opt, dens, blob["noise_colors"], streams, blob["history"], blob["bad_steps"]
+    )

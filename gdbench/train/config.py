@@ -60,10 +60,13 @@ class DensifyConfig:
 @dataclass(frozen=True)
 class TrainConfig:
     prompt: str = "a yellow duck"
+    """What to generate (the empirical prior matches it to one of its assets' captions)."""
     preset: str = "gd"
     """Name of the preset this config came from (recorded in run.json)."""
     steps: int = 2000
+    """Training steps (the paper: 2000)."""
     seed: int = 0
+    """Seed of every random stream of the run (train/streams.py): presets with one seed are paired."""
     resolution: int = 64
     """Training render size (CPU-sized; the paper uses 512 with Stable Diffusion)."""
     views_per_step: int = 1
@@ -71,22 +74,34 @@ class TrainConfig:
     colours (so one step already couples views through the structured noise)."""
     # initialisation
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
+    """Initial Gaussians: the paper's sphere, a point cloud (--init-ply) or the prompt's bank depth."""
     init_points: int = 4096
+    """Initial Gaussians (the paper: 4096)."""
     init_ply: Path | None = None
+    """init='ply': any point cloud Open3D reads."""
     init_opacity: float = 0.1
+    """Initial opacity (the paper: 0.1)."""
     init_color: float = 0.5
+    """Initial grey level."""
     # cameras (paper)
     camera_radius: float = 1.0
+    """Distance of the training cameras from the origin (the paper: 1)."""
     fovy_range: tuple[float, float] = (40.0, 70.0)
+    """Vertical field of view of the training views, degrees, drawn uniformly (the paper: 40-70)."""
     azimuth_range: tuple[float, float] = (-180.0, 180.0)
+    """Azimuth of the training views, degrees (the paper: all around)."""
     elevation_range: tuple[float, float] = (-45.0, 45.0)
+    """Elevation of the training views, degrees (the paper: -45 to 45)."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Background colour of the renders and of the prior's bank (the paper: white)."""
     # score distillation
     guidance: Literal["sjc", "sds"] = "sjc"
     """sjc: g = (D(x + sigma n) - x) / sigma with sigma uniform over the prior's ticks;
     sds: the same residual with DreamGaussian's annealed timestep and weight 1 - abar."""
     sigma_min: float = 0.03
+    """Smallest noise level drawn (VE sigma)."""
     sigma_max: float = 10.0
+    """Largest noise level drawn at the start of the run (VE sigma)."""
     anneal: bool = True
     """Anneal sigma: the upper end decays linearly to ``sigma_min`` over the run (measured on the
     duck: neutral with asset version 3, +1 to +1.7 dB with version 2; docs/training.md)."""
@@ -98,6 +113,7 @@ class TrainConfig:
     """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
     of +-``view_window_deg`` around the camera azimuth, or none (DESIGN.md 'Priors')."""
     view_window_deg: float = 45.0
+    """Half-width of the view window (view_prompting='window'), degrees."""
     front_bias: float = 0.0
     variants: int = 1
     """Empirical prior: procedural variants of the caption in the bank (1..3; the instance setting
@@ -105,6 +121,7 @@ class TrainConfig:
     """Empirical prior: kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform;
     the Janus setting of the ablation uses it with view prompting off)."""
     depth_conditioning: bool = False
+    """Condition the prior on depth (the ControlNet role; empirical prior: joint rgb-depth posterior)."""
     # the prior
     prior: Literal["empirical", "sd"] = "empirical"
     """empirical: the embedded CPU prior (image banks of procedural assets); sd: Stable Diffusion."""
@@ -127,8 +144,10 @@ class TrainConfig:
     """Textual-inversion and LoRA steps of the semantic code."""
     # the paper's additions
     structured_noise: bool = True
+    """Use the paper's structured noise (section 3.2)."""
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     vgs: bool = True
+    """Use the paper's variational Gaussians (section 3.3)."""
     vgs_gamma: float = 0.05
     """gamma of the jitter theta' = theta + gamma s(sigma) eps (means in ``vgs_unit``s, log-scales as is)."""
     vgs_unit: Literal["scene", "pixel"] = "scene"
@@ -138,12 +157,18 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     sh_degree: int = 0
+    """Spherical-harmonics degree of the Gaussians' colours (0: plain colour)."""
     # run management
     out: Path = Path("runs/duck")
+    """The run folder."""
     checkpoint_every: int = 200
+    """Steps between checkpoints (a run also checkpoints on Ctrl-C)."""
     log_every: int = 10
+    """Steps between progress-bar updates."""
     turntable_frames: int = 36
+    """Frames of the output turntable."""
     progress: bool = True
+    """Show a progress bar."""
     max_bad_steps: int = 20
     """Stop with an error after this many consecutive steps with non-finite gradients."""
 

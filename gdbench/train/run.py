@@ -20,18 +20,10 @@ from pathlib import Path
 import torch
 
 from ..io import FolderLock, read_json, sha256_file, sha256_json, write_json
+from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .outputs import config_dict, package_versions, write_curves
-from .trainer import (
-    Context,
-    TrainState,
-    checkpoint_path,
-    init_state,
-    load_checkpoint,
-    make_context,
-    save_checkpoint,
-    train_step,
-)
+from .trainer import Context, TrainState, init_state, make_context, train_step
 
 RUN_OUTPUTS = (
     "run.json",

@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal
 
 import torch
@@ -32,7 +31,6 @@ from ..camera import Cameras, SphericalPoses
 from ..noise import NoiseRenderer, NoiseState, advance_colors, init_colors, make_noise_cloud, mix, ratio_schedule
 from ..scene import GaussianScene
 from ..variational import jitter
-from .checkpoint import CheckpointError, config_diff, load_blob, save_blob
 from .config import TrainConfig
 from .densify import PARAM_NAMES, DensifyState, DensifyStrategy
 from .init import initial_scene
@@ -118,9 +116,9 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
 
     prior = make_prior(cfg) if prior is None else prior
     cond = prior.encode(cfg.prompt)
-    encoder = getattr(prior, "encode_images", None)
+    encoder = prior.encode_images  # Prior protocol: None for pixel priors
     mode: Mode = "rgb" if encoder is None else ("sd-latent" if cfg.sd_mode == "latent" else "sd-rgb")
-    factor = int(getattr(prior, "factor", 1))
+    factor = int(prior.factor)
     streams = make_streams(cfg.seed)
     noise = None
     if cfg.structured_noise:
@@ -167,8 +165,7 @@ def _optimizer(params: dict[str, Tensor], cfg: TrainConfig) -> torch.optim.Adam:
 def init_state(ctx: Context) -> TrainState:
     cfg = ctx.cfg
     streams = make_streams(cfg.seed)
-    bank_of = getattr(ctx.prior, "bank", None)
-    bank = bank_of(ctx.cond) if bank_of is not None else None
+    bank = ctx.prior.bank(ctx.cond)
     scene = initial_scene(cfg, generator=streams["init"], bank=bank)
     params = {k: getattr(scene, k).detach().clone() for k in PARAM_NAMES}
     if ctx.mode == "sd-latent":  # 4 latent features per Gaussian, the latent of the initial colour
@@ -404,50 +401,3 @@ def _point_depth(points: Tensor, cams) -> Tensor:
             outputs=("alpha", "depth"),
         )
     return torch.where(out.alpha[..., 0] > 0.5, out.depth[..., 0], torch.zeros_like(out.depth[..., 0]))
-
-
-# ----------------------------------------------------------------------------- checkpoints
-def checkpoint_path(cfg: TrainConfig) -> Path:
-    return Path(cfg.out) / "checkpoint.pt"
-
-
-def save_checkpoint(state: TrainState, ctx: Context, path: Path) -> Path:
-    """Atomic (temporary file + rename); tensors and plain data only."""
-    from .outputs import config_dict
-
-    return save_blob(
-        {
-            "step": state.step,
-            "params": {k: v.detach() for k, v in state.params.items()},
-            "optimizer": state.optimizer.state_dict(),
-            "densify": state.densify.state_dict(),
-            "noise_colors": state.noise_colors,
-            "streams": state.rng_state(),
-            "history": state.history,
-            "bad_steps": state.bad_steps,
-            "config": config_dict(ctx.cfg),
-        },
-        path,
-    )
-
-
-def load_checkpoint(path: Path, ctx: Context) -> TrainState:
-    from .outputs import config_dict
-
-    blob = load_blob(path)
-    diff = config_diff(blob["config"], config_dict(ctx.cfg))
-    if diff:
-        why = " (the sigma, noise and learning-rate schedules depend on steps)" if "steps" in diff else ""
-        raise CheckpointError(
-            f"out: {path.parent} holds a run with a different config (fields {diff}){why}; "
-            "use another --out, or --no-resume to start over"
-        )
-    params = {k: v.clone().requires_grad_(True) for k, v in blob["params"].items()}
-    opt = _optimizer(params, ctx.cfg)
-    opt.load_state_dict(blob["optimizer"])
-    streams = make_streams(ctx.cfg.seed)
-    set_stream_states(streams, blob["streams"])
-    dens = DensifyState(blob["densify"]["grad2d"], blob["densify"]["count"])
-    return TrainState(
-        blob["step"], params, opt, dens, blob["noise_colors"], streams, blob["history"], blob["bad_steps"]
-    )

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from renderers.splat import RenderOutput
+from renderers.splat.composite import finish_images
 
 ALPHA_MAX = 0.999
 """gsplat's clamp (RasterizeToPixels3DGSFwd.cu); the Inria kernel and ours default to 0.99."""
@@ -152,14 +153,10 @@ def rasterize(
         "depth" in want,
         "weight_sq" in want,
     )
-    alpha = 1 - T
-    if background is not None:
-        rgb = rgb + T * (background if background.dim() == 1 else background[:, None, None, :])
+    rgb, alpha, dep = finish_images(rgb, T, dep, background)
     out = {"rgb": rgb if "rgb" in want else None, "alpha": alpha if "alpha" in want else None}
     if dep is not None:
-        out["depth"] = torch.where(
-            alpha > 0, dep / torch.where(alpha > 0, alpha, torch.ones_like(alpha)), torch.zeros_like(dep)
-        )
+        out["depth"] = dep
     if wsq is not None:
         out["weight_sq"] = wsq
     if "means2d" in want:

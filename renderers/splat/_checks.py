@@ -11,6 +11,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from .sh import num_sh_bases
+
 FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -70,3 +72,113 @@ def check_range(name: str, value: float, lo: float, hi: float, *, lo_open: bool 
         left = "(" if lo_open else "["
         raise ValueError(f"{name}: expected a value in {left}{lo}, {hi}], got {value}")
     return value
+
+
+OUTPUTS = ("rgb", "alpha", "depth", "weight_sq", "means2d", "radii", "visible")
+"""Everything the renderer can return (``RenderOutput``'s fields)."""
+
+
+def check_outputs(outputs) -> tuple[str, ...]:
+    if isinstance(outputs, str) or not isinstance(outputs, Sequence):
+        raise TypeError(f"outputs: expected a tuple of names from {OUTPUTS}, got {outputs!r}")
+    bad = [o for o in outputs if o not in OUTPUTS]
+    if bad:
+        raise ValueError(f"outputs: unknown names {bad}; expected names from {OUTPUTS}")
+    return tuple(outputs)
+
+
+def check_geometry(means, quats, scales, opacities, viewmats, Ks, width, height, extra: dict[str, Tensor]):
+    """Types, devices, shapes and values of the geometry; returns (batch, N, C)."""
+    tensors = {
+        "means": means,
+        "quats": quats,
+        "scales": scales,
+        "opacities": opacities,
+        "viewmats": viewmats,
+        "Ks": Ks,
+        **extra,
+    }
+    for name, x in tensors.items():  # types first, then devices, then shapes, then values
+        check_tensor(name, x, finite=False)
+    check_same(tensors)
+    if means.dim() < 2 or means.shape[-1] != 3:
+        raise ValueError(f"means: expected shape [*B, N, 3], got {list(means.shape)}")
+    batch = tuple(means.shape[:-2])
+    N = means.shape[-2]
+    check_shape("quats", quats, (N, 4), batch)
+    check_shape("scales", scales, (N, 3), batch)
+    check_shape("opacities", opacities, (N,), batch)
+    if viewmats.dim() != len(batch) + 3 or viewmats.shape[-2:] != (4, 4):
+        raise ValueError(f"viewmats: expected shape [*B, C, 4, 4] with *B = {list(batch)}, got {list(viewmats.shape)}")
+    check_shape("viewmats", viewmats, ("C", 4, 4), batch)
+    C = viewmats.shape[-3]
+    if C < 1:
+        raise ValueError(f"viewmats: expected at least one camera, got shape {list(viewmats.shape)}")
+    check_shape("Ks", Ks, (C, 3, 3), batch)
+    check_size("width", width)
+    check_size("height", height)
+    return batch, N, C
+
+
+def check_values(tensors: dict[str, Tensor], scales: Tensor | None, opacities: Tensor | None) -> None:
+    """Finite values everywhere, non-negative linear scales, opacities in [0, 1], rigid cameras
+    with positive focal lengths (when ``viewmats`` and ``Ks`` are among ``tensors``)."""
+    for name, x in tensors.items():
+        check_tensor(name, x, finite=True)
+    if scales is not None and scales.numel() and bool((scales < 0).any()):
+        raise ValueError("scales: expected non-negative linear scales (pass exp(log_scales))")
+    if opacities is not None and opacities.numel() and bool(((opacities < 0) | (opacities > 1)).any()):
+        raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
+    if "viewmats" in tensors and "Ks" in tensors:
+        check_cameras(tensors["viewmats"], tensors["Ks"])
+
+
+def check_cameras(viewmats: Tensor, Ks: Tensor, tol: float = 1e-3) -> None:
+    """World-to-camera matrices must be rigid ([R t; 0 1], R a rotation to ``tol``) and the
+    intrinsics a pinhole with positive focal lengths (pixel units)."""
+    if not viewmats.numel():
+        return
+    f = torch.stack([Ks[..., 0, 0], Ks[..., 1, 1]], -1)
+    if bool((f <= 0).any()):
+        raise ValueError(f"Ks: expected positive focal lengths fx, fy (pixels), got minimum {float(f.min()):g}")
+    R = viewmats[..., :3, :3].double()
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    ortho = float((R @ R.transpose(-1, -2) - eye).abs().amax())
+    det = torch.linalg.det(R)
+    if ortho > tol or bool(((det - 1).abs() > tol).any()):
+        raise ValueError(
+            "viewmats: expected world-to-camera rigid transforms whose 3x3 block is a rotation "
+            f"(R R^T = I, det R = 1; got max |R R^T - I| = {ortho:.3g}, det R in "
+            f"[{float(det.min()):.3g}, {float(det.max()):.3g}])"
+        )
+    bottom = viewmats[..., 3, :].double()
+    want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=bottom.dtype, device=bottom.device)
+    if float((bottom - want).abs().amax()) > tol:
+        raise ValueError("viewmats: expected the last row [0, 0, 0, 1]")
+
+
+def check_colors(colors, background, batch, N, C, sh_degree) -> tuple[int, bool]:
+    """Shape of colours / SH coefficients and background; returns (D, per_camera)."""
+    sh = sh_degree is not None
+    if sh and sh_degree not in (0, 1, 2, 3):
+        raise ValueError(f"sh_degree: expected None or 0..3, got {sh_degree}")
+    tail = 3 if sh else 2  # [N, K, D] or [N, D]
+    if colors.dim() == len(batch) + tail:
+        per_camera = False
+    elif colors.dim() == len(batch) + tail + 1:
+        per_camera = True
+    else:
+        want = "[*B, (C,) N, K, D]" if sh else "[*B, (C,) N, D]"
+        raise ValueError(f"colors: expected shape {want} with *B = {list(batch)}, got {list(colors.shape)}")
+    lead = batch + ((C,) if per_camera else ())
+    if sh:
+        K = num_sh_bases(sh_degree)
+        if colors.shape[-2] < K:
+            raise ValueError(f"colors: sh_degree={sh_degree} needs K >= {K} SH coefficients, got {colors.shape[-2]}")
+        check_shape("colors", colors, (N, "K", "D"), lead)
+    else:
+        check_shape("colors", colors, (N, "D"), lead)
+    D = colors.shape[-1]
+    if background is not None and background.shape != (D,):
+        check_shape("background", background, (C, D), batch)
+    return D, per_camera

@@ -222,3 +222,23 @@ def composite_backward(
         )
         g_conics.index_add_(0, flat, gc.reshape(-1, 3))
     return Splats(g_means, g_conics, g_opac, g_feat, g_depth)
+
+
+def finish_images(
+    features: Tensor | None, transmittance: Tensor, depth: Tensor | None, background: Tensor | None
+) -> tuple[Tensor | None, Tensor, Tensor | None]:
+    """(rgb, alpha, depth) from the compositor's sums: the background seen through the final
+    transmittance, alpha = 1 - T, and the expected depth sum_i w_i z_i / alpha (0 where alpha is 0).
+    Images are [..., H, W, D] and [..., H, W, 1]; ``background`` is [D] or [..., D] per image.
+    One formula for the fast path, the float64 twin and the gsplat peer."""
+    alpha = 1.0 - transmittance
+    rgb = features
+    if features is not None and background is not None:
+        bg = background if background.dim() == 1 else background[..., None, None, :]
+        rgb = features + transmittance * bg
+    if depth is not None:
+        covered = alpha > 0
+        depth = torch.where(
+            covered, depth / torch.where(covered, alpha, torch.ones_like(alpha)), torch.zeros_like(depth)
+        )
+    return rgb, alpha, depth

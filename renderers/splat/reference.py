@@ -1,8 +1,9 @@
 """The slow, obviously-correct twin of ``rasterize``: dense, all pairs, float64 by default.
 
 No tiles, no radii, no chunked backward: every Gaussian is evaluated at every pixel and
-gradients come from autograd. It shares only the SH basis (``sh.py``, tested on its own
-against orthonormality) with the fast path. It is the oracle of the tests and the dense
+gradients come from autograd. It shares with the fast path only the SH basis (``sh.py``, tested
+on its own against scipy), the settings object and the two-line finishing step (background
+through T, depth normalised by alpha: ``composite.finish_images``). It is the oracle of the tests and the dense
 baseline of the benchmark (``dtype=torch.float32`` there). Memory is O(N x H x W) per
 image unless ``pixel_chunk`` bounds the pixels evaluated at once.
 """
@@ -14,7 +15,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from .rasterize import RenderOutput, check_settings
+from ._checks import check_outputs
+from .composite import finish_images
+from .rasterize import RenderOutput
+from .settings import RasterSettings, resolve_settings
 from .sh import eval_sh
 
 
@@ -120,10 +124,7 @@ def render_image(
         parts["depth"].append(w.T @ zz)
         parts["wsq"].append((w * w).sum(0))
     rgb, T, dep, wsq = (torch.cat(parts[k], 0).reshape(height, width, -1) for k in ("rgb", "T", "depth", "wsq"))
-    alpha = 1 - T
-    if background is not None:
-        rgb = rgb + T * background
-    depth = torch.where(alpha > 0, dep / torch.where(alpha > 0, alpha, torch.ones_like(alpha)), torch.zeros_like(dep))
+    rgb, alpha, depth = finish_images(rgb, T, dep, background)
     return {"rgb": rgb, "alpha": alpha, "depth": depth, "weight_sq": wsq}
 
 
@@ -140,22 +141,21 @@ def rasterize_reference(
     *,
     sh_degree=None,
     background=None,
-    near_plane=0.01,
-    far_plane=1e10,
-    eps2d=0.3,
-    alpha_min=1.0 / 255.0,
-    alpha_max=0.99,
-    t_min=1e-4,
     outputs: Sequence[str] = ("rgb", "alpha"),
     dtype: torch.dtype | None = torch.float64,
     pixel_chunk: int | None = None,
+    settings: RasterSettings | None = None,
+    **overrides,
 ) -> RenderOutput:
     """Same call as ``renderers.splat.rasterize``; computed densely in ``dtype`` (None keeps the input's).
 
     Gradients flow back to the inputs in their own dtype. Returns image outputs only
-    (rgb, alpha, depth, weight_sq), in ``dtype``.
+    (rgb, alpha, depth, weight_sq), in ``dtype``. Of the settings it uses the image-formation
+    constants (tiles, chunks and backends do not exist here).
     """
-    outputs = check_settings(near_plane, far_plane, eps2d, alpha_min, alpha_max, t_min, outputs)
+    st = resolve_settings(settings, overrides)
+    outputs = check_outputs(outputs)
+    constants = st.projection() | {"alpha_max": st.alpha_max, "t_min": st.t_min}
     cast = (lambda x: x.to(dtype)) if dtype is not None else (lambda x: x)
     batch = means.shape[:-2]
     C = viewmats.shape[-3]
@@ -192,13 +192,8 @@ def rasterize_reference(
                 width,
                 height,
                 background=bg,
-                near_plane=near_plane,
-                far_plane=far_plane,
-                eps2d=eps2d,
-                alpha_min=alpha_min,
-                alpha_max=alpha_max,
-                t_min=t_min,
                 pixel_chunk=pixel_chunk,
+                **constants,
             )
             for k in images:
                 images[k].append(out[k])
