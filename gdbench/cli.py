@@ -3,10 +3,7 @@ only parses arguments with tyro."""
 
 from __future__ import annotations
 
-import json
-import platform
-import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -33,43 +30,9 @@ class Demo:
 
 
 def run_demo(cmd: Demo) -> dict:
-    import torch
+    from .turntable import demo
 
-    from renderers.splat._ext import extension_status
-
-    from .builtin import demo_scene
-    from .turntable import write_turntable
-
-    t0 = time.perf_counter()
-    scene = demo_scene(cmd.gaussians, seed=cmd.seed)
-    res = write_turntable(scene, cmd.out, frames=cmd.frames, size=cmd.size)
-    total = time.perf_counter() - t0
-    ply = scene.save_ply(cmd.out / "scene.ply")
-    per = sorted(res.seconds_per_frame)
-    summary = {
-        "command": "demo",
-        "config": {k: str(v) for k, v in asdict(cmd).items()},
-        "gaussians": len(scene),
-        "frames": cmd.frames,
-        "resolution": [cmd.size, cmd.size],
-        "first_frame_s": res.seconds_per_frame[0],
-        "median_frame_s": per[len(per) // 2],
-        "fps_median": 1.0 / per[len(per) // 2],
-        "total_s": total,
-        "compositor": extension_status(),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-        "machine": platform.machine(),
-        "outputs": {k: str(v) for k, v in res.paths.items()} | {"ply": str(ply)},
-    }
-    (cmd.out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"gdbench demo: {len(scene)} Gaussians, {cmd.frames} frames at {cmd.size}x{cmd.size}")
-    print(f"  first frame {summary['first_frame_s'] * 1e3:8.1f} ms (includes loading the compositor)")
-    print(f"  median      {summary['median_frame_s'] * 1e3:8.1f} ms  ({summary['fps_median']:.1f} frames/s)")
-    print(f"  total       {total:8.2f} s   compositor: {summary['compositor']}")
-    for k, v in summary["outputs"].items():
-        print(f"  {k:5s} -> {v}")
-    return summary
+    return demo(cmd.out, frames=cmd.frames, size=cmd.size, gaussians=cmd.gaussians, seed=cmd.seed)
 
 
 @dataclass
@@ -172,32 +135,12 @@ def run_generate(cmd: Generate) -> dict:
     cfg = preset(cmd.preset, prompt=cmd.prompt, out=cmd.out, progress=cmd.progress, **overrides)
     check_generate_memory(cfg)
     r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite)
-    summary = {
-        "out": str(r.out),
-        "caption": r.caption,
-        "caption_similarity": r.similarity,
-        "steps": r.state.step,
-        "gaussians": len(r.state.scene()),
-        "seconds": r.seconds,
-        "resumed_from": r.resumed_from,
-    }
+    summary = r.summary()
     if cmd.score and r.caption is not None and r.state.step >= cfg.steps:
         from .metrics.run_scores import score_run
 
         summary["gt"] = score_run(cmd.out, gt=True, colmap=False)["gt"]
-    if r.caption is not None:
-        print(f"gdbench generate: prompt {cmd.prompt!r} -> asset {r.caption!r} (cosine {r.similarity:.2f})")
-    print(
-        f"gdbench generate: {summary['steps']} steps, {summary['gaussians']} Gaussians, "
-        f"{summary['seconds']:.1f} s (resumed from step {summary['resumed_from']}) -> {cmd.out}"
-    )
-    if "gt" in summary:
-        print(
-            f"  against the asset at 12 held-out views: PSNR {summary['gt']['psnr']:.2f} dB, "
-            f"SSIM {summary['gt']['ssim']:.3f} (best azimuth offset {summary['gt']['offset_deg']:.0f} deg)"
-        )
-    for k, v in sorted(r.paths.items()):
-        print(f"  {k:18s} {v}")
+    print(r.report(summary))
     return summary
 
 
@@ -267,22 +210,12 @@ class Score:
 
 
 def run_score(cmd: Score) -> dict:
-    from .metrics.run_scores import score_run
+    from .metrics.run_scores import report, score_run
 
     if not Path(cmd.run).is_dir():
         raise FileNotFoundError(f"run: expected a run folder, got {cmd.run}")
     s = score_run(cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size)
-    print(f"gdbench score: {cmd.run} ({s['gaussians']} Gaussians) -> {Path(cmd.run) / 'scores.json'}")
-    if "gt" in s:
-        print(
-            f"  GT: PSNR {s['gt']['psnr']:.2f} dB, SSIM {s['gt']['ssim']:.3f} (offset {s['gt']['offset_deg']:.0f} deg)"
-        )
-    if "colmap" in s:
-        c = s["colmap"]
-        print(
-            f"  COLMAP: registered {c['registration_rate']:.2f}, Var(theta) {c['var_theta_deg2']:.4g} deg^2, "
-            f"translation-direction error {c['translation_dir_err_deg']:.3g} deg"
-        )
+    print(report(s))
     return s
 
 

@@ -94,10 +94,18 @@ def score_images(
     images: np.ndarray, cams: Cameras, workdir: str | Path | None = None, *, seed: int = 0, max_image_size: int = 512
 ) -> ColmapScore:
     """Run COLMAP on uint8 images [K, H, W, 3] taken (in order around the circle) by ``cams``."""
+    t0 = time.perf_counter()
+    est, points = _reconstruct(images, cams, workdir, seed=seed, max_image_size=max_image_size)
+    return _score(est, points, cams, time.perf_counter() - t0)
+
+
+def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: int) -> tuple[dict, int]:
+    """COLMAP's estimate of each registered view: {index: (rotation, camera centre)}, and the
+    number of 3D points, from SIFT, exhaustive matching and incremental mapping with the known
+    PINHOLE intrinsics held fixed (the largest model)."""
     import imageio.v3 as iio
 
     pycolmap = _import_pycolmap()
-    t0 = time.perf_counter()
     K = len(cams)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(workdir) if workdir is not None else Path(tmp)
@@ -135,20 +143,24 @@ def score_images(
         opts.random_seed = seed
         models = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
     if not models:
-        return ColmapScore(K, 0, 0.0, float("nan"), float("nan"), float("nan"), 0, time.perf_counter() - t0, 1.0)
+        return {}, 0
     rec = max(models.values(), key=lambda r: r.num_reg_images())
     est: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        i = int(Path(image.name).stem)
-        pose = image.cam_from_world()
-        R = np.asarray(pose.rotation.matrix())
-        est[i] = (R, -R.T @ np.asarray(pose.translation))  # rotation, centre
+        if image.has_pose:
+            pose = image.cam_from_world()
+            R = np.asarray(pose.rotation.matrix())
+            est[int(Path(image.name).stem)] = (R, -R.T @ np.asarray(pose.translation))  # rotation, centre
+    return est, int(rec.num_points3D())
+
+
+def _score(est: dict, points: int, cams: Cameras, seconds: float) -> ColmapScore:
+    """Registration, Var(theta) of adjacent steps, failure rate and translation-direction error
+    of COLMAP's estimates against the true cameras (Sim(3)-aligned on the centres)."""
+    K = len(cams)
     gt_c = cams.centers.double().numpy()
-    reg = sorted(est)
-    thetas, dir_errs = [], []
     gt_R = cams.viewmats[:, :3, :3].double().numpy()
+    reg = sorted(est)
     failures = 0
     for i in range(K):
         j = (i + 1) % K
@@ -157,6 +169,7 @@ def score_images(
             continue
         truth = _angle_deg(gt_R[j] @ gt_R[i].T)
         failures += abs(_angle_deg(est[j][0] @ est[i][0].T) - truth) > FAIL_DEG
+    thetas, dir_errs = [], []
     if len(reg) >= 3:
         s, Ra, _ = umeyama(np.stack([est[i][1] for i in reg]), gt_c[reg])  # relative steps need no t
         for i in reg:
@@ -176,8 +189,8 @@ def score_images(
         var_theta_deg2=float(th.var()) if len(th) >= 2 else float("nan"),
         mean_theta_deg=float(th.mean()) if len(th) else float("nan"),
         translation_dir_err_deg=float(np.mean(dir_errs)) if dir_errs else float("nan"),
-        points3d=int(rec.num_points3D()),
-        seconds=time.perf_counter() - t0,
+        points3d=points,
+        seconds=seconds,
         failure_rate=failures / K,
     )
 

@@ -74,3 +74,25 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
     out["seconds"] = time.perf_counter() - t0
     write_json(previous | out, run / "scores.json")
     return previous | out
+
+
+def report(s: dict) -> str:
+    """The lines ``gdbench score`` prints."""
+    lines = [f"gdbench score: {s['run']} ({s['gaussians']} Gaussians) -> {Path(s['run']) / 'scores.json'}"]
+    if "gt" in s:
+        g = s["gt"]
+        lines.append(f"  GT: PSNR {g['psnr']:.2f} dB, SSIM {g['ssim']:.3f} (offset {g['offset_deg']:.0f} deg)")
+    if "views" in s:
+        v = s["views"]
+        lines.append(
+            f"  views: multi-face {v['multi_face_rate']:.2f}, front share {v['front_share']:.2f}, "
+            f"instance consistency {v['instance_consistency']:.2f}, floaters {v['floaters']:.3f}"
+        )
+    if "colmap" in s:
+        c = s["colmap"]
+        lines.append(
+            f"  COLMAP: registered {c['registration_rate']:.2f}, Var(theta) {c['var_theta_deg2']:.4g} deg^2, "
+            f"failure rate {c.get('failure_rate', float('nan')):.2f}, "
+            f"translation-direction error {c['translation_dir_err_deg']:.3g} deg"
+        )
+    return "\n".join(lines)

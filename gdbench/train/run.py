@@ -53,6 +53,39 @@ class RunResult:
     """The bank caption the prompt matched (empirical prior), else None."""
     similarity: float | None = None
     """Cosine similarity of the prompt to that caption (1 for an exact match)."""
+    prompt: str = ""
+
+    def summary(self) -> dict:
+        return {
+            "out": str(self.out),
+            "caption": self.caption,
+            "caption_similarity": self.similarity,
+            "steps": self.state.step,
+            "gaussians": int(self.state.params["means"].shape[0]),
+            "seconds": self.seconds,
+            "resumed_from": self.resumed_from,
+        }
+
+    def report(self, summary: dict | None = None) -> str:
+        """The lines ``gdbench generate`` prints."""
+        s = summary or self.summary()
+        lines = []
+        if self.caption is not None:
+            lines.append(
+                f"gdbench generate: prompt {self.prompt!r} -> asset {self.caption!r} (cosine {self.similarity:.2f})"
+            )
+        lines.append(
+            f"gdbench generate: {s['steps']} steps, {s['gaussians']} Gaussians, {s['seconds']:.1f} s "
+            f"(resumed from step {s['resumed_from']}) -> {s['out']}"
+        )
+        if "gt" in s:
+            g = s["gt"]
+            lines.append(
+                f"  against the asset at 12 held-out views: PSNR {g['psnr']:.2f} dB, SSIM {g['ssim']:.3f} "
+                f"(best azimuth offset {g['offset_deg']:.0f} deg)"
+            )
+        lines += [f"  {k:18s} {v}" for k, v in sorted(self.paths.items())]
+        return "\n".join(lines)
 
 
 def run_id(cfg: TrainConfig) -> str:
@@ -114,7 +147,7 @@ def train(
             paths |= write_run_outputs(state, ctx, out, time.perf_counter() - t_start, resumed_from)
     caption = getattr(ctx.cond, "caption", None)
     similarity = getattr(ctx.cond, "similarity", None)
-    return RunResult(state, out, paths, time.perf_counter() - t_start, resumed_from, caption, similarity)
+    return RunResult(state, out, paths, time.perf_counter() - t_start, resumed_from, caption, similarity, cfg.prompt)
 
 
 def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:

@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from renderers.splat import RenderOutput
+from renderers.splat.composite import finish_images
 from renderers.splat.project import covariance_factor
 
 from ._lib import import_mitsuba, sensor_dict
@@ -156,6 +157,37 @@ def _analytic_field(mi, dr, n: int):
     return set_data, field
 
 
+def _field_builder(means, quats, scales, opacities, mode: str, resolution: int, lo, hi, density_from: str):
+    """colours [N, 3] -> the field arrays the integrator reads: a density and radiance grid, or
+    the Gaussians' means, precisions, densities and colours (analytic)."""
+    if mode == "grid":
+
+        def grid_inputs(c):
+            rho, rhoc = build_grid(
+                means.float(),
+                quats.float(),
+                scales.float(),
+                opacities.float(),
+                c.float(),
+                resolution,
+                lo.float(),
+                hi.float(),
+                density_from=density_from,
+            )
+            return (rho[..., None].contiguous(), rhoc.contiguous())
+
+        return grid_inputs
+    M = covariance_factor(quats, scales)
+    P = torch.linalg.inv(M @ M.transpose(-1, -2))
+    prec = torch.stack([P[:, 0, 0], P[:, 1, 1], P[:, 2, 2], P[:, 0, 1], P[:, 0, 2], P[:, 1, 2]], -1)
+    rho_i = density_scale(opacities, scales, density_from)
+
+    def analytic_inputs(c):
+        return tuple(x.float().reshape(-1).contiguous() for x in (means, prec, rho_i, c))
+
+    return analytic_inputs
+
+
 def rasterize(
     means: Tensor,
     quats: Tensor,
@@ -193,29 +225,7 @@ def rasterize(
     from ._volume_integrator import GaussianVolumeIntegrator
 
     ones = torch.ones_like(cols)
-    if mode == "grid":
-
-        def field_inputs(c):
-            rho, rhoc = build_grid(
-                means.float(),
-                quats.float(),
-                scales.float(),
-                opacities.float(),
-                c.float(),
-                resolution,
-                lo.float(),
-                hi.float(),
-                density_from=density_from,
-            )
-            return (rho[..., None].contiguous(), rhoc.contiguous())
-    else:
-        M = covariance_factor(quats, scales)
-        P = torch.linalg.inv(M @ M.transpose(-1, -2))
-        prec = torch.stack([P[:, 0, 0], P[:, 1, 1], P[:, 2, 2], P[:, 0, 1], P[:, 0, 2], P[:, 1, 2]], -1)
-        rho_i = density_scale(opacities, scales, density_from)
-
-        def field_inputs(c):
-            return tuple(x.float().reshape(-1).contiguous() for x in (means, prec, rho_i, c))
+    field_inputs = _field_builder(means, quats, scales, opacities, mode, resolution, lo, hi, density_from)
 
     def renderer(cam: dict, seed_i: int):
         """A torch-callable, differentiable render with its own integrator and field: Dr.Jit
@@ -248,5 +258,5 @@ def rasterize(
     rgb = torch.stack(rgbs).to(means.dtype)
     alpha = torch.stack(alphas).to(means.dtype) if alphas else None
     if background is not None:
-        rgb = rgb + (1 - alpha) * (background if background.dim() == 1 else background[:, None, None, :])
+        rgb, _, _ = finish_images(rgb, 1 - alpha, None, background)
     return RenderOutput(rgb=rgb if "rgb" in outputs else None, alpha=alpha if "alpha" in outputs else None)
