@@ -5,7 +5,8 @@ Two implementations of the same math (``composite.py`` states it):
   early termination; the default on CPU when it builds.
 - ``"torch"``: chunked, vectorised torch ops; runs on any device (CUDA included) and is
   the fallback when the extension is unavailable.
-Only the inputs and the tile lists are saved; alphas are recomputed in the backward.
+Saved: the inputs and the tile lists (and for the C++ kernel each pixel's final transmittance
+and stop index); alphas are recomputed in the backward.
 """
 
 from __future__ import annotations
@@ -56,9 +57,10 @@ class _Composite(torch.autograd.Function):
         backend: str,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         splats = Splats(*(x.contiguous() for x in (means2d, conics, opacities, features, depths)))
+        last = None
         if backend == "cpp":
             chunks = None
-            feat, trans, dep, wsq = load_extension().composite_forward(
+            feat, trans, dep, wsq, last = load_extension().composite_forward(
                 *splats, bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y, bins.tile_size, *blend, *want
             )
         else:
@@ -70,6 +72,8 @@ class _Composite(torch.autograd.Function):
             feat, trans, dep, wsq = (x if x is not None else empty for x in out)
         ctx.save_for_backward(*splats)
         ctx.bins, ctx.chunks, ctx.blend, ctx.want, ctx.backend = bins, chunks, blend, want, backend
+        # the C++ backward runs back to front from each pixel's final transmittance and stop index
+        ctx.trans, ctx.last = (trans.detach(), last) if last is not None else (None, None)
         results = (feat, dep, wsq)
         for r, w in zip(results, want, strict=True):
             if not w:
@@ -100,6 +104,8 @@ class _Composite(torch.autograd.Function):
                 bins.tiles_y,
                 bins.tile_size,
                 *ctx.blend,
+                ctx.trans,
+                ctx.last,
                 *(g.contiguous() if g is not None else empty for g in grads),
             )
             g = Splats(

@@ -2,14 +2,17 @@
 // tiles (at::parallel_for / OpenMP). Within a tile the loop runs Gaussian-outer, pixel-inner:
 // each Gaussian visits only the pixels of its own box (the exact bounding box of the ellipse
 // where o exp(power) >= alpha_min, plus a margin), and each pixel keeps its own transmittance
-// and a "done" flag, so every pixel still sees its Gaussians front to back and stops exactly
-// where the sequential kernel would:
+// and the index where it stopped, so every pixel still sees its Gaussians front to back and stops
+// exactly where the sequential kernel would:
 //   alpha = min(alpha_max, o exp(power)); skip if alpha < alpha_min;
 //   stop (without adding) if T (1 - alpha) < t_min; else w = alpha T, accumulate, T *= 1 - alpha.
-// Backward: pass 1 accumulates S = sum_kept w v per pixel (double); pass 2 walks again and forms
-//   dL/dalpha = T v - (S - prefix_incl + T_final dL/dT) / (1 - alpha).
-// Gradients are written per tile-Gaussian pair (each pair belongs to one tile, so no two threads
-// write the same entry); Python scatters them to Gaussians with index_add_.
+// The forward records, per pixel, the list index where it stopped ("last"). The backward is one
+// pass back to front from T_final and "last": T before Gaussian i is T after it / (1 - alpha_i),
+// S (the sum of w v behind i, double) grows as it goes, and
+//   dL/dalpha_i = T_i v_i - (S + T_final dL/dT_final) / (1 - alpha_i).
+// One visitor (walk) holds the pixel loop of both. Gradients are written per tile-Gaussian pair
+// (each pair belongs to one tile, so no two threads write the same entry); Python scatters them
+// to Gaussians with index_add_.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -17,6 +20,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <vector>
 
 namespace {
@@ -72,12 +76,38 @@ struct TileData {
   }
 };
 
+// The pixels of Gaussian k's box in the tile whose power clears the Gaussian's cut, with
+// f(p, dx, dy, power) called for each (p: tile-local pixel index).
+template <typename scalar_t, typename F>
+inline void walk(const TileData<scalar_t>& td, int64_t k, double ox, double oy, int64_t ts, F&& f) {
+  for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
+    const scalar_t dy = scalar_t(oy + iy) + scalar_t(0.5) - td.my[k];
+    for (int32_t ix = td.x0[k]; ix <= td.x1[k]; ++ix) {
+      const scalar_t dx = scalar_t(ox + ix) + scalar_t(0.5) - td.mx[k];
+      const scalar_t power = scalar_t(-0.5) * (td.A[k] * dx * dx + td.C[k] * dy * dy) - td.B[k] * dx * dy;
+      if (power < td.cut[k]) continue;
+      f(int64_t(iy) * ts + ix, dx, dy, power);
+    }
+  }
+}
+
+struct TileIndex {
+  int64_t s, e;
+  double ox, oy;
+};
+
+inline TileIndex tile_index(const int64_t* pt, int64_t t, const Grid& grid) {
+  const int64_t local = t % (grid.tiles_x * grid.tiles_y);
+  const int64_t ty = local / grid.tiles_x, tx = local % grid.tiles_x;
+  return {pt[t], pt[t + 1], double(tx * grid.ts), double(ty * grid.ts)};
+}
+
 template <typename scalar_t>
 void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opac,
                   const torch::Tensor& feats, const torch::Tensor& depths, const torch::Tensor& gids,
                   const torch::Tensor& tstart, Grid grid, double amin_, double amax_, double tmin_,
                   torch::Tensor& out_feat, torch::Tensor& out_T, torch::Tensor& out_depth, torch::Tensor& out_wsq,
-                  bool want_feat, bool want_depth, bool want_wsq) {
+                  torch::Tensor& out_last, bool want_feat, bool want_depth, bool want_wsq) {
   const scalar_t amin = amin_, amax = amax_, tmin = tmin_;
   const int64_t D = feats.size(1), ts = grid.ts, area = ts * ts;
   const int64_t n_tiles = tstart.numel() - 1;
@@ -92,49 +122,42 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
   scalar_t* oT = out_T.data_ptr<scalar_t>();
   scalar_t* oD = want_depth ? out_depth.data_ptr<scalar_t>() : nullptr;
   scalar_t* oW = want_wsq ? out_wsq.data_ptr<scalar_t>() : nullptr;
+  int32_t* oL = out_last.data_ptr<int32_t>();
 
   at::parallel_for(0, n_tiles, 1, [&](int64_t t0, int64_t t1) {
     TileData<scalar_t> td;
     std::vector<scalar_t> T(area), acc(area * D), dep(area), wsq(area);
-    std::vector<char> done(area);
+    std::vector<int32_t> last(area);
     for (int64_t t = t0; t < t1; ++t) {
-      const int64_t s = pt[t], e = pt[t + 1];
-      if (s == e) continue;
-      const int64_t local = t % (grid.tiles_x * grid.tiles_y);
-      const int64_t ty = local / grid.tiles_x, tx = local % grid.tiles_x;
-      const double ox = double(tx * ts), oy = double(ty * ts);
-      td.load(pm, pc, po, pf, pz, D, pg, s, e, amin_, ox, oy, ts);
+      const TileIndex ti = tile_index(pt, t, grid);
+      const int64_t n = ti.e - ti.s;
+      if (n == 0) continue;
+      td.load(pm, pc, po, pf, pz, D, pg, ti.s, ti.e, amin_, ti.ox, ti.oy, ts);
       std::fill(T.begin(), T.end(), scalar_t(1));
       std::fill(acc.begin(), acc.end(), scalar_t(0));
       std::fill(dep.begin(), dep.end(), scalar_t(0));
       std::fill(wsq.begin(), wsq.end(), scalar_t(0));
-      std::fill(done.begin(), done.end(), char(0));
+      std::fill(last.begin(), last.end(), int32_t(n));
       int64_t n_done = 0;
-      for (int64_t k = 0; k < e - s && n_done < area; ++k) {
-        for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
-          const scalar_t dy = scalar_t(oy + iy) + scalar_t(0.5) - td.my[k];
-          for (int32_t ix = td.x0[k]; ix <= td.x1[k]; ++ix) {
-            const int64_t p = int64_t(iy) * ts + ix;
-            if (done[p]) continue;
-            const scalar_t dx = scalar_t(ox + ix) + scalar_t(0.5) - td.mx[k];
-            const scalar_t power = scalar_t(-0.5) * (td.A[k] * dx * dx + td.C[k] * dy * dy) - td.B[k] * dx * dy;
-            if (power < td.cut[k]) continue;
-            scalar_t alpha = td.o[k] * std::exp(power);
-            if (!(alpha < amax)) alpha = amax;
-            if (alpha < amin) continue;
-            const scalar_t nT = T[p] * (1 - alpha);
-            if (nT < tmin) { done[p] = 1; ++n_done; continue; }
-            const scalar_t w = alpha * T[p];
-            for (int64_t d = 0; d < D; ++d) acc[p * D + d] += w * td.f[k * D + d];
-            dep[p] += w * td.z[k];
-            wsq[p] += w * w;
-            T[p] = nT;
-          }
-        }
+      for (int64_t k = 0; k < n && n_done < area; ++k) {
+        walk(td, k, ti.ox, ti.oy, ts, [&](int64_t p, scalar_t, scalar_t, scalar_t power) {
+          if (last[p] < n) return;  // stopped
+          scalar_t alpha = td.o[k] * std::exp(power);
+          if (!(alpha < amax)) alpha = amax;
+          if (alpha < amin) return;
+          const scalar_t nT = T[p] * (1 - alpha);
+          if (nT < tmin) { last[p] = int32_t(k); ++n_done; return; }
+          const scalar_t w = alpha * T[p];
+          for (int64_t d = 0; d < D; ++d) acc[p * D + d] += w * td.f[k * D + d];
+          dep[p] += w * td.z[k];
+          wsq[p] += w * w;
+          T[p] = nT;
+        });
       }
       for (int64_t p = 0; p < area; ++p) {
         const int64_t q = t * area + p;
         oT[q] = T[p];
+        oL[q] = last[p];
         if (oF) for (int64_t d = 0; d < D; ++d) oF[q * D + d] = acc[p * D + d];
         if (oD) oD[q] = dep[p];
         if (oW) oW[q] = wsq[p];
@@ -147,10 +170,12 @@ template <typename scalar_t>
 void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opac,
                    const torch::Tensor& feats, const torch::Tensor& depths, const torch::Tensor& gids,
                    const torch::Tensor& tstart, Grid grid, double amin_, double amax_, double tmin_,
-                   const torch::Tensor& g_feat, const torch::Tensor& g_T, const torch::Tensor& g_depth,
-                   const torch::Tensor& g_wsq, torch::Tensor& pg_mean, torch::Tensor& pg_conic,
-                   torch::Tensor& pg_opac, torch::Tensor& pg_feat, torch::Tensor& pg_depth) {
-  const scalar_t amin = amin_, amax = amax_, tmin = tmin_;
+                   const torch::Tensor& T_final, const torch::Tensor& last_idx, const torch::Tensor& g_feat,
+                   const torch::Tensor& g_T, const torch::Tensor& g_depth, const torch::Tensor& g_wsq,
+                   torch::Tensor& pg_mean, torch::Tensor& pg_conic, torch::Tensor& pg_opac, torch::Tensor& pg_feat,
+                   torch::Tensor& pg_depth) {
+  const scalar_t amin = amin_, amax = amax_;
+  (void)tmin_;
   const int64_t D = feats.size(1), ts = grid.ts, area = ts * ts;
   const int64_t n_tiles = tstart.numel() - 1;
   const scalar_t* pm = means2d.data_ptr<scalar_t>();
@@ -160,6 +185,8 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
   const scalar_t* pz = depths.data_ptr<scalar_t>();
   const int64_t* pg = gids.data_ptr<int64_t>();
   const int64_t* pt = tstart.data_ptr<int64_t>();
+  const scalar_t* pTf = T_final.data_ptr<scalar_t>();
+  const int32_t* pL = last_idx.data_ptr<int32_t>();
   const scalar_t* gF = g_feat.numel() ? g_feat.data_ptr<scalar_t>() : nullptr;
   const scalar_t* gT = g_T.numel() ? g_T.data_ptr<scalar_t>() : nullptr;
   const scalar_t* gD = g_depth.numel() ? g_depth.data_ptr<scalar_t>() : nullptr;
@@ -172,95 +199,53 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
 
   at::parallel_for(0, n_tiles, 1, [&](int64_t t0, int64_t t1) {
     TileData<scalar_t> td;
-    std::vector<scalar_t> T(area), T_final(area);
-    std::vector<double> S(area), prefix(area);
-    std::vector<char> done(area);
+    std::vector<scalar_t> T(area);
+    std::vector<double> S(area);
     std::vector<scalar_t> gf_sum(D);
     for (int64_t t = t0; t < t1; ++t) {
-      const int64_t s = pt[t], e = pt[t + 1];
-      if (s == e) continue;
-      const int64_t local = t % (grid.tiles_x * grid.tiles_y);
-      const int64_t ty = local / grid.tiles_x, tx = local % grid.tiles_x;
-      const double ox = double(tx * ts), oy = double(ty * ts);
-      td.load(pm, pc, po, pf, pz, D, pg, s, e, amin_, ox, oy, ts);
-      const int64_t n = e - s;
-      // v = dL/dfeat . c + dL/ddepth z + 2 w dL/dweight_sq
-      auto value = [&](int64_t k, int64_t q, scalar_t w) {
-        scalar_t v = (gD ? gD[q] * td.z[k] : scalar_t(0)) + (gW ? 2 * w * gW[q] : scalar_t(0));
-        if (gF) for (int64_t d = 0; d < D; ++d) v += gF[q * D + d] * td.f[k * D + d];
-        return v;
-      };
-      // Pass 1: per pixel, total of w v over kept Gaussians and the final transmittance.
-      std::fill(T.begin(), T.end(), scalar_t(1));
-      std::fill(S.begin(), S.end(), 0.0);
-      std::fill(done.begin(), done.end(), char(0));
-      int64_t n_done = 0;
-      for (int64_t k = 0; k < n && n_done < area; ++k) {
-        for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
-          const scalar_t dy = scalar_t(oy + iy) + scalar_t(0.5) - td.my[k];
-          for (int32_t ix = td.x0[k]; ix <= td.x1[k]; ++ix) {
-            const int64_t p = int64_t(iy) * ts + ix;
-            if (done[p]) continue;
-            const scalar_t dx = scalar_t(ox + ix) + scalar_t(0.5) - td.mx[k];
-            const scalar_t power = scalar_t(-0.5) * (td.A[k] * dx * dx + td.C[k] * dy * dy) - td.B[k] * dx * dy;
-            if (power < td.cut[k]) continue;
-            scalar_t alpha = td.o[k] * std::exp(power);
-            if (!(alpha < amax)) alpha = amax;
-            if (alpha < amin) continue;
-            const scalar_t nT = T[p] * (1 - alpha);
-            if (nT < tmin) { done[p] = 1; ++n_done; continue; }
-            const scalar_t w = alpha * T[p];
-            S[p] += double(w) * double(value(k, t * area + p, w));
-            T[p] = nT;
-          }
-        }
+      const TileIndex ti = tile_index(pt, t, grid);
+      const int64_t n = ti.e - ti.s;
+      if (n == 0) continue;
+      td.load(pm, pc, po, pf, pz, D, pg, ti.s, ti.e, amin_, ti.ox, ti.oy, ts);
+      const int64_t base = t * area;
+      int32_t deepest = 0;  // Gaussians at or behind every pixel's stop contribute nothing
+      for (int64_t p = 0; p < area; ++p) {
+        T[p] = pTf[base + p];
+        S[p] = 0.0;
+        deepest = std::max(deepest, pL[base + p]);
       }
-      std::copy(T.begin(), T.end(), T_final.begin());
-      // Pass 2: gradients per pair, summed over the Gaussian's pixels.
-      std::fill(T.begin(), T.end(), scalar_t(1));
-      std::fill(prefix.begin(), prefix.end(), 0.0);
-      std::fill(done.begin(), done.end(), char(0));
-      n_done = 0;
-      for (int64_t k = 0; k < n && n_done < area; ++k) {
+      for (int64_t k = std::min<int64_t>(n, deepest) - 1; k >= 0; --k) {
         scalar_t go = 0, gmx = 0, gmy = 0, gA = 0, gB = 0, gC = 0, gz = 0;
         std::fill(gf_sum.begin(), gf_sum.end(), scalar_t(0));
-        for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
-          const scalar_t dy = scalar_t(oy + iy) + scalar_t(0.5) - td.my[k];
-          for (int32_t ix = td.x0[k]; ix <= td.x1[k]; ++ix) {
-            const int64_t p = int64_t(iy) * ts + ix;
-            if (done[p]) continue;
-            const scalar_t dx = scalar_t(ox + ix) + scalar_t(0.5) - td.mx[k];
-            const scalar_t power = scalar_t(-0.5) * (td.A[k] * dx * dx + td.C[k] * dy * dy) - td.B[k] * dx * dy;
-            if (power < td.cut[k]) continue;
-            const scalar_t G = std::exp(power);
-            const scalar_t raw = td.o[k] * G;
-            const bool unclamped = raw < amax;
-            const scalar_t alpha = unclamped ? raw : amax;
-            if (alpha < amin) continue;
-            const scalar_t nT = T[p] * (1 - alpha);
-            if (nT < tmin) { done[p] = 1; ++n_done; continue; }
-            const int64_t q = t * area + p;
-            const scalar_t w = alpha * T[p];
-            const scalar_t v = value(k, q, w);
-            prefix[p] += double(w) * double(v);
-            if (gF) for (int64_t d = 0; d < D; ++d) gf_sum[d] += w * gF[q * D + d];
-            if (gD) gz += w * gD[q];
-            if (unclamped) {
-              const scalar_t behind = scalar_t(S[p] - prefix[p]);
-              const scalar_t gt = gT ? gT[q] : scalar_t(0);
-              const scalar_t g_alpha = T[p] * v - (behind + T_final[p] * gt) / (1 - alpha);
-              const scalar_t g_power = g_alpha * alpha;
-              go += g_alpha * G;
-              gmx += (td.A[k] * dx + td.B[k] * dy) * g_power;
-              gmy += (td.B[k] * dx + td.C[k] * dy) * g_power;
-              gA += scalar_t(-0.5) * dx * dx * g_power;
-              gB += -dx * dy * g_power;
-              gC += scalar_t(-0.5) * dy * dy * g_power;
-            }
-            T[p] = nT;
+        walk(td, k, ti.ox, ti.oy, ts, [&](int64_t p, scalar_t dx, scalar_t dy, scalar_t power) {
+          if (k >= pL[base + p]) return;  // behind this pixel's stop
+          const scalar_t G = std::exp(power);
+          const scalar_t raw = td.o[k] * G;
+          const bool unclamped = raw < amax;
+          const scalar_t alpha = unclamped ? raw : amax;
+          if (alpha < amin) return;
+          const int64_t q = base + p;
+          const scalar_t Tb = T[p] / (1 - alpha);  // transmittance in front of k
+          const scalar_t w = alpha * Tb;
+          scalar_t v = (gD ? gD[q] * td.z[k] : scalar_t(0)) + (gW ? 2 * w * gW[q] : scalar_t(0));
+          if (gF) for (int64_t d = 0; d < D; ++d) v += gF[q * D + d] * td.f[k * D + d];
+          if (gF) for (int64_t d = 0; d < D; ++d) gf_sum[d] += w * gF[q * D + d];
+          if (gD) gz += w * gD[q];
+          if (unclamped) {
+            const scalar_t gt = gT ? gT[q] : scalar_t(0);
+            const scalar_t g_alpha = Tb * v - (scalar_t(S[p]) + pTf[q] * gt) / (1 - alpha);
+            const scalar_t g_power = g_alpha * alpha;
+            go += g_alpha * G;
+            gmx += (td.A[k] * dx + td.B[k] * dy) * g_power;
+            gmy += (td.B[k] * dx + td.C[k] * dy) * g_power;
+            gA += scalar_t(-0.5) * dx * dx * g_power;
+            gB += -dx * dy * g_power;
+            gC += scalar_t(-0.5) * dy * dy * g_power;
           }
-        }
-        const int64_t pair = s + k;
+          S[p] += double(w) * double(v);
+          T[p] = Tb;
+        });
+        const int64_t pair = ti.s + k;
         qO[pair] = go;
         qM[2 * pair] = gmx; qM[2 * pair + 1] = gmy;
         qC[3 * pair] = gA; qC[3 * pair + 1] = gB; qC[3 * pair + 2] = gC;
@@ -290,24 +275,27 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
   auto out_T = torch::ones({n_tiles, area}, opts);
   auto out_depth = want_depth ? torch::zeros({n_tiles, area}, opts) : torch::zeros({0}, opts);
   auto out_wsq = want_wsq ? torch::zeros({n_tiles, area}, opts) : torch::zeros({0}, opts);
+  auto out_last = torch::zeros({n_tiles, area}, opts.dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
     forward_impl<scalar_t>(means2d, conics, opac, feats, depths, gids, tstart, Grid{tiles_x, tiles_y, ts}, amin,
-                           amax, tmin, out_feat, out_T, out_depth, out_wsq, want_feat, want_depth, want_wsq);
+                           amax, tmin, out_feat, out_T, out_depth, out_wsq, out_last, want_feat, want_depth,
+                           want_wsq);
   });
-  return {out_feat, out_T, out_depth, out_wsq};
+  return {out_feat, out_T, out_depth, out_wsq, out_last};
 }
 
 std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                               torch::Tensor feats, torch::Tensor depths, torch::Tensor gids,
                                               torch::Tensor tstart, int64_t tiles_x, int64_t tiles_y, int64_t ts,
-                                              double amin, double amax, double tmin, torch::Tensor g_feat,
-                                              torch::Tensor g_T, torch::Tensor g_depth, torch::Tensor g_wsq) {
-  for (auto* x : {&means2d, &conics, &opac, &feats, &depths, &gids, &tstart, &g_feat, &g_T, &g_depth, &g_wsq})
+                                              double amin, double amax, double tmin, torch::Tensor T_final,
+                                              torch::Tensor last_idx, torch::Tensor g_feat, torch::Tensor g_T,
+                                              torch::Tensor g_depth, torch::Tensor g_wsq) {
+  for (auto* x : {&means2d, &conics, &opac, &feats, &depths, &gids, &tstart, &T_final, &last_idx, &g_feat, &g_T,
+                  &g_depth, &g_wsq})
     check(*x, "input");
   const int64_t P = gids.numel(), D = feats.size(1);
   auto opts = means2d.options();
-  // Every pair visited by pass 2 writes its entries; pairs never reached (after all pixels of
-  // the tile stopped) keep zeros.
+  // Every pair the backward visits writes its entries; pairs behind every pixel's stop keep zeros.
   auto pg_mean = torch::zeros({P, 2}, opts);
   auto pg_conic = torch::zeros({P, 3}, opts);
   auto pg_opac = torch::zeros({P}, opts);
@@ -315,14 +303,15 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tens
   auto pg_depth = torch::zeros({P}, opts);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
     backward_impl<scalar_t>(means2d, conics, opac, feats, depths, gids, tstart, Grid{tiles_x, tiles_y, ts}, amin,
-                            amax, tmin, g_feat, g_T, g_depth, g_wsq, pg_mean, pg_conic, pg_opac, pg_feat, pg_depth);
+                            amax, tmin, T_final, last_idx, g_feat, g_T, g_depth, g_wsq, pg_mean, pg_conic, pg_opac,
+                            pg_feat, pg_depth);
   });
   return {pg_mean, pg_conic, pg_opac, pg_feat, pg_depth};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_forward", &composite_forward, "Tiled front-to-back compositing (CPU)");
-  m.def("composite_backward", &composite_backward, "Per-pair gradients of the compositor (CPU)");
+  m.def("composite_backward", &composite_backward, "Per-pair gradients of the compositor, one pass (CPU)");
   m.def("project_forward", &project_forward, "EWA projection, radii and culling (CPU)");
   m.def("project_backward", &project_backward, "Gradients of the projection (CPU)");
   m.def("bin_tiles", &bin_tiles, "Tile lists in depth order (CPU)");
