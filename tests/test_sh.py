@@ -20,6 +20,18 @@ def _sphere_quadrature(n_theta: int = 12, n_phi: int = 24):
     return torch.from_numpy(dirs), torch.from_numpy(w)
 
 
+def _scipy_real(degree, dirs):
+    """scipy's complex Y_l^m (Condon-Shortley phase included) made real, columns m = -l..l."""
+    scipy_special = pytest.importorskip("scipy.special")
+    theta = torch.arccos(dirs[:, 2].clamp(-1, 1)).numpy()
+    phi = torch.atan2(dirs[:, 1], dirs[:, 0]).numpy()
+    real = []
+    for m in range(-degree, degree + 1):
+        Ylm = scipy_special.sph_harm_y(degree, abs(m), theta, phi)
+        real.append(math.sqrt(2) * (Ylm.imag if m < 0 else Ylm.real) if m != 0 else Ylm.real)
+    return torch.from_numpy(np.stack(real, -1))
+
+
 def test_basis_is_orthonormal():
     dirs, w = _sphere_quadrature()
     Y = sh_basis(3, dirs)  # [Q, 16]
@@ -30,15 +42,8 @@ def test_basis_is_orthonormal():
 @pytest.mark.parametrize("degree", [1, 2, 3])
 def test_bands_span_scipy_real_harmonics(degree):
     """Each band of ours is an orthogonal transform of scipy's real SH of that degree."""
-    scipy_special = pytest.importorskip("scipy.special")
     dirs, w = _sphere_quadrature()
-    theta = torch.arccos(dirs[:, 2].clamp(-1, 1)).numpy()
-    phi = torch.atan2(dirs[:, 1], dirs[:, 0]).numpy()
-    real = []
-    for m in range(-degree, degree + 1):
-        Ylm = scipy_special.sph_harm_y(degree, abs(m), theta, phi)
-        real.append(math.sqrt(2) * (Ylm.imag if m < 0 else Ylm.real) if m != 0 else Ylm.real)
-    S = torch.from_numpy(np.stack(real, -1))
+    S = _scipy_real(degree, dirs)
     ours = sh_basis(degree, dirs)[:, degree**2 : (degree + 1) ** 2]
     cross = (ours * w[:, None]).T @ S
     torch.testing.assert_close(cross @ cross.T, torch.eye(2 * degree + 1, dtype=torch.float64), atol=1e-10, rtol=0)
@@ -49,16 +54,9 @@ def test_basis_equals_scipy_real_harmonics_sign_for_sign(degree):
     """The 3DGS basis is exactly scipy's complex Y_l^m (Condon-Shortley phase included) made real:
     sqrt(2) Im Y_l^|m| for m < 0, Y_l^0, sqrt(2) Re Y_l^m for m > 0. Unlike the span test above,
     this sees the sign of every basis function (an oracle independent of sh.py and of gsplat)."""
-    scipy_special = pytest.importorskip("scipy.special")
     g = torch.Generator().manual_seed(0)
     dirs = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
-    theta = torch.arccos(dirs[:, 2].clamp(-1, 1)).numpy()
-    phi = torch.atan2(dirs[:, 1], dirs[:, 0]).numpy()
-    real = []
-    for m in range(-degree, degree + 1):
-        Ylm = scipy_special.sph_harm_y(degree, abs(m), theta, phi)
-        real.append(math.sqrt(2) * (Ylm.imag if m < 0 else Ylm.real) if m != 0 else Ylm.real)
-    expected = torch.from_numpy(np.stack(real, -1))
+    expected = _scipy_real(degree, dirs)
     torch.testing.assert_close(sh_basis(degree, dirs)[:, degree**2 :], expected, atol=1e-12, rtol=0)
 
 

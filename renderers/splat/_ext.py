@@ -32,19 +32,38 @@ SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp")
 HEADERS = (CSRC / "splat_cpu.h",)
 
 
+CFLAGS = ["-O3", "-fopenmp", "-march=native", "-ffp-contract=off"]
+"""Built for the CPU it runs on; no fused multiply-add contraction (the same rounding as the
+torch path's separate operations)."""
+
+
 def module_name() -> str:
-    """The module's name carries a hash of every source and header: a changed source is a new library."""
-    h = hashlib.sha256()
+    """The module's name carries a hash of every source, header and flag: a change is a new library."""
+    h = hashlib.sha256(" ".join(CFLAGS).encode())
     for path in SOURCES + HEADERS:
         h.update(path.read_bytes())
     return f"gdbench_splat_cpu_{h.hexdigest()[:10]}"
+
+
+def _cpu_tag() -> str:
+    """A short hash of this CPU's instruction-set flags: the library is built for the CPU it runs
+    on (-march=native), so a cache shared between machines keeps one build per kind of CPU."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        flags = ""
+    import platform
+
+    return hashlib.sha256((platform.machine() + flags).encode()).hexdigest()[:8]
 
 
 def build_dir() -> Path:
     import torch
 
     root = Path(os.environ.get("GDBENCH_CACHE", Path.home() / ".cache" / "gdbench")) / "ext"
-    return root / f"torch{torch.__version__.split('+')[0]}-py{sys.version_info.major}{sys.version_info.minor}"
+    py = f"py{sys.version_info.major}{sys.version_info.minor}"
+    return root / f"torch{torch.__version__.split('+')[0]}-{py}-{_cpu_tag()}"
 
 
 def _import_file(name: str, path: Path) -> ModuleType:
@@ -70,7 +89,7 @@ def _build(name: str, target: Path, verbose: bool) -> ModuleType:
             name=name,
             sources=[str(p) for p in SOURCES],
             extra_include_paths=[str(CSRC)],
-            extra_cflags=["-O3", "-fopenmp"],
+            extra_cflags=CFLAGS,
             extra_ldflags=["-fopenmp"],
             build_directory=str(tmp),
             verbose=verbose,
