@@ -297,6 +297,7 @@ BENCHES = {
     "stability": ("gdbench.bench.bm_stability", "stability.csv", []),
     "noise": ("gdbench.bench.bm_noise", "noise.csv", []),
     "train": ("gdbench.bench.bm_train", "train.csv", []),
+    "scale": ("gdbench.bench.bm_scale", "scale.csv", []),
 }
 """Benchmark name -> (module, CSV name, extra arguments)."""
 
@@ -309,9 +310,10 @@ class Bench:
     peers: splat vs gsplat_torch vs Mitsuba ellipsoids (target: splat forward >= 10x gsplat at
     10k Gaussians, 256 px, same run); error: error against run time over all fixtures (Pareto);
     stability: stiff and extreme cases on every renderer; noise: structured-noise share of a
-    training step; train: denoiser and full-run timings."""
+    training step; train: denoiser, full-run and per-step timings; scale: 1M Gaussians with SH
+    degree 3 at 1920x1080 (time and peak memory)."""
 
-    which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train"]]
+    which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train", "scale"]]
     out: Path = Path("bench_results")
     """Folder for the CSV/JSON/plots."""
     quick: bool = False

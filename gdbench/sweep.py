@@ -130,6 +130,7 @@ def run_cell(spec: CellSpec) -> dict:
         "prompt": spec.prompt,
         "preset": spec.preset,
         "seed": spec.seed,
+        "variants": cell_config(spec).variants,
         "iterations": r.state.step,
         "train_time_s": train_s,
         "gaussians": scores["gaussians"],

@@ -66,15 +66,23 @@ def verdict(lo: float, hi: float, diffs: np.ndarray) -> str:
     return "undecided (CI spans zero)"
 
 
+def _applies(claim: Claim, rows: list[dict], setting: str) -> bool:
+    """Instance consistency is only defined where the bank holds several variants."""
+    if claim.metric != "instance_inconsistency":
+        return True
+    return setting == "instance" or any(int(r.get("variants", 1) or 1) > 1 for r in rows)
+
+
 def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
-    """One result per (setting, claim) whose two presets ran in that setting."""
+    """One result per (setting, claim) whose two presets ran in that setting (instance claims
+    only where the prior held several variants)."""
     out = []
     settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
     for setting in settings:
         sel = [r for r in rows if r.get("setting", "easy") == setting]
         ran = {r["preset"] for r in sel}
         for c in claims:
-            if not {c.a, c.b} <= ran:
+            if not {c.a, c.b} <= ran or not _applies(c, sel, setting):
                 continue
             va = {(r["prompt"], r["seed"]): r.get(c.metric, math.nan) for r in sel if r["preset"] == c.a}
             vb = {(r["prompt"], r["seed"]): r.get(c.metric, math.nan) for r in sel if r["preset"] == c.b}

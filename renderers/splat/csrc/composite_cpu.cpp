@@ -130,15 +130,17 @@ struct Exp<double> {
 };
 
 // The pixels of Gaussian k's box in the tile whose power clears the Gaussian's cut, with
-// f(p, dx, dy, power, G = exp(power)) called for each (p: tile-local pixel index). Each row's
-// powers and exponentials are computed in one vectorisable loop first.
-template <typename scalar_t, typename F>
-inline void walk(const TileData<scalar_t>& td, int64_t k, double ox, double oy, int64_t ts, F&& f) {
+// f(p, dx, dy, power, G = exp(power)) called for each (p: tile-local pixel index). Rows where
+// row_live(iy) is false (every pixel of the row has stopped, or lies in front of k's turn) are
+// skipped; each other row's powers and exponentials are computed in one vectorisable loop first.
+template <typename scalar_t, typename R, typename F>
+inline void walk(const TileData<scalar_t>& td, int64_t k, double ox, double oy, int64_t ts, R&& row_live, F&& f) {
   constexpr int64_t kRow = 64;
   scalar_t pw[kRow], G[kRow];
   const int32_t x0 = td.x0[k], x1 = td.x1[k];
   const scalar_t A = td.A[k], B = td.B[k], C = td.C[k], mx = td.mx[k], cut = td.cut[k];
   for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
+    if (!row_live(iy)) continue;
     const scalar_t dy = scalar_t(oy + iy) + scalar_t(0.5) - td.my[k];
     for (int32_t c0 = x0; c0 <= x1; c0 += int32_t(kRow)) {
       const int32_t c1 = std::min<int32_t>(x1, c0 + int32_t(kRow) - 1);
@@ -193,7 +195,7 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
   at::parallel_for(0, n_tiles, 1, [&](int64_t t0, int64_t t1) {
     TileData<scalar_t> td;
     std::vector<scalar_t> T(area), acc(area * D), dep(area), wsq(area);
-    std::vector<int32_t> last(area);
+    std::vector<int32_t> last(area), live(ts);
     for (int64_t t = t0; t < t1; ++t) {
       const TileIndex ti = tile_index(pt, t, grid);
       const int64_t n = ti.e - ti.s;
@@ -204,15 +206,17 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
       std::fill(dep.begin(), dep.end(), scalar_t(0));
       std::fill(wsq.begin(), wsq.end(), scalar_t(0));
       std::fill(last.begin(), last.end(), int32_t(n));
+      std::fill(live.begin(), live.end(), int32_t(ts));  // pixels of each row still compositing
       int64_t n_done = 0;
+      auto row_live = [&](int32_t iy) { return live[iy] > 0; };
       for (int64_t k = 0; k < n && n_done < area; ++k) {
-        walk(td, k, ti.ox, ti.oy, ts, [&](int64_t p, scalar_t, scalar_t, scalar_t, scalar_t G) {
+        walk(td, k, ti.ox, ti.oy, ts, row_live, [&](int64_t p, scalar_t, scalar_t, scalar_t, scalar_t G) {
           if (last[p] < n) return;  // stopped
           scalar_t alpha = td.o[k] * G;
           if (!(alpha < amax)) alpha = amax;
           if (alpha < amin) return;
           const scalar_t nT = T[p] * (1 - alpha);
-          if (nT < tmin) { last[p] = int32_t(k); ++n_done; return; }
+          if (nT < tmin) { last[p] = int32_t(k); ++n_done; --live[p / ts]; return; }
           const scalar_t w = alpha * T[p];
           for (int64_t d = 0; d < D; ++d) acc[p * D + d] += w * td.f[k * D + d];
           dep[p] += w * td.z[k];
@@ -268,6 +272,7 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
     std::vector<scalar_t> T(area);
     std::vector<double> S(area);
     std::vector<scalar_t> gf_sum(D);
+    std::vector<int32_t> row_last(ts);
     for (int64_t t = t0; t < t1; ++t) {
       const TileIndex ti = tile_index(pt, t, grid);
       const int64_t n = ti.e - ti.s;
@@ -275,15 +280,18 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
       td.load(pm, pc, po, pf, pz, D, pg, ti.s, ti.e, amin_, ti.ox, ti.oy, ts);
       const int64_t base = t * area;
       int32_t deepest = 0;  // Gaussians at or behind every pixel's stop contribute nothing
+      std::fill(row_last.begin(), row_last.end(), int32_t(0));
       for (int64_t p = 0; p < area; ++p) {
         T[p] = pTf[base + p];
         S[p] = 0.0;
         deepest = std::max(deepest, pL[base + p]);
+        row_last[p / ts] = std::max(row_last[p / ts], pL[base + p]);
       }
       for (int64_t k = std::min<int64_t>(n, deepest) - 1; k >= 0; --k) {
         scalar_t go = 0, gmx = 0, gmy = 0, gA = 0, gB = 0, gC = 0, gz = 0;
         std::fill(gf_sum.begin(), gf_sum.end(), scalar_t(0));
-        walk(td, k, ti.ox, ti.oy, ts, [&](int64_t p, scalar_t dx, scalar_t dy, scalar_t, scalar_t G) {
+        auto row_live = [&](int32_t iy) { return k < row_last[iy]; };
+        walk(td, k, ti.ox, ti.oy, ts, row_live, [&](int64_t p, scalar_t dx, scalar_t dy, scalar_t, scalar_t G) {
           if (k >= pL[base + p]) return;  // behind this pixel's stop
           const scalar_t raw = td.o[k] * G;
           const bool unclamped = raw < amax;
