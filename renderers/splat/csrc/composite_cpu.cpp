@@ -10,12 +10,14 @@
 // pass back to front from T_final and "last": T before Gaussian i is T after it / (1 - alpha_i),
 // S (the sum of w v behind i, double) grows as it goes, and
 //   dL/dalpha_i = T_i v_i - (S + T_final dL/dT_final) / (1 - alpha_i).
-// One visitor (walk) holds the pixel loop of both. Gradients are written per tile-Gaussian pair
+// One visitor (walk) holds the pixel loop of both: it hands row segments of a Gaussian's box,
+// with their powers and exponentials, to a branch-free segment kernel the compiler vectorises. Gradients are written per tile-Gaussian pair
 // (each pair belongs to one tile, so no two threads write the same entry); Python scatters them
 // to Gaussians with index_add_.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
+#include "fast_exp.h"
 #include "splat_cpu.h"
 
 #include <algorithm>
@@ -77,84 +79,31 @@ struct TileData {
   }
 };
 
-// exp(x) for the kernel's range (x in [-80, 0]: power >= cut > -10 where it is used; lower
-// inputs are clamped, their results unused), written so the compiler vectorises it over a row:
-// x = n ln2 + r with n = round(x / ln2) (the 1.5 * 2^m rounding trick), |r| <= ln2/2, exp(r) by
-// its Taylor series to the precision of the type (degree 7 for float: 2e-8 relative; degree 13
-// for double: 4e-18), times 2^n by building the exponent bits. Checked against std::exp to 2
-// ulp in float and 4 ulp in double over the range (tests/test_composite.py, through fast_exp).
-template <typename T>
-struct Exp;
+// The pixels of Gaussian k's box in the tile, handed to seg row segment by row segment: for
+// each row where row_live(iy) (some pixel of the row is still compositing, or lies in front of
+// k's stop) and each run of at most kRow pixels, the arrays dx, power and G = exp(power) are
+// computed in one vectorisable loop, then seg(p0, m, dx, dy, power, G, iy) (p0: tile-local index
+// of the run's first pixel) decides, per pixel, whether power clears the Gaussian's cut.
+constexpr int32_t kRow = 64;
+constexpr int32_t kVec = 16;  // runs at least this long take the compositor's vectorised path
 
-template <>
-struct Exp<float> {
-  static inline float eval(float x) {
-    x = x < -80.0f ? -80.0f : x;
-    const float shift = 12582912.0f;  // 1.5 * 2^23
-    const float t = x * 1.44269504088896341f + shift;
-    const float n = t - shift;
-    const float r = (x - n * 0.693145751953125f) - n * 1.42860682030941723e-06f;
-    float p = 1.0f / 5040.0f;
-    p = p * r + 1.0f / 720.0f;
-    p = p * r + 1.0f / 120.0f;
-    p = p * r + 1.0f / 24.0f;
-    p = p * r + 1.0f / 6.0f;
-    p = p * r + 0.5f;
-    p = p * r + 1.0f;
-    p = p * r + 1.0f;
-    const int32_t bits = (int32_t(n) + 127) << 23;
-    float scale;
-    std::memcpy(&scale, &bits, sizeof(scale));
-    return p * scale;
-  }
-};
-
-template <>
-struct Exp<double> {
-  static inline double eval(double x) {
-    x = x < -700.0 ? -700.0 : x;
-    const double shift = 6755399441055744.0;  // 1.5 * 2^52
-    const double t = x * 1.4426950408889634 + shift;
-    const double n = t - shift;
-    const double r = (x - n * 0.6931471803691238) - n * 1.9082149292705877e-10;
-    double p = 1.0 / 6227020800.0;
-    const double c[] = {1.0 / 479001600.0, 1.0 / 39916800.0, 1.0 / 3628800.0, 1.0 / 362880.0, 1.0 / 40320.0,
-                        1.0 / 5040.0,      1.0 / 720.0,      1.0 / 120.0,     1.0 / 24.0,     1.0 / 6.0,
-                        0.5,               1.0,              1.0};
-    for (double ci : c) p = p * r + ci;
-    const int64_t bits = (int64_t(n) + 1023) << 52;
-    double scale;
-    std::memcpy(&scale, &bits, sizeof(scale));
-    return p * scale;
-  }
-};
-
-// The pixels of Gaussian k's box in the tile whose power clears the Gaussian's cut, with
-// f(p, dx, dy, power, G = exp(power)) called for each (p: tile-local pixel index). Rows where
-// row_live(iy) is false (every pixel of the row has stopped, or lies in front of k's turn) are
-// skipped; each other row's powers and exponentials are computed in one vectorisable loop first.
 template <typename scalar_t, typename R, typename F>
-inline void walk(const TileData<scalar_t>& td, int64_t k, double ox, double oy, int64_t ts, R&& row_live, F&& f) {
-  constexpr int64_t kRow = 64;
-  scalar_t pw[kRow], G[kRow];
+inline void walk(const TileData<scalar_t>& td, int64_t k, double ox, double oy, int64_t ts, R&& row_live, F&& seg) {
+  alignas(64) scalar_t dxs[kRow], pw[kRow], G[kRow];
   const int32_t x0 = td.x0[k], x1 = td.x1[k];
-  const scalar_t A = td.A[k], B = td.B[k], C = td.C[k], mx = td.mx[k], cut = td.cut[k];
+  const scalar_t A = td.A[k], B = td.B[k], C = td.C[k], mx = td.mx[k];
   for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
     if (!row_live(iy)) continue;
     const scalar_t dy = scalar_t(oy + iy) + scalar_t(0.5) - td.my[k];
-    for (int32_t c0 = x0; c0 <= x1; c0 += int32_t(kRow)) {
-      const int32_t c1 = std::min<int32_t>(x1, c0 + int32_t(kRow) - 1);
-      const int32_t m = c1 - c0 + 1;
+    for (int32_t c0 = x0; c0 <= x1; c0 += kRow) {
+      const int32_t m = std::min<int32_t>(x1, c0 + kRow - 1) - c0 + 1;
       for (int32_t j = 0; j < m; ++j) {
         const scalar_t dx = scalar_t(ox + (c0 + j)) + scalar_t(0.5) - mx;
+        dxs[j] = dx;
         pw[j] = scalar_t(-0.5) * (A * dx * dx + C * dy * dy) - B * dx * dy;
         G[j] = Exp<scalar_t>::eval(pw[j]);
       }
-      for (int32_t j = 0; j < m; ++j) {
-        if (pw[j] < cut) continue;
-        const int32_t ix = c0 + j;
-        f(int64_t(iy) * ts + ix, scalar_t(ox + ix) + scalar_t(0.5) - mx, dy, pw[j], G[j]);
-      }
+      seg(int64_t(iy) * ts + c0, m, dxs, dy, pw, G, iy);
     }
   }
 }
@@ -194,8 +143,10 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
 
   at::parallel_for(0, n_tiles, 1, [&](int64_t t0, int64_t t1) {
     TileData<scalar_t> td;
+    // per-tile buffers, features channel-major ([D][area]) so that a row segment is contiguous
     std::vector<scalar_t> T(area), acc(area * D), dep(area), wsq(area);
     std::vector<int32_t> last(area), live(ts);
+    alignas(64) scalar_t wv[kRow];
     for (int64_t t = t0; t < t1; ++t) {
       const TileIndex ti = tile_index(pt, t, grid);
       const int64_t n = ti.e - ti.s;
@@ -210,25 +161,70 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
       int64_t n_done = 0;
       auto row_live = [&](int32_t iy) { return live[iy] > 0; };
       for (int64_t k = 0; k < n && n_done < area; ++k) {
-        walk(td, k, ti.ox, ti.oy, ts, row_live, [&](int64_t p, scalar_t, scalar_t, scalar_t, scalar_t G) {
-          if (last[p] < n) return;  // stopped
-          scalar_t alpha = td.o[k] * G;
-          if (!(alpha < amax)) alpha = amax;
-          if (alpha < amin) return;
-          const scalar_t nT = T[p] * (1 - alpha);
-          if (nT < tmin) { last[p] = int32_t(k); ++n_done; --live[p / ts]; return; }
-          const scalar_t w = alpha * T[p];
-          for (int64_t d = 0; d < D; ++d) acc[p * D + d] += w * td.f[k * D + d];
-          dep[p] += w * td.z[k];
-          wsq[p] += w * w;
-          T[p] = nT;
+        const scalar_t o = td.o[k], cut = td.cut[k], z = td.z[k];
+        const int32_t kk = int32_t(k), nn = int32_t(n);
+        walk(td, k, ti.ox, ti.oy, ts, row_live,
+             [&](int64_t p0, int32_t m, const scalar_t*, scalar_t, const scalar_t* pw, const scalar_t* G, int32_t iy) {
+          // branch-free over the segment (the compiler vectorises it): a pixel that has stopped,
+          // or where alpha < alpha_min, gets w = 0 and keeps its state; one where T would fall
+          // below t_min stops there without adding
+          scalar_t* Tp = T.data() + p0;
+          int32_t* lp = last.data() + p0;
+          if (m < kVec) {  // short runs: per pixel, with early outs (vectors would run empty)
+            for (int32_t j = 0; j < m; ++j) {
+              if (pw[j] < cut || lp[j] < nn) continue;
+              scalar_t alpha = o * G[j];
+              alpha = alpha < amax ? alpha : amax;
+              if (alpha < amin) continue;
+              const scalar_t nT = Tp[j] * (1 - alpha);
+              if (nT < tmin) { lp[j] = kk; ++n_done; --live[iy]; continue; }
+              const scalar_t w = alpha * Tp[j];
+              const int64_t p = p0 + j;
+              if (want_feat) for (int64_t d = 0; d < D; ++d) acc[d * area + p] += w * td.f[k * D + d];
+              if (want_depth) dep[p] += w * z;
+              if (want_wsq) wsq[p] += w * w;
+              Tp[j] = nT;
+            }
+            return;
+          }
+          int32_t stops = 0;
+#pragma omp simd reduction(+ : stops)
+          for (int32_t j = 0; j < m; ++j) {
+            scalar_t alpha = o * G[j];
+            alpha = alpha < amax ? alpha : amax;
+            const scalar_t Tj = Tp[j], nT = Tj * (1 - alpha);
+            const bool ok = (pw[j] >= cut) & (alpha >= amin) & (lp[j] == nn);
+            const bool stop = ok & (nT < tmin), add = ok & !stop;
+            wv[j] = add ? alpha * Tj : scalar_t(0);
+            Tp[j] = add ? nT : Tj;
+            lp[j] = stop ? kk : lp[j];
+            stops += stop;
+          }
+          if (stops) { n_done += stops; live[iy] -= stops; }
+          // w > 0 wherever a pixel adds (alpha >= alpha_min, T >= t_min), so w != 0 marks them
+          for (int64_t d = 0; want_feat && d < D; ++d) {
+            const scalar_t fd = td.f[k * D + d];
+            scalar_t* ap = acc.data() + d * area + p0;
+#pragma omp simd
+            for (int32_t j = 0; j < m; ++j) ap[j] = wv[j] != 0 ? ap[j] + wv[j] * fd : ap[j];
+          }
+          if (want_depth) {
+            scalar_t* dp = dep.data() + p0;
+#pragma omp simd
+            for (int32_t j = 0; j < m; ++j) dp[j] = wv[j] != 0 ? dp[j] + wv[j] * z : dp[j];
+          }
+          if (want_wsq) {
+            scalar_t* wp = wsq.data() + p0;
+#pragma omp simd
+            for (int32_t j = 0; j < m; ++j) wp[j] += wv[j] * wv[j];
+          }
         });
       }
       for (int64_t p = 0; p < area; ++p) {
         const int64_t q = t * area + p;
         oT[q] = T[p];
         oL[q] = last[p];
-        if (oF) for (int64_t d = 0; d < D; ++d) oF[q * D + d] = acc[p * D + d];
+        if (oF) for (int64_t d = 0; d < D; ++d) oF[q * D + d] = acc[d * area + p];
         if (oD) oD[q] = dep[p];
         if (oW) oW[q] = wsq[p];
       }
@@ -290,33 +286,39 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
       for (int64_t k = std::min<int64_t>(n, deepest) - 1; k >= 0; --k) {
         scalar_t go = 0, gmx = 0, gmy = 0, gA = 0, gB = 0, gC = 0, gz = 0;
         std::fill(gf_sum.begin(), gf_sum.end(), scalar_t(0));
+        const scalar_t o = td.o[k], cut = td.cut[k], z = td.z[k], A = td.A[k], B = td.B[k], C = td.C[k];
+        const int32_t kk = int32_t(k);
         auto row_live = [&](int32_t iy) { return k < row_last[iy]; };
-        walk(td, k, ti.ox, ti.oy, ts, row_live, [&](int64_t p, scalar_t dx, scalar_t dy, scalar_t, scalar_t G) {
-          if (k >= pL[base + p]) return;  // behind this pixel's stop
-          const scalar_t raw = td.o[k] * G;
-          const bool unclamped = raw < amax;
-          const scalar_t alpha = unclamped ? raw : amax;
-          if (alpha < amin) return;
-          const int64_t q = base + p;
-          const scalar_t Tb = T[p] / (1 - alpha);  // transmittance in front of k
-          const scalar_t w = alpha * Tb;
-          scalar_t v = (gD ? gD[q] * td.z[k] : scalar_t(0)) + (gW ? 2 * w * gW[q] : scalar_t(0));
-          if (gF) for (int64_t d = 0; d < D; ++d) v += gF[q * D + d] * td.f[k * D + d];
-          if (gF) for (int64_t d = 0; d < D; ++d) gf_sum[d] += w * gF[q * D + d];
-          if (gD) gz += w * gD[q];
-          if (unclamped) {
-            const scalar_t gt = gT ? gT[q] : scalar_t(0);
-            const scalar_t g_alpha = Tb * v - (scalar_t(S[p]) + pTf[q] * gt) / (1 - alpha);
-            const scalar_t g_power = g_alpha * alpha;
-            go += g_alpha * G;
-            gmx += (td.A[k] * dx + td.B[k] * dy) * g_power;
-            gmy += (td.B[k] * dx + td.C[k] * dy) * g_power;
-            gA += scalar_t(-0.5) * dx * dx * g_power;
-            gB += -dx * dy * g_power;
-            gC += scalar_t(-0.5) * dy * dy * g_power;
+        walk(td, k, ti.ox, ti.oy, ts, row_live,
+             [&](int64_t p0, int32_t m, const scalar_t* dxs, scalar_t dy, const scalar_t* pw, const scalar_t* G, int32_t) {
+          // per pixel: backward runs are mostly short, and the vectorised form measured slower
+          for (int32_t j = 0; j < m; ++j) {
+            const int64_t p = p0 + j, q = base + p;
+            if (pw[j] < cut || kk >= pL[q]) continue;  // outside the ellipse, or behind the stop
+            const scalar_t raw = o * G[j];
+            const bool unclamped = raw < amax;
+            const scalar_t alpha = unclamped ? raw : amax;
+            if (alpha < amin) continue;
+            const scalar_t Tb = T[p] / (1 - alpha);  // transmittance in front of k
+            const scalar_t w = alpha * Tb;
+            scalar_t v = (gD ? gD[q] * z : scalar_t(0)) + (gW ? 2 * w * gW[q] : scalar_t(0));
+            if (gF) for (int64_t d = 0; d < D; ++d) v += gF[q * D + d] * td.f[k * D + d];
+            if (gF) for (int64_t d = 0; d < D; ++d) gf_sum[d] += w * gF[q * D + d];
+            if (gD) gz += w * gD[q];
+            if (unclamped) {
+              const scalar_t gt = gT ? gT[q] : scalar_t(0);
+              const scalar_t g_alpha = Tb * v - (scalar_t(S[p]) + pTf[q] * gt) / (1 - alpha);
+              const scalar_t g_power = g_alpha * alpha, dx = dxs[j];
+              go += g_alpha * G[j];
+              gmx += (A * dx + B * dy) * g_power;
+              gmy += (B * dx + C * dy) * g_power;
+              gA += scalar_t(-0.5) * dx * dx * g_power;
+              gB += -dx * dy * g_power;
+              gC += scalar_t(-0.5) * dy * dy * g_power;
+            }
+            S[p] += double(w) * double(v);
+            T[p] = Tb;
           }
-          S[p] += double(w) * double(v);
-          T[p] = Tb;
         });
         const int64_t pair = ti.s + k;
         qO[pair] = go;
