@@ -151,7 +151,8 @@ def _row(preset, prompt, seed, value, metric="multi_face_rate", setting="janus")
 
 def test_claims_verdict_from_paired_bootstrap_intervals():
     """Paired differences over (prompt, seed) decide: an interval below 0 holds, above 0 does not,
-    one spanning 0 is undecided, all-zero differences cannot tell the presets apart."""
+    one spanning 0 is undecided, all-zero differences cannot tell the presets apart (and where
+    neither preset ever fails, the claim is not testable)."""
     import numpy as np
 
     from gdbench.metrics.claims import CLAIMS, bootstrap_mean_ci, evaluate
@@ -173,8 +174,10 @@ def test_claims_verdict_from_paired_bootstrap_intervals():
     flipped = [dict(r, multi_face_rate=-r["multi_face_rate"]) for r in rows]
     flipped_got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(flipped)}
     assert flipped_got["gd", "gd-no-sn", "multi_face_rate"]["verdict"] == "does not hold"
-    same = [dict(r, multi_face_rate=0.0) for r in rows]
+    same = [dict(r, multi_face_rate=0.25) for r in rows]
     assert evaluate(same)[0]["verdict"] == "does not hold (no difference)"
+    never_fails = [dict(r, multi_face_rate=0.0) for r in rows]  # nothing for the mechanism to fix
+    assert evaluate(never_fails)[0]["verdict"] == "not testable here (neither preset fails)"
     # the interval against its closed form: the mean of n iid differences has sd s/sqrt(n)
     d = rng.normal(1.0, 2.0, 400)
     lo, hi = bootstrap_mean_ci(d)

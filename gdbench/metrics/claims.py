@@ -7,7 +7,9 @@ a fixed seed); the verdict reads the 95% interval of their mean:
 
 - **holds**: the interval lies below 0;
 - **does not hold**: the interval lies above 0 (the opposite holds), or every difference is 0
-  (the metric cannot tell the presets apart in this setting);
+  while the baseline ``b`` does fail (the metric cannot tell the presets apart);
+- **not testable here**: neither preset ever fails (the metric is 0 in every pair), so the
+  mechanism had nothing to fix in this setting; that is no evidence either way;
 - **undecided**: the interval spans 0.
 """
 
@@ -54,10 +56,14 @@ def bootstrap_mean_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, se
     return float(lo), float(hi)
 
 
-def verdict(lo: float, hi: float, diffs: np.ndarray) -> str:
+def verdict(lo: float, hi: float, diffs: np.ndarray, baseline: np.ndarray | None = None) -> str:
+    """The verdict of one claim from the interval of the mean paired difference (a - b), the
+    differences themselves and the baseline's (b's) values."""
     if diffs.size == 0 or math.isnan(lo):
         return "not measured"
     if np.all(diffs == 0):
+        if baseline is not None and np.all(np.asarray(baseline) == 0):
+            return "not testable here (neither preset fails)"
         return "does not hold (no difference)"
     if hi < 0:
         return "holds"
@@ -103,7 +109,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "ci_low": lo,
                     "ci_high": hi,
                     "a_better_pairs": int((d < 0).sum()),
-                    "verdict": verdict(lo, hi, d),
+                    "verdict": verdict(lo, hi, d, np.array([vb[k] for k in keys])),
                 }
             )
     return out

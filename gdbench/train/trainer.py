@@ -215,7 +215,7 @@ def sample_views(ctx: Context, state: TrainState) -> Views:
     )
     R, r = cfg.resolution, cfg.resolution // ctx.factor
     prior_cams = poses.cameras(r, r)
-    cams = prior_cams if ctx.mode == "sd-latent" else poses.cameras(R, R)
+    cams = prior_cams if ctx.mode == "sd-latent" or r == R else poses.cameras(R, R)
     sigma, w = sample_sigma(ctx, state.step, state.streams["sigma"])
     return Views(poses, cams, prior_cams, sigma, w)
 

@@ -58,8 +58,9 @@ struct TileData {
         cut[k] = 0; x0[k] = 1; x1[k] = 0; y0[k] = 1; y1[k] = 0;
         continue;
       }
-      cut[k] = scalar_t(std::log(amin / oo) - 1e-3);
-      const double L = 2.0 * std::log(oo / amin) + 2e-3;
+      const double lg = std::log(amin / oo);
+      cut[k] = scalar_t(lg - 1e-3);
+      const double L = -2.0 * lg + 2e-3;  // 2 ln(o / alpha_min) + 2e-3, to an ulp (the box has margins)
       const double a = A[k], b = B[k], c = C[k];
       const double det = a * c - b * b;
       if (!(det > 0) || !std::isfinite(det)) {
