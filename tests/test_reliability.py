@@ -286,3 +286,21 @@ def test_compositor_loads_the_built_library_directly_and_ignores_stale_locks(tmp
     mod = _ext.load_extension()
     assert mod is not None and _ext.extension_status() == "loaded"
     assert os.path.samefile(mod.__spec__.origin, target)
+
+
+def test_every_listed_mutation_applies_to_the_current_code():
+    """`make mutants` applies each mutation to a copy; a snippet the code no longer holds (or
+    holds twice) would make the mutant meaningless, so the list must follow the code."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("gdbench_mutants", root / "scripts" / "mutants.py")
+    mutants = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("gdbench_mutants", mutants)  # dataclasses look their module up there
+    spec.loader.exec_module(mutants)
+    assert len(mutants.MUTATIONS) >= 16
+    for m in mutants.MUTATIONS:
+        text = (root / m.file).read_text()
+        assert text.count(m.old) == 1, f"{m.name}: snippet found {text.count(m.old)} times in {m.file}"
+        assert m.new != m.old
