@@ -164,7 +164,7 @@ def turntable_grid(out: Path, prompt: str, seed: int = 0, frames: int = 6) -> Pa
         pick = np.linspace(0, len(video), frames, endpoint=False).astype(int)
         ax.imshow(np.concatenate([video[i][..., :3] for i in pick], 1))
         setting, preset = gif.parts[-5], gif.parts[-3]
-        ax.set_ylabel(f"{setting}\n{preset}", rotation=0, ha="right", va="center", fontsize=8)
+        ax.set_title(f"{setting}: {preset}", loc="left", fontsize=8, pad=2)
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9)
