@@ -21,14 +21,14 @@ class TurntableResult:
     paths: dict[str, Path]
 
 
-def render_views(
+def render_views_alpha(
     scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
-) -> torch.Tensor:
-    """Render cameras in batches without gradients; returns [C, H, W, 3] in [0, 1]."""
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render cameras in batches without gradients; returns (rgb [C, H, W, 3] in [0, 1], alpha [C, H, W])."""
     from renderers.splat import rasterize
 
     bg = torch.as_tensor(background, dtype=scene.means.dtype, device=scene.means.device)
-    out = []
+    rgb, alpha = [], []
     with torch.no_grad():
         for i in range(0, len(cams), batch):
             c = cams[i : i + batch].to(scene.means.device)
@@ -39,11 +39,19 @@ def render_views(
                 width=c.width,
                 height=c.height,
                 background=bg,
-                outputs=("rgb",),
+                outputs=("rgb", "alpha"),
                 **kwargs,
             )
-            out.append(r.rgb.clamp(0, 1))
-    return torch.cat(out)
+            rgb.append(r.rgb.clamp(0, 1))
+            alpha.append(r.alpha[..., 0])
+    return torch.cat(rgb), torch.cat(alpha)
+
+
+def render_views(
+    scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
+) -> torch.Tensor:
+    """Render cameras in batches without gradients; returns [C, H, W, 3] in [0, 1]."""
+    return render_views_alpha(scene, cams, background, batch, **kwargs)[0]
 
 
 def to_uint8(images: torch.Tensor) -> np.ndarray:

@@ -119,20 +119,9 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
 
 def render_turntable(scene, frames: int = FRAMES, size: int = SIZE) -> tuple[Tensor, Tensor]:
     """(images [F, H, W, 3], alpha [F, H, W]) of a GaussianScene at the metric's views."""
-    from renderers.splat import rasterize
+    from ..turntable import render_views_alpha
 
-    cams = turntable_poses(frames).cameras(size, size)
-    with torch.no_grad():
-        out = rasterize(
-            **scene.render_args(),
-            viewmats=cams.viewmats,
-            Ks=cams.Ks,
-            width=size,
-            height=size,
-            background=torch.ones(3),
-            outputs=("rgb", "alpha"),
-        )
-    return out.rgb.clamp(0, 1), out.alpha[..., 0]
+    return render_views_alpha(scene, turntable_poses(frames).cameras(size, size))
 
 
 def score_scene(scene, caption: str, variants: int = 1, ref: Reference | None = None) -> ViewScore:
