@@ -22,10 +22,16 @@ def check_tensor(name: str, x: object, *, finite: bool = True) -> Tensor:
         raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
     if x.dtype not in FLOAT_DTYPES:
         raise TypeError(f"{name}: expected dtype float32 or float64, got {x.dtype}")
-    if finite and x.numel() > 0 and not bool(torch.isfinite(x).all()):
+    if finite and x.numel() > 0 and not all_finite(x):
         n_bad = int((~torch.isfinite(x)).sum())
         raise ValueError(f"{name}: expected finite values, found {n_bad} NaN/Inf entries")
     return x
+
+
+def all_finite(x: Tensor) -> bool:
+    """Whether every entry is finite. A finite sum proves it in one reduction (NaN and Inf
+    propagate through a sum); only a non-finite sum (or an overflow) looks entry by entry."""
+    return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
 
 
 def check_shape(name: str, x: Tensor, expected: Sequence[int | str], batch: tuple[int, ...] | None = None) -> None:
@@ -125,10 +131,12 @@ def check_values(tensors: dict[str, Tensor], scales: Tensor | None, opacities: T
     with positive focal lengths (when ``viewmats`` and ``Ks`` are among ``tensors``)."""
     for name, x in tensors.items():
         check_tensor(name, x, finite=True)
-    if scales is not None and scales.numel() and bool((scales < 0).any()):
+    if scales is not None and scales.numel() and float(scales.min()) < 0:
         raise ValueError("scales: expected non-negative linear scales (pass exp(log_scales))")
-    if opacities is not None and opacities.numel() and bool(((opacities < 0) | (opacities > 1)).any()):
-        raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
+    if opacities is not None and opacities.numel():
+        lo, hi = (float(v) for v in torch.aminmax(opacities))
+        if lo < 0 or hi > 1:
+            raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
     if "viewmats" in tensors and "Ks" in tensors:
         check_cameras(tensors["viewmats"], tensors["Ks"])
 
@@ -144,8 +152,8 @@ def check_cameras(viewmats: Tensor, Ks: Tensor, tol: float = 1e-3) -> None:
     R = viewmats[..., :3, :3].double()
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
     ortho = float((R @ R.transpose(-1, -2) - eye).abs().amax())
-    det = torch.linalg.det(R)
-    if ortho > tol or bool(((det - 1).abs() > tol).any()):
+    det = (R[..., 0, :] * torch.linalg.cross(R[..., 1, :], R[..., 2, :])).sum(-1)  # the triple product
+    if ortho > tol or float((det - 1).abs().amax()) > tol:
         raise ValueError(
             "viewmats: expected world-to-camera rigid transforms whose 3x3 block is a rotation "
             f"(R R^T = I, det R = 1; got max |R R^T - I| = {ortho:.3g}, det R in "

@@ -96,7 +96,7 @@ class _Composite(torch.autograd.Function):
         )
         if ctx.backend == "cpp":
             empty = ref.new_zeros(0)
-            per_pair = load_extension().composite_backward(
+            g = Splats(*load_extension().composite_backward(
                 *splats,
                 bins.gauss_ids,
                 bins.tile_start,
@@ -107,10 +107,7 @@ class _Composite(torch.autograd.Function):
                 ctx.trans,
                 ctx.last,
                 *(g.contiguous() if g is not None else empty for g in grads),
-            )
-            g = Splats(
-                *(torch.zeros_like(x).index_add_(0, bins.gauss_ids, pg) for x, pg in zip(splats, per_pair, strict=True))
-            )
+            ))
         else:
             g = composite_backward(splats, bins, ctx.chunks, ctx.blend, grads)
         return g.means2d, g.conics, g.opacities, g.features, g.depths, None, None, None, None, None, None

@@ -15,7 +15,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 #include <numeric>
+#include <type_traits>
 #include <vector>
 
 #include "splat_cpu.h"
@@ -277,6 +280,36 @@ void tile_box(const T* m, const T* r, int64_t ts, int64_t tiles_x, int64_t tiles
   out[3] = clampi(int64_t(std::floor((m[1] + r[1] + margin) / T(ts))), tiles_y - 1);
 }
 
+// ids in (depth, id) order, as a stable sort by depth would give: an LSD radix sort (stable
+// passes of 8 bits, skipped where every key has the same digit) on the depths' bit patterns,
+// mapped so that unsigned order is float order (negative: all bits flipped; else the sign bit).
+template <typename T>
+void sort_by_depth(std::vector<int64_t>& ids, const T* pz) {
+  using U = std::conditional_t<sizeof(T) == 4, uint32_t, uint64_t>;
+  constexpr U sign = U(1) << (8 * sizeof(U) - 1);
+  const size_t n = ids.size();
+  std::vector<U> key(n), key2(n);
+  std::vector<int64_t> ids2(n);
+  for (size_t i = 0; i < n; ++i) {
+    U u;
+    std::memcpy(&u, &pz[ids[i]], sizeof(U));
+    key[i] = (u & sign) ? ~u : (u | sign);
+  }
+  for (unsigned shift = 0; shift < 8 * sizeof(U); shift += 8) {
+    size_t start[257] = {0};
+    for (size_t i = 0; i < n; ++i) ++start[((key[i] >> shift) & 255) + 1];
+    if (std::any_of(start + 1, start + 257, [&](size_t c) { return c == n; })) continue;
+    for (int d = 0; d < 256; ++d) start[d + 1] += start[d];
+    for (size_t i = 0; i < n; ++i) {
+      const size_t at = start[(key[i] >> shift) & 255]++;
+      key2[at] = key[i];
+      ids2[at] = ids[i];
+    }
+    key.swap(key2);
+    ids.swap(ids2);
+  }
+}
+
 template <typename T>
 std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tensor& rad, const torch::Tensor& dep,
                                     const torch::Tensor& vis, int64_t I, int64_t N, int64_t width, int64_t height,
@@ -291,7 +324,7 @@ std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tenso
   ids.reserve(I * N);
   for (int64_t g = 0; g < I * N; ++g)
     if (pv[g]) ids.push_back(g);
-  std::stable_sort(ids.begin(), ids.end(), [&](int64_t a, int64_t b) { return pz[a] < pz[b]; });
+  sort_by_depth(ids, pz);
   auto tile_start = torch::zeros({n_tiles + 1}, torch::kInt64);
   int64_t* ts_ = tile_start.data_ptr<int64_t>();
   std::vector<int64_t> boxes(4 * ids.size());
