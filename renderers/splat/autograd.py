@@ -96,18 +96,20 @@ class _Composite(torch.autograd.Function):
         )
         if ctx.backend == "cpp":
             empty = ref.new_zeros(0)
-            g = Splats(*load_extension().composite_backward(
-                *splats,
-                bins.gauss_ids,
-                bins.tile_start,
-                bins.tiles_x,
-                bins.tiles_y,
-                bins.tile_size,
-                *ctx.blend,
-                ctx.trans,
-                ctx.last,
-                *(g.contiguous() if g is not None else empty for g in grads),
-            ))
+            g = Splats(
+                *load_extension().composite_backward(
+                    *splats,
+                    bins.gauss_ids,
+                    bins.tile_start,
+                    bins.tiles_x,
+                    bins.tiles_y,
+                    bins.tile_size,
+                    *ctx.blend,
+                    ctx.trans,
+                    ctx.last,
+                    *(g.contiguous() if g is not None else empty for g in grads),
+                )
+            )
         else:
             g = composite_backward(splats, bins, ctx.chunks, ctx.blend, grads)
         return g.means2d, g.conics, g.opacities, g.features, g.depths, None, None, None, None, None, None
