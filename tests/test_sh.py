@@ -83,3 +83,31 @@ def test_eval_sh_offset_clamp_and_dc_roundtrip():
 def test_bad_degree():
     with pytest.raises(ValueError, match="degree"):
         sh_basis(4, torch.zeros(1, 3))
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("per_camera", [False, True])
+def test_cpp_sh_without_gradients_equals_the_float64_eval(degree, per_camera, compositor):
+    """The C++ SH colour (no-gradient path of rasterize, csrc/sh_cpu.cpp) against eval_sh in
+    float64, batched over 2 scenes x 3 cameras, shared or per-camera coefficients, K > (degree+1)^2
+    (the extra coefficients are ignored), and against the differentiable torch path."""
+    from gdbench.camera import SphericalPoses
+    from renderers.splat.project import view_dirs
+    from renderers.splat.rasterize import sh_colors
+
+    g = torch.Generator().manual_seed(degree)
+    B, C, N, K, D = 2, 3, 257, 16, 3
+    means = torch.randn(B, N, 3, generator=g)
+    cams = SphericalPoses.orbit(C, radius=4.0).cameras(8, 8)
+    viewmats = cams.viewmats.expand(B, C, 4, 4).contiguous()
+    coeffs = torch.randn((B, C, N, K, D) if per_camera else (B, N, K, D), generator=g) * 0.4
+    with torch.no_grad():
+        fast = sh_colors(degree, coeffs, per_camera, means, viewmats, compositor)
+    dirs = view_dirs(means.double(), viewmats.double())
+    c64 = coeffs.double() if per_camera else coeffs.double()[:, None].expand(B, C, N, K, D)
+    want = eval_sh(degree, c64, dirs)
+    assert fast.shape == (B, C, N, D) and float(want.abs().max()) > 0.1  # not a trivially empty comparison
+    torch.testing.assert_close(fast.double(), want, atol=2e-6, rtol=0)
+    slow = sh_colors(degree, coeffs.requires_grad_(True), per_camera, means, viewmats, compositor)  # eval_sh
+    assert slow.requires_grad
+    torch.testing.assert_close(fast, slow.detach(), atol=2e-6, rtol=0)

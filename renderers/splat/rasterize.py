@@ -11,6 +11,7 @@ from torch import Tensor
 
 from . import _checks as ck
 from ._checks import OUTPUTS
+from ._ext import load_extension
 from .autograd import composite, resolve_backend
 from .bin_tiles import TileBins, bin_tiles, bin_tiles_cpu
 from .composite import Splats, finish_images
@@ -158,6 +159,22 @@ def _composite_images(p: Prepared, feats: Tensor, per_camera: bool, D: int, back
     return RenderOutput(**result)
 
 
+def sh_colors(degree: int, colors: Tensor, per_camera: bool, means: Tensor, viewmats: Tensor, backend: str) -> Tensor:
+    """Colours [*B, C, N, D] from SH coefficients [*B, (C,) N, K, D] along the camera-to-mean
+    directions. Without gradients on CPU the C++ kernel evaluates them (csrc/sh_cpu.cpp, no
+    [N, K, D] temporary); otherwise ``eval_sh`` in torch, which autograd differentiates."""
+    dirs = view_dirs(means, viewmats)
+    batch, (C, N), (K, D) = tuple(means.shape[:-2]), dirs.shape[-3:-1], colors.shape[-2:]
+    grads = torch.is_grad_enabled() and any(t.requires_grad for t in (colors, means, viewmats))
+    if not grads and resolve_backend(backend, means.device) == "cpp":
+        nb = int(torch.Size(batch).numel())
+        coeffs = colors.reshape(nb * C if per_camera else nb, N, K, D).contiguous()
+        d = dirs.reshape(nb * C if per_camera else nb, 1 if per_camera else C, N, 3).contiguous()
+        return load_extension().sh_forward(degree, coeffs, d).reshape(batch + (C, N, D))
+    coeffs = colors if per_camera else colors[..., None, :, :, :].expand(batch + (C, N, K, D))
+    return eval_sh(degree, coeffs, dirs)
+
+
 def rasterize(
     means: Float[Tensor, "*B N 3"],
     quats: Float[Tensor, "*B N 4"],
@@ -206,8 +223,7 @@ def rasterize(
     p = _prepare(means, quats, scales, opacities, viewmats, Ks, width, height, batch, C, N, s)
     feats = colors
     if sh_degree is not None and "rgb" in want:
-        coeffs = colors if per_camera else colors[..., None, :, :, :].expand(batch + (C, N) + colors.shape[-2:])
-        feats, per_camera = eval_sh(sh_degree, coeffs, view_dirs(means, viewmats)), True
+        feats, per_camera = sh_colors(sh_degree, colors, per_camera, means, viewmats, s.backend), True
     elif sh_degree is not None:
         feats = colors[..., 0, :]  # SH is only evaluated for rgb; the other outputs ignore features
     return _composite_images(p, feats, per_camera, D, background, want)

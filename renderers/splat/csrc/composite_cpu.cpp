@@ -24,6 +24,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -33,6 +34,50 @@ struct Grid {
   int64_t tiles_x, tiles_y, ts;
 };
 
+// Per Gaussian, once per call (not once per tile pair): the opacity cut, the half-extents of its
+// box and the row-span terms. alpha >= alpha_min  <=>  power >= ln(alpha_min / o). The reject
+// threshold keeps a margin of 1e-3 in power, and the box is the exact box of
+// {q(d) <= 2 ln(o/alpha_min) + 2e-3} (q = d^T conic d), so every pixel the exact test could
+// accept is visited. ex < 0: nothing to visit; ex = inf (degenerate conic): the whole tile.
+template <typename scalar_t>
+struct Shapes {
+  struct Shape {  // one record per Gaussian: a tile pair's set-up reads one cache line
+    double ex, ey, ALs, det, invA, BinvA;
+    scalar_t cut;
+  };
+  std::vector<Shape> of;
+
+  Shapes(const scalar_t* conics, const scalar_t* opac, int64_t G, double amin) : of(G) {
+    const double floor_o = amin * std::exp(-1e-3);
+    at::parallel_for(0, G, 4096, [&](int64_t g0, int64_t g1) {
+      for (int64_t g = g0; g < g1; ++g) {
+        Shape& r = of[g];
+        const double o = opac[g];
+        r = Shape{-1, 0, 0, 0, 0, 0, scalar_t(0)};
+        if (!(o > 0) || o < floor_o) continue;
+        const double lg = std::log(amin / o);
+        r.cut = scalar_t(lg - 1e-3);
+        const double L = -2.0 * lg + 2e-3;  // 2 ln(o / alpha_min) + 2e-3, to an ulp (the box has margins)
+        const double a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
+        const double dt = a * c - b * b;
+        // Row spans (walk) solve q(d) <= Ls per row. Float rounding of the power is at most a few
+        // ulp of |A dx^2| + |C dy^2| + |2 B dx dy| <= 2 q / (1 - |b| / sqrt(ac)); where that factor
+        // is below 2000 (det / ac >= 1e-3) the error is under 1e-3 q, and Ls = 1.01 L covers it
+        // ten times over. Needle-thin ellipses keep the box's full rows.
+        const bool span = dt > 0 && a > 0 && dt >= 1e-3 * a * c && std::isfinite(dt);
+        r.ALs = span ? a * 1.01 * L : 0.0;
+        r.det = dt; r.invA = span ? 1.0 / a : 0.0; r.BinvA = span ? b / a : 0.0;
+        if (!(dt > 0) || !std::isfinite(dt)) {
+          r.ex = std::numeric_limits<double>::infinity();
+          continue;
+        }
+        r.ex = std::sqrt(L * c / dt) * (1 + 1e-6) + 1e-4;
+        r.ey = std::sqrt(L * a / dt) * (1 + 1e-6) + 1e-4;
+      }
+    });
+  }
+};
+
 template <typename scalar_t>
 struct TileData {
   std::vector<scalar_t> mx, my, A, B, C, o, z, f, cut;
@@ -40,52 +85,38 @@ struct TileData {
   std::vector<double> ALs, det, invA, BinvA;  // row spans (walk); ALs = 0: none, full box rows
 
   void load(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac, const scalar_t* feats,
-            const scalar_t* depths, int64_t D, const int64_t* gids, int64_t s, int64_t e, double amin,
-            double ox, double oy, int64_t ts) {
+            const scalar_t* depths, int64_t D, const Shapes<scalar_t>& sh, const int64_t* gids, int64_t s,
+            int64_t e, double ox, double oy, int64_t ts) {
     const int64_t n = e - s;
     for (auto* v : {&mx, &my, &A, &B, &C, &o, &z, &cut}) v->resize(n);
     for (auto* v : {&x0, &x1, &y0, &y1}) v->resize(n);
     for (auto* v : {&ALs, &det, &invA, &BinvA}) v->resize(n);
     f.resize(n * D);
+    const int32_t last = int32_t(ts - 1);
     for (int64_t k = 0; k < n; ++k) {
       const int64_t g = gids[s + k];
       mx[k] = means2d[2 * g]; my[k] = means2d[2 * g + 1];
       A[k] = conics[3 * g]; B[k] = conics[3 * g + 1]; C[k] = conics[3 * g + 2];
       o[k] = opac[g]; z[k] = depths[g];
       for (int64_t d = 0; d < D; ++d) f[k * D + d] = feats[g * D + d];
-      // alpha >= alpha_min  <=>  power >= ln(alpha_min / o). The reject threshold keeps a margin
-      // of 1e-3 in power, and the box is the exact box of {q(d) <= 2 ln(o/alpha_min) + 2e-3}
-      // (q = d^T conic d), so every pixel the exact test could accept is visited.
-      const double oo = double(o[k]);
-      if (!(oo > 0) || oo < amin * std::exp(-1e-3)) {
-        cut[k] = 0; x0[k] = 1; x1[k] = 0; y0[k] = 1; y1[k] = 0; ALs[k] = 0;
+      const auto& r = sh.of[g];
+      cut[k] = r.cut; ALs[k] = r.ALs; det[k] = r.det; invA[k] = r.invA; BinvA[k] = r.BinvA;
+      const double ex = r.ex, ey = r.ey;
+      if (ex < 0) {
+        x0[k] = 1; x1[k] = 0; y0[k] = 1; y1[k] = 0;
         continue;
       }
-      const double lg = std::log(amin / oo);
-      cut[k] = scalar_t(lg - 1e-3);
-      const double L = -2.0 * lg + 2e-3;  // 2 ln(o / alpha_min) + 2e-3, to an ulp (the box has margins)
-      const double a = A[k], b = B[k], c = C[k];
-      const double det = a * c - b * b;
-      // Row spans (walk) solve q(d) <= Ls per row. Float rounding of the power is at most a few
-      // ulp of |A dx^2| + |C dy^2| + |2 B dx dy| <= 2 q / (1 - |b| / sqrt(ac)); where that factor
-      // is below 2000 (det / ac >= 1e-3) the error is under 1e-3 q, and Ls = 1.01 L covers it
-      // ten times over. Needle-thin ellipses keep the box's full rows.
-      const bool span = det > 0 && a > 0 && det >= 1e-3 * a * c && std::isfinite(det);
-      ALs[k] = span ? a * 1.01 * L : 0.0;
-      this->det[k] = det; invA[k] = span ? 1.0 / a : 0.0; BinvA[k] = span ? b / a : 0.0;
-      if (!(det > 0) || !std::isfinite(det)) {
-        x0[k] = 0; x1[k] = int32_t(ts - 1); y0[k] = 0; y1[k] = int32_t(ts - 1);
+      if (std::isinf(ex)) {
+        x0[k] = 0; x1[k] = last; y0[k] = 0; y1[k] = last;
         continue;
       }
-      const double ex = std::sqrt(L * c / det) * (1 + 1e-6) + 1e-4;
-      const double ey = std::sqrt(L * a / det) * (1 + 1e-6) + 1e-4;
       // pixel centre i + 0.5 (tile-local) within [m - e, m + e]
       const double cx = double(mx[k]) - ox - 0.5, cy = double(my[k]) - oy - 0.5;
       auto clampi = [&](double v) { return int32_t(std::min<double>(std::max<double>(v, -1.0), double(ts))); };
       x0[k] = std::max(0, clampi(std::ceil(cx - ex)));
-      x1[k] = std::min(int32_t(ts - 1), clampi(std::floor(cx + ex)));
+      x1[k] = std::min(last, clampi(std::floor(cx + ex)));
       y0[k] = std::max(0, clampi(std::ceil(cy - ey)));
-      y1[k] = std::min(int32_t(ts - 1), clampi(std::floor(cy + ey)));
+      y1[k] = std::min(last, clampi(std::floor(cy + ey)));
     }
   }
 };
@@ -164,6 +195,7 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
   scalar_t* oW = want_wsq ? out_wsq.data_ptr<scalar_t>() : nullptr;
   int32_t* oL = out_last.data_ptr<int32_t>();
 
+  const Shapes<scalar_t> shapes(pc, po, means2d.size(0), amin_);
   at::parallel_for(0, n_tiles, 1, [&](int64_t t0, int64_t t1) {
     TileData<scalar_t> td;
     // per-tile buffers, features channel-major ([D][area]) so that a row segment is contiguous
@@ -176,7 +208,7 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
     for (int64_t t = t0; t < t1; ++t) {
       const TileIndex ti = tile_index(pt, t, grid);
       const int64_t n = ti.e - ti.s;  // empty tiles too: every output entry is written here
-      td.load(pm, pc, po, pf, pz, D, pg, ti.s, ti.e, amin_, ti.ox, ti.oy, ts);
+      td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, ti.e, ti.ox, ti.oy, ts);
       std::fill(T.begin(), T.end(), scalar_t(1));
       std::fill(acc.begin(), acc.end(), scalar_t(0));
       std::fill(dep.begin(), dep.end(), scalar_t(0));
@@ -290,6 +322,7 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
   const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_tiles));
   std::unique_ptr<scalar_t[]> sums(new scalar_t[n_chunks * n_gauss * W]);
 
+  const Shapes<scalar_t> shapes(pc, po, n_gauss, amin_);
   at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
       scalar_t* sum = sums.get() + c * n_gauss * W;
@@ -304,7 +337,7 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
         const TileIndex ti = tile_index(pt, t, grid);
         const int64_t n = ti.e - ti.s;
         if (n == 0) continue;
-        td.load(pm, pc, po, pf, pz, D, pg, ti.s, ti.e, amin_, ti.ox, ti.oy, ts);
+        td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, ti.e, ti.ox, ti.oy, ts);
         const int64_t base = t * area;
         int32_t deepest = 0;  // Gaussians at or behind every pixel's stop contribute nothing
         std::fill(row_last.begin(), row_last.end(), int32_t(0));
@@ -449,5 +482,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward, "EWA projection, radii and culling (CPU)");
   m.def("project_backward", &project_backward, "Gradients of the projection (CPU)");
   m.def("bin_tiles", &bin_tiles, "Tile lists in depth order (CPU)");
+  m.def("sh_forward", &sh_forward, "SH colour, forward only (CPU)");
   m.def("fast_exp", &fast_exp, "The compositor's exp on [-80, 0] (for tests)");
 }

@@ -325,26 +325,52 @@ std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tenso
   for (int64_t g = 0; g < I * N; ++g)
     if (pv[g]) ids.push_back(g);
   sort_by_depth(ids, pz);
-  auto tile_start = torch::zeros({n_tiles + 1}, torch::kInt64);
+  // Boxes, counts and the scatter run over chunks of the depth-sorted list in parallel: chunk c
+  // counts its pairs per tile, and writes them after those of chunks 0..c-1 in every tile, so
+  // each tile's list stays in depth order (the serial result).
+  const int64_t n_ids = int64_t(ids.size());
+  const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_ids / 4096));
+  std::vector<int64_t> boxes(4 * n_ids), counts(n_chunks * n_tiles, 0);
+  auto chunk_range = [&](int64_t c) { return std::make_pair(n_ids * c / n_chunks, n_ids * (c + 1) / n_chunks); };
+  at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      int64_t* cnt = counts.data() + c * n_tiles;
+      const auto [k0, k1] = chunk_range(c);
+      for (int64_t k = k0; k < k1; ++k) {
+        const int64_t g = ids[k], img = g / N;
+        int64_t* bx = &boxes[4 * k];
+        tile_box(pm + 2 * g, pr + 2 * g, ts, tiles_x, tiles_y, bx);
+        for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
+          for (int64_t tx = bx[0]; tx <= bx[1]; ++tx) ++cnt[img * per_img + ty * tiles_x + tx];
+      }
+    }
+  });
+  auto tile_start = torch::empty({n_tiles + 1}, torch::kInt64);
   int64_t* ts_ = tile_start.data_ptr<int64_t>();
-  std::vector<int64_t> boxes(4 * ids.size());
-  for (size_t k = 0; k < ids.size(); ++k) {
-    const int64_t g = ids[k], img = g / N;
-    int64_t* bx = &boxes[4 * k];
-    tile_box(pm + 2 * g, pr + 2 * g, ts, tiles_x, tiles_y, bx);
-    for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
-      for (int64_t tx = bx[0]; tx <= bx[1]; ++tx) ++ts_[img * per_img + ty * tiles_x + tx + 1];
+  int64_t total = 0;
+  for (int64_t t = 0; t < n_tiles; ++t) {  // counts become each chunk's first slot in each tile
+    ts_[t] = total;
+    for (int64_t c = 0; c < n_chunks; ++c) {
+      const int64_t n_ct = counts[c * n_tiles + t];
+      counts[c * n_tiles + t] = total;
+      total += n_ct;
+    }
   }
-  for (int64_t t = 0; t < n_tiles; ++t) ts_[t + 1] += ts_[t];
-  auto gauss_ids = torch::empty({ts_[n_tiles]}, torch::kInt64);
+  ts_[n_tiles] = total;
+  auto gauss_ids = torch::empty({total}, torch::kInt64);
   int64_t* out = gauss_ids.data_ptr<int64_t>();
-  std::vector<int64_t> cursor(ts_, ts_ + n_tiles);
-  for (size_t k = 0; k < ids.size(); ++k) {  // depth order: each tile's list comes out sorted
-    const int64_t g = ids[k], img = g / N;
-    const int64_t* bx = &boxes[4 * k];
-    for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
-      for (int64_t tx = bx[0]; tx <= bx[1]; ++tx) out[cursor[img * per_img + ty * tiles_x + tx]++] = g;
-  }
+  at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      int64_t* cursor = counts.data() + c * n_tiles;
+      const auto [k0, k1] = chunk_range(c);
+      for (int64_t k = k0; k < k1; ++k) {  // depth order: each tile's list comes out sorted
+        const int64_t g = ids[k], img = g / N;
+        const int64_t* bx = &boxes[4 * k];
+        for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
+          for (int64_t tx = bx[0]; tx <= bx[1]; ++tx) out[cursor[img * per_img + ty * tiles_x + tx]++] = g;
+      }
+    }
+  });
   return {gauss_ids, tile_start};
 }
 

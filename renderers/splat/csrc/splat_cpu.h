@@ -1,5 +1,5 @@
-// Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp
-// (composite_cpu.cpp holds the compositor and the Python bindings).
+// Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp and
+// sh_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
 #pragma once
 #include <torch/extension.h>
 
@@ -21,3 +21,5 @@ std::vector<torch::Tensor> project_backward(const torch::Tensor& means, const to
 std::vector<torch::Tensor> bin_tiles(const torch::Tensor& m2d, const torch::Tensor& rad, const torch::Tensor& dep,
                                      const torch::Tensor& vis, int64_t I, int64_t N, int64_t width, int64_t height,
                                      int64_t tile_size);
+
+torch::Tensor sh_forward(int64_t degree, const torch::Tensor& coeffs, const torch::Tensor& dirs);
