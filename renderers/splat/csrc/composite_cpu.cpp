@@ -1,7 +1,7 @@
 // CPU compositor of renderers.splat: the same image formation as composite.py, parallel over
 // tiles (at::parallel_for / OpenMP). Within a tile the loop runs Gaussian-outer, pixel-inner:
-// each Gaussian visits only the pixels of its own box (the exact bounding box of the ellipse
-// where o exp(power) >= alpha_min, plus a margin), and each pixel keeps its own transmittance
+// each Gaussian visits only the pixels of its own ellipse where o exp(power) >= alpha_min (per
+// row its exact span, plus a margin, within the ellipse's box), and each pixel keeps its own transmittance
 // and the index where it stopped, so every pixel still sees its Gaussians front to back and stops
 // exactly where the sequential kernel would:
 //   alpha = min(alpha_max, o exp(power)); skip if alpha < alpha_min;
