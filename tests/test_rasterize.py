@@ -289,6 +289,27 @@ def test_bad_input_names_the_argument(change, error, match):
         rasterize(**args)
 
 
+def test_value_checks_of_differentiable_inputs_raise_no_warnings():
+    """The value checks read scalars from inputs that require gradients (cameras included):
+    they must detach first, or torch warns on every call. A fresh process with warnings as
+    errors, since torch may warn only once per process."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch\n"
+        "from renderers.splat import rasterize\n"
+        "from tests.test_rasterize import _good\n"
+        "a = {k: (v.requires_grad_(True) if isinstance(v, torch.Tensor) and v.is_floating_point() else v)"
+        " for k, v in _good().items()}\n"
+        "out = rasterize(**a)\n"
+        "(out.rgb.sum() + out.alpha.sum()).backward()\n"
+        "assert float(a['means'].grad.abs().sum()) > 0\n"
+    )
+    r = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
 def test_sh_degree_needs_enough_coefficients():
     args = _good()
     args["colors"] = torch.zeros(10, 4, 3)

@@ -31,6 +31,7 @@ def check_tensor(name: str, x: object, *, finite: bool = True) -> Tensor:
 def all_finite(x: Tensor) -> bool:
     """Whether every entry is finite. A finite sum proves it in one reduction (NaN and Inf
     propagate through a sum); only a non-finite sum (or an overflow) looks entry by entry."""
+    x = x.detach()
     return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
 
 
@@ -131,10 +132,10 @@ def check_values(tensors: dict[str, Tensor], scales: Tensor | None, opacities: T
     with positive focal lengths (when ``viewmats`` and ``Ks`` are among ``tensors``)."""
     for name, x in tensors.items():
         check_tensor(name, x, finite=True)
-    if scales is not None and scales.numel() and float(scales.min()) < 0:
+    if scales is not None and scales.numel() and float(scales.detach().min()) < 0:
         raise ValueError("scales: expected non-negative linear scales (pass exp(log_scales))")
     if opacities is not None and opacities.numel():
-        lo, hi = (float(v) for v in torch.aminmax(opacities))
+        lo, hi = (float(v) for v in torch.aminmax(opacities.detach()))
         if lo < 0 or hi > 1:
             raise ValueError("opacities: expected values in [0, 1] (pass sigmoid(logits))")
     if "viewmats" in tensors and "Ks" in tensors:
@@ -146,6 +147,7 @@ def check_cameras(viewmats: Tensor, Ks: Tensor, tol: float = 1e-3) -> None:
     intrinsics a pinhole with positive focal lengths (pixel units)."""
     if not viewmats.numel():
         return
+    viewmats, Ks = viewmats.detach(), Ks.detach()  # value checks: no graph, no scalar-from-grad warnings
     f = torch.stack([Ks[..., 0, 0], Ks[..., 1, 1]], -1)
     if bool((f <= 0).any()):
         raise ValueError(f"Ks: expected positive focal lengths fx, fy (pixels), got minimum {float(f.min()):g}")
