@@ -84,16 +84,20 @@ struct TileData {
   std::vector<int32_t> x0, x1, y0, y1;  // tile-local pixel box, inclusive; x0 > x1 when empty
   std::vector<double> ALs, det, invA, BinvA;  // row spans (walk); ALs = 0: none, full box rows
 
+  // Entries [k0, k1) of the tile's n pairs (list entries s + k); k0 = 0 sizes the arrays. The
+  // callers load only what they reach: the forward in blocks until every pixel has stopped, the
+  // backward up to the deepest stop.
   void load(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac, const scalar_t* feats,
             const scalar_t* depths, int64_t D, const Shapes<scalar_t>& sh, const int64_t* gids, int64_t s,
-            int64_t e, double ox, double oy, int64_t ts) {
-    const int64_t n = e - s;
-    for (auto* v : {&mx, &my, &A, &B, &C, &o, &z, &cut}) v->resize(n);
-    for (auto* v : {&x0, &x1, &y0, &y1}) v->resize(n);
-    for (auto* v : {&ALs, &det, &invA, &BinvA}) v->resize(n);
-    f.resize(n * D);
+            int64_t n, int64_t k0, int64_t k1, double ox, double oy, int64_t ts) {
+    if (k0 == 0) {
+      for (auto* v : {&mx, &my, &A, &B, &C, &o, &z, &cut}) v->resize(n);
+      for (auto* v : {&x0, &x1, &y0, &y1}) v->resize(n);
+      for (auto* v : {&ALs, &det, &invA, &BinvA}) v->resize(n);
+      f.resize(n * D);
+    }
     const int32_t last = int32_t(ts - 1);
-    for (int64_t k = 0; k < n; ++k) {
+    for (int64_t k = k0; k < k1; ++k) {
       const int64_t g = gids[s + k];
       mx[k] = means2d[2 * g]; my[k] = means2d[2 * g + 1];
       A[k] = conics[3 * g]; B[k] = conics[3 * g + 1]; C[k] = conics[3 * g + 2];
@@ -127,6 +131,7 @@ struct TileData {
 // computed in one vectorisable loop, then seg(p0, m, dx, dy, power, G, iy) (p0: tile-local index
 // of the run's first pixel) decides, per pixel, whether power clears the Gaussian's cut.
 constexpr int32_t kRow = 64;
+constexpr int64_t kLoad = 64;  // the forward loads a tile's pairs in blocks of this many
 constexpr int32_t kVec = 8;  // runs at least this long take the compositor's vectorised path
 
 template <typename scalar_t, typename R, typename F>
@@ -208,7 +213,7 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
     for (int64_t t = t0; t < t1; ++t) {
       const TileIndex ti = tile_index(pt, t, grid);
       const int64_t n = ti.e - ti.s;  // empty tiles too: every output entry is written here
-      td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, ti.e, ti.ox, ti.oy, ts);
+      int64_t loaded = 0;
       std::fill(T.begin(), T.end(), scalar_t(1));
       std::fill(acc.begin(), acc.end(), scalar_t(0));
       std::fill(dep.begin(), dep.end(), scalar_t(0));
@@ -218,6 +223,10 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
       int64_t n_done = 0;
       auto row_live = [&](int32_t iy) { return live[iy] > 0; };
       for (int64_t k = 0; k < n && n_done < area; ++k) {
+        if (k == loaded) {
+          loaded = std::min<int64_t>(n, loaded + kLoad);
+          td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, n, k, loaded, ti.ox, ti.oy, ts);
+        }
         const scalar_t o = td.o[k], cut = td.cut[k], z = td.z[k];
         const int32_t kk = int32_t(k), nn = int32_t(n);
         walk(td, k, ti.ox, ti.oy, ts, row_live,
@@ -337,7 +346,6 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
         const TileIndex ti = tile_index(pt, t, grid);
         const int64_t n = ti.e - ti.s;
         if (n == 0) continue;
-        td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, ti.e, ti.ox, ti.oy, ts);
         const int64_t base = t * area;
         int32_t deepest = 0;  // Gaussians at or behind every pixel's stop contribute nothing
         std::fill(row_last.begin(), row_last.end(), int32_t(0));
@@ -347,6 +355,7 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
           deepest = std::max(deepest, pL[base + p]);
           row_last[p / ts] = std::max(row_last[p / ts], pL[base + p]);
         }
+        td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, n, 0, std::min<int64_t>(n, deepest), ti.ox, ti.oy, ts);
         for (int64_t k = std::min<int64_t>(n, deepest) - 1; k >= 0; --k) {
           scalar_t go = 0, gmx = 0, gmy = 0, gA = 0, gB = 0, gC = 0, gz = 0;
           std::fill(gf_sum.begin(), gf_sum.end(), scalar_t(0));
