@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from gdbench.camera import Cameras, intrinsics, look_at
@@ -108,3 +109,13 @@ def write_failure_images(name, actual, ref, out):
     path = out / f"{name}_actual_reference_error.png"
     iio.imwrite(path, (tiles.clamp(0, 1) * 255).round().byte().numpy())
     return path
+
+
+def require_cpp():
+    """The C++ extension of renderers.splat, or a skip that says why it did not build."""
+    from renderers.splat._ext import extension_status, load_extension
+
+    ext = load_extension()
+    if ext is None:
+        pytest.skip(f"C++ extension unavailable: {extension_status()}")
+    return ext

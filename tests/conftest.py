@@ -3,22 +3,21 @@ import os
 import pytest
 import torch
 
+from tests._util import require_cpp
+
 torch.set_num_threads(int(os.environ.get("GDBENCH_TEST_THREADS", "2")))
 
 
-def _cpp_available() -> bool:
-    from renderers.splat._ext import load_extension
-
-    return load_extension() is not None
+@pytest.fixture
+def cpp_extension():
+    return require_cpp()
 
 
 @pytest.fixture(params=["cpp", "torch"])
 def compositor(request) -> str:
     """Both compositor backends of renderers.splat; 'cpp' drops out if it cannot build."""
-    if request.param == "cpp" and not _cpp_available():
-        from renderers.splat._ext import extension_status
-
-        pytest.skip(f"C++ compositor unavailable: {extension_status()}")
+    if request.param == "cpp":
+        require_cpp()
     return request.param
 
 

@@ -88,14 +88,9 @@ def test_equal_depths_keep_gaussian_order():
     assert bins.gauss_ids.tolist() == [1, 0, 2]
 
 
-def test_cpu_binning_gives_the_same_lists():
-    from renderers.splat._ext import load_extension
+def test_cpu_binning_gives_the_same_lists(cpp_extension):
     from renderers.splat.bin_tiles import bin_tiles_cpu
 
-    if load_extension() is None:
-        import pytest
-
-        pytest.skip("C++ extension unavailable")
     for dtype in (torch.float32, torch.float64):
         gs = random_gaussians(400, seed=4, dtype=dtype, scale=(0.002, 0.2))
         cams = ring_cameras(3, 70, 45, dtype=dtype, seed=2)
@@ -107,16 +102,11 @@ def test_cpu_binning_gives_the_same_lists():
         assert (a.tiles_x, a.tiles_y) == (b.tiles_x, b.tiles_y)
 
 
-def test_cpu_binning_in_parallel_chunks_keeps_ties_in_order():
+def test_cpu_binning_in_parallel_chunks_keeps_ties_in_order(cpp_extension):
     """The C++ binning's radix sort and its chunked count and scatter (3 threads, lists longer
     than one chunk) against bin_tiles.py, with depths rounded so that many Gaussians tie."""
-    from renderers.splat._ext import load_extension
     from renderers.splat.bin_tiles import bin_tiles_cpu
 
-    if load_extension() is None:
-        import pytest
-
-        pytest.skip("C++ extension unavailable")
     threads = torch.get_num_threads()
     torch.set_num_threads(3)
     try:

@@ -100,11 +100,7 @@ def test_weight_sq_closed_form(compositor):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_cpp_and_torch_compositors_agree(dtype):
-    from renderers.splat._ext import load_extension
-
-    if load_extension() is None:
-        pytest.skip("C++ compositor unavailable")
+def test_cpp_and_torch_compositors_agree(dtype, cpp_extension):
     gs = random_gaussians(400, seed=5, dtype=dtype)
     cams = ring_cameras(3, 50, 37, dtype=dtype)
     params = [gs[k].requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")]

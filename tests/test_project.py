@@ -7,7 +7,7 @@ import torch
 
 from renderers.splat.project import normalize_quats, project
 from renderers.splat.reference import project_reference
-from tests._util import axis_camera, random_gaussians, ring_cameras
+from tests._util import axis_camera, random_gaussians, require_cpp, ring_cameras
 
 
 def _one(mean, scale, quat=(1.0, 0.0, 0.0, 0.0), opacity=0.8, dtype=torch.float64):
@@ -144,13 +144,6 @@ def test_opacity_below_alpha_min_is_culled():
 
 
 # ------------------------------------------------------------------ the fused C++ projection
-def _cpu_ext():
-    from renderers.splat._ext import load_extension
-
-    if load_extension() is None:
-        pytest.skip("C++ extension unavailable")
-
-
 def _hard_case(dtype=torch.float64):
     """Random Gaussians plus every branch: behind the camera, on the near plane, far outside the
     frustum (the Jacobian clamp), a zero quaternion, a transparent one, a batch dimension."""
@@ -170,7 +163,7 @@ def _hard_case(dtype=torch.float64):
 
 def test_cpu_projection_matches_torch_forward_and_backward():
     """Oracle: torch autograd through project.py, in float64 (exact to rounding)."""
-    _cpu_ext()
+    require_cpp()
     from renderers.splat.project import project_cpu
 
     args = _hard_case()
@@ -202,7 +195,7 @@ def test_cpu_projection_matches_torch_forward_and_backward():
 
 def test_cpu_projection_gradients_against_finite_differences():
     """An independent oracle for the hand-written backward: central differences in float64."""
-    _cpu_ext()
+    require_cpp()
     from renderers.splat.project import project_cpu
 
     args = [a[:1, 6:14] if i < 4 else a[:1] for i, a in enumerate(_hard_case())]
@@ -232,7 +225,7 @@ def test_needle_conics_keep_float32_precision(impl):
     from renderers.splat.project import project_cpu
 
     if impl == "cpp":
-        _cpu_ext()
+        require_cpp()
     fn = project if impl == "torch" else project_cpu
     g = torch.Generator().manual_seed(3)
     n = 8
