@@ -33,9 +33,14 @@ SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp", CSRC / "sh_cpu.
 HEADERS = (CSRC / "splat_cpu.h", CSRC / "fast_exp.h")
 
 
-CFLAGS = ["-O3", "-fopenmp", "-march=native", "-ffp-contract=off"]
+CFLAGS = ["-O3", "-fopenmp", "-march=native", "-ffp-contract=off", "-fno-trapping-math"]
 """Built for the CPU it runs on; no fused multiply-add contraction (the same rounding as the
-torch path's separate operations)."""
+torch path's separate operations). ``-fno-trapping-math`` only tells the compiler that no
+floating-point exception is trapped (none is: torch never enables traps), so it may evaluate
+both sides of a comparison-select; without it GCC 12 vectorised none of the compositor's loops
+that hold a select (the clamp in fast_exp, the branch-free forward), and with it they run as
+8-wide vectors: the same operations in the same order, bit-identical outputs and gradients
+(checked in float32 and float64), 10k Gaussians at 256 px forward 2.2x faster."""
 
 
 def module_name() -> str:
