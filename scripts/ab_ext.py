@@ -1,0 +1,138 @@
+"""A/B of two builds of the C++ extension in one process: the only timing on this shared 2-core
+machine that holds steady (absolute figures swing by 2x between hours; interleaved builds see
+the same phase). Checks that both builds give the same bits, then times the cases in rounds,
+alternating builds.
+
+    .venv/bin/python scripts/ab_ext.py --a HEAD --b .                  # working tree vs HEAD
+    .venv/bin/python scripts/ab_ext.py --a . --b . --b-flags=-DFOO=1   # a compile-time variant
+
+A build is a git revision (its ``renderers/splat/csrc``) or ``.`` (the working tree's), compiled
+with the working tree's CFLAGS (``renderers/splat/_ext.py``) plus the given flags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gdbench.bench.bm_render import _camera, random_cloud  # noqa: E402
+from renderers.splat import _ext, rasterize  # noqa: E402
+
+CASES = ((10000, 256), (3000, 64), (1000, 64))
+
+
+def build(rev: str, flags: list[str], tag: str, work: Path):
+    from torch.utils.cpp_extension import load
+
+    src = work / f"src_{tag}"
+    src.mkdir()
+    if rev == ".":
+        for p in _ext.CSRC.iterdir():
+            (src / p.name).write_bytes(p.read_bytes())
+    else:
+        cmd = ["git", "-C", str(ROOT), "archive", rev, "renderers/splat/csrc"]
+        tar = subprocess.run(cmd, check=True, capture_output=True)
+        subprocess.run(["tar", "-x", "-C", str(src), "--strip-components=3"], input=tar.stdout, check=True)
+    out = work / f"build_{tag}"
+    out.mkdir()
+    print(f"building {tag}: {rev} {' '.join(flags)}", flush=True)
+    return load(
+        name=f"gdbench_ab_{tag}",
+        sources=[str(src / p.name) for p in _ext.SOURCES],
+        extra_include_paths=[str(src)],
+        extra_cflags=_ext.CFLAGS + flags,
+        extra_ldflags=["-fopenmp"],
+        build_directory=str(out),
+    )
+
+
+def scene(n: int, dtype=torch.float32) -> dict:
+    return {k: v.to(dtype).clone().requires_grad_(True) for k, v in random_cloud(n).items()}
+
+
+def render(s: dict, res: int, backward: bool):
+    cam = _camera(res, "cpu")
+    dt = s["means"].dtype
+    with torch.set_grad_enabled(backward):
+        out = rasterize(
+            s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
+            cam.viewmats.to(dt), cam.Ks.to(dt), res, res, outputs=("rgb", "alpha", "depth"), check_values=False,
+        )  # fmt: skip
+        if backward:
+            w = torch.linspace(0, 1, out.rgb.numel(), dtype=dt).reshape(out.rgb.shape)
+            (out.rgb * w).sum().backward()
+    return out
+
+
+def best_of(s: dict, px: int, backward: bool, repeats: int = 5) -> float:
+    render(s, px, backward)
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        render(s, px, backward)
+        ts.append(time.perf_counter() - t)
+    return min(ts)
+
+
+def use(module) -> None:
+    _ext._STATE["module"] = module
+
+
+def same_bits(mods: dict) -> bool:
+    results = {}
+    for tag, mod in mods.items():
+        use(mod)
+        res = []
+        for dt in (torch.float32, torch.float64):
+            for n, px in CASES:
+                s = scene(n, dt)
+                out = render(s, px, True)
+                res += [out.rgb.detach(), out.alpha.detach(), out.depth.detach()] + [s[k].grad for k in s]
+        results[tag] = res
+    a, b = results.values()
+    return all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--a", default="HEAD", help="git revision or '.' (working tree)")
+    ap.add_argument("--b", default=".")
+    ap.add_argument("--a-flags", default="", help="extra compiler flags, space-separated")
+    ap.add_argument("--b-flags", default="")
+    ap.add_argument("--rounds", type=int, default=4)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        mods = {
+            "a": build(args.a, args.a_flags.split(), "a", Path(tmp)),
+            "b": build(args.b, args.b_flags.split(), "b", Path(tmp)),
+        }
+        print("same bits (forward and gradients, float32 and float64):", same_bits(mods))
+        scenes = {n: scene(n) for n, _ in CASES}
+        times: dict[tuple, list[float]] = {}
+        for _ in range(args.rounds):
+            for tag, mod in mods.items():
+                use(mod)
+                for n, px in CASES:
+                    for backward in (False, True):
+                        times.setdefault((n, px, backward, tag), []).append(best_of(scenes[n], px, backward))
+        for n, px in CASES:
+            for backward in (False, True):
+                a = statistics.median(times[(n, px, backward, "a")])
+                b = statistics.median(times[(n, px, backward, "b")])
+                mode = "fwd+bwd" if backward else "fwd"
+                print(f"{n:>6d} {px:>4d} {mode:8s} a {a * 1e3:8.2f} ms  b {b * 1e3:8.2f} ms  b/a {b / a:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
