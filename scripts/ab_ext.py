@@ -32,8 +32,6 @@ CASES = ((10000, 256), (3000, 64), (1000, 64))
 
 
 def build(rev: str, flags: list[str], tag: str, work: Path):
-    from torch.utils.cpp_extension import load
-
     src = work / f"src_{tag}"
     src.mkdir()
     if rev == ".":
@@ -46,14 +44,7 @@ def build(rev: str, flags: list[str], tag: str, work: Path):
     out = work / f"build_{tag}"
     out.mkdir()
     print(f"building {tag}: {rev} {' '.join(flags)}", flush=True)
-    return load(
-        name=f"gdbench_ab_{tag}",
-        sources=[str(src / p.name) for p in _ext.SOURCES],
-        extra_include_paths=[str(src)],
-        extra_cflags=_ext.CFLAGS + flags,
-        extra_ldflags=["-fopenmp"],
-        build_directory=str(out),
-    )
+    return _ext.compile_sources(f"gdbench_ab_{tag}", out, csrc=src, extra_cflags=tuple(flags))
 
 
 def scene(n: int, dtype=torch.float32) -> dict:

@@ -149,15 +149,11 @@ def test_chunk_budget_does_not_change_the_image():
     torch.testing.assert_close(a.rgb, b.rgb, rtol=0, atol=0)
 
 
-def test_the_kernels_exp_is_accurate_over_its_range():
+def test_the_kernels_exp_is_accurate_over_its_range(cpp_extension):
     """The C++ compositor's vectorisable exp against torch.exp on [-80, 0] (its whole domain: powers
     at or above the cut, > -10, are used; lower inputs are clamped): within 2 ulp in float32 and
     4 ulp in float64."""
-    from renderers.splat._ext import load_extension
-
-    ext = load_extension()
-    if ext is None:
-        pytest.skip("C++ compositor unavailable")
+    ext = cpp_extension
     for dtype, ulps in ((torch.float32, 2), (torch.float64, 4)):
         x = torch.cat([torch.linspace(-80, 0, 200_001, dtype=dtype), -torch.rand(10_000, dtype=dtype) * 10])
         got, want = ext.fast_exp(x), torch.exp(x.double())

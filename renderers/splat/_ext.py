@@ -81,25 +81,33 @@ def _import_file(name: str, path: Path) -> ModuleType:
     return module
 
 
-def _build(name: str, target: Path, verbose: bool) -> ModuleType:
-    """Compile in a private temporary folder, then rename the library into ``target``."""
+def compile_sources(
+    name: str, build_directory: Path, csrc: Path = CSRC, extra_cflags: tuple[str, ...] = (), verbose: bool = False
+) -> ModuleType:
+    """Compile the sources as they are in ``csrc`` (default: this checkout's) into
+    ``build_directory`` and import the module; ``scripts/ab_ext.py`` builds other revisions."""
     from torch.utils.cpp_extension import load
 
+    return load(
+        name=name,
+        sources=[str(csrc / p.name) for p in SOURCES],
+        extra_include_paths=[str(csrc)],
+        extra_cflags=CFLAGS + list(extra_cflags),
+        extra_ldflags=["-fopenmp"],
+        build_directory=str(build_directory),
+        verbose=verbose,
+    )
+
+
+def _build(name: str, target: Path, verbose: bool) -> ModuleType:
+    """Compile in a private temporary folder, then rename the library into ``target``."""
     target.parent.mkdir(parents=True, exist_ok=True)
     for old in target.parent.glob(".build-*"):  # leftovers of killed builds (older than an hour)
         if time.time() - old.stat().st_mtime > 3600:
             shutil.rmtree(old, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=target.parent))
     try:
-        module = load(
-            name=name,
-            sources=[str(p) for p in SOURCES],
-            extra_include_paths=[str(CSRC)],
-            extra_cflags=CFLAGS,
-            extra_ldflags=["-fopenmp"],
-            build_directory=str(tmp),
-            verbose=verbose,
-        )
+        module = compile_sources(name, tmp, verbose=verbose)
         built = tmp / f"{name}.so"
         os.chmod(built, 0o755)
         os.replace(built, target)
