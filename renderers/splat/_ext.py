@@ -30,7 +30,7 @@ from types import ModuleType
 _STATE: dict[str, object] = {}
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp", CSRC / "sh_cpu.cpp")
-HEADERS = (CSRC / "splat_cpu.h", CSRC / "fast_exp.h")
+HEADERS = (CSRC / "splat_cpu.h", CSRC / "simd.h")
 
 
 CFLAGS = ["-O3", "-fopenmp", "-march=native", "-ffp-contract=off", "-fno-trapping-math"]

@@ -10,17 +10,19 @@
 // pass back to front from T_final and "last": T before Gaussian i is T after it / (1 - alpha_i),
 // S (the sum of w v behind i, double) grows as it goes, and
 //   dL/dalpha_i = T_i v_i - (S + T_final dL/dT_final) / (1 - alpha_i).
-// One visitor (walk) holds the pixel loop of both: it hands the row segments of a Gaussian's
-// ellipse in the tile, with their powers and exponentials, to a segment kernel (branch-free and
-// vectorised for runs of 8 pixels or more in the forward). The backward sums gradients per
-// Gaussian in one buffer per chunk of tiles and adds the chunks in order.
+// One visitor (walk) holds the pixel loop of both: it hands the ellipse's pixels in the tile as
+// blocks of one vector (8 floats or 4 doubles of a row; simd.h), with their powers and
+// exponentials computed four blocks at a time, to a block kernel, branch-free vector code in
+// both passes. The backward sums gradients per Gaussian in per-lane partial sums, then in one
+// buffer per chunk of tiles, and adds the chunks in order: deterministic for a thread count.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
-#include "fast_exp.h"
+#include "simd.h"
 #include "splat_cpu.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -125,46 +127,117 @@ struct TileData {
   }
 };
 
-// The pixels of Gaussian k's box in the tile, handed to seg row segment by row segment: for
-// each row where row_live(iy) (some pixel of the row is still compositing, or lies in front of
-// k's stop) and each run of at most kRow pixels, the arrays dx, power and G = exp(power) are
-// computed in one vectorisable loop, then seg(p0, m, dx, dy, power, G, iy) (p0: tile-local index
-// of the run's first pixel) decides, per pixel, whether power clears the Gaussian's cut.
-constexpr int32_t kRow = 64;
+// The pixels of Gaussian k's box in the tile, handed to seg one block of L pixels of a row at a
+// time (Simd<scalar_t>::L: 8 floats or 4 doubles): first the row spans of the whole box in one
+// vectorised pass (the exact span of q(d) <= Ls per row, within the box; empty where the row
+// misses the ellipse), then for each row where row_live(iy) (some pixel of the row is still
+// compositing, or lies in front of k's stop) and each block from the span's start, the vectors
+// dx, power and G = exp(power) of its lanes, and seg(iy, c0, m, dx, dy, power, G) with c0 the
+// block's first tile-local column and m <= L the lanes inside the span. Lanes past m hold
+// pixels beyond the span (or beyond the tile's row, in the buffers' row padding): seg masks
+// them. Which pixels count is seg's test power >= cut, so the spans only need to cover them.
 constexpr int64_t kLoad = 64;  // the forward loads a tile's pairs in blocks of this many
-constexpr int32_t kVec = 8;  // runs at least this long take the compositor's vectorised path
 
-template <typename scalar_t, typename R, typename F>
-inline void walk(const TileData<scalar_t>& td, int64_t k, double ox, double oy, int64_t ts, R&& row_live, F&& seg) {
-  alignas(64) scalar_t dxs[kRow], pw[kRow], G[kRow];
-  const scalar_t A = td.A[k], B = td.B[k], C = td.C[k], mx = td.mx[k];
-  const double ALs = td.ALs[k], det = td.det[k], ia = td.invA[k], ba = td.BinvA[k], cx = double(mx) - ox - 0.5;
-  for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
-    if (!row_live(iy)) continue;
-    const scalar_t dy = scalar_t(oy + iy) + scalar_t(0.5) - td.my[k];
-    int32_t x0 = td.x0[k], x1 = td.x1[k];
-    if (ALs > 0) {  // the row's exact span of q(d) <= Ls: A dx^2 + 2 B dy dx + C dy^2 - Ls <= 0
-      const double dyd = oy + iy + 0.5 - double(td.my[k]), disc = ALs - det * dyd * dyd;
-      if (disc < 0) continue;
-      const double r = std::sqrt(disc) * ia, mid = cx - ba * dyd;
-      x0 = std::max<int32_t>(x0, int32_t(std::max(-1.0, std::ceil(mid - r))));
-      x1 = std::min<int32_t>(x1, int32_t(std::min(double(ts), std::floor(mid + r))));
+template <typename scalar_t>
+struct Spans {
+  std::vector<int32_t> x0, x1;  // per row of the tile
+  std::vector<int32_t> by, bx, bm;  // per block: row, first column, lanes inside the span
+  explicit Spans(int64_t ts)
+      : x0(ts), x1(ts), by(ts * (ts / Simd<scalar_t>::L + 1)), bx(by.size()), bm(by.size()) {}
+
+  void fill(const TileData<scalar_t>& td, int64_t k, double ox, double oy, int64_t ts) {
+    const int32_t y0 = td.y0[k], y1 = td.y1[k], bx0 = td.x0[k], bx1 = td.x1[k];
+    const double ALs = td.ALs[k], det = td.det[k], ia = td.invA[k], ba = td.BinvA[k];
+    const double my = double(td.my[k]), cx = double(td.mx[k]) - ox - 0.5, tsd = double(ts);
+    int32_t* px0 = x0.data();
+    int32_t* px1 = x1.data();
+    if (!(ALs > 0)) {  // no span: the box's full rows
+      for (int32_t iy = y0; iy <= y1; ++iy) { px0[iy] = bx0; px1[iy] = bx1; }
+      return;
     }
-    for (int32_t c0 = x0; c0 <= x1; c0 += kRow) {
-      const int32_t m = std::min<int32_t>(x1, c0 + kRow - 1) - c0 + 1;
-      // whole vectors of 8: the entries past m are computed and never read (no scalar tail)
-      for (int32_t jb = 0; jb < m; jb += 8) {
 #pragma omp simd
-        for (int32_t j = jb; j < jb + 8; ++j) {
-          const scalar_t dx = scalar_t(ox + (c0 + j)) + scalar_t(0.5) - mx;
-          dxs[j] = dx;
-          pw[j] = scalar_t(-0.5) * (A * dx * dx + C * dy * dy) - B * dx * dy;
-          G[j] = Exp<scalar_t>::eval(pw[j]);
-        }
-      }
-      seg(int64_t(iy) * ts + c0, m, dxs, dy, pw, G, iy);
+    for (int32_t iy = y0; iy <= y1; ++iy) {  // A dx^2 + 2 B dy dx + C dy^2 - Ls <= 0 in dx
+      const double dyd = oy + iy + 0.5 - my, disc = ALs - det * dyd * dyd;
+      const double r = std::sqrt(disc < 0 ? 0.0 : disc) * ia, mid = cx - ba * dyd;
+      const double lo = std::ceil(mid - r), hi = std::floor(mid + r);
+      const int32_t a = int32_t(lo > -1.0 ? lo : -1.0), b = int32_t(hi < tsd ? hi : tsd);
+      px0[iy] = disc < 0 ? 1 : (a > bx0 ? a : bx0);
+      px1[iy] = disc < 0 ? 0 : (b < bx1 ? b : bx1);
     }
   }
+};
+
+// Blocks are computed kGroup at a time: their exps are independent chains of ~25 dependent
+// vector operations each, which a core runs side by side; one at a time, the exp's latency set
+// the pace.
+constexpr int kGroup = 4;  // 2 and 8 measured the same or slower
+
+template <typename scalar_t, typename R, typename F>
+inline void walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k, double ox, double oy, int64_t ts,
+                 R&& row_live, F&& seg) {
+  using V = typename Simd<scalar_t>::V;
+  constexpr int L = Simd<scalar_t>::L;
+  const scalar_t A = td.A[k], B = td.B[k], C = td.C[k], mx = td.mx[k], my = td.my[k];
+  sp.fill(td, k, ox, oy, ts);
+  int32_t nb = 0;
+  for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
+    const int32_t x0 = sp.x0[iy], x1 = sp.x1[iy];
+    if (x0 > x1 || !row_live(iy)) continue;
+    for (int32_t c0 = x0; c0 <= x1; c0 += L, ++nb) {
+      sp.by[nb] = iy;
+      sp.bx[nb] = c0;
+      sp.bm[nb] = std::min<int32_t>(L, x1 - c0 + 1);
+    }
+  }
+  const V lanes = iota<V>() + scalar_t(0.5);
+  for (int32_t b0 = 0; b0 < nb; b0 += kGroup) {
+    V dx[kGroup], pw[kGroup], G[kGroup];
+    scalar_t dy[kGroup];
+    for (int g = 0; g < kGroup; ++g) {  // past the list's end: the last block again, not handed on
+      const int32_t b = std::min(b0 + g, nb - 1);
+      dy[g] = scalar_t(oy + sp.by[b]) + scalar_t(0.5) - my;
+      // scalar_t(ox + c0 + j) + 0.5 - mx: integers and halves below 2^24 are exact in float
+      dx[g] = (splat<V>(scalar_t(ox + sp.bx[b])) + lanes) - mx;
+      pw[g] = scalar_t(-0.5) * (A * dx[g] * dx[g] + C * dy[g] * dy[g]) - B * dx[g] * dy[g];
+      G[g] = vexp(pw[g]);
+    }
+    for (int g = 0; g < kGroup && b0 + g < nb; ++g) seg(sp.by[b0 + g], sp.bx[b0 + g], sp.bm[b0 + g], dx[g], dy[g], pw[g], G[g]);
+  }
+}
+
+// Tiles in order of decreasing list length, taken one at a time by whichever thread is free:
+// a tile's output depends only on the tile, so the schedule cannot change a bit of it, and the
+// longest tiles start first, so that no thread waits on a long tile at the end (a static split
+// in halves serves a scene whose object sits in one half badly).
+inline std::vector<int64_t> longest_first(const int64_t* pt, int64_t n_tiles) {
+  std::vector<int64_t> order(n_tiles);
+  for (int64_t t = 0; t < n_tiles; ++t) order[t] = t;
+  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return pt[a + 1] - pt[a] > pt[b + 1] - pt[b]; });
+  return order;
+}
+
+// The backward's chunks of consecutive tiles (one gradient buffer each, added in order), cut
+// where the work so far (the pairs each pixel visits: its stop index, plus one per pixel)
+// reaches an equal share: a function of the inputs and the thread count only, so the sums stay
+// deterministic.
+inline std::vector<int64_t> balanced_chunks(const int32_t* last, int64_t n_tiles, int64_t area, int64_t n_chunks) {
+  std::vector<double> cum(n_tiles + 1, 0.0);
+  at::parallel_for(0, n_tiles, 64, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) {
+      int64_t c = area;
+      for (int64_t p = 0; p < area; ++p) c += last[t * area + p];
+      cum[t + 1] = double(c);
+    }
+  });
+  for (int64_t t = 0; t < n_tiles; ++t) cum[t + 1] += cum[t];
+  std::vector<int64_t> bounds(n_chunks + 1, n_tiles);
+  bounds[0] = 0;
+  for (int64_t c = 1; c < n_chunks; ++c) {
+    const double share = cum[n_tiles] * double(c) / double(n_chunks);
+    bounds[c] = std::max(bounds[c - 1], int64_t(std::lower_bound(cum.begin(), cum.end(), share) - cum.begin()));
+    bounds[c] = std::min(bounds[c], n_tiles);
+  }
+  return bounds;
 }
 
 struct TileIndex {
@@ -201,16 +274,24 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
   int32_t* oL = out_last.data_ptr<int32_t>();
 
   const Shapes<scalar_t> shapes(pc, po, means2d.size(0), amin_);
-  at::parallel_for(0, n_tiles, 1, [&](int64_t t0, int64_t t1) {
+  const std::vector<int64_t> order = longest_first(pt, n_tiles);
+  std::atomic<int64_t> next{0};
+  at::parallel_for(0, std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_tiles)), 1, [&](int64_t, int64_t) {
+    using V = typename Simd<scalar_t>::V;
+    using M = typename Simd<scalar_t>::M;
+    using I = typename Simd<scalar_t>::I;
+    constexpr int L = Simd<scalar_t>::L;
     TileData<scalar_t> td;
-    // per-tile buffers, features channel-major ([D][area]) so that a row segment is contiguous
-    // padded by one vector: the vectorised path runs whole vectors of 8 past a run's end, where
-    // it writes back what it read (features: channel stride sa)
-    const int64_t sa = area + 8;
+    Spans<scalar_t> spans(ts);
+    // per-tile buffers with rows of ts + L entries (a block's lanes past the row's end land in the
+    // padding, never in the next row), features channel-major ([D][sa]) so that a block is
+    // contiguous
+    const int64_t rs = ts + L, sa = ts * rs;
     std::vector<scalar_t> T(sa), acc(sa * D), dep(sa), wsq(sa);
     std::vector<int32_t> last(sa), live(ts);
-    alignas(64) scalar_t wv[kRow];
-    for (int64_t t = t0; t < t1; ++t) {
+    const V lane = iota<V>();
+    for (int64_t i = next++; i < n_tiles; i = next++) {
+      const int64_t t = order[i];
       const TileIndex ti = tile_index(pt, t, grid);
       const int64_t n = ti.e - ti.s;  // empty tiles too: every output entry is written here
       int64_t loaded = 0;
@@ -229,71 +310,47 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
         }
         const scalar_t o = td.o[k], cut = td.cut[k], z = td.z[k];
         const int32_t kk = int32_t(k), nn = int32_t(n);
-        walk(td, k, ti.ox, ti.oy, ts, row_live,
-             [&](int64_t p0, int32_t m, const scalar_t*, scalar_t, const scalar_t* pw, const scalar_t* G, int32_t iy) {
-          // branch-free over the segment (the compiler vectorises it): a pixel that has stopped,
-          // or where alpha < alpha_min, gets w = 0 and keeps its state; one where T would fall
-          // below t_min stops there without adding
-          scalar_t* Tp = T.data() + p0;
-          int32_t* lp = last.data() + p0;
-          if (m < kVec) {  // short runs: per pixel, with early outs (vectors would run empty)
-            for (int32_t j = 0; j < m; ++j) {
-              if (pw[j] < cut || lp[j] < nn) continue;
-              scalar_t alpha = o * G[j];
-              alpha = alpha < amax ? alpha : amax;
-              if (alpha < amin) continue;
-              const scalar_t nT = Tp[j] * (1 - alpha);
-              if (nT < tmin) { lp[j] = kk; ++n_done; --live[iy]; continue; }
-              const scalar_t w = alpha * Tp[j];
-              const int64_t p = p0 + j;
-              if (want_feat) for (int64_t d = 0; d < D; ++d) acc[d * sa + p] += w * td.f[k * D + d];
-              if (want_depth) dep[p] += w * z;
-              if (want_wsq) wsq[p] += w * w;
-              Tp[j] = nT;
-            }
-            return;
+        walk(td, spans, k, ti.ox, ti.oy, ts, row_live, [&](int32_t iy, int32_t c0, int32_t m, V, scalar_t, V pw, V G) {
+          // branch-free over the block: a pixel outside the span or the ellipse, one that has
+          // stopped, or one where alpha < alpha_min gets w = 0 and keeps its state; one where T
+          // would fall below t_min stops there without adding
+          const int64_t p0 = int64_t(iy) * rs + c0;
+          V alpha = o * G;
+          alpha = alpha < amax ? alpha : splat<V>(amax);
+          const V Tj = loadu<V>(T.data() + p0), nT = Tj * (1 - alpha);
+          const I lj = loadu<I>(last.data() + p0);
+          const M live_lane = __builtin_convertvector(lj == nn, M);
+          const M ok = (lane < scalar_t(m)) & (pw >= cut) & (alpha >= amin) & live_lane;
+          const M stop = ok & (nT < tmin), add = ok & ~stop;
+          const V w = add ? alpha * Tj : splat<V>(0);
+          storeu(T.data() + p0, add ? nT : Tj);
+          if (const uint32_t stops = bits(stop)) {
+            storeu(last.data() + p0, __builtin_convertvector(stop, I) ? splat<I>(kk) : lj);
+            const int c = __builtin_popcount(stops);
+            n_done += c;
+            live[iy] -= c;
           }
-          int32_t stops = 0;
-          const int32_t mp = (m + 7) & ~7;
-#pragma omp simd reduction(+ : stops)
-          for (int32_t j = 0; j < mp; ++j) {
-            scalar_t alpha = o * G[j];
-            alpha = alpha < amax ? alpha : amax;
-            const scalar_t Tj = Tp[j], nT = Tj * (1 - alpha);
-            const bool ok = (j < m) & (pw[j] >= cut) & (alpha >= amin) & (lp[j] == nn);
-            const bool stop = ok & (nT < tmin), add = ok & !stop;
-            wv[j] = add ? alpha * Tj : scalar_t(0);
-            Tp[j] = add ? nT : Tj;
-            lp[j] = stop ? kk : lp[j];
-            stops += stop;
-          }
-          if (stops) { n_done += stops; live[iy] -= stops; }
           // w > 0 wherever a pixel adds (alpha >= alpha_min, T >= t_min), so w != 0 marks them
+          const M adds = w != 0;
           for (int64_t d = 0; want_feat && d < D; ++d) {
-            const scalar_t fd = td.f[k * D + d];
             scalar_t* ap = acc.data() + d * sa + p0;
-#pragma omp simd
-            for (int32_t j = 0; j < mp; ++j) ap[j] = wv[j] != 0 ? ap[j] + wv[j] * fd : ap[j];
+            const V a = loadu<V>(ap);
+            storeu(ap, adds ? a + w * td.f[k * D + d] : a);
           }
           if (want_depth) {
-            scalar_t* dp = dep.data() + p0;
-#pragma omp simd
-            for (int32_t j = 0; j < mp; ++j) dp[j] = wv[j] != 0 ? dp[j] + wv[j] * z : dp[j];
+            const V a = loadu<V>(dep.data() + p0);
+            storeu(dep.data() + p0, adds ? a + w * z : a);
           }
-          if (want_wsq) {
-            scalar_t* wp = wsq.data() + p0;
-#pragma omp simd
-            for (int32_t j = 0; j < mp; ++j) wp[j] += wv[j] * wv[j];
-          }
+          if (want_wsq) storeu(wsq.data() + p0, loadu<V>(wsq.data() + p0) + w * w);
         });
       }
       for (int64_t p = 0; p < area; ++p) {
-        const int64_t q = t * area + p;
-        oT[q] = T[p];
-        oL[q] = last[p];
-        if (oF) for (int64_t d = 0; d < D; ++d) oF[q * D + d] = acc[d * sa + p];
-        if (oD) oD[q] = dep[p];
-        if (oW) oW[q] = wsq[p];
+        const int64_t q = t * area + p, b = p / ts * rs + p % ts;
+        oT[q] = T[b];
+        oL[q] = last[b];
+        if (oF) for (int64_t d = 0; d < D; ++d) oF[q * D + d] = acc[d * sa + b];
+        if (oD) oD[q] = dep[b];
+        if (oW) oW[q] = wsq[b];
       }
     }
   });
@@ -332,16 +389,27 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
   std::unique_ptr<scalar_t[]> sums(new scalar_t[n_chunks * n_gauss * W]);
 
   const Shapes<scalar_t> shapes(pc, po, n_gauss, amin_);
+  const std::vector<int64_t> bounds = balanced_chunks(pL, n_tiles, area, n_chunks);
   at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
       scalar_t* sum = sums.get() + c * n_gauss * W;
       std::fill(sum, sum + n_gauss * W, scalar_t(0));
-      const int64_t t0 = n_tiles * c / n_chunks, t1 = n_tiles * (c + 1) / n_chunks;
+      const int64_t t0 = bounds[c], t1 = bounds[c + 1];
+      using V = typename Simd<scalar_t>::V;
+      using M = typename Simd<scalar_t>::M;
+      using I = typename Simd<scalar_t>::I;
+      constexpr int L = Simd<scalar_t>::L;
+      using SV = typename Simd<scalar_t>::D;  // S in double, L lanes
       TileData<scalar_t> td;
-      std::vector<scalar_t> T(area);
-      std::vector<double> S(area);
-      std::vector<scalar_t> gf_sum(D);
-      std::vector<int32_t> row_last(ts);
+      Spans<scalar_t> spans(ts);
+      // the tile's per-pixel state and incoming gradients, copied into rows of ts + L entries (a
+      // block's lanes past the row's end read the padding: finite, masked out)
+      const int64_t rs = ts + L, sa = ts * rs;
+      std::vector<scalar_t> T(sa, 1), Tf(sa, 1), bT(sa, 0), bD(sa, 0), bW(sa, 0), bF(sa * D, 0);
+      std::vector<double> S(sa, 0.0);
+      std::vector<int32_t> last(sa, 0), row_last(ts);
+      std::vector<V> gf(D);
+      const V lane = iota<V>();
       for (int64_t t = t0; t < t1; ++t) {
         const TileIndex ti = tile_index(pt, t, grid);
         const int64_t n = ti.e - ti.s;
@@ -350,52 +418,66 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
         int32_t deepest = 0;  // Gaussians at or behind every pixel's stop contribute nothing
         std::fill(row_last.begin(), row_last.end(), int32_t(0));
         for (int64_t p = 0; p < area; ++p) {
-          T[p] = pTf[base + p];
-          S[p] = 0.0;
-          deepest = std::max(deepest, pL[base + p]);
-          row_last[p / ts] = std::max(row_last[p / ts], pL[base + p]);
+          const int64_t q = base + p, b = p / ts * rs + p % ts;
+          T[b] = Tf[b] = pTf[q];
+          S[b] = 0.0;
+          last[b] = pL[q];
+          if (gT) bT[b] = gT[q];
+          if (gD) bD[b] = gD[q];
+          if (gW) bW[b] = gW[q];
+          if (gF) for (int64_t d = 0; d < D; ++d) bF[d * sa + b] = gF[q * D + d];
+          deepest = std::max(deepest, pL[q]);
+          row_last[p / ts] = std::max(row_last[p / ts], pL[q]);
         }
         td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, n, 0, std::min<int64_t>(n, deepest), ti.ox, ti.oy, ts);
         for (int64_t k = std::min<int64_t>(n, deepest) - 1; k >= 0; --k) {
-          scalar_t go = 0, gmx = 0, gmy = 0, gA = 0, gB = 0, gC = 0, gz = 0;
-          std::fill(gf_sum.begin(), gf_sum.end(), scalar_t(0));
+          // per-lane partial sums of the Gaussian's gradients, added across lanes at the end
+          V go{}, gmx{}, gmy{}, gA{}, gB{}, gC{}, gz{};
+          std::fill(gf.begin(), gf.end(), V{});
           const scalar_t o = td.o[k], cut = td.cut[k], z = td.z[k], A = td.A[k], B = td.B[k], C = td.C[k];
           const int32_t kk = int32_t(k);
           auto row_live = [&](int32_t iy) { return k < row_last[iy]; };
-          walk(td, k, ti.ox, ti.oy, ts, row_live,
-               [&](int64_t p0, int32_t m, const scalar_t* dxs, scalar_t dy, const scalar_t* pw, const scalar_t* G, int32_t) {
-            // per pixel: backward runs are mostly short, and the vectorised form measured slower
-            for (int32_t j = 0; j < m; ++j) {
-              const int64_t p = p0 + j, q = base + p;
-              if (pw[j] < cut || kk >= pL[q]) continue;  // outside the ellipse, or behind the stop
-              const scalar_t raw = o * G[j];
-              const bool unclamped = raw < amax;
-              const scalar_t alpha = unclamped ? raw : amax;
-              if (alpha < amin) continue;
-              const scalar_t Tb = T[p] / (1 - alpha);  // transmittance in front of k
-              const scalar_t w = alpha * Tb;
-              scalar_t v = (gD ? gD[q] * z : scalar_t(0)) + (gW ? 2 * w * gW[q] : scalar_t(0));
-              if (gF) for (int64_t d = 0; d < D; ++d) v += gF[q * D + d] * td.f[k * D + d];
-              if (gF) for (int64_t d = 0; d < D; ++d) gf_sum[d] += w * gF[q * D + d];
-              if (gD) gz += w * gD[q];
-              if (unclamped) {
-                const scalar_t gt = gT ? gT[q] : scalar_t(0);
-                const scalar_t g_alpha = Tb * v - (scalar_t(S[p]) + pTf[q] * gt) / (1 - alpha);
-                const scalar_t g_power = g_alpha * alpha, dx = dxs[j];
-                go += g_alpha * G[j];
-                gmx += (A * dx + B * dy) * g_power;
-                gmy += (B * dx + C * dy) * g_power;
-                gA += scalar_t(-0.5) * dx * dx * g_power;
-                gB += -dx * dy * g_power;
-                gC += scalar_t(-0.5) * dy * dy * g_power;
-              }
-              S[p] += double(w) * double(v);
-              T[p] = Tb;
-            }
+          walk(td, spans, k, ti.ox, ti.oy, ts, row_live, [&](int32_t iy, int32_t c0, int32_t m, V dx, scalar_t dy, V pw, V G) {
+            const int64_t b = int64_t(iy) * rs + c0;
+            // inside the span and the ellipse, and in front of the pixel's stop
+            const M front = __builtin_convertvector(loadu<I>(last.data() + b) > kk, M);
+            const V raw = o * G;
+            const M unclamped = raw < amax;
+            const V alpha = unclamped ? raw : splat<V>(amax);
+            const M ok = (lane < scalar_t(m)) & (pw >= cut) & front & (alpha >= amin);
+            if (!bits(ok)) return;
+            const V Tp = loadu<V>(T.data() + b);
+            const V Tb = Tp / (1 - alpha);  // transmittance in front of k
+            const V w = alpha * Tb;
+            V v = (gD ? loadu<V>(bD.data() + b) * z : splat<V>(0)) + (gW ? 2 * w * loadu<V>(bW.data() + b) : splat<V>(0));
+            for (int64_t d = 0; gF && d < D; ++d) v += loadu<V>(bF.data() + d * sa + b) * td.f[k * D + d];
+            const V zero = splat<V>(0);
+            for (int64_t d = 0; gF && d < D; ++d) gf[d] += ok ? w * loadu<V>(bF.data() + d * sa + b) : zero;
+            if (gD) gz += ok ? w * loadu<V>(bD.data() + b) : zero;
+            const M um = ok & unclamped;
+            const SV Sp = loadu<SV>(S.data() + b);
+            const V gt = gT ? loadu<V>(bT.data() + b) : zero;
+            const V g_alpha = Tb * v - (__builtin_convertvector(Sp, V) + loadu<V>(Tf.data() + b) * gt) / (1 - alpha);
+            const V g_power = g_alpha * alpha;
+            go += um ? g_alpha * G : zero;
+            gmx += um ? (A * dx + B * dy) * g_power : zero;
+            gmy += um ? (B * dx + C * dy) * g_power : zero;
+            gA += um ? scalar_t(-0.5) * dx * dx * g_power : zero;
+            gB += um ? -dx * dy * g_power : zero;
+            gC += um ? scalar_t(-0.5) * dy * dy * g_power : zero;
+            const auto okd = __builtin_convertvector(ok, typename Simd<scalar_t>::DM);
+            storeu(S.data() + b, okd ? Sp + __builtin_convertvector(w, SV) * __builtin_convertvector(v, SV) : Sp);
+            storeu(T.data() + b, ok ? Tb : Tp);
           });
+          auto hsum = [](V x) {
+            scalar_t r = 0;
+            for (int j = 0; j < L; ++j) r += x[j];
+            return r;
+          };
           scalar_t* r = sum + pg[ti.s + k] * W;
-          r[0] += gmx; r[1] += gmy; r[2] += gA; r[3] += gB; r[4] += gC; r[5] += go; r[6] += gz;
-          for (int64_t d = 0; d < D; ++d) r[7 + d] += gf_sum[d];
+          r[0] += hsum(gmx); r[1] += hsum(gmy); r[2] += hsum(gA); r[3] += hsum(gB); r[4] += hsum(gC);
+          r[5] += hsum(go); r[6] += hsum(gz);
+          for (int64_t d = 0; d < D; ++d) r[7 + d] += hsum(gf[d]);
         }
       }
     }
@@ -427,7 +509,14 @@ torch::Tensor fast_exp(torch::Tensor x) {
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "fast_exp", [&] {
     const scalar_t* px = x.data_ptr<scalar_t>();
     scalar_t* po = out.data_ptr<scalar_t>();
-    for (int64_t i = 0; i < x.numel(); ++i) po[i] = Exp<scalar_t>::eval(px[i]);
+    using V = typename Simd<scalar_t>::V;
+    constexpr int64_t L = Simd<scalar_t>::L;
+    for (int64_t i = 0; i < x.numel(); i += L) {  // the kernel's vector code, a partial last block padded
+      V v = splat<V>(scalar_t(0));
+      std::memcpy(&v, px + i, sizeof(scalar_t) * std::min<int64_t>(L, x.numel() - i));
+      const V e = vexp(v);
+      std::memcpy(po + i, &e, sizeof(scalar_t) * std::min<int64_t>(L, x.numel() - i));
+    }
   });
   return out;
 }
