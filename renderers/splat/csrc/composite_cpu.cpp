@@ -449,10 +449,13 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
             const V Tp = loadu<V>(T.data() + b);
             const V Tb = Tp / (1 - alpha);  // transmittance in front of k
             const V w = alpha * Tb;
-            V v = (gD ? loadu<V>(bD.data() + b) * z : splat<V>(0)) + (gW ? 2 * w * loadu<V>(bW.data() + b) : splat<V>(0));
-            for (int64_t d = 0; gF && d < D; ++d) v += loadu<V>(bF.data() + d * sa + b) * td.f[k * D + d];
             const V zero = splat<V>(0);
-            for (int64_t d = 0; gF && d < D; ++d) gf[d] += ok ? w * loadu<V>(bF.data() + d * sa + b) : zero;
+            V v = (gD ? loadu<V>(bD.data() + b) * z : zero) + (gW ? 2 * w * loadu<V>(bW.data() + b) : zero);
+            for (int64_t d = 0; gF && d < D; ++d) {
+              const V gfd = loadu<V>(bF.data() + d * sa + b);
+              v += gfd * td.f[k * D + d];
+              gf[d] += ok ? w * gfd : zero;
+            }
             if (gD) gz += ok ? w * loadu<V>(bD.data() + b) : zero;
             const M um = ok & unclamped;
             const SV Sp = loadu<SV>(S.data() + b);
