@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -25,17 +26,28 @@ _CV_TO_MI = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64)
 
 def intrinsics(fovy_deg: Tensor | float, width: int, height: int, dtype=torch.float32) -> Tensor:
     """Square-pixel pinhole K [..., 3, 3] with vertical field of view ``fovy_deg`` and centred principal point."""
-    fovy = torch.as_tensor(fovy_deg, dtype=torch.float64)
+    # numpy float64: a handful of tiny arrays per training step, where torch's per-op dispatch
+    # cost more than the maths (the same for look_at and spherical_to_eye)
+    fovy = _numpy(fovy_deg)
     if bool(((fovy <= 0) | (fovy >= 180)).any()):
         raise ValueError(f"fovy_deg: expected degrees in (0, 180), got {fovy.tolist()}")
-    f = 0.5 * height / torch.tan(torch.deg2rad(fovy) / 2)
-    K = torch.zeros(fovy.shape + (3, 3), dtype=torch.float64)
+    f = 0.5 * height / np.tan(np.deg2rad(fovy) / 2)
+    K = np.zeros(fovy.shape + (3, 3))
     K[..., 0, 0] = f
     K[..., 1, 1] = f
     K[..., 0, 2] = width / 2
     K[..., 1, 2] = height / 2
     K[..., 2, 2] = 1.0
-    return K.to(dtype)
+    return torch.from_numpy(K).to(dtype)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.sqrt((v * v).sum(-1, keepdims=True))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # np.cross's generality costs 60 us a call
+    ax, ay, az, bx, by, bz = a[..., 0], a[..., 1], a[..., 2], b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], -1)
 
 
 def look_at(eye: Tensor, target: Tensor | None = None, up: Tensor | None = None) -> Tensor:
@@ -43,39 +55,39 @@ def look_at(eye: Tensor, target: Tensor | None = None, up: Tensor | None = None)
 
     ``up`` defaults to +Z. When the view direction is parallel to ``up`` (looking straight
     down or up) the world +Y axis is used as the up hint instead, so the result is always
-    a proper rotation.
+    a proper rotation. Computed in float64 (no gradients); returned in ``eye``'s float dtype.
     """
     eye = torch.as_tensor(eye)
     dtype = eye.dtype if eye.is_floating_point() else torch.float32
-    eye = eye.to(dtype)
-    target = torch.zeros_like(eye) if target is None else torch.as_tensor(target, dtype=dtype).expand_as(eye)
-    up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype) if up is None else torch.as_tensor(up, dtype=dtype)
-    up = up.expand_as(eye)
-    fwd = target - eye
-    norm = fwd.norm(dim=-1, keepdim=True)
+    e = eye.detach().cpu().double().numpy()
+    t = np.zeros_like(e) if target is None else np.broadcast_to(_numpy(target), e.shape)
+    u = np.broadcast_to(np.array([0.0, 0.0, 1.0]) if up is None else _numpy(up), e.shape)
+    fwd = t - e
+    norm = np.sqrt((fwd * fwd).sum(-1, keepdims=True))
     if bool((norm < 1e-12).any()):
         raise ValueError("eye: coincides with target, the view direction is undefined")
     fwd = fwd / norm
-    right = torch.linalg.cross(fwd, up)
-    degenerate = right.norm(dim=-1, keepdim=True) < 1e-6
-    alt = torch.linalg.cross(fwd, torch.tensor([0.0, 1.0, 0.0], dtype=dtype).expand_as(fwd))
-    right = torch.where(degenerate, alt, right)
-    right = right / right.norm(dim=-1, keepdim=True)
-    down = torch.linalg.cross(fwd, right)
-    c2w_R = torch.stack([right, down, fwd], dim=-1)  # columns: camera axes in world
-    view = torch.zeros(eye.shape[:-1] + (4, 4), dtype=dtype)
-    view[..., :3, :3] = c2w_R.transpose(-1, -2)
-    view[..., :3, 3] = -(c2w_R.transpose(-1, -2) @ eye[..., None])[..., 0]
+    right = _cross(fwd, u)
+    degenerate = np.sqrt((right * right).sum(-1, keepdims=True)) < 1e-6
+    right = _unit(np.where(degenerate, _cross(fwd, np.broadcast_to(np.array([0.0, 1.0, 0.0]), fwd.shape)), right))
+    down = _cross(fwd, right)
+    R = np.stack([right, down, fwd], axis=-2)  # rows: camera axes in world (world-to-camera)
+    view = np.zeros(e.shape[:-1] + (4, 4))
+    view[..., :3, :3] = R
+    view[..., :3, 3] = -(R @ e[..., None])[..., 0]
     view[..., 3, 3] = 1.0
-    return view
+    return torch.from_numpy(view).to(dtype)
+
+
+def _numpy(x) -> np.ndarray:
+    return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, dtype=np.float64)
 
 
 def spherical_to_eye(azimuth_deg: Tensor, elevation_deg: Tensor, radius: Tensor) -> Tensor:
-    az, el = torch.deg2rad(azimuth_deg), torch.deg2rad(elevation_deg)
-    return (
-        torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)], -1)
-        * radius[..., None]
-    )
+    """Eye positions [..., 3] (float64) at ``radius`` in the directions of the angles (degrees)."""
+    az, el = np.deg2rad(_numpy(azimuth_deg)), np.deg2rad(_numpy(elevation_deg))
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
+    return torch.from_numpy(d * _numpy(radius)[..., None])
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,11 @@ alternating builds.
 
     .venv/bin/python scripts/ab_ext.py --a HEAD --b .                  # working tree vs HEAD
     .venv/bin/python scripts/ab_ext.py --a . --b . --b-flags=-DFOO=1   # a compile-time variant
+    .venv/bin/python scripts/ab_ext.py --params state.pt               # plus a trainer's scene
+
+Besides random clouds, the cases include the training step's noise pass (the gd preset's noise
+cloud at 64 px: rgb and weight_sq) and, with ``--params``, a trainer's Gaussians (a torch file
+of its ``state.params``: means, quats, log_scales, opacity_logits, sh) at 64 px.
 
 A build is a git revision (its ``renderers/splat/csrc``) or ``.`` (the working tree's), compiled
 with the working tree's CFLAGS (``renderers/splat/_ext.py``) plus the given flags.
@@ -51,13 +56,35 @@ def scene(n: int, dtype=torch.float32) -> dict:
     return {k: v.to(dtype).clone().requires_grad_(True) for k, v in random_cloud(n).items()}
 
 
+def noise_scene(dtype=torch.float32) -> dict:
+    """The gd preset's noise cloud with one draw of colours (rendered with weight_sq)."""
+    from gdbench.noise import NoiseConfig, make_noise_cloud
+
+    g = torch.Generator().manual_seed(0)
+    c = make_noise_cloud(NoiseConfig(), 3, generator=g)
+    s = {"means": c.means, "quats": c.quats, "scales": c.scales, "opacities": c.opacities,
+         "colors": torch.randn(len(c), 3, generator=g)}  # fmt: skip
+    return {k: v.to(dtype).clone().requires_grad_(True) for k, v in s.items()} | {"weight_sq": True}
+
+
+def params_scene(path: Path, dtype=torch.float32) -> dict:
+    """A trainer's parameters (``state.params``), activated as the trainer renders them."""
+    from renderers.splat.sh import C0
+
+    p = torch.load(path)
+    s = {"means": p["means"], "quats": p["quats"], "scales": p["log_scales"].exp(),
+         "opacities": torch.sigmoid(p["opacity_logits"]), "colors": C0 * p["sh"][:, 0] + 0.5}  # fmt: skip
+    return {k: v.detach().to(dtype).clone().requires_grad_(True) for k, v in s.items()}
+
+
 def render(s: dict, res: int, backward: bool):
     cam = _camera(res, "cpu")
     dt = s["means"].dtype
+    extra = ("weight_sq",) if s.get("weight_sq") else ()
     with torch.set_grad_enabled(backward):
         out = rasterize(
             s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
-            cam.viewmats.to(dt), cam.Ks.to(dt), res, res, outputs=("rgb", "alpha", "depth"), check_values=False,
+            cam.viewmats.to(dt), cam.Ks.to(dt), res, res, outputs=("rgb", "alpha", "depth") + extra, check_values=False,
         )  # fmt: skip
         if backward:
             w = torch.linspace(0, 1, out.rgb.numel(), dtype=dt).reshape(out.rgb.shape)
@@ -75,23 +102,27 @@ def best_of(s: dict, px: int, backward: bool, repeats: int = 5) -> float:
     return min(ts)
 
 
+def cases(dtype, params: Path | None) -> list[tuple[str, dict, int]]:
+    out = [(f"{n} random", scene(n, dtype), px) for n, px in CASES] + [("gd noise cloud", noise_scene(dtype), 64)]
+    return out + ([(f"{params.name}", params_scene(params, dtype), 64)] if params is not None else [])
+
+
 def use(module) -> None:
     _ext._STATE["module"] = module
 
 
-def same_bits(mods: dict) -> bool:
+def same_bits(mods: dict, params: Path | None) -> bool:
     results = {}
     for tag, mod in mods.items():
         use(mod)
         res = []
         for dt in (torch.float32, torch.float64):
-            for n, px in CASES:
-                s = scene(n, dt)
+            for _, s, px in cases(dt, params):
                 out = render(s, px, True)
-                res += [out.rgb.detach(), out.alpha.detach(), out.depth.detach()] + [s[k].grad for k in s]
+                res += [x.detach() for x in out if x is not None] + [s[k].grad for k in s if k != "weight_sq"]
         results[tag] = res
     a, b = results.values()
-    return all(torch.equal(x, y) for x, y in zip(a, b))
+    return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
 
 
 def main() -> int:
@@ -101,27 +132,28 @@ def main() -> int:
     ap.add_argument("--a-flags", default="", help="extra compiler flags, space-separated")
     ap.add_argument("--b-flags", default="")
     ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--params", type=Path, default=None, help="a torch file of a trainer's state.params")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         mods = {
             "a": build(args.a, args.a_flags.split(), "a", Path(tmp)),
             "b": build(args.b, args.b_flags.split(), "b", Path(tmp)),
         }
-        print("same bits (forward and gradients, float32 and float64):", same_bits(mods))
-        scenes = {n: scene(n) for n, _ in CASES}
+        print("same bits (forward and gradients, float32 and float64):", same_bits(mods, args.params))
+        todo = cases(torch.float32, args.params)
         times: dict[tuple, list[float]] = {}
         for _ in range(args.rounds):
             for tag, mod in mods.items():
                 use(mod)
-                for n, px in CASES:
+                for name, s, px in todo:
                     for backward in (False, True):
-                        times.setdefault((n, px, backward, tag), []).append(best_of(scenes[n], px, backward))
-        for n, px in CASES:
+                        times.setdefault((name, backward, tag), []).append(best_of(s, px, backward))
+        for name, _, px in todo:
             for backward in (False, True):
-                a = statistics.median(times[(n, px, backward, "a")])
-                b = statistics.median(times[(n, px, backward, "b")])
+                a = statistics.median(times[(name, backward, "a")])
+                b = statistics.median(times[(name, backward, "b")])
                 mode = "fwd+bwd" if backward else "fwd"
-                print(f"{n:>6d} {px:>4d} {mode:8s} a {a * 1e3:8.2f} ms  b {b * 1e3:8.2f} ms  b/a {b / a:.3f}")
+                print(f"{name:>16s} {px:>4d} {mode:8s} a {a * 1e3:8.2f} ms  b {b * 1e3:8.2f} ms  b/a {b / a:.3f}")
     return 0
 
 

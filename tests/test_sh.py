@@ -101,13 +101,22 @@ def test_cpp_sh_without_gradients_equals_the_float64_eval(degree, per_camera, co
     cams = SphericalPoses.orbit(C, radius=4.0).cameras(8, 8)
     viewmats = cams.viewmats.expand(B, C, 4, 4).contiguous()
     coeffs = torch.randn((B, C, N, K, D) if per_camera else (B, N, K, D), generator=g) * 0.4
+
+    def per_cam(out):  # degree 0 keeps shared colours shared (no view directions)
+        colors, pc = out
+        assert pc == (per_camera or degree > 0)
+        return colors if pc else colors[:, None].expand(B, C, N, D)
+
     with torch.no_grad():
-        fast = sh_colors(degree, coeffs, per_camera, means, viewmats, compositor)
+        fast = per_cam(sh_colors(degree, coeffs, per_camera, means, viewmats, compositor))
     dirs = view_dirs(means.double(), viewmats.double())
     c64 = coeffs.double() if per_camera else coeffs.double()[:, None].expand(B, C, N, K, D)
     want = eval_sh(degree, c64, dirs)
     assert fast.shape == (B, C, N, D) and float(want.abs().max()) > 0.1  # not a trivially empty comparison
     torch.testing.assert_close(fast.double(), want, atol=2e-6, rtol=0)
-    slow = sh_colors(degree, coeffs.requires_grad_(True), per_camera, means, viewmats, compositor)  # eval_sh
+    slow = per_cam(sh_colors(degree, coeffs.requires_grad_(True), per_camera, means, viewmats, compositor))
     assert slow.requires_grad
+    if degree == 0:  # the shortcut is eval_sh's arithmetic, to the bit
+        c32 = coeffs.detach() if per_camera else coeffs.detach()[:, None].expand(B, C, N, K, D)
+        assert torch.equal(fast, eval_sh(0, c32, dirs.float()))
     torch.testing.assert_close(fast, slow.detach(), atol=2e-6, rtol=0)

@@ -71,6 +71,11 @@ class DensifyStrategy:
         norm = g.norm(dim=-1) * visible
         return DensifyState(state.grad2d + norm.sum(0).cpu(), state.count + visible.sum(0).float().cpu())
 
+    def collects(self, step: int) -> bool:
+        """Whether the screen-space gradients of 1-based ``step`` can still be used (a densification
+        is due at this step or later); after the last one, the trainer skips gathering them."""
+        return self.cfg.enabled and step <= self.cfg.stop
+
     def is_due(self, step: int) -> tuple[bool, bool]:
         """(densify now, reset opacities now) at 1-based ``step``."""
         c = self.cfg

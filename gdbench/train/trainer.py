@@ -254,7 +254,8 @@ def render_for_prior(ctx: Context, state: TrainState, views: Views):
         outputs=("rgb", "alpha", "means2d", "visible") + (("depth",) if depth else ()),
         check_values=False,  # the parameters are checked after every update (apply_update)
     )
-    out.means2d.retain_grad()
+    if ctx.strategy.collects(state.step + 1):
+        out.means2d.retain_grad()  # densification's screen-space gradients
     if latent:
         x = out.rgb  # the 4 latent channels themselves
     elif ctx.mode == "sd-rgb":
@@ -332,8 +333,9 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
             f"parameters became non-finite at step {state.step + 1}; lower the learning rates "
             "or the guidance weight. The last checkpoint is intact; nothing was written."
         )
-    w, h = views.cams.width, views.cams.height
-    state.densify = ctx.strategy.accumulate(state.densify, out.means2d, out.visible, w, h)
+    if ctx.strategy.collects(state.step + 1):
+        w, h = views.cams.width, views.cams.height
+        state.densify = ctx.strategy.accumulate(state.densify, out.means2d, out.visible, w, h)
     state.densify, info = ctx.strategy.step(
         p, state.optimizer, state.densify, state.step + 1, generator=state.streams["densify"]
     )

@@ -17,7 +17,7 @@ from .bin_tiles import TileBins, bin_tiles, bin_tiles_cpu
 from .composite import Splats, finish_images
 from .project import Projection, project, project_cpu, view_dirs
 from .settings import RasterSettings, resolve_settings
-from .sh import eval_sh
+from .sh import C0, eval_sh
 
 __all__ = ["OUTPUTS", "Prepared", "RasterSettings", "RenderOutput", "composite_features", "prepare", "rasterize"]
 
@@ -159,10 +159,16 @@ def _composite_images(p: Prepared, feats: Tensor, per_camera: bool, D: int, back
     return RenderOutput(**result)
 
 
-def sh_colors(degree: int, colors: Tensor, per_camera: bool, means: Tensor, viewmats: Tensor, backend: str) -> Tensor:
+def sh_colors(
+    degree: int, colors: Tensor, per_camera: bool, means: Tensor, viewmats: Tensor, backend: str
+) -> tuple[Tensor, bool]:
     """Colours [*B, C, N, D] from SH coefficients [*B, (C,) N, K, D] along the camera-to-mean
     directions. Without gradients on CPU the C++ kernel evaluates them (csrc/sh_cpu.cpp, no
-    [N, K, D] temporary); otherwise ``eval_sh`` in torch, which autograd differentiates."""
+    [N, K, D] temporary); otherwise ``eval_sh`` in torch, which autograd differentiates.
+    Degree 0 is one colour per Gaussian: no directions, and [*B, (C,) N, D] as given (per
+    camera only if ``colors`` was); the second value says which."""
+    if degree == 0:  # eval_sh at degree 0, op for op (the same bits), without the view directions
+        return (C0 * colors[..., 0, :] + 0.5).clamp_min(0.0), per_camera
     dirs = view_dirs(means, viewmats)
     batch, (C, N), (K, D) = tuple(means.shape[:-2]), dirs.shape[-3:-1], colors.shape[-2:]
     grads = torch.is_grad_enabled() and any(t.requires_grad for t in (colors, means, viewmats))
@@ -170,9 +176,9 @@ def sh_colors(degree: int, colors: Tensor, per_camera: bool, means: Tensor, view
         nb = int(torch.Size(batch).numel())
         coeffs = colors.reshape(nb * C if per_camera else nb, N, K, D).contiguous()
         d = dirs.reshape(nb * C if per_camera else nb, 1 if per_camera else C, N, 3).contiguous()
-        return load_extension().sh_forward(degree, coeffs, d).reshape(batch + (C, N, D))
+        return load_extension().sh_forward(degree, coeffs, d).reshape(batch + (C, N, D)), True
     coeffs = colors if per_camera else colors[..., None, :, :, :].expand(batch + (C, N, K, D))
-    return eval_sh(degree, coeffs, dirs)
+    return eval_sh(degree, coeffs, dirs), True
 
 
 def rasterize(
@@ -223,7 +229,7 @@ def rasterize(
     p = _prepare(means, quats, scales, opacities, viewmats, Ks, width, height, batch, C, N, s)
     feats = colors
     if sh_degree is not None and "rgb" in want:
-        feats, per_camera = sh_colors(sh_degree, colors, per_camera, means, viewmats, s.backend), True
+        feats, per_camera = sh_colors(sh_degree, colors, per_camera, means, viewmats, s.backend)
     elif sh_degree is not None:
         feats = colors[..., 0, :]  # SH is only evaluated for rgb; the other outputs ignore features
     return _composite_images(p, feats, per_camera, D, background, want)
