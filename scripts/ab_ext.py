@@ -112,17 +112,26 @@ def use(module) -> None:
 
 
 def same_bits(mods: dict, params: Path | None) -> bool:
+    """Whether both builds give the same bits; where not, prints the largest difference of each
+    differing output relative to its largest magnitude."""
     results = {}
     for tag, mod in mods.items():
         use(mod)
-        res = []
+        res = {}
         for dt in (torch.float32, torch.float64):
-            for _, s, px in cases(dt, params):
+            for name, s, px in cases(dt, params):
                 out = render(s, px, True)
-                res += [x.detach() for x in out if x is not None] + [s[k].grad for k in s if k != "weight_sq"]
+                for field, x in out._asdict().items():
+                    if x is not None:
+                        res[(str(dt)[6:], name, field)] = x.detach()
+                res |= {(str(dt)[6:], name, f"grad {k}"): s[k].grad for k in s if k != "weight_sq"}
         results[tag] = res
     a, b = results.values()
-    return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    for key, x in a.items():
+        if not torch.equal(x, b[key]):
+            d = (x.double() - b[key].double()).abs().max() / x.double().abs().max().clamp_min(1e-300)
+            print(f"  differs: {' '.join(key)} (max |a - b| / max |a| = {float(d):.2e})")
+    return all(torch.equal(x, b[key]) for key, x in a.items())
 
 
 def main() -> int:
@@ -148,7 +157,7 @@ def main() -> int:
                 for name, s, px in todo:
                     for backward in (False, True):
                         times.setdefault((name, backward, tag), []).append(best_of(s, px, backward))
-        for name, _, px in todo:
+        for name, _, px in todo if args.rounds > 0 else ():
             for backward in (False, True):
                 a = statistics.median(times[(name, backward, "a")])
                 b = statistics.median(times[(name, backward, "b")])

@@ -28,6 +28,7 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -36,26 +37,30 @@ struct Grid {
   int64_t tiles_x, tiles_y, ts;
 };
 
-// Per Gaussian, once per call (not once per tile pair): the opacity cut, the half-extents of its
-// box and the row-span terms. alpha >= alpha_min  <=>  power >= ln(alpha_min / o). The reject
-// threshold keeps a margin of 1e-3 in power, and the box is the exact box of
-// {q(d) <= 2 ln(o/alpha_min) + 2e-3} (q = d^T conic d), so every pixel the exact test could
-// accept is visited. ex < 0: nothing to visit; ex = inf (degenerate conic): the whole tile.
+// Per Gaussian, once per call (not once per tile pair): the opacity cut, its pixel box and the
+// row-span terms. alpha >= alpha_min  <=>  power >= ln(alpha_min / o). The reject threshold
+// keeps a margin of 1e-3 in power, and the box holds the pixels whose centre lies in the exact
+// box of {q(d) <= 2 ln(o/alpha_min) + 2e-3} (q = d^T conic d) widened by a relative 1e-6 and
+// 1e-4 px, so every pixel the exact test could accept is visited. Empty box (x0 > x1): nothing
+// to visit; a degenerate conic: every pixel.
 template <typename scalar_t>
 struct Shapes {
   struct Shape {  // one record per Gaussian: a tile pair's set-up reads one cache line
-    double ex, ey, ALs, det, invA, BinvA;
+    double ALs, det, invA, BinvA;
+    int32_t x0, x1, y0, y1;  // image pixels, inclusive (clamped to +-2^30)
     scalar_t cut;
   };
   std::vector<Shape> of;
 
-  Shapes(const scalar_t* conics, const scalar_t* opac, int64_t G, double amin) : of(G) {
+  Shapes(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac, int64_t G, double amin) : of(G) {
     const double floor_o = amin * std::exp(-1e-3);
+    constexpr double kBig = double(1 << 30);
+    auto to_int = [](double v) { return int32_t(v >= -kBig ? (v <= kBig ? v : kBig) : -kBig); };  // NaN: -2^30
     at::parallel_for(0, G, 4096, [&](int64_t g0, int64_t g1) {
       for (int64_t g = g0; g < g1; ++g) {
         Shape& r = of[g];
         const double o = opac[g];
-        r = Shape{-1, 0, 0, 0, 0, 0, scalar_t(0)};
+        r = Shape{0, 0, 0, 0, 1, 0, 1, 0, scalar_t(0)};
         if (!(o > 0) || o < floor_o) continue;
         const double lg = std::log(amin / o);
         r.cut = scalar_t(lg - 1e-3);
@@ -70,11 +75,15 @@ struct Shapes {
         r.ALs = span ? a * 1.01 * L : 0.0;
         r.det = dt; r.invA = span ? 1.0 / a : 0.0; r.BinvA = span ? b / a : 0.0;
         if (!(dt > 0) || !std::isfinite(dt)) {
-          r.ex = std::numeric_limits<double>::infinity();
+          r.x0 = r.y0 = -int32_t(kBig); r.x1 = r.y1 = int32_t(kBig);
           continue;
         }
-        r.ex = std::sqrt(L * c / dt) * (1 + 1e-6) + 1e-4;
-        r.ey = std::sqrt(L * a / dt) * (1 + 1e-6) + 1e-4;
+        const double ex = std::sqrt(L * c / dt) * (1 + 1e-6) + 1e-4;
+        const double ey = std::sqrt(L * a / dt) * (1 + 1e-6) + 1e-4;
+        // pixel centre i + 0.5 within [m - e, m + e]
+        const double cx = double(means2d[2 * g]) - 0.5, cy = double(means2d[2 * g + 1]) - 0.5;
+        r.x0 = to_int(std::ceil(cx - ex)); r.x1 = to_int(std::floor(cx + ex));
+        r.y0 = to_int(std::ceil(cy - ey)); r.y1 = to_int(std::floor(cy + ey));
       }
     });
   }
@@ -107,22 +116,11 @@ struct TileData {
       for (int64_t d = 0; d < D; ++d) f[k * D + d] = feats[g * D + d];
       const auto& r = sh.of[g];
       cut[k] = r.cut; ALs[k] = r.ALs; det[k] = r.det; invA[k] = r.invA; BinvA[k] = r.BinvA;
-      const double ex = r.ex, ey = r.ey;
-      if (ex < 0) {
-        x0[k] = 1; x1[k] = 0; y0[k] = 1; y1[k] = 0;
-        continue;
-      }
-      if (std::isinf(ex)) {
-        x0[k] = 0; x1[k] = last; y0[k] = 0; y1[k] = last;
-        continue;
-      }
-      // pixel centre i + 0.5 (tile-local) within [m - e, m + e]
-      const double cx = double(mx[k]) - ox - 0.5, cy = double(my[k]) - oy - 0.5;
-      auto clampi = [&](double v) { return int32_t(std::min<double>(std::max<double>(v, -1.0), double(ts))); };
-      x0[k] = std::max(0, clampi(std::ceil(cx - ex)));
-      x1[k] = std::min(last, clampi(std::floor(cx + ex)));
-      y0[k] = std::max(0, clampi(std::ceil(cy - ey)));
-      y1[k] = std::min(last, clampi(std::floor(cy + ey)));
+      // the box in tile-local pixels; tile origins are whole pixels
+      x0[k] = int32_t(std::max<int64_t>(0, r.x0 - int64_t(ox)));
+      x1[k] = int32_t(std::min<int64_t>(last, r.x1 - int64_t(ox)));
+      y0[k] = int32_t(std::max<int64_t>(0, r.y0 - int64_t(oy)));
+      y1[k] = int32_t(std::min<int64_t>(last, r.y1 - int64_t(oy)));
     }
   }
 };
@@ -178,10 +176,13 @@ inline void walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k, d
   using V = typename Simd<scalar_t>::V;
   constexpr int L = Simd<scalar_t>::L;
   const scalar_t A = td.A[k], B = td.B[k], C = td.C[k], mx = td.mx[k], my = td.my[k];
-  sp.fill(td, k, ox, oy, ts);
+  // a box at most one block wide is one block per row whatever the spans: skip solving them
+  // (the small Gaussians of a 64 px render); seg's cut test picks the same pixels either way
+  const bool narrow = td.x1[k] - td.x0[k] < L;
+  if (!narrow) sp.fill(td, k, ox, oy, ts);
   int32_t nb = 0;
   for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
-    const int32_t x0 = sp.x0[iy], x1 = sp.x1[iy];
+    const int32_t x0 = narrow ? td.x0[k] : sp.x0[iy], x1 = narrow ? td.x1[k] : sp.x1[iy];
     if (x0 > x1 || !row_live(iy)) continue;
     for (int32_t c0 = x0; c0 <= x1; c0 += L, ++nb) {
       sp.by[nb] = iy;
@@ -190,18 +191,28 @@ inline void walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k, d
     }
   }
   const V lanes = iota<V>() + scalar_t(0.5);
-  for (int32_t b0 = 0; b0 < nb; b0 += kGroup) {
-    V dx[kGroup], pw[kGroup], G[kGroup];
-    scalar_t dy[kGroup];
-    for (int g = 0; g < kGroup; ++g) {  // past the list's end: the last block again, not handed on
-      const int32_t b = std::min(b0 + g, nb - 1);
+  auto group = [&](auto size, int32_t b0) {  // blocks b0 .. b0 + size - 1, size a compile-time constant
+    constexpr int n = decltype(size)::value;
+    V dx[n], pw[n], G[n];
+    scalar_t dy[n];
+    for (int g = 0; g < n; ++g) {
+      const int32_t b = b0 + g;
       dy[g] = scalar_t(oy + sp.by[b]) + scalar_t(0.5) - my;
       // scalar_t(ox + c0 + j) + 0.5 - mx: integers and halves below 2^24 are exact in float
       dx[g] = (splat<V>(scalar_t(ox + sp.bx[b])) + lanes) - mx;
       pw[g] = scalar_t(-0.5) * (A * dx[g] * dx[g] + C * dy[g] * dy[g]) - B * dx[g] * dy[g];
       G[g] = vexp(pw[g]);
     }
-    for (int g = 0; g < kGroup && b0 + g < nb; ++g) seg(sp.by[b0 + g], sp.bx[b0 + g], sp.bm[b0 + g], dx[g], dy[g], pw[g], G[g]);
+    for (int g = 0; g < n; ++g) seg(sp.by[b0 + g], sp.bx[b0 + g], sp.bm[b0 + g], dx[g], dy[g], pw[g], G[g]);
+  };
+  int32_t b0 = 0;
+  for (; b0 + kGroup <= nb; b0 += kGroup) group(std::integral_constant<int, kGroup>{}, b0);
+  static_assert(kGroup == 4, "the rest below is written for groups of 4");
+  switch (nb - b0) {  // the rest, without computing blocks that are not handed on
+    case 3: group(std::integral_constant<int, 3>{}, b0); break;
+    case 2: group(std::integral_constant<int, 2>{}, b0); break;
+    case 1: group(std::integral_constant<int, 1>{}, b0); break;
+    default: break;
   }
 }
 
@@ -273,7 +284,7 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
   scalar_t* oW = want_wsq ? out_wsq.data_ptr<scalar_t>() : nullptr;
   int32_t* oL = out_last.data_ptr<int32_t>();
 
-  const Shapes<scalar_t> shapes(pc, po, means2d.size(0), amin_);
+  const Shapes<scalar_t> shapes(pm, pc, po, means2d.size(0), amin_);
   const std::vector<int64_t> order = longest_first(pt, n_tiles);
   std::atomic<int64_t> next{0};
   at::parallel_for(0, std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_tiles)), 1, [&](int64_t, int64_t) {
@@ -388,7 +399,7 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
   const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_tiles));
   std::unique_ptr<scalar_t[]> sums(new scalar_t[n_chunks * n_gauss * W]);
 
-  const Shapes<scalar_t> shapes(pc, po, n_gauss, amin_);
+  const Shapes<scalar_t> shapes(pm, pc, po, n_gauss, amin_);
   const std::vector<int64_t> bounds = balanced_chunks(pL, n_tiles, area, n_chunks);
   at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
