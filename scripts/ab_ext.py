@@ -142,6 +142,7 @@ def main() -> int:
     ap.add_argument("--b-flags", default="")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--params", type=Path, default=None, help="a torch file of a trainer's state.params")
+    ap.add_argument("--only", default="", help="time only the cases whose 'name N px' contains this (e.g. '64 px')")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         mods = {
@@ -149,7 +150,7 @@ def main() -> int:
             "b": build(args.b, args.b_flags.split(), "b", Path(tmp)),
         }
         print("same bits (forward and gradients, float32 and float64):", same_bits(mods, args.params))
-        todo = cases(torch.float32, args.params)
+        todo = [c for c in cases(torch.float32, args.params) if args.only in f"{c[0]} {c[2]} px"]
         times: dict[tuple, list[float]] = {}
         for _ in range(args.rounds):
             for tag, mod in mods.items():
