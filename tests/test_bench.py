@@ -64,6 +64,34 @@ def test_dense_cells_beyond_limits_are_skipped_with_a_reason():
     assert bm_render._skip_reason("splat", 100_000, 512, "fwd") is None
 
 
+def test_fixed_cost_case_draws_one_pixel_sized_gaussian_and_is_reported_apart_from_the_fit():
+    """The direct fixed-cost case: one Gaussian of scale 2e-3 at 1.5 from a 50-degree, 256 px
+    camera (focal 128 / tan 25 = 274 px: sigma 0.37 px, under 1 px with the 0.3 px^2 dilation)
+    touches at most the 4 tiles around the centre and a few dozen pixels; its row is reported as
+    ``fixed_cost`` and kept out of the splat fit."""
+    row = bm_render.run_case(*bm_render.FIXED)
+    assert row["status"] == "ok" and 1 <= row["intersections"] <= 4
+    assert 1 <= row["pixel_pairs"] <= 64
+    fit_rows = [
+        {
+            "path": "splat",
+            "n": n,
+            "res": 64,
+            "mode": "fwd",
+            "status": "ok",
+            "pixels": 4096,
+            "intersections": n,
+            "median_s": 1e-3 + 1e-6 * n,
+            "pixel_pairs": n,
+        }
+        for n in (100, 1000, 10000)
+    ]
+    summary = bm_render.summarise(fit_rows + [row])
+    assert summary["fixed_cost"]["value"] == row["median_s"]
+    assert summary["fits"]["splat fwd"]["vs_intersections"]["points"] == 3
+    assert summary["fits"]["splat fwd"]["vs_intersections"]["intercept_s"] == pytest.approx(1e-3, rel=1e-6)
+
+
 def test_fit_recovers_a_linear_law():
     rows = [{"x": x, "median_s": 0.5 + 2e-3 * x} for x in (10, 200, 3000, 5000)]
     fit = bm_render._fit(rows, "x")
