@@ -21,6 +21,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "simd.h"
 #include "splat_cpu.h"
 
 namespace {
@@ -30,47 +31,102 @@ struct ProjSettings {
   int64_t width, height;
 };
 
+// One template for scalars and for vectors of L Gaussians side by side (simd.h): per-Gaussian
+// values are T, camera values S. The operations are the same, in the same order, so a lane of
+// the vector forward is the scalar result, bit for bit (the build contracts no multiply-add).
+template <typename T>
+struct Lanes {
+  using S = T;
+  using Mask = bool;
+  static constexpr int L = 1;
+};
+template <>
+struct Lanes<Simd<float>::V> {
+  using S = float;
+  using Mask = Simd<float>::M;
+  static constexpr int L = Simd<float>::L;
+};
+template <>
+struct Lanes<Simd<double>::V> {
+  using S = double;
+  using Mask = Simd<double>::M;
+  static constexpr int L = Simd<double>::L;
+};
+
+template <typename T, typename S>
+inline T bc(S v) {  // broadcast (exact: every lane is v)
+  if constexpr (Lanes<T>::L == 1) {
+    return T(v);
+  } else {
+    T r;
+    for (int j = 0; j < Lanes<T>::L; ++j) r[j] = v;
+    return r;
+  }
+}
+template <typename T>
+inline T mn(T a, T b) { return b < a ? b : a; }  // std::min's choice, lane by lane
+template <typename T>
+inline T mx(T a, T b) { return a < b ? b : a; }  // std::max's
+template <typename T>
+inline T root(T x) {
+  if constexpr (Lanes<T>::L == 1) {
+    return std::sqrt(x);
+  } else {
+    for (int j = 0; j < Lanes<T>::L; ++j) x[j] = std::sqrt(x[j]);
+    return x;
+  }
+}
+template <typename T>
+inline typename Lanes<T>::Mask finite(T x) {
+  if constexpr (Lanes<T>::L == 1) return std::isfinite(x);
+  else return (x - x) == typename Lanes<T>::S(0);  // inf - inf and NaN - NaN are NaN
+}
+
 template <typename T>
 struct Quat {
   T w, x, y, z, norm;
-  bool ok;
+  typename Lanes<T>::Mask ok;
 };
 
 template <typename T>
-Quat<T> normalise(const T* q) {
+Quat<T> normalise(T q0, T q1, T q2, T q3) {
+  using S = typename Lanes<T>::S;
   Quat<T> r;
-  r.norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  r.ok = r.norm > T(1e-12);
-  if (r.ok) {
-    r.w = q[0] / r.norm; r.x = q[1] / r.norm; r.y = q[2] / r.norm; r.z = q[3] / r.norm;
-  } else {
-    r.w = 1; r.x = r.y = r.z = 0;
-  }
+  r.norm = root(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);
+  r.ok = r.norm > S(1e-12);
+  r.w = r.ok ? q0 / r.norm : bc<T>(S(1));
+  r.x = r.ok ? q1 / r.norm : bc<T>(S(0));
+  r.y = r.ok ? q2 / r.norm : bc<T>(S(0));
+  r.z = r.ok ? q3 / r.norm : bc<T>(S(0));
   return r;
 }
 
 template <typename T>
 void rotmat(const Quat<T>& q, T R[9]) {
+  using S = typename Lanes<T>::S;
   const T w = q.w, x = q.x, y = q.y, z = q.z;
-  R[0] = 1 - 2 * (y * y + z * z); R[1] = 2 * (x * y - w * z); R[2] = 2 * (x * z + w * y);
-  R[3] = 2 * (x * y + w * z); R[4] = 1 - 2 * (x * x + z * z); R[5] = 2 * (y * z - w * x);
-  R[6] = 2 * (x * z - w * y); R[7] = 2 * (y * z + w * x); R[8] = 1 - 2 * (x * x + y * y);
+  R[0] = S(1) - S(2) * (y * y + z * z); R[1] = S(2) * (x * y - w * z); R[2] = S(2) * (x * z + w * y);
+  R[3] = S(2) * (x * y + w * z); R[4] = S(1) - S(2) * (x * x + z * z); R[5] = S(2) * (y * z - w * x);
+  R[6] = S(2) * (x * z - w * y); R[7] = S(2) * (y * z + w * x); R[8] = S(1) - S(2) * (x * x + y * y);
 }
 
 // Everything the forward computes for one (camera, Gaussian), kept for the backward.
 template <typename T>
 struct Local {
-  T R[9], t[3], fx, fy, cx, cy;  // camera
-  T x, y, z, zs;                 // camera-space mean; zs = z when valid, else 1
-  bool valid, in_x, in_y;        // z within the planes; x/zs, y/zs inside the Jacobian clamp
-  T cxv, cyv;                    // the clamped x/zs, y/zs
-  T WM[9];                       // R_view R_q diag(s)
+  using S = typename Lanes<T>::S;
+  S R[9], t[3], fx, fy, cx, cy;         // camera
+  T x, y, z, zs;                        // camera-space mean; zs = z when valid, else 1
+  typename Lanes<T>::Mask valid, in_x, in_y;  // z within the planes; x/zs, y/zs inside the Jacobian clamp
+  T cxv, cyv;                           // the clamped x/zs, y/zs
+  T WM[9];                              // R_view R_q diag(s)
   T J00, J02, J11, J12;
   T t1[3], t2[3], a, b, c, det;
 };
 
 template <typename T>
-void project_one(const T* mu, const T* M, const T* V, const T* K, const ProjSettings& s, Local<T>& L) {
+void project_one(const T* mu, const T* M, const typename Lanes<T>::S* V, const typename Lanes<T>::S* K,
+                 const ProjSettings& s, Local<T>& L) {
+  using S = typename Lanes<T>::S;
   for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j) L.R[3 * i + j] = V[4 * i + j];
     L.t[i] = V[4 * i + 3];
@@ -79,16 +135,16 @@ void project_one(const T* mu, const T* M, const T* V, const T* K, const ProjSett
   L.x = L.R[0] * mu[0] + L.R[1] * mu[1] + L.R[2] * mu[2] + L.t[0];
   L.y = L.R[3] * mu[0] + L.R[4] * mu[1] + L.R[5] * mu[2] + L.t[1];
   L.z = L.R[6] * mu[0] + L.R[7] * mu[1] + L.R[8] * mu[2] + L.t[2];
-  L.valid = L.z > T(s.near_plane) && L.z < T(s.far_plane);
-  L.zs = L.valid ? L.z : T(1);
-  const T tanx = T(0.5) * T(s.width) / L.fx, tany = T(0.5) * T(s.height) / L.fy;
-  const T lox = -(L.cx / L.fx + T(0.3) * tanx), hix = (T(s.width) - L.cx) / L.fx + T(0.3) * tanx;
-  const T loy = -(L.cy / L.fy + T(0.3) * tany), hiy = (T(s.height) - L.cy) / L.fy + T(0.3) * tany;
+  L.valid = (L.z > S(s.near_plane)) & (L.z < S(s.far_plane));
+  L.zs = L.valid ? L.z : bc<T>(S(1));
+  const S tanx = S(0.5) * S(s.width) / L.fx, tany = S(0.5) * S(s.height) / L.fy;
+  const S lox = -(L.cx / L.fx + S(0.3) * tanx), hix = (S(s.width) - L.cx) / L.fx + S(0.3) * tanx;
+  const S loy = -(L.cy / L.fy + S(0.3) * tany), hiy = (S(s.height) - L.cy) / L.fy + S(0.3) * tany;
   const T rx = L.x / L.zs, ry = L.y / L.zs;
-  L.in_x = rx >= lox && rx <= hix;  // torch.clamp passes the gradient on the closed interval
-  L.in_y = ry >= loy && ry <= hiy;
-  L.cxv = std::min(std::max(rx, lox), hix);
-  L.cyv = std::min(std::max(ry, loy), hiy);
+  L.in_x = (rx >= lox) & (rx <= hix);  // torch.clamp passes the gradient on the closed interval
+  L.in_y = (ry >= loy) & (ry <= hiy);
+  L.cxv = mn(mx(rx, bc<T>(lox)), bc<T>(hix));
+  L.cyv = mn(mx(ry, bc<T>(loy)), bc<T>(hiy));
   const T tx = L.zs * L.cxv, ty = L.zs * L.cyv, z2 = L.zs * L.zs;
   L.J00 = L.fx / L.zs; L.J02 = -L.fx * tx / z2; L.J11 = L.fy / L.zs; L.J12 = -L.fy * ty / z2;
   for (int i = 0; i < 3; ++i)
@@ -98,7 +154,7 @@ void project_one(const T* mu, const T* M, const T* V, const T* K, const ProjSett
     L.t1[j] = L.J00 * L.WM[j] + L.J02 * L.WM[6 + j];
     L.t2[j] = L.J11 * L.WM[3 + j] + L.J12 * L.WM[6 + j];
   }
-  const T eps = T(s.eps2d);
+  const S eps = S(s.eps2d);
   L.a = L.t1[0] * L.t1[0] + L.t1[1] * L.t1[1] + L.t1[2] * L.t1[2] + eps;
   L.c = L.t2[0] * L.t2[0] + L.t2[1] * L.t2[1] + L.t2[2] * L.t2[2] + eps;
   L.b = L.t1[0] * L.t2[0] + L.t1[1] * L.t2[1] + L.t1[2] * L.t2[2];
@@ -108,13 +164,43 @@ void project_one(const T* mu, const T* M, const T* V, const T* K, const ProjSett
   L.det = (c0 * c0 + c1 * c1 + c2 * c2) + eps * (L.a + L.c - eps);
 }
 
-// M = R(q) diag(s) of Gaussian n, row-major 3x3.
+// M = R(q) diag(s) of a Gaussian (or of L Gaussians), row-major 3x3.
 template <typename T>
-void factor(const T* q, const T* sc, T M[9], T Rq[9], Quat<T>& qn) {
-  qn = normalise(q);
+void factor(const T q[4], const T sc[3], T M[9], T Rq[9], Quat<T>& qn) {
+  qn = normalise(q[0], q[1], q[2], q[3]);
   rotmat(qn, Rq);
   for (int i = 0; i < 3; ++i)
     for (int k = 0; k < 3; ++k) M[3 * i + k] = Rq[3 * i + k] * sc[k];
+}
+
+// Outputs of Gaussians (T = S: one; T a vector: L consecutive of one batch entry) in one camera.
+template <typename T>
+inline void project_out(const T mu[3], const T M[9], T o, T ext, const typename Lanes<T>::S* V,
+                        const typename Lanes<T>::S* K, const ProjSettings& s, typename Lanes<T>::S amin, int64_t q,
+                        typename Lanes<T>::S* om, typename Lanes<T>::S* oc, typename Lanes<T>::S* oz,
+                        typename Lanes<T>::S* orr, bool* ov) {
+  using S = typename Lanes<T>::S;
+  using Mask = typename Lanes<T>::Mask;
+  Local<T> L;
+  project_one(mu, M, V, K, s, L);
+  const T u = L.fx * L.x / L.zs + L.cx, v = L.fy * L.y / L.zs + L.cy;
+  const T A = L.c / L.det, B = -L.b / L.det, Cc = L.a / L.det;
+  T rx = ext * root(L.a), ry = ext * root(L.c);
+  const Mask inside = (u + rx > S(0)) & (u - rx < S(s.width)) & (v + ry > S(0)) & (v - ry < S(s.height));
+  const Mask visible = L.valid & (o >= amin) & inside & finite(A) & finite(B) & finite(Cc);
+  rx = visible ? rx : bc<T>(S(0));
+  ry = visible ? ry : bc<T>(S(0));
+  for (int j = 0; j < Lanes<T>::L; ++j) {
+    auto lane = [&](const T& x) -> S {
+      if constexpr (Lanes<T>::L == 1) return x; else return x[j];
+    };
+    const int64_t r = q + j;
+    om[2 * r] = lane(u); om[2 * r + 1] = lane(v);
+    oc[3 * r] = lane(A); oc[3 * r + 1] = lane(B); oc[3 * r + 2] = lane(Cc);
+    oz[r] = lane(L.z);
+    orr[2 * r] = lane(rx); orr[2 * r + 1] = lane(ry);
+    if constexpr (Lanes<T>::L == 1) ov[r] = visible; else ov[r] = visible[j] != 0;
+  }
 }
 
 template <typename T>
@@ -135,31 +221,38 @@ void forward_impl(const torch::Tensor& means, const torch::Tensor& quats, const 
   T* orr = rad.data_ptr<T>();
   bool* ov = vis.data_ptr<bool>();
   const T amin = T(s.alpha_min);
+  using Vt = typename Simd<T>::V;
+  constexpr int Lw = Simd<T>::L;
+  // the opacity-aware extent factor sqrt(2 ln(o / alpha_min)), per Gaussian (scalar log)
+  auto extent = [&](T o) { return std::sqrt(T(2) * std::log(o >= amin ? o / amin : T(1))); };
   at::parallel_for(0, Bt * N, 256, [&](int64_t g0, int64_t g1) {
-    Local<T> L;
-    T M[9], Rq[9];
-    Quat<T> qn;
-    for (int64_t g = g0; g < g1; ++g) {
+    int64_t g = g0;
+    // Lw consecutive Gaussians of one batch entry at a time, as vectors
+    for (; g + Lw <= g1 && g / N == (g + Lw - 1) / N; g += Lw) {
       const int64_t b = g / N, n = g % N;
-      factor(pq + 4 * g, ps + 3 * g, M, Rq, qn);
-      const T o = po[g];
-      const T ratio = o >= amin ? o / amin : T(1);
-      const T ext = std::sqrt(T(2) * std::log(ratio));
+      Vt mu[3], q[4], sc[3], o, ext, M[9], Rq[9];
+      for (int j = 0; j < Lw; ++j) {
+        for (int k = 0; k < 3; ++k) { mu[k][j] = pm[3 * (g + j) + k]; sc[k][j] = ps[3 * (g + j) + k]; }
+        for (int k = 0; k < 4; ++k) q[k][j] = pq[4 * (g + j) + k];
+        o[j] = po[g + j];
+        ext[j] = extent(o[j]);
+      }
+      Quat<Vt> qn;
+      factor(q, sc, M, Rq, qn);
       for (int64_t c = 0; c < C; ++c) {
-        const int64_t bc = b * C + c, q = bc * N + n;
-        project_one(pm + 3 * g, M, pv + 16 * bc, pk + 9 * bc, s, L);
-        const T u = L.fx * L.x / L.zs + L.cx, v = L.fy * L.y / L.zs + L.cy;
-        const T A = L.c / L.det, B = -L.b / L.det, Cc = L.a / L.det;
-        T rx = ext * std::sqrt(L.a), ry = ext * std::sqrt(L.c);
-        const bool inside = (u + rx > 0) && (u - rx < T(s.width)) && (v + ry > 0) && (v - ry < T(s.height));
-        const bool finite = std::isfinite(A) && std::isfinite(B) && std::isfinite(Cc);
-        const bool visible = L.valid && (o >= amin) && inside && finite;
-        if (!visible) rx = ry = 0;
-        om[2 * q] = u; om[2 * q + 1] = v;
-        oc[3 * q] = A; oc[3 * q + 1] = B; oc[3 * q + 2] = Cc;
-        oz[q] = L.z;
-        orr[2 * q] = rx; orr[2 * q + 1] = ry;
-        ov[q] = visible;
+        const int64_t bc = b * C + c;
+        project_out(mu, M, o, ext, pv + 16 * bc, pk + 9 * bc, s, amin, bc * N + n, om, oc, oz, orr, ov);
+      }
+    }
+    for (; g < g1; ++g) {  // the rest one at a time
+      const int64_t b = g / N, n = g % N;
+      T M[9], Rq[9];
+      Quat<T> qn;
+      factor(pq + 4 * g, ps + 3 * g, M, Rq, qn);
+      for (int64_t c = 0; c < C; ++c) {
+        const int64_t bc = b * C + c;
+        project_out(pm + 3 * g, M, po[g], extent(po[g]), pv + 16 * bc, pk + 9 * bc, s, amin, bc * N + n, om, oc,
+                    oz, orr, ov);
       }
     }
   });
