@@ -258,6 +258,121 @@ void forward_impl(const torch::Tensor& means, const torch::Tensor& quats, const 
   });
 }
 
+// Lane j of x (x itself for a scalar), and lanes filled from a strided array.
+template <typename T>
+inline typename Lanes<T>::S lane(const T& x, int j) {
+  if constexpr (Lanes<T>::L == 1) return x; else return x[j];
+}
+template <typename T>
+inline T gather(const typename Lanes<T>::S* p, int64_t stride) {
+  if constexpr (Lanes<T>::L == 1) {
+    return p[0];
+  } else {
+    T r;
+    for (int j = 0; j < Lanes<T>::L; ++j) r[j] = p[j * stride];
+    return r;
+  }
+}
+
+// Gradients of Gaussians g .. g + L - 1 (T = S: one; a vector: L of one batch entry).
+template <typename T>
+inline void backward_one(int64_t g, int64_t N, int64_t C, const ProjSettings& s, const typename Lanes<T>::S* pm,
+                         const typename Lanes<T>::S* pq, const typename Lanes<T>::S* ps,
+                         const typename Lanes<T>::S* pv, const typename Lanes<T>::S* pk,
+                         const typename Lanes<T>::S* gu, const typename Lanes<T>::S* gk,
+                         const typename Lanes<T>::S* gz, typename Lanes<T>::S* oM, typename Lanes<T>::S* oQ,
+                         typename Lanes<T>::S* oS) {
+  using S = typename Lanes<T>::S;
+  const T zero = bc<T>(S(0));
+  const int64_t b = g / N, n = g % N;
+  T mu[3], q[4], sc[3], M[9], Rq[9];
+  for (int k = 0; k < 3; ++k) { mu[k] = gather<T>(pm + 3 * g + k, 3); sc[k] = gather<T>(ps + 3 * g + k, 3); }
+  for (int k = 0; k < 4; ++k) q[k] = gather<T>(pq + 4 * g + k, 4);
+  Quat<T> qn;
+  factor(q, sc, M, Rq, qn);
+  T gM[9], gmu[3];
+  for (auto& x : gM) x = zero;
+  for (auto& x : gmu) x = zero;
+  Local<T> L;
+  for (int64_t c = 0; c < C; ++c) {
+    const int64_t bc = b * C + c, qi = bc * N + n;
+    project_one(mu, M, pv + 16 * bc, pk + 9 * bc, s, L);
+    T gx = zero, gy = zero, gzs = zero, gzr = gz ? gather<T>(gz + qi, 1) : zero;
+    if (gu) {  // means2d = (fx x / zs + cx, fy y / zs + cy)
+      const T gu0 = gather<T>(gu + 2 * qi, 2), gu1 = gather<T>(gu + 2 * qi + 1, 2);
+      gx += gu0 * L.fx / L.zs;
+      gy += gu1 * L.fy / L.zs;
+      gzs -= (gu0 * L.fx * L.x + gu1 * L.fy * L.y) / (L.zs * L.zs);
+    }
+    if (gk) {  // conic = (c, -b, a) / det with det = a c - b^2
+      const T gA = gather<T>(gk + 3 * qi, 3), gB = gather<T>(gk + 3 * qi + 1, 3), gC = gather<T>(gk + 3 * qi + 2, 3);
+      const T gdet = -(gA * L.c - gB * L.b + gC * L.a) / (L.det * L.det);
+      const T ga = gC / L.det + gdet * L.c;
+      const T gc = gA / L.det + gdet * L.a;
+      const T gb = -gB / L.det - S(2) * L.b * gdet;
+      T gt1[3], gt2[3];
+      for (int j = 0; j < 3; ++j) {
+        gt1[j] = S(2) * ga * L.t1[j] + gb * L.t2[j];
+        gt2[j] = S(2) * gc * L.t2[j] + gb * L.t1[j];
+      }
+      // t1 = J00 WM0 + J02 WM2, t2 = J11 WM1 + J12 WM2 (WMi: rows)
+      T gWM[9];
+      T gJ00 = zero, gJ02 = zero, gJ11 = zero, gJ12 = zero;
+      for (int j = 0; j < 3; ++j) {
+        gWM[j] = L.J00 * gt1[j];
+        gWM[3 + j] = L.J11 * gt2[j];
+        gWM[6 + j] = L.J02 * gt1[j] + L.J12 * gt2[j];
+        gJ00 += gt1[j] * L.WM[j];
+        gJ02 += gt1[j] * L.WM[6 + j];
+        gJ11 += gt2[j] * L.WM[3 + j];
+        gJ12 += gt2[j] * L.WM[6 + j];
+      }
+      // WM = R M: dM += R^T dWM
+      for (int k = 0; k < 3; ++k)
+        for (int j = 0; j < 3; ++j)
+          gM[3 * k + j] += L.R[k] * gWM[j] + L.R[3 + k] * gWM[3 + j] + L.R[6 + k] * gWM[6 + j];
+      // J00 = fx/zs, J11 = fy/zs, J02 = -fx tx/zs^2, J12 = -fy ty/zs^2 with tx = zs clamp(x/zs)
+      const T z2 = L.zs * L.zs, z3 = z2 * L.zs;
+      const T tx = L.zs * L.cxv, ty = L.zs * L.cyv;
+      gzs += -gJ00 * L.fx / z2 - gJ11 * L.fy / z2;
+      gzs += gJ02 * S(2) * L.fx * tx / z3 + gJ12 * S(2) * L.fy * ty / z3;
+      const T gtx = -gJ02 * L.fx / z2, gty = -gJ12 * L.fy / z2;
+      // inside the clamp the gradient goes to x, at it to zs (a select: the same sums as a branch)
+      gx = L.in_x ? gx + gtx : gx;
+      gzs = L.in_x ? gzs : gzs + gtx * L.cxv;
+      gy = L.in_y ? gy + gty : gy;
+      gzs = L.in_y ? gzs : gzs + gty * L.cyv;
+    }
+    const T gzc = gzr + (L.valid ? gzs : zero);
+    // (x, y, z) = R mu + t
+    for (int k = 0; k < 3; ++k) gmu[k] += L.R[k] * gx + L.R[3 + k] * gy + L.R[6 + k] * gzc;
+  }
+  // M = Rq diag(s)
+  T gS[3], gR[9];
+  for (int k = 0; k < 3; ++k) {
+    gS[k] = gM[k] * Rq[k] + gM[3 + k] * Rq[3 + k] + gM[6 + k] * Rq[6 + k];
+    for (int i = 0; i < 3; ++i) gR[3 * i + k] = gM[3 * i + k] * sc[k];
+  }
+  // Rq(w, x, y, z) of the unit quaternion
+  const T w = qn.w, x = qn.x, y = qn.y, z = qn.z;
+  const T gw = S(2) * (-z * gR[1] + y * gR[2] + z * gR[3] - x * gR[5] - y * gR[6] + x * gR[7]);
+  const T gxq = S(2) * (y * gR[1] + z * gR[2] + y * gR[3] - S(2) * x * gR[4] - w * gR[5] + z * gR[6] + w * gR[7] -
+                        S(2) * x * gR[8]);
+  const T gyq = S(2) * (-S(2) * y * gR[0] + x * gR[1] + w * gR[2] + x * gR[3] + z * gR[5] - w * gR[6] + z * gR[7] -
+                        S(2) * y * gR[8]);
+  const T gzq = S(2) * (-S(2) * z * gR[0] - w * gR[1] + x * gR[2] + w * gR[3] - S(2) * z * gR[4] + y * gR[5] +
+                        x * gR[6] + y * gR[7]);
+  // q / |q|: d = (g - qn (qn . g)) / |q|; 0 where q was too short to normalise
+  const T dot = w * gw + x * gxq + y * gyq + z * gzq;
+  const T gq[4] = {qn.ok ? (gw - w * dot) / qn.norm : zero, qn.ok ? (gxq - x * dot) / qn.norm : zero,
+                   qn.ok ? (gyq - y * dot) / qn.norm : zero, qn.ok ? (gzq - z * dot) / qn.norm : zero};
+  for (int j = 0; j < Lanes<T>::L; ++j) {
+    const int64_t r = g + j;
+    for (int k = 0; k < 3; ++k) { oM[3 * r + k] = lane(gmu[k], j); oS[3 * r + k] = lane(gS[k], j); }
+    for (int k = 0; k < 4; ++k) oQ[4 * r + k] = lane(gq[k], j);
+  }
+}
+
 template <typename T>
 void backward_impl(const torch::Tensor& means, const torch::Tensor& quats, const torch::Tensor& scales,
                    const torch::Tensor& viewmats, const torch::Tensor& Ks, const ProjSettings& s,
@@ -275,91 +390,13 @@ void backward_impl(const torch::Tensor& means, const torch::Tensor& quats, const
   T* oM = g_means.data_ptr<T>();
   T* oQ = g_quats.data_ptr<T>();
   T* oS = g_scales.data_ptr<T>();
+  using Vt = typename Simd<T>::V;
+  constexpr int Lw = Simd<T>::L;
   at::parallel_for(0, Bt * N, 256, [&](int64_t g0, int64_t g1) {
-    Local<T> L;
-    T M[9], Rq[9];
-    Quat<T> qn;
-    for (int64_t g = g0; g < g1; ++g) {
-      const int64_t b = g / N, n = g % N;
-      factor(pq + 4 * g, ps + 3 * g, M, Rq, qn);
-      T gM[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-      T gmu[3] = {0, 0, 0};
-      for (int64_t c = 0; c < C; ++c) {
-        const int64_t bc = b * C + c, q = bc * N + n;
-        project_one(pm + 3 * g, M, pv + 16 * bc, pk + 9 * bc, s, L);
-        T gx = 0, gy = 0, gzs = 0, gzr = gz ? gz[q] : T(0);
-        if (gu) {  // means2d = (fx x / zs + cx, fy y / zs + cy)
-          gx += gu[2 * q] * L.fx / L.zs;
-          gy += gu[2 * q + 1] * L.fy / L.zs;
-          gzs -= (gu[2 * q] * L.fx * L.x + gu[2 * q + 1] * L.fy * L.y) / (L.zs * L.zs);
-        }
-        if (gk) {  // conic = (c, -b, a) / det with det = a c - b^2
-          const T gA = gk[3 * q], gB = gk[3 * q + 1], gC = gk[3 * q + 2];
-          const T gdet = -(gA * L.c - gB * L.b + gC * L.a) / (L.det * L.det);
-          const T ga = gC / L.det + gdet * L.c;
-          const T gc = gA / L.det + gdet * L.a;
-          const T gb = -gB / L.det - T(2) * L.b * gdet;
-          T gt1[3], gt2[3];
-          for (int j = 0; j < 3; ++j) {
-            gt1[j] = T(2) * ga * L.t1[j] + gb * L.t2[j];
-            gt2[j] = T(2) * gc * L.t2[j] + gb * L.t1[j];
-          }
-          // t1 = J00 WM0 + J02 WM2, t2 = J11 WM1 + J12 WM2 (WMi: rows)
-          T gWM[9];
-          T gJ00 = 0, gJ02 = 0, gJ11 = 0, gJ12 = 0;
-          for (int j = 0; j < 3; ++j) {
-            gWM[j] = L.J00 * gt1[j];
-            gWM[3 + j] = L.J11 * gt2[j];
-            gWM[6 + j] = L.J02 * gt1[j] + L.J12 * gt2[j];
-            gJ00 += gt1[j] * L.WM[j];
-            gJ02 += gt1[j] * L.WM[6 + j];
-            gJ11 += gt2[j] * L.WM[3 + j];
-            gJ12 += gt2[j] * L.WM[6 + j];
-          }
-          // WM = R M: dM += R^T dWM
-          for (int k = 0; k < 3; ++k)
-            for (int j = 0; j < 3; ++j)
-              gM[3 * k + j] += L.R[k] * gWM[j] + L.R[3 + k] * gWM[3 + j] + L.R[6 + k] * gWM[6 + j];
-          // J00 = fx/zs, J11 = fy/zs, J02 = -fx tx/zs^2, J12 = -fy ty/zs^2 with tx = zs clamp(x/zs)
-          const T z2 = L.zs * L.zs, z3 = z2 * L.zs;
-          const T tx = L.zs * L.cxv, ty = L.zs * L.cyv;
-          gzs += -gJ00 * L.fx / z2 - gJ11 * L.fy / z2;
-          gzs += gJ02 * T(2) * L.fx * tx / z3 + gJ12 * T(2) * L.fy * ty / z3;
-          const T gtx = -gJ02 * L.fx / z2, gty = -gJ12 * L.fy / z2;
-          if (L.in_x) gx += gtx; else gzs += gtx * L.cxv;
-          if (L.in_y) gy += gty; else gzs += gty * L.cyv;
-        }
-        const T gzc = gzr + (L.valid ? gzs : T(0));
-        // (x, y, z) = R mu + t
-        for (int k = 0; k < 3; ++k) gmu[k] += L.R[k] * gx + L.R[3 + k] * gy + L.R[6 + k] * gzc;
-      }
-      for (int k = 0; k < 3; ++k) oM[3 * g + k] = gmu[k];
-      // M = Rq diag(s)
-      const T* sc = ps + 3 * g;
-      T gR[9];
-      for (int k = 0; k < 3; ++k) {
-        oS[3 * g + k] = gM[k] * Rq[k] + gM[3 + k] * Rq[3 + k] + gM[6 + k] * Rq[6 + k];
-        for (int i = 0; i < 3; ++i) gR[3 * i + k] = gM[3 * i + k] * sc[k];
-      }
-      // Rq(w, x, y, z) of the unit quaternion
-      const T w = qn.w, x = qn.x, y = qn.y, z = qn.z;
-      const T gw = 2 * (-z * gR[1] + y * gR[2] + z * gR[3] - x * gR[5] - y * gR[6] + x * gR[7]);
-      const T gxq = 2 * (y * gR[1] + z * gR[2] + y * gR[3] - 2 * x * gR[4] - w * gR[5] + z * gR[6] + w * gR[7] -
-                         2 * x * gR[8]);
-      const T gyq = 2 * (-2 * y * gR[0] + x * gR[1] + w * gR[2] + x * gR[3] + z * gR[5] - w * gR[6] + z * gR[7] -
-                         2 * y * gR[8]);
-      const T gzq = 2 * (-2 * z * gR[0] - w * gR[1] + x * gR[2] + w * gR[3] - 2 * z * gR[4] + y * gR[5] +
-                         x * gR[6] + y * gR[7]);
-      if (qn.ok) {  // q / |q|: d = (g - qn (qn . g)) / |q|
-        const T dot = w * gw + x * gxq + y * gyq + z * gzq;
-        oQ[4 * g] = (gw - w * dot) / qn.norm;
-        oQ[4 * g + 1] = (gxq - x * dot) / qn.norm;
-        oQ[4 * g + 2] = (gyq - y * dot) / qn.norm;
-        oQ[4 * g + 3] = (gzq - z * dot) / qn.norm;
-      } else {
-        for (int k = 0; k < 4; ++k) oQ[4 * g + k] = 0;
-      }
-    }
+    int64_t g = g0;
+    for (; g + Lw <= g1 && g / N == (g + Lw - 1) / N; g += Lw)  // Lw Gaussians of one batch entry as vectors
+      backward_one<Vt>(g, N, C, s, pm, pq, ps, pv, pk, gu, gk, gz, oM, oQ, oS);
+    for (; g < g1; ++g) backward_one<T>(g, N, C, s, pm, pq, ps, pv, pk, gu, gk, gz, oM, oQ, oS);
   });
 }
 
