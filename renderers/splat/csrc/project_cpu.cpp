@@ -459,7 +459,7 @@ std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tenso
   // counts its pairs per tile, and writes them after those of chunks 0..c-1 in every tile, so
   // each tile's list stays in depth order (the serial result).
   const int64_t n_ids = int64_t(ids.size());
-  const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_ids / 4096));
+  const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_ids / 1024));
   std::vector<int64_t> boxes(4 * n_ids), counts(n_chunks * n_tiles, 0);
   auto chunk_range = [&](int64_t c) { return std::make_pair(n_ids * c / n_chunks, n_ids * (c + 1) / n_chunks); };
   at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
