@@ -6,6 +6,12 @@ alternating builds.
     .venv/bin/python scripts/ab_ext.py --a HEAD --b .                  # working tree vs HEAD
     .venv/bin/python scripts/ab_ext.py --a . --b . --b-flags=-DFOO=1   # a compile-time variant
     .venv/bin/python scripts/ab_ext.py --params state.pt               # plus a trainer's scene
+    .venv/bin/python scripts/ab_ext.py --train-step 300 --params state.pt --step 1500
+
+``--train-step K`` also times the gd preset's whole training step, the builds alternating
+every 25 steps on one running state (the builds give the same bits or gradients equal to
+summation order, so both see the same run): from ``--params`` at ``--step``, or from the
+initial scene after K warm-up steps.
 
 Besides random clouds, the cases include the training step's noise pass (the gd preset's noise
 cloud at 64 px: rgb and weight_sq) and, with ``--params``, a trainer's Gaussians (a torch file
@@ -134,6 +140,33 @@ def same_bits(mods: dict, params: Path | None) -> bool:
     return all(torch.equal(x, b[key]) for key, x in a.items())
 
 
+def train_step_ab(mods: dict, params: Path | None, step: int, warmup: int, rounds: int) -> None:
+    from gdbench.train import trainer as T
+    from gdbench.train.config import preset
+
+    cfg = preset("gd", progress=False)
+    ctx = T.make_context(cfg)
+    st = T.init_state(ctx)
+    if params is not None:
+        p = torch.load(params)
+        st.params = {k: v.detach().clone().requires_grad_(True) for k, v in p.items()}
+        st.optimizer = T._optimizer(st.params, cfg)
+        st.densify = ctx.strategy.init_state(st.params["means"].shape[0])
+        st.step = step
+    for i in range(warmup):
+        use(mods["ab"[i % 2]])
+        T.train_step(st, ctx)
+    times: dict[str, list[float]] = {"a": [], "b": []}
+    for _ in range(3 * rounds):
+        for tag, mod in mods.items():
+            use(mod)
+            times[tag] += [T.train_step(st, ctx)["seconds"] for _ in range(25)]
+    a, b = statistics.median(times["a"]), statistics.median(times["b"])
+    n = st.params["means"].shape[0]
+    print(f"training step (gd, steps {st.step - 150 * rounds}-{st.step}, {n} Gaussians at the end): "
+          f"a {a * 1e3:.2f} ms  b {b * 1e3:.2f} ms  b/a {b / a:.3f}")  # fmt: skip
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--a", default="HEAD", help="git revision or '.' (working tree)")
@@ -143,6 +176,10 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--params", type=Path, default=None, help="a torch file of a trainer's state.params")
     ap.add_argument("--only", default="", help="time only the cases whose 'name N px' contains this (e.g. '64 px')")
+    ap.add_argument(
+        "--train-step", type=int, default=None, metavar="K", help="also A/B the training step (K warm-up steps)"
+    )
+    ap.add_argument("--step", type=int, default=1500, help="the step count of --params for --train-step")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         mods = {
@@ -164,6 +201,8 @@ def main() -> int:
                 b = statistics.median(times[(name, backward, "b")])
                 mode = "fwd+bwd" if backward else "fwd"
                 print(f"{name:>16s} {px:>4d} {mode:8s} a {a * 1e3:8.2f} ms  b {b * 1e3:8.2f} ms  b/a {b / a:.3f}")
+        if args.train_step is not None:
+            train_step_ab(mods, args.params, args.step, args.train_step, max(args.rounds, 1))
     return 0
 
 
