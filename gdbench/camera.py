@@ -24,6 +24,10 @@ _CV_TO_GL = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64)
 _CV_TO_MI = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64))
 
 
+def _numpy(x) -> np.ndarray:
+    return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, dtype=np.float64)
+
+
 def intrinsics(fovy_deg: Tensor | float, width: int, height: int, dtype=torch.float32) -> Tensor:
     """Square-pixel pinhole K [..., 3, 3] with vertical field of view ``fovy_deg`` and centred principal point."""
     # numpy float64: a handful of tiny arrays per training step, where torch's per-op dispatch
@@ -41,8 +45,8 @@ def intrinsics(fovy_deg: Tensor | float, width: int, height: int, dtype=torch.fl
     return torch.from_numpy(K).to(dtype)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.sqrt((v * v).sum(-1, keepdims=True))
+def _norm(v: np.ndarray) -> np.ndarray:
+    return np.sqrt((v * v).sum(-1, keepdims=True))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # np.cross's generality costs 60 us a call
@@ -59,17 +63,18 @@ def look_at(eye: Tensor, target: Tensor | None = None, up: Tensor | None = None)
     """
     eye = torch.as_tensor(eye)
     dtype = eye.dtype if eye.is_floating_point() else torch.float32
-    e = eye.detach().cpu().double().numpy()
+    e = _numpy(eye)
     t = np.zeros_like(e) if target is None else np.broadcast_to(_numpy(target), e.shape)
     u = np.broadcast_to(np.array([0.0, 0.0, 1.0]) if up is None else _numpy(up), e.shape)
     fwd = t - e
-    norm = np.sqrt((fwd * fwd).sum(-1, keepdims=True))
+    norm = _norm(fwd)
     if bool((norm < 1e-12).any()):
         raise ValueError("eye: coincides with target, the view direction is undefined")
     fwd = fwd / norm
     right = _cross(fwd, u)
-    degenerate = np.sqrt((right * right).sum(-1, keepdims=True)) < 1e-6
-    right = _unit(np.where(degenerate, _cross(fwd, np.broadcast_to(np.array([0.0, 1.0, 0.0]), fwd.shape)), right))
+    degenerate = _norm(right) < 1e-6
+    right = np.where(degenerate, _cross(fwd, np.broadcast_to(np.array([0.0, 1.0, 0.0]), fwd.shape)), right)
+    right = right / _norm(right)
     down = _cross(fwd, right)
     R = np.stack([right, down, fwd], axis=-2)  # rows: camera axes in world (world-to-camera)
     view = np.zeros(e.shape[:-1] + (4, 4))
@@ -77,10 +82,6 @@ def look_at(eye: Tensor, target: Tensor | None = None, up: Tensor | None = None)
     view[..., :3, 3] = -(R @ e[..., None])[..., 0]
     view[..., 3, 3] = 1.0
     return torch.from_numpy(view).to(dtype)
-
-
-def _numpy(x) -> np.ndarray:
-    return x.detach().cpu().double().numpy() if isinstance(x, Tensor) else np.asarray(x, dtype=np.float64)
 
 
 def spherical_to_eye(azimuth_deg: Tensor, elevation_deg: Tensor, radius: Tensor) -> Tensor:

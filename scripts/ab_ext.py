@@ -133,11 +133,11 @@ def same_bits(mods: dict, params: Path | None) -> bool:
                 res |= {(str(dt)[6:], name, f"grad {k}"): s[k].grad for k in s if k != "weight_sq"}
         results[tag] = res
     a, b = results.values()
-    for key, x in a.items():
-        if not torch.equal(x, b[key]):
-            d = (x.double() - b[key].double()).abs().max() / x.double().abs().max().clamp_min(1e-300)
-            print(f"  differs: {' '.join(key)} (max |a - b| / max |a| = {float(d):.2e})")
-    return all(torch.equal(x, b[key]) for key, x in a.items())
+    differ = [key for key, x in a.items() if not torch.equal(x, b[key])]
+    for key in differ:
+        d = (a[key].double() - b[key].double()).abs().max() / a[key].double().abs().max().clamp_min(1e-300)
+        print(f"  differs: {' '.join(key)} (max |a - b| / max |a| = {float(d):.2e})")
+    return not differ
 
 
 def train_step_ab(mods: dict, params: Path | None, step: int, warmup: int, rounds: int) -> None:

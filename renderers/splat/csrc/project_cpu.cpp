@@ -82,6 +82,33 @@ inline typename Lanes<T>::Mask finite(T x) {
   else return (x - x) == typename Lanes<T>::S(0);  // inf - inf and NaN - NaN are NaN
 }
 
+// Lane j of x (x itself for a scalar), and lanes filled from a strided array.
+template <typename T>
+inline typename Lanes<T>::S lane(const T& x, int j) {
+  if constexpr (Lanes<T>::L == 1) return x; else return x[j];
+}
+template <typename T>
+inline T gather(const typename Lanes<T>::S* p, int64_t stride) {
+  if constexpr (Lanes<T>::L == 1) {
+    return p[0];
+  } else {
+    T r;
+    for (int j = 0; j < Lanes<T>::L; ++j) r[j] = p[j * stride];
+    return r;
+  }
+}
+
+// Gaussians [g0, g1) of a parallel range: Simd<T>::L consecutive ones of one batch entry at a
+// time as vectors, the rest one by one; f(x, g) with x a value of the type to compute in.
+template <typename T, typename F>
+inline void in_lanes(int64_t g0, int64_t g1, int64_t N, F&& f) {
+  using Vt = typename Simd<T>::V;
+  constexpr int Lw = Simd<T>::L;
+  int64_t g = g0;
+  for (; g + Lw <= g1 && g / N == (g + Lw - 1) / N; g += Lw) f(Vt{}, g);
+  for (; g < g1; ++g) f(T{}, g);
+}
+
 template <typename T>
 struct Quat {
   T w, x, y, z, norm;
@@ -173,6 +200,14 @@ void factor(const T q[4], const T sc[3], T M[9], T Rq[9], Quat<T>& qn) {
     for (int k = 0; k < 3; ++k) M[3 * i + k] = Rq[3 * i + k] * sc[k];
 }
 
+// Means, quaternions and scales of Gaussians g .. g + L - 1.
+template <typename T>
+inline void load(int64_t g, const typename Lanes<T>::S* pm, const typename Lanes<T>::S* pq,
+                 const typename Lanes<T>::S* ps, T mu[3], T q[4], T sc[3]) {
+  for (int k = 0; k < 3; ++k) { mu[k] = gather<T>(pm + 3 * g + k, 3); sc[k] = gather<T>(ps + 3 * g + k, 3); }
+  for (int k = 0; k < 4; ++k) q[k] = gather<T>(pq + 4 * g + k, 4);
+}
+
 // Outputs of Gaussians (T = S: one; T a vector: L consecutive of one batch entry) in one camera.
 template <typename T>
 inline void project_out(const T mu[3], const T M[9], T o, T ext, const typename Lanes<T>::S* V,
@@ -191,14 +226,11 @@ inline void project_out(const T mu[3], const T M[9], T o, T ext, const typename 
   rx = visible ? rx : bc<T>(S(0));
   ry = visible ? ry : bc<T>(S(0));
   for (int j = 0; j < Lanes<T>::L; ++j) {
-    auto lane = [&](const T& x) -> S {
-      if constexpr (Lanes<T>::L == 1) return x; else return x[j];
-    };
     const int64_t r = q + j;
-    om[2 * r] = lane(u); om[2 * r + 1] = lane(v);
-    oc[3 * r] = lane(A); oc[3 * r + 1] = lane(B); oc[3 * r + 2] = lane(Cc);
-    oz[r] = lane(L.z);
-    orr[2 * r] = lane(rx); orr[2 * r + 1] = lane(ry);
+    om[2 * r] = lane(u, j); om[2 * r + 1] = lane(v, j);
+    oc[3 * r] = lane(A, j); oc[3 * r + 1] = lane(B, j); oc[3 * r + 2] = lane(Cc, j);
+    oz[r] = lane(L.z, j);
+    orr[2 * r] = lane(rx, j); orr[2 * r + 1] = lane(ry, j);
     if constexpr (Lanes<T>::L == 1) ov[r] = visible; else ov[r] = visible[j] != 0;
   }
 }
@@ -221,57 +253,27 @@ void forward_impl(const torch::Tensor& means, const torch::Tensor& quats, const 
   T* orr = rad.data_ptr<T>();
   bool* ov = vis.data_ptr<bool>();
   const T amin = T(s.alpha_min);
-  using Vt = typename Simd<T>::V;
-  constexpr int Lw = Simd<T>::L;
-  // the opacity-aware extent factor sqrt(2 ln(o / alpha_min)), per Gaussian (scalar log)
-  auto extent = [&](T o) { return std::sqrt(T(2) * std::log(o >= amin ? o / amin : T(1))); };
   at::parallel_for(0, Bt * N, 256, [&](int64_t g0, int64_t g1) {
-    int64_t g = g0;
-    // Lw consecutive Gaussians of one batch entry at a time, as vectors
-    for (; g + Lw <= g1 && g / N == (g + Lw - 1) / N; g += Lw) {
+    in_lanes<T>(g0, g1, N, [&](auto x, int64_t g) {
+      using U = decltype(x);
       const int64_t b = g / N, n = g % N;
-      Vt mu[3], q[4], sc[3], o, ext, M[9], Rq[9];
-      for (int j = 0; j < Lw; ++j) {
-        for (int k = 0; k < 3; ++k) { mu[k][j] = pm[3 * (g + j) + k]; sc[k][j] = ps[3 * (g + j) + k]; }
-        for (int k = 0; k < 4; ++k) q[k][j] = pq[4 * (g + j) + k];
-        o[j] = po[g + j];
-        ext[j] = extent(o[j]);
-      }
-      Quat<Vt> qn;
+      U mu[3], q[4], sc[3], M[9], Rq[9];
+      load(g, pm, pq, ps, mu, q, sc);
+      Quat<U> qn;
       factor(q, sc, M, Rq, qn);
+      // the opacity-aware extent factor sqrt(2 ln(o / alpha_min)), a scalar log per Gaussian
+      T e[Lanes<U>::L];
+      for (int j = 0; j < Lanes<U>::L; ++j) {
+        const T o = po[g + j];
+        e[j] = std::sqrt(T(2) * std::log(o >= amin ? o / amin : T(1)));
+      }
+      const U o = gather<U>(po + g, 1), ext = gather<U>(e, 1);
       for (int64_t c = 0; c < C; ++c) {
         const int64_t bc = b * C + c;
         project_out(mu, M, o, ext, pv + 16 * bc, pk + 9 * bc, s, amin, bc * N + n, om, oc, oz, orr, ov);
       }
-    }
-    for (; g < g1; ++g) {  // the rest one at a time
-      const int64_t b = g / N, n = g % N;
-      T M[9], Rq[9];
-      Quat<T> qn;
-      factor(pq + 4 * g, ps + 3 * g, M, Rq, qn);
-      for (int64_t c = 0; c < C; ++c) {
-        const int64_t bc = b * C + c;
-        project_out(pm + 3 * g, M, po[g], extent(po[g]), pv + 16 * bc, pk + 9 * bc, s, amin, bc * N + n, om, oc,
-                    oz, orr, ov);
-      }
-    }
+    });
   });
-}
-
-// Lane j of x (x itself for a scalar), and lanes filled from a strided array.
-template <typename T>
-inline typename Lanes<T>::S lane(const T& x, int j) {
-  if constexpr (Lanes<T>::L == 1) return x; else return x[j];
-}
-template <typename T>
-inline T gather(const typename Lanes<T>::S* p, int64_t stride) {
-  if constexpr (Lanes<T>::L == 1) {
-    return p[0];
-  } else {
-    T r;
-    for (int j = 0; j < Lanes<T>::L; ++j) r[j] = p[j * stride];
-    return r;
-  }
 }
 
 // Gradients of Gaussians g .. g + L - 1 (T = S: one; a vector: L of one batch entry).
@@ -286,8 +288,7 @@ inline void backward_one(int64_t g, int64_t N, int64_t C, const ProjSettings& s,
   const T zero = bc<T>(S(0));
   const int64_t b = g / N, n = g % N;
   T mu[3], q[4], sc[3], M[9], Rq[9];
-  for (int k = 0; k < 3; ++k) { mu[k] = gather<T>(pm + 3 * g + k, 3); sc[k] = gather<T>(ps + 3 * g + k, 3); }
-  for (int k = 0; k < 4; ++k) q[k] = gather<T>(pq + 4 * g + k, 4);
+  load(g, pm, pq, ps, mu, q, sc);
   Quat<T> qn;
   factor(q, sc, M, Rq, qn);
   T gM[9], gmu[3];
@@ -390,13 +391,10 @@ void backward_impl(const torch::Tensor& means, const torch::Tensor& quats, const
   T* oM = g_means.data_ptr<T>();
   T* oQ = g_quats.data_ptr<T>();
   T* oS = g_scales.data_ptr<T>();
-  using Vt = typename Simd<T>::V;
-  constexpr int Lw = Simd<T>::L;
   at::parallel_for(0, Bt * N, 256, [&](int64_t g0, int64_t g1) {
-    int64_t g = g0;
-    for (; g + Lw <= g1 && g / N == (g + Lw - 1) / N; g += Lw)  // Lw Gaussians of one batch entry as vectors
-      backward_one<Vt>(g, N, C, s, pm, pq, ps, pv, pk, gu, gk, gz, oM, oQ, oS);
-    for (; g < g1; ++g) backward_one<T>(g, N, C, s, pm, pq, ps, pv, pk, gu, gk, gz, oM, oQ, oS);
+    in_lanes<T>(g0, g1, N, [&](auto x, int64_t g) {
+      backward_one<decltype(x)>(g, N, C, s, pm, pq, ps, pv, pk, gu, gk, gz, oM, oQ, oS);
+    });
   });
 }
 
