@@ -162,6 +162,30 @@ def test_zoom_is_identity_at_equal_fov_and_area_filter_at_integer_ratio():
     torch.testing.assert_close(out[0, ..., 0], (0.25 * frac + (1 - frac)).float(), atol=1e-6, rtol=0)
 
 
+@pytest.mark.parametrize("dst,size", [(40.0, (9, 6)), (63.0, (16, 16)), (80.0, (12, 20))])
+def test_zoom_by_taps_equals_the_dense_matrix_products(dst, size):
+    """Oracle: A_y Y A_x^T as dense float64 matrix products (the path without the extension).
+    The C++ path visits only each row's non-zero weights (taps), zooming in, at equal fields of
+    view and out (with background), at sizes that are no integer ratio of the source."""
+    from gdbench.assets import zoom as Z
+    from renderers.splat._ext import load_extension
+
+    if load_extension() is None:
+        pytest.skip("the C++ extension of renderers.splat is not built")
+    imgs = torch.rand(3, 13, 11, 2, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    H, W = size
+    ty = math.tan(math.radians(dst) / 2) / math.tan(math.radians(25))
+    Ay, Ax = Z.zoom_matrix(H, 13, ty), Z.zoom_matrix(W, 11, ty * (W / H) / (11 / 13))
+    idx, wt = Z.taps(Ax)
+    assert idx.shape[1] < 11 and torch.equal(torch.zeros_like(Ax).scatter_add_(1, idx, wt), Ax)
+    inside = Ay.sum(1)[:, None] * Ax.sum(1)[None, :]
+    want = Z._zoom_dense(imgs, Ay, Ax) + (1 - inside)[None, :, :, None] * 0.5
+    got = Z.zoom_images(imgs, 50.0, dst, H, W, background=0.5)
+    torch.testing.assert_close(got, want, atol=1e-13, rtol=0)
+    got32 = Z.zoom_images(imgs.float(), 50.0, dst, H, W, background=0.5)
+    torch.testing.assert_close(got32, want.float(), atol=1e-6, rtol=0)
+
+
 @pytest.mark.parametrize("fovy", [40.0, 70.0])
 def test_prior_answers_at_the_query_fov_like_a_direct_render(fovy):
     """Oracle: the asset rendered by pyrender directly at ``fovy``. The bank is rendered once at

@@ -595,5 +595,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_backward", &project_backward, "Gradients of the projection (CPU)");
   m.def("bin_tiles", &bin_tiles, "Tile lists in depth order (CPU)");
   m.def("sh_forward", &sh_forward, "SH colour, forward only (CPU)");
+  m.def("zoom_taps", &zoom_taps, "Separable resampling of image stacks by taps (CPU; gdbench.assets.zoom)");
   m.def("fast_exp", &fast_exp, "The compositor's exp on [-80, 0] (for tests)");
 }

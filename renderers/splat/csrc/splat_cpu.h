@@ -1,5 +1,5 @@
-// Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp and
-// sh_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
+// Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp, sh_cpu.cpp
+// and zoom_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
 #pragma once
 #include <torch/extension.h>
 
@@ -23,3 +23,6 @@ std::vector<torch::Tensor> bin_tiles(const torch::Tensor& m2d, const torch::Tens
                                      int64_t tile_size);
 
 torch::Tensor sh_forward(int64_t degree, const torch::Tensor& coeffs, const torch::Tensor& dirs);
+
+torch::Tensor zoom_taps(const torch::Tensor& images, const torch::Tensor& iy, const torch::Tensor& wy,
+                        const torch::Tensor& ix, const torch::Tensor& wx);

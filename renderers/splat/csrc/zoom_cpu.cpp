@@ -1,0 +1,77 @@
+// Separable resampling of image stacks on CPU, for gdbench.assets.zoom (the empirical prior
+// zooms its 360-view bank to each field of view it serves). out[v, y, x, c] =
+// sum_k wx[x, k] sum_j wy[y, j] img[v, iy[y, j], ix[x, k], c]: the product A_y Y A_x^T of
+// zoom.py with A's few non-zero entries per row given as taps (index, weight). Per image, rows
+// first into a double buffer of w * C, then columns; sums in double, one rounding at the end.
+// The dense matrix products of the torch path read every source pixel once per target row
+// (128 times); this reads each at most a few times.
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <vector>
+
+#include "splat_cpu.h"
+
+namespace {
+
+template <typename scalar_t>
+void zoom_impl(const torch::Tensor& images, const torch::Tensor& iy, const torch::Tensor& wy,
+               const torch::Tensor& ix, const torch::Tensor& wx, torch::Tensor& out) {
+  const int64_t V = images.size(0), h = images.size(1), w = images.size(2), C = images.size(3);
+  const int64_t H = iy.size(0), Ky = iy.size(1), W = ix.size(0), Kx = ix.size(1), row = w * C;
+  const scalar_t* src = images.data_ptr<scalar_t>();
+  const int64_t* py = iy.data_ptr<int64_t>();
+  const int64_t* px = ix.data_ptr<int64_t>();
+  const double* qy = wy.data_ptr<double>();
+  const double* qx = wx.data_ptr<double>();
+  scalar_t* dst = out.data_ptr<scalar_t>();
+  at::parallel_for(0, V, 1, [&](int64_t v0, int64_t v1) {
+    std::vector<double> acc(row);
+    for (int64_t v = v0; v < v1; ++v) {
+      for (int64_t y = 0; y < H; ++y) {
+        std::fill(acc.begin(), acc.end(), 0.0);
+        for (int64_t j = 0; j < Ky; ++j) {
+          const double a = qy[y * Ky + j];
+          if (a == 0) continue;
+          const scalar_t* s = src + (v * h + py[y * Ky + j]) * row;
+#pragma omp simd
+          for (int64_t i = 0; i < row; ++i) acc[i] += a * double(s[i]);
+        }
+        scalar_t* o = dst + (v * H + y) * W * C;
+        for (int64_t x = 0; x < W; ++x) {
+          for (int64_t c = 0; c < C; ++c) {
+            double sum = 0;
+            for (int64_t k = 0; k < Kx; ++k) sum += qx[x * Kx + k] * acc[px[x * Kx + k] * C + c];
+            o[x * C + c] = scalar_t(sum);
+          }
+        }
+      }
+    }
+  });
+}
+
+void check_taps(const char* name, const torch::Tensor& idx, const torch::Tensor& wt, int64_t n_in) {
+  TORCH_CHECK(idx.dim() == 2 && idx.scalar_type() == torch::kInt64 && idx.is_contiguous(), name,
+              ": expected a contiguous int64 [n_out, K] index tensor");
+  TORCH_CHECK(wt.sizes() == idx.sizes() && wt.scalar_type() == torch::kFloat64 && wt.is_contiguous(), name,
+              ": expected contiguous float64 weights of the indices' shape");
+  if (idx.numel()) {
+    TORCH_CHECK(idx.min().item<int64_t>() >= 0 && idx.max().item<int64_t>() < n_in, name,
+                ": indices must lie in [0, ", n_in, ")");
+  }
+}
+
+}  // namespace
+
+torch::Tensor zoom_taps(const torch::Tensor& images, const torch::Tensor& iy, const torch::Tensor& wy,
+                        const torch::Tensor& ix, const torch::Tensor& wx) {
+  TORCH_CHECK(images.dim() == 4 && images.is_contiguous() && images.device().is_cpu(),
+              "images: expected a contiguous CPU tensor [V, h, w, C]");
+  TORCH_CHECK(images.scalar_type() == torch::kFloat32 || images.scalar_type() == torch::kFloat64,
+              "images: expected float32 or float64");
+  check_taps("iy", iy, wy, images.size(1));
+  check_taps("ix", ix, wx, images.size(2));
+  auto out = torch::empty({images.size(0), iy.size(0), ix.size(0), images.size(3)}, images.options());
+  AT_DISPATCH_FLOATING_TYPES(images.scalar_type(), "zoom_taps", [&] { zoom_impl<scalar_t>(images, iy, wy, ix, wx, out); });
+  return out;
+}
