@@ -249,3 +249,22 @@ def test_front_bias_is_a_log_prior_on_the_bank_views():
         torch.testing.assert_close(out[0].double(), want, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="front_bias"):
         EmpiricalPrior(front_bias=-1.0)
+
+
+def test_squared_distances_match_float64():
+    """Oracle: the float64 sum of squared differences. The posterior's logits are -d^2 / 2 sigma^2,
+    so at small sigma a relative error of d^2 moves them by many units: 1e-6 is the bound
+    (torch.cdist's direct mode, the path without the extension, errs by 3e-6 on this input)."""
+    from gdbench.priors.empirical import _sqdist
+    from renderers.splat._ext import load_extension
+
+    if load_extension() is None:
+        pytest.skip("the C++ extension of renderers.splat is not built")
+    g = torch.Generator().manual_seed(7)
+    Y, x = torch.rand(40, 12290, generator=g) * 2 - 1, torch.rand(1, 12290, generator=g) * 2 - 1
+    want = (Y.double() - x.double()).square().sum(1)
+    for rows in (slice(None), slice(3, 29)):  # the prior passes row ranges of its bank
+        got = _sqdist(x, Y[rows])
+        assert got.dtype == torch.float64 and got.shape == want[rows].shape
+        assert float(((got - want[rows]).abs() / want[rows]).max()) < 1e-6
+    torch.testing.assert_close(_sqdist(x.double(), Y.double()), want, rtol=1e-14, atol=0)

@@ -596,5 +596,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "Tile lists in depth order (CPU)");
   m.def("sh_forward", &sh_forward, "SH colour, forward only (CPU)");
   m.def("zoom_taps", &zoom_taps, "Separable resampling of image stacks by taps (CPU; gdbench.assets.zoom)");
+  m.def("sqdist_rows", &sqdist_rows, "Squared distances of one vector to the rows of a matrix, in double (CPU; gdbench.priors.empirical)");
   m.def("fast_exp", &fast_exp, "The compositor's exp on [-80, 0] (for tests)");
 }

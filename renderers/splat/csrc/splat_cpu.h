@@ -1,5 +1,5 @@
 // Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp, sh_cpu.cpp
-// and zoom_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
+// and bank_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
 #pragma once
 #include <torch/extension.h>
 
@@ -26,3 +26,5 @@ torch::Tensor sh_forward(int64_t degree, const torch::Tensor& coeffs, const torc
 
 torch::Tensor zoom_taps(const torch::Tensor& images, const torch::Tensor& iy, const torch::Tensor& wy,
                         const torch::Tensor& ix, const torch::Tensor& wx);
+
+torch::Tensor sqdist_rows(const torch::Tensor& x, const torch::Tensor& Y);

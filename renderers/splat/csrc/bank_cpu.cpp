@@ -1,10 +1,18 @@
-// Separable resampling of image stacks on CPU, for gdbench.assets.zoom (the empirical prior
-// zooms its 360-view bank to each field of view it serves). out[v, y, x, c] =
+// Two kernels of the empirical prior (gdbench.priors.empirical), which is not a renderer but
+// shares this library.
+//
+// zoom_taps: separable resampling of image stacks, for gdbench.assets.zoom (the prior zooms its
+// 360-view bank to each field of view it serves). out[v, y, x, c] =
 // sum_k wx[x, k] sum_j wy[y, j] img[v, iy[y, j], ix[x, k], c]: the product A_y Y A_x^T of
 // zoom.py with A's few non-zero entries per row given as taps (index, weight). Per image, rows
 // first into a double buffer of w * C, then columns; sums in double, one rounding at the end.
 // The dense matrix products of the torch path read every source pixel once per target row
 // (128 times); this reads each at most a few times.
+//
+// sqdist_rows: d[v] = sum_p (Y[v, p] - x[p])^2 in one pass over Y, each difference squared in
+// the input's precision and summed in double (torch.cdist's direct mode errs by ~5e-6 relative at
+// P = 12288; differences then a dot product need a [V, P] temporary, which the training loop
+// pays for in page faults).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -61,6 +69,32 @@ void check_taps(const char* name, const torch::Tensor& idx, const torch::Tensor&
   }
 }
 
+template <typename scalar_t>
+void sqdist_impl(const scalar_t* px, const scalar_t* py, int64_t V, int64_t P, int64_t rs, double* o) {
+  at::parallel_for(0, V, 4, [&](int64_t v0, int64_t v1) {
+    constexpr int64_t kLanes = 16;  // independent partial sums: the loop vectorises without reassociation
+    for (int64_t v = v0; v < v1; ++v) {
+      const scalar_t* y = py + v * rs;
+      double acc[kLanes] = {};
+      int64_t p = 0;
+      for (; p + kLanes <= P; p += kLanes) {
+#pragma omp simd
+        for (int64_t j = 0; j < kLanes; ++j) {
+          const scalar_t d = y[p + j] - px[p + j];
+          acc[j] += double(d * d);
+        }
+      }
+      double s = 0;
+      for (int64_t j = 0; j < kLanes; ++j) s += acc[j];
+      for (; p < P; ++p) {
+        const scalar_t d = y[p] - px[p];
+        s += double(d * d);
+      }
+      o[v] = s;
+    }
+  });
+}
+
 }  // namespace
 
 torch::Tensor zoom_taps(const torch::Tensor& images, const torch::Tensor& iy, const torch::Tensor& wy,
@@ -73,5 +107,19 @@ torch::Tensor zoom_taps(const torch::Tensor& images, const torch::Tensor& iy, co
   check_taps("ix", ix, wx, images.size(2));
   auto out = torch::empty({images.size(0), iy.size(0), ix.size(0), images.size(3)}, images.options());
   AT_DISPATCH_FLOATING_TYPES(images.scalar_type(), "zoom_taps", [&] { zoom_impl<scalar_t>(images, iy, wy, ix, wx, out); });
+  return out;
+}
+
+torch::Tensor sqdist_rows(const torch::Tensor& x, const torch::Tensor& Y) {
+  TORCH_CHECK(Y.dim() == 2 && Y.device().is_cpu() && Y.stride(1) == 1,
+              "Y: expected a CPU tensor [V, P] with contiguous rows");
+  TORCH_CHECK(Y.scalar_type() == torch::kFloat32 || Y.scalar_type() == torch::kFloat64, "Y: expected float32 or float64");
+  TORCH_CHECK(x.dim() == 1 && x.is_contiguous() && x.scalar_type() == Y.scalar_type() && x.size(0) == Y.size(1),
+              "x: expected a contiguous [P] tensor of Y's dtype");
+  auto out = torch::empty({Y.size(0)}, Y.options().dtype(torch::kFloat64));
+  AT_DISPATCH_FLOATING_TYPES(Y.scalar_type(), "sqdist_rows", [&] {
+    sqdist_impl<scalar_t>(x.data_ptr<scalar_t>(), Y.data_ptr<scalar_t>(), Y.size(0), Y.size(1), Y.stride(0),
+                          out.data_ptr<double>());
+  });
   return out;
 }
