@@ -313,8 +313,9 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
     for opt_group in state.optimizer.param_groups:
         opt_group["params"][0].grad = None
     # mean over pixels and channels: Adam does not care about the scale, but densification thresholds
-    # on screen-space gradients then mean what they mean in 3DGS (per-pixel-averaged losses)
-    (-(cfg.weight * views.weight) * (score * x).mean()).backward()
+    # on screen-space gradients then mean what they mean in 3DGS (per-pixel-averaged losses). The
+    # gradient of -(w) mean(score * x), handed to x directly: no loss graph to build and walk
+    x.backward(score * (-(cfg.weight * views.weight) / score.numel()))
     if not _all_finite([p[k].grad for k in PARAM_NAMES if p[k].grad is not None]):
         state.bad_steps += 1
         if state.bad_steps > cfg.max_bad_steps:
