@@ -258,8 +258,23 @@ class SphericalPoses:
         return self.azimuth.shape[0]
 
     def cameras(self, width: int, height: int) -> Cameras:
-        eyes = spherical_to_eye(self.azimuth.double(), self.elevation.double(), self.radius.double())
-        return Cameras(look_at(eyes).float(), intrinsics(self.fovy, width, height), width, height)
+        """Cameras looking at the origin with up +Z (``look_at`` of the eyes). Below 89 degrees of
+        elevation in closed form from the angles (the trainer's per-step cameras: a dozen array
+        operations instead of ~60; equal to ``look_at``'s to 1e-15, tests/test_camera.py)."""
+        el = _numpy(self.elevation)
+        if el.size == 0 or np.abs(el).max() >= 89.0:
+            eyes = spherical_to_eye(self.azimuth.double(), self.elevation.double(), self.radius.double())
+            return Cameras(look_at(eyes).float(), intrinsics(self.fovy, width, height), width, height)
+        az, el = np.deg2rad(_numpy(self.azimuth)), np.deg2rad(el)
+        ca, sa, ce, se = np.cos(az), np.sin(az), np.cos(el), np.sin(el)
+        view = np.zeros(az.shape + (4, 4))
+        # rows: right = fwd x up / |.| = (-sin az, cos az, 0); down = fwd x right; fwd = -eye / |eye|;
+        # the eye lies on -fwd at distance r, so the translation -R eye is (0, 0, r)
+        view[:, 0, 0], view[:, 0, 1] = -sa, ca
+        view[:, 1, 0], view[:, 1, 1], view[:, 1, 2] = se * ca, se * sa, -ce
+        view[:, 2, 0], view[:, 2, 1], view[:, 2, 2] = -ce * ca, -ce * sa, -se
+        view[:, 2, 3], view[:, 3, 3] = _numpy(self.radius), 1.0
+        return Cameras(torch.from_numpy(view).float(), intrinsics(self.fovy, width, height), width, height)
 
     @classmethod
     def sample(

@@ -47,6 +47,22 @@ def test_spherical_angles():
     assert float(c[2, 2]) == pytest.approx(math.sin(math.radians(89)), abs=1e-6)
 
 
+def test_spherical_cameras_in_closed_form_equal_look_at():
+    """Oracle: look_at of the eyes in float64. Poses below 89 degrees of elevation take the
+    closed form; a batch holding one at 89.5 takes look_at itself (same bits)."""
+    from gdbench.camera import spherical_to_eye
+
+    g = torch.Generator().manual_seed(11)
+    p = SphericalPoses.sample(500, generator=g, radius=(0.3, 4.0), elevation_range=(-88.9, 88.9))
+    want = look_at(spherical_to_eye(p.azimuth, p.elevation, p.radius))
+    torch.testing.assert_close(p.cameras(48, 32).viewmats.double(), want, atol=1e-6, rtol=0)
+    steep = SphericalPoses(
+        torch.tensor([10.0, 30.0]), torch.tensor([20.0, 89.5]), torch.tensor([1.0, 2.0]), torch.full((2,), 50.0)
+    )
+    want = look_at(spherical_to_eye(steep.azimuth, steep.elevation, steep.radius)).float()
+    assert torch.equal(steep.cameras(32, 32).viewmats, want)
+
+
 def test_straight_down_uses_a_fallback_up():
     v = look_at(torch.tensor([[0.0, 0.0, 2.0]]))
     R = v[0, :3, :3]
