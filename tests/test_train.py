@@ -420,3 +420,25 @@ def test_resume_refuses_other_steps_with_the_reason(prior, tmp_path):
     train(tiny("gd", tmp_path, steps=4), prior, stop_at=2, write_outputs=False)
     with pytest.raises(ValueError, match=r"fields \['steps'\]\) \(the sigma, noise and learning-rate schedules"):
         train(tiny("gd", tmp_path, steps=6), prior)
+
+
+def test_sigma_draws_are_the_ticks_in_the_annealed_range(prior):
+    """Oracle: the ticks selected by tensor comparison (float32, as the prior stores them) and
+    the draw's frequency: every tick of the range is drawn, none outside it, about uniformly."""
+    from gdbench.train.trainer import sample_sigma
+
+    cfg = tiny("gd", steps=100, sigma_min=0.05, sigma_max=2.0)
+    ctx = make_context(cfg, prior)
+    s = ctx.sigmas
+    g = torch.Generator().manual_seed(2)
+    for step in (0, 50, 90):
+        hi = 2.0 + (0.05 - 2.0) * step / 99
+        ticks = set(s[(s >= 0.05) & (s <= max(hi, 0.05))].tolist())
+        draws = [sample_sigma(ctx, step, g)[0] for _ in range(40 * len(ticks))]
+        assert set(draws) == ticks
+        counts = [draws.count(t) for t in ticks]
+        assert max(counts) < 3 * min(counts)
+    # a range holding no tick: the tick nearest sigma_min
+    ctx = make_context(tiny("gd", sigma_min=float(s[3] + s[4]) / 2, sigma_max=float(s[3] + s[4]) / 2 + 1e-9), prior)
+    want = float(s[torch.argmin((s - ctx.cfg.sigma_min).abs())])
+    assert sample_sigma(ctx, 0, g) == (want, 1.0)

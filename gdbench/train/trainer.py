@@ -19,7 +19,10 @@ non-finite skip, Adam, densification). Every kind of draw has its own random str
 
 from __future__ import annotations
 
+import bisect
+import functools
 import math
+import struct
 import time
 from dataclasses import dataclass, field
 from typing import Literal
@@ -64,6 +67,11 @@ class Context:
     """sd-latent: the latent of the background colour."""
     jitter_length: float = SCENE_RADIUS
     """World length of one VGS unit for the means (``vgs_unit``)."""
+
+    @functools.cached_property
+    def sigma_values(self) -> list[float]:
+        """``sigmas`` as Python floats (the per-step draw bisects them)."""
+        return self.sigmas.tolist()
 
 
 @dataclass
@@ -192,10 +200,19 @@ def sample_sigma(ctx: Context, step: int, g: torch.Generator) -> tuple[float, fl
     hi = cfg.sigma_max
     if cfg.anneal:
         hi = cfg.sigma_max + (cfg.sigma_min - cfg.sigma_max) * step / max(cfg.steps - 1, 1)
-    ticks = s[(s >= cfg.sigma_min) & (s <= max(hi, cfg.sigma_min))]
-    if ticks.numel() == 0:
-        ticks = s[torch.argmin((s - cfg.sigma_min).abs())][None]
-    return float(ticks[torch.randint(ticks.numel(), (1,), generator=g)]), 1.0
+    # the ticks in [sigma_min, max(hi, sigma_min)], compared in float32 as the tensor comparison
+    # s >= sigma_min would, found by bisection in the ascending list (no tensor operations)
+    vals = ctx.sigma_values
+    i0 = bisect.bisect_left(vals, _f32(cfg.sigma_min))
+    i1 = bisect.bisect_right(vals, _f32(max(hi, cfg.sigma_min)))
+    if i1 <= i0:
+        return float(s[torch.argmin((s - cfg.sigma_min).abs())]), 1.0
+    return vals[i0 + int(torch.randint(i1 - i0, (1,), generator=g))], 1.0
+
+
+def _f32(x: float) -> float:
+    """``x`` rounded to float32 (as a tensor comparison with a float32 tensor rounds it)."""
+    return struct.unpack("f", struct.pack("f", x))[0]
 
 
 def _means_lr(cfg: TrainConfig, step: int) -> float:
