@@ -196,18 +196,28 @@ class NoiseRenderer:
         self.v_min = v_min
         self.cache_size = cache_size
         self._cache: dict[tuple, object] = {}
+        self._on: dict[torch.device, tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+
+    def _geometry(self, device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The cloud's means, quats, scales and opacities on ``device``, made once per device."""
+        if device not in self._on:
+            c = self.cloud.to(device)
+            self._on[device] = (c.means, c.quats, c.scales, c.opacities)
+        return self._on[device]
 
     def _prepared(self, cams: Cameras):
         from renderers.splat import prepare
 
-        key = (cams.viewmats.cpu().numpy().tobytes(), cams.Ks.cpu().numpy().tobytes(), cams.width, cams.height)
-        if key in self._cache:
-            return self._cache[key]
-        c = self.cloud.to(cams.viewmats.device)
-        prepared = prepare(
-            c.means, c.quats, c.scales, c.opacities, cams.viewmats, cams.Ks, cams.width, cams.height, check_values=False
-        )
+        key = None
         if self.cache_size > 0:
+            key = (cams.viewmats.cpu().numpy().tobytes(), cams.Ks.cpu().numpy().tobytes(), cams.width, cams.height)
+            if key in self._cache:
+                return self._cache[key]
+        means, quats, scales, opacities = self._geometry(cams.viewmats.device)
+        prepared = prepare(
+            means, quats, scales, opacities, cams.viewmats, cams.Ks, cams.width, cams.height, check_values=False
+        )
+        if key is not None:
             self._cache[key] = prepared
             while len(self._cache) > self.cache_size:
                 self._cache.pop(next(iter(self._cache)))
