@@ -13,6 +13,12 @@ every 25 steps on one running state (the builds give the same bits or gradients 
 summation order, so both see the same run): from ``--params`` at ``--step``, or from the
 initial scene after K warm-up steps.
 
+``--trainer REV`` builds nothing: it times the training step of ``gdbench/train/trainer.py`` at
+REV (a) against the working tree's (b), the same way (only that file differs between the
+sides; the rest of the package is the working tree's):
+
+    .venv/bin/python scripts/ab_ext.py --trainer HEAD --params state.pt --step 1500
+
 Besides random clouds, the cases include the training step's noise pass (the gd preset's noise
 cloud at 64 px: rgb and weight_sq) and, with ``--params``, a trainer's Gaussians (a torch file
 of its ``state.params``: means, quats, log_scales, opacity_logits, sh) at 64 px.
@@ -140,7 +146,9 @@ def same_bits(mods: dict, params: Path | None) -> bool:
     return not differ
 
 
-def train_step_ab(mods: dict, params: Path | None, step: int, warmup: int, rounds: int) -> None:
+def train_step_ab(sides: dict, params: Path | None, step: int, warmup: int, rounds: int) -> None:
+    """Times the gd preset's training step with ``sides`` {"a": f, "b": f}, each f(state, ctx)
+    running one step its way, alternating every 25 steps on one running state."""
     from gdbench.train import trainer as T
     from gdbench.train.config import preset
 
@@ -154,17 +162,44 @@ def train_step_ab(mods: dict, params: Path | None, step: int, warmup: int, round
         st.densify = ctx.strategy.init_state(st.params["means"].shape[0])
         st.step = step
     for i in range(warmup):
-        use(mods["ab"[i % 2]])
-        T.train_step(st, ctx)
+        sides["ab"[i % 2]](st, ctx)
     times: dict[str, list[float]] = {"a": [], "b": []}
     for _ in range(3 * rounds):
-        for tag, mod in mods.items():
-            use(mod)
-            times[tag] += [T.train_step(st, ctx)["seconds"] for _ in range(25)]
+        for tag, f in sides.items():
+            times[tag] += [f(st, ctx)["seconds"] for _ in range(25)]
     a, b = statistics.median(times["a"]), statistics.median(times["b"])
     n = st.params["means"].shape[0]
     print(f"training step (gd, steps {st.step - 150 * rounds}-{st.step}, {n} Gaussians at the end): "
           f"a {a * 1e3:.2f} ms  b {b * 1e3:.2f} ms  b/a {b / a:.3f}")  # fmt: skip
+
+
+def build_steps(mods: dict) -> dict:
+    """Step functions for two builds of the extension (the working tree's trainer)."""
+    from gdbench.train import trainer as T
+
+    def side(mod):
+        def f(st, ctx):
+            use(mod)
+            return T.train_step(st, ctx)
+
+        return f
+
+    return {tag: side(mod) for tag, mod in mods.items()}
+
+
+def trainer_at(rev: str):
+    """``gdbench/train/trainer.py`` at git revision ``rev``, imported as a second module of the
+    package (``gdbench.train.trainer_ab``) beside the working tree's."""
+    import importlib.util
+
+    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:gdbench/train/trainer.py"],
+                         check=True, capture_output=True, text=True).stdout  # fmt: skip
+    name = "gdbench.train.trainer_ab"
+    mod = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader=None))
+    mod.__package__ = "gdbench.train"
+    sys.modules[name] = mod  # dataclasses look their module up here
+    exec(compile(src, f"{rev}:gdbench/train/trainer.py", "exec"), mod.__dict__)
+    return mod
 
 
 def main() -> int:
@@ -180,7 +215,18 @@ def main() -> int:
         "--train-step", type=int, default=None, metavar="K", help="also A/B the training step (K warm-up steps)"
     )
     ap.add_argument("--step", type=int, default=1500, help="the step count of --params for --train-step")
+    ap.add_argument(
+        "--trainer", default=None, metavar="REV",
+        help="instead: A/B the training step of trainer.py at REV (a) against the working tree's (b)",
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.trainer is not None:
+        from gdbench.train import trainer as T
+
+        old = trainer_at(args.trainer)
+        sides = {"a": old.train_step, "b": T.train_step}
+        train_step_ab(sides, args.params, args.step, args.train_step or 100, max(args.rounds, 1))
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         mods = {
             "a": build(args.a, args.a_flags.split(), "a", Path(tmp)),
@@ -202,7 +248,7 @@ def main() -> int:
                 mode = "fwd+bwd" if backward else "fwd"
                 print(f"{name:>16s} {px:>4d} {mode:8s} a {a * 1e3:8.2f} ms  b {b * 1e3:8.2f} ms  b/a {b / a:.3f}")
         if args.train_step is not None:
-            train_step_ab(mods, args.params, args.step, args.train_step, max(args.rounds, 1))
+            train_step_ab(build_steps(mods), args.params, args.step, args.train_step, max(args.rounds, 1))
     return 0
 
 
