@@ -268,3 +268,31 @@ def test_squared_distances_match_float64():
         assert got.dtype == torch.float64 and got.shape == want[rows].shape
         assert float(((got - want[rows]).abs() / want[rows]).max()) < 1e-6
     torch.testing.assert_close(_sqdist(x.double(), Y.double()), want, rtol=1e-14, atol=0)
+
+
+def test_view_window_mask_and_runs():
+    """Oracle: the wrapped angle difference in Python floats, and runs found by a plain scan.
+    Queries at every 7 degrees (and past +-180) against a bank stored azimuth-major."""
+    from gdbench.priors.empirical import _runs
+
+    bank = _bank(torch.rand(36, 4, 4, 3), azimuth=torch.arange(-180.0, 180.0, 10.0), caption="ring")
+    prior = EmpiricalPrior(view_mode="window", window_deg=40.0, banks={"ring": bank})
+    cond = prior.encode("ring")
+    az = torch.arange(-300.0, 300.0, 7.0)
+    mask = prior._allowed(cond, az, None, az.shape[0])
+    for q, row in zip(az.tolist(), mask):
+        d = [abs((q - c + 180.0) % 360.0 - 180.0) for c in cond.azimuth.tolist()]
+        want = [x <= 40.0 for x in d] if min(d) <= 40.0 else [True] * len(d)
+        sure = [abs(x - 40.0) > 1e-3 for x in d]
+        assert all(bool(r) == w for r, w, s in zip(row, want, sure) if s)
+        runs, i = [], 0
+        while i < len(row):
+            if row[i]:
+                j = i
+                while j < len(row) and row[j]:
+                    j += 1
+                runs.append((i, j))
+                i = j
+            else:
+                i += 1
+        assert _runs(row) == runs and runs
