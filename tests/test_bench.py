@@ -71,7 +71,15 @@ def test_fixed_cost_case_draws_one_pixel_sized_gaussian_and_is_reported_apart_fr
     ``fixed_cost`` and kept out of the splat fit."""
     row = bm_render.run_case(*bm_render.FIXED)
     assert row["status"] == "ok" and row["intersections"] == 4  # its centre is the corner of 4 tiles
-    assert 1 <= row["pixel_pairs"] <= 64
+    # pixel pairs: the pixel centres k + 0.5 within the projected radius r of 128 on each axis,
+    # 2 floor(r + 0.5) of them (r from the projection, the count in closed form)
+    from renderers.splat.project import project
+
+    s, cam = bm_render._scene(*bm_render.FIXED[:2]), bm_render._camera(256, "cpu")
+    p = project(s["means"], s["quats"], s["scales"], s["opacities"], cam.viewmats, cam.Ks, 256, 256)
+    assert torch.equal(p.means2d.flatten(), torch.tensor([128.0, 128.0]))
+    per_axis = [2 * math.floor(float(r) + 0.5) for r in p.radii.flatten()]
+    assert row["pixel_pairs"] == per_axis[0] * per_axis[1] > 0
     fit_rows = [
         {
             "path": "splat",

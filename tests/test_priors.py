@@ -10,6 +10,7 @@ from gdbench.assets.bank import Bank, BankConfig
 from gdbench.priors import Prior, ve_sigmas_from_betas
 from gdbench.priors.empirical import EmpiricalPrior, bucket
 from gdbench.priors.text import CaptionMatcher, normalise
+from tests._util import require_cpp
 
 
 def _bank(images, depth=None, azimuth=None, elevation=None, caption="a pair"):
@@ -168,10 +169,8 @@ def test_zoom_by_taps_equals_the_dense_matrix_products(dst, size):
     The C++ path visits only each row's non-zero weights (taps), zooming in, at equal fields of
     view and out (with background), at sizes that are no integer ratio of the source."""
     from gdbench.assets import zoom as Z
-    from renderers.splat._ext import load_extension
 
-    if load_extension() is None:
-        pytest.skip("the C++ extension of renderers.splat is not built")
+    require_cpp()
     imgs = torch.rand(3, 13, 11, 2, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     H, W = size
     ty = math.tan(math.radians(dst) / 2) / math.tan(math.radians(25))
@@ -256,10 +255,8 @@ def test_squared_distances_match_float64():
     so at small sigma a relative error of d^2 moves them by many units: 1e-6 is the bound
     (torch.cdist's direct mode, the path without the extension, errs by 3e-6 on this input)."""
     from gdbench.priors.empirical import _sqdist
-    from renderers.splat._ext import load_extension
 
-    if load_extension() is None:
-        pytest.skip("the C++ extension of renderers.splat is not built")
+    require_cpp()
     g = torch.Generator().manual_seed(7)
     Y, x = torch.rand(40, 12290, generator=g) * 2 - 1, torch.rand(1, 12290, generator=g) * 2 - 1
     want = (Y.double() - x.double()).square().sum(1)

@@ -60,7 +60,9 @@ def zoom_images(
     sx = (ty_dst * width / height) / (ty_src * w / h)
     Ay, Ax = zoom_matrix(height, h, sy), zoom_matrix(width, w, sx)
     dt = images.dtype if images.dtype in (torch.float32, torch.float64) else torch.float32
-    ext = _extension() if images.device.type == "cpu" else None
+    from renderers.splat._ext import load_extension
+
+    ext = load_extension() if images.device.type == "cpu" else None
     if ext is not None:  # the few non-zero weights per row only: ~30x faster for the prior's bank
         out = ext.zoom_taps(images.to(dt).contiguous(), *taps(Ay), *taps(Ax))
     else:
@@ -95,10 +97,3 @@ def taps(A: Tensor) -> tuple[Tensor, Tensor]:
     inside = idx < A.shape[1]
     idx = torch.where(inside, idx, torch.zeros_like(idx))
     return idx.contiguous(), torch.where(inside, torch.gather(A, 1, idx), torch.zeros((), dtype=A.dtype)).contiguous()
-
-
-def _extension():
-    """The CPU extension of renderers.splat (which holds ``zoom_taps``), or None."""
-    from renderers.splat._ext import load_extension
-
-    return load_extension()

@@ -271,17 +271,13 @@ def _sqdist(x: Tensor, Y: Tensor) -> Tensor:
     in double (relative error ~1e-8). Otherwise torch.cdist's direct mode (~5e-6 at P = 12288;
     a difference tensor and a dot product would be exact to ~1e-7 but need a [V, P] temporary,
     whose page faults made the training step 30% slower)."""
-    ext = _extension() if Y.device.type == "cpu" and Y.dtype in (torch.float32, torch.float64) else None
+    from renderers.splat._ext import load_extension
+
+    ext = load_extension() if Y.device.type == "cpu" and Y.dtype in (torch.float32, torch.float64) else None
     if ext is not None:
         return ext.sqdist_rows(x.reshape(-1).to(Y.dtype).contiguous(), Y)
     d = torch.cdist(x, Y, compute_mode="donot_use_mm_for_euclid_dist")[0].double()
     return d * d
-
-
-def _extension():
-    from renderers.splat._ext import load_extension
-
-    return load_extension()
 
 
 def bank_config_for(resolution: int, fovy_range: tuple[float, float], **kw) -> BankConfig:
