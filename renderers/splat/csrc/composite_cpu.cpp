@@ -180,14 +180,19 @@ inline void walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k, d
   // (the small Gaussians of a 64 px render); seg's cut test picks the same pixels either way
   const bool narrow = td.x1[k] - td.x0[k] < L;
   if (!narrow) sp.fill(td, k, ox, oy, ts);
+  // the blocks of each live row, written branch-free: a row's span (at most ts pixels) is
+  // ceil(ts / L) block slots, a slot kept (nb advances) where the span reaches it
+  const int32_t slots = int32_t((ts + L - 1) / L);
   int32_t nb = 0;
   for (int32_t iy = td.y0[k]; iy <= td.y1[k]; ++iy) {
     const int32_t x0 = narrow ? td.x0[k] : sp.x0[iy], x1 = narrow ? td.x1[k] : sp.x1[iy];
-    if (x0 > x1 || !row_live(iy)) continue;
-    for (int32_t c0 = x0; c0 <= x1; c0 += L, ++nb) {
+    const int32_t w = row_live(iy) ? x1 - x0 + 1 : 0;  // <= 0: nothing to visit
+    for (int32_t j = 0; j < slots; ++j) {
+      const int32_t rest = w - j * L;
       sp.by[nb] = iy;
-      sp.bx[nb] = c0;
-      sp.bm[nb] = std::min<int32_t>(L, x1 - c0 + 1);
+      sp.bx[nb] = x0 + j * L;
+      sp.bm[nb] = rest < L ? rest : L;
+      nb += rest > 0;
     }
   }
   const V lanes = iota<V>() + scalar_t(0.5);
