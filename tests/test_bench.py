@@ -80,6 +80,9 @@ def test_fixed_cost_case_draws_one_pixel_sized_gaussian_and_is_reported_apart_fr
     assert torch.equal(p.means2d.flatten(), torch.tensor([128.0, 128.0]))
     per_axis = [2 * math.floor(float(r) + 0.5) for r in p.radii.flatten()]
     assert row["pixel_pairs"] == per_axis[0] * per_axis[1] > 0
+    # the work counters: the 4 tile pairs, each a box under one block wide, so one block per row
+    # of the box in that tile (half the box's rows)
+    assert row["fwd_pairs_visited"] == 4 and row["fwd_blocks"] == 4 * per_axis[1] // 2
     fit_rows = [
         {
             "path": "splat",
@@ -104,6 +107,49 @@ def test_fit_recovers_a_linear_law():
     rows = [{"x": x, "median_s": 0.5 + 2e-3 * x} for x in (10, 200, 3000, 5000)]
     fit = bm_render._fit(rows, "x")
     assert fit["slope_s"] == pytest.approx(2e-3) and fit["intercept_s"] == pytest.approx(0.5) and fit["r2"] > 0.999
+
+
+def test_work_fit_recovers_the_fixed_cost_and_becomes_the_intercept_target():
+    """time = a + b blocks + c N on rows whose blocks and N vary independently: the fit returns
+    a, b and c, and the intercept target reads it (not the fit against intersections)."""
+    law = {"a": 2e-3, "blocks": 30e-9, "n": 200e-9}
+    rows = []
+    for n, fb, bb, inter in (
+        (1000, 3e4, 0, 9e3),
+        (10000, 4e5, 0, 2e4),
+        (100000, 2e5, 0, 7e4),
+        (30000, 1e6, 0, 5e3),
+        (1000, 3e4, 3e4, 9e3),
+        (10000, 4e5, 4e5, 2e4),
+        (100000, 2e5, 2e5, 7e4),
+        (30000, 1e6, 1e6, 5e3),
+    ):
+        mode = "fwd" if bb == 0 else "fwd+bwd"
+        t = law["a"] + law["blocks"] * (fb + bb) + law["n"] * n
+        rows.append(
+            {
+                "path": "splat",
+                "n": n,
+                "res": 256,
+                "mode": mode,
+                "status": "ok",
+                "pixels": 65536,
+                "intersections": inter,
+                "pixel_pairs": inter,
+                "median_s": t,
+                "fwd_blocks": fb,
+                "bwd_blocks": bb,
+            }
+        )
+    summary = bm_render.summarise(rows)
+    for mode in ("fwd", "fwd+bwd"):
+        w = summary["fits"][f"splat {mode}"]["vs_work"]
+        assert w["intercept_s"] == pytest.approx(law["a"], rel=1e-6) and w["r2"] > 0.999999
+        assert w["slopes_s"]["blocks"] == pytest.approx(law["blocks"], rel=1e-6)
+        assert w["slopes_s"]["n"] == pytest.approx(law["n"], rel=1e-6)
+    target = summary["targets"]["splat_fit_intercept_s"]
+    assert target["fit"] == "vs_work" and target["value"] == pytest.approx(law["a"], rel=1e-6) and target["met"]
+    assert summary["fits"]["splat fwd"]["vs_intersections"]["r2"] < 0.99  # intersections are not the work here
 
 
 def test_timeit_counts_repeats():

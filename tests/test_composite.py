@@ -160,3 +160,44 @@ def test_the_kernels_exp_is_accurate_over_its_range(cpp_extension):
         eps = torch.finfo(dtype).eps
         rel = ((got.double() - want) / want).abs()
         assert float(rel.max()) <= ulps * eps, (dtype, float(rel.max()) / eps)
+
+
+def test_work_counters_match_the_pairs_each_tile_visits(cpp_extension):
+    """The compositor's work counters (read by bm_render's work fit) against the stop indices:
+    the forward runs a tile's list until every pixel has stopped, min(n, max stop + 1) entries,
+    and the backward walks back from the deepest stop, min(n, max stop) entries."""
+    from renderers.splat import prepare
+
+    ext = cpp_extension
+    gs = random_gaussians(500, seed=11)
+    gs["opacities"] = torch.full_like(gs["opacities"], 0.95)  # large and opaque: tiles stop early
+    gs["scales"] = gs["scales"] * 4
+    cams = ring_cameras(2, 48, 40)
+    p = prepare(gs["means"], gs["quats"], gs["scales"], gs["opacities"], cams.viewmats, cams.Ks, 48, 40)
+    proj, bins = p.projection, p.bins
+    I, N = len(cams), gs["means"].shape[0]
+    args = (
+        proj.means2d.detach().reshape(I * N, 2).contiguous(),
+        proj.conics.detach().reshape(I * N, 3).contiguous(),
+        p.opacities.contiguous(),
+        gs["colors"].repeat(I, 1).contiguous(),
+        proj.depths.detach().reshape(I * N).contiguous(),
+        bins.gauss_ids,
+        bins.tile_start,
+        bins.tiles_x,
+        bins.tiles_y,
+        bins.tile_size,
+        *p.settings.blend,
+    )
+    ext.work_counters(True)
+    feat, trans, _, _, last = ext.composite_forward(*args, True, False, False)
+    fwd_pairs, fwd_blocks, _, _ = ext.work_counters(True)
+    empty = feat.new_zeros(0)
+    ext.composite_backward(*args, trans, last, torch.ones_like(feat), torch.ones_like(trans), empty, empty)
+    _, _, bwd_pairs, bwd_blocks = ext.work_counters(True)
+    n = (bins.tile_start[1:] - bins.tile_start[:-1]).long()
+    deepest = last.reshape(len(n), -1).amax(1).long()
+    assert fwd_pairs == int(torch.minimum(n, deepest + 1).sum()) > 0
+    assert bwd_pairs == int(torch.minimum(n, deepest).sum()) > 0
+    assert fwd_blocks >= fwd_pairs and bwd_blocks >= bwd_pairs  # every visited pair covers a pixel
+    assert fwd_pairs < int(n.sum())  # early termination skipped some: the case exercises it

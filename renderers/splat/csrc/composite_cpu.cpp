@@ -33,6 +33,11 @@
 
 namespace {
 
+// Work counters for benchmarks (work_counters()): tile-Gaussian pairs the forward visited, the
+// pixel blocks it evaluated, and the same two for the backward, summed over calls. Each thread
+// counts in locals and adds once per call, so the kernels pay nothing measurable.
+std::atomic<int64_t> g_work[4] = {};
+
 struct Grid {
   int64_t tiles_x, tiles_y, ts;
 };
@@ -171,7 +176,7 @@ struct Spans {
 constexpr int kGroup = 4;  // 2 and 8 measured the same or slower
 
 template <typename scalar_t, typename R, typename F>
-inline void walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k, double ox, double oy, int64_t ts,
+inline int32_t walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k, double ox, double oy, int64_t ts,
                  R&& row_live, F&& seg) {
   using V = typename Simd<scalar_t>::V;
   constexpr int L = Simd<scalar_t>::L;
@@ -219,6 +224,7 @@ inline void walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k, d
     case 1: group(std::integral_constant<int, 1>{}, b0); break;
     default: break;
   }
+  return nb;  // the blocks handed to seg
 }
 
 // Tiles in order of decreasing list length, taken one at a time by whichever thread is free:
@@ -306,6 +312,7 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
     std::vector<scalar_t> T(sa), acc(sa * D), dep(sa), wsq(sa);
     std::vector<int32_t> last(sa), live(ts);
     const V lane = iota<V>();
+    int64_t n_pairs = 0, n_blocks = 0;
     for (int64_t i = next++; i < n_tiles; i = next++) {
       const int64_t t = order[i];
       const TileIndex ti = tile_index(pt, t, grid);
@@ -326,7 +333,8 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
         }
         const scalar_t o = td.o[k], cut = td.cut[k], z = td.z[k];
         const int32_t kk = int32_t(k), nn = int32_t(n);
-        walk(td, spans, k, ti.ox, ti.oy, ts, row_live, [&](int32_t iy, int32_t c0, int32_t m, V, scalar_t, V pw, V G) {
+        ++n_pairs;
+        n_blocks += walk(td, spans, k, ti.ox, ti.oy, ts, row_live, [&](int32_t iy, int32_t c0, int32_t m, V, scalar_t, V pw, V G) {
           // branch-free over the block: a pixel outside the span or the ellipse, one that has
           // stopped, or one where alpha < alpha_min gets w = 0 and keeps its state; one where T
           // would fall below t_min stops there without adding
@@ -369,6 +377,8 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
         if (oW) oW[q] = wsq[b];
       }
     }
+    g_work[0] += n_pairs;
+    g_work[1] += n_blocks;
   });
 }
 
@@ -426,6 +436,7 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
       std::vector<int32_t> last(sa, 0), row_last(ts);
       std::vector<V> gf(D);
       const V lane = iota<V>();
+      int64_t n_pairs = 0, n_blocks = 0;
       for (int64_t t = t0; t < t1; ++t) {
         const TileIndex ti = tile_index(pt, t, grid);
         const int64_t n = ti.e - ti.s;
@@ -453,7 +464,8 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
           const scalar_t o = td.o[k], cut = td.cut[k], z = td.z[k], A = td.A[k], B = td.B[k], C = td.C[k];
           const int32_t kk = int32_t(k);
           auto row_live = [&](int32_t iy) { return k < row_last[iy]; };
-          walk(td, spans, k, ti.ox, ti.oy, ts, row_live, [&](int32_t iy, int32_t c0, int32_t m, V dx, scalar_t dy, V pw, V G) {
+          ++n_pairs;
+          n_blocks += walk(td, spans, k, ti.ox, ti.oy, ts, row_live, [&](int32_t iy, int32_t c0, int32_t m, V dx, scalar_t dy, V pw, V G) {
             const int64_t b = int64_t(iy) * rs + c0;
             // inside the span and the ellipse, and in front of the pixel's stop
             const M front = __builtin_convertvector(loadu<I>(last.data() + b) > kk, M);
@@ -499,6 +511,8 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
           for (int64_t d = 0; d < D; ++d) r[7 + d] += hsum(gf[d]);
         }
       }
+      g_work[2] += n_pairs;
+      g_work[3] += n_blocks;
     }
   });
   scalar_t* qM = pg_mean.data_ptr<scalar_t>();
@@ -538,6 +552,12 @@ torch::Tensor fast_exp(torch::Tensor x) {
     }
   });
   return out;
+}
+
+std::vector<int64_t> work_counters(bool reset) {
+  std::vector<int64_t> r(4);
+  for (int i = 0; i < 4; ++i) r[i] = reset ? g_work[i].exchange(0) : g_work[i].load();
+  return r;
 }
 
 void check(const torch::Tensor& x, const char* name) {
@@ -602,5 +622,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sh_forward", &sh_forward, "SH colour, forward only (CPU)");
   m.def("zoom_taps", &zoom_taps, "Separable resampling of image stacks by taps (CPU; gdbench.assets.zoom)");
   m.def("sqdist_rows", &sqdist_rows, "Squared distances of one vector to the rows of a matrix, in double (CPU; gdbench.priors.empirical)");
+  m.def("work_counters", &work_counters, py::arg("reset") = true,
+        "Compositor work since the last reset: [forward tile-Gaussian pairs visited, forward pixel blocks "
+        "evaluated, backward pairs, backward blocks] (for benchmarks' work fits)");
   m.def("fast_exp", &fast_exp, "The compositor's exp on [-80, 0] (for tests)");
 }
