@@ -94,6 +94,8 @@ struct Shapes {
   }
 };
 
+constexpr int64_t kAhead = 8;  // list entries the gathers prefetch ahead
+
 template <typename scalar_t>
 struct TileData {
   std::vector<scalar_t> mx, my, A, B, C, o, z, f, cut;
@@ -114,6 +116,15 @@ struct TileData {
     }
     const int32_t last = int32_t(ts - 1);
     for (int64_t k = k0; k < k1; ++k) {
+      if (k + kAhead < n) {  // the list is in depth order, so g jumps: fetch ahead of the gathers
+        const int64_t h = gids[s + k + kAhead];
+        __builtin_prefetch(means2d + 2 * h);
+        __builtin_prefetch(conics + 3 * h);
+        __builtin_prefetch(opac + h);
+        __builtin_prefetch(depths + h);
+        __builtin_prefetch(feats + h * D);
+        __builtin_prefetch(&sh.of[h]);
+      }
       const int64_t g = gids[s + k];
       mx[k] = means2d[2 * g]; my[k] = means2d[2 * g + 1];
       A[k] = conics[3 * g]; B[k] = conics[3 * g + 1]; C[k] = conics[3 * g + 2];
