@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -30,8 +31,13 @@ def check_tensor(name: str, x: object, *, finite: bool = True) -> Tensor:
 
 def all_finite(x: Tensor) -> bool:
     """Whether every entry is finite. A finite sum proves it in one reduction (NaN and Inf
-    propagate through a sum); only a non-finite sum (or an overflow) looks entry by entry."""
+    propagate through a sum); only a non-finite sum (or an overflow) looks entry by entry.
+    CPU tensors are read through numpy (the same data, no copy): a fifth of torch's per-call
+    cost on the small tensors a render checks (~6 against ~30 us)."""
     x = x.detach()
+    if x.device.type == "cpu":
+        a = x.numpy()
+        return bool(np.isfinite(a.sum())) or bool(np.isfinite(a).all())
     return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
 
 
@@ -147,23 +153,24 @@ def check_cameras(viewmats: Tensor, Ks: Tensor, tol: float = 1e-3) -> None:
     intrinsics a pinhole with positive focal lengths (pixel units)."""
     if not viewmats.numel():
         return
-    viewmats, Ks = viewmats.detach(), Ks.detach()  # value checks: no graph, no scalar-from-grad warnings
-    f = torch.stack([Ks[..., 0, 0], Ks[..., 1, 1]], -1)
+    # in float64 numpy on the host: a few small arrays, where torch's per-operation cost made this
+    # check 0.33 ms of every render (no graph, no scalar-from-grad warnings)
+    viewmats = viewmats.detach().cpu().double().numpy()
+    Ks = Ks.detach().cpu().double().numpy()
+    f = np.stack([Ks[..., 0, 0], Ks[..., 1, 1]], -1)
     if bool((f <= 0).any()):
         raise ValueError(f"Ks: expected positive focal lengths fx, fy (pixels), got minimum {float(f.min()):g}")
-    R = viewmats[..., :3, :3].double()
-    eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    ortho = float((R @ R.transpose(-1, -2) - eye).abs().amax())
-    det = (R[..., 0, :] * torch.linalg.cross(R[..., 1, :], R[..., 2, :])).sum(-1)  # the triple product
-    if ortho > tol or float((det - 1).abs().amax()) > tol:
+    R = viewmats[..., :3, :3]
+    ortho = float(np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max())
+    a, b = [1, 2, 0], [2, 0, 1]  # the triple product R0 . (R1 x R2) (np.cross costs 30 us)
+    det = (R[..., 0, :] * (R[..., 1, a] * R[..., 2, b] - R[..., 1, b] * R[..., 2, a])).sum(-1)
+    if ortho > tol or float(np.abs(det - 1).max()) > tol:
         raise ValueError(
             "viewmats: expected world-to-camera rigid transforms whose 3x3 block is a rotation "
             f"(R R^T = I, det R = 1; got max |R R^T - I| = {ortho:.3g}, det R in "
             f"[{float(det.min()):.3g}, {float(det.max()):.3g}])"
         )
-    bottom = viewmats[..., 3, :].double()
-    want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=bottom.dtype, device=bottom.device)
-    if float((bottom - want).abs().amax()) > tol:
+    if float(np.abs(viewmats[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max()) > tol:
         raise ValueError("viewmats: expected the last row [0, 0, 0, 1]")
 
 
