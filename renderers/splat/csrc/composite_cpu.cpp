@@ -379,13 +379,15 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
           if (want_wsq) storeu(wsq.data() + p0, loadu<V>(wsq.data() + p0) + w * w);
         });
       }
-      for (int64_t p = 0; p < area; ++p) {
-        const int64_t q = t * area + p, b = p / ts * rs + p % ts;
-        oT[q] = T[b];
-        oL[q] = last[b];
-        if (oF) for (int64_t d = 0; d < D; ++d) oF[q * D + d] = acc[d * sa + b];
-        if (oD) oD[q] = dep[b];
-        if (oW) oW[q] = wsq[b];
+      for (int64_t py = 0; py < ts; ++py) {  // rows and columns: no integer division per pixel
+        for (int64_t px = 0; px < ts; ++px) {
+          const int64_t q = t * area + py * ts + px, b = py * rs + px;
+          oT[q] = T[b];
+          oL[q] = last[b];
+          if (oF) for (int64_t d = 0; d < D; ++d) oF[q * D + d] = acc[d * sa + b];
+          if (oD) oD[q] = dep[b];
+          if (oW) oW[q] = wsq[b];
+        }
       }
     }
     g_work[0] += n_pairs;
@@ -455,17 +457,19 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
         const int64_t base = t * area;
         int32_t deepest = 0;  // Gaussians at or behind every pixel's stop contribute nothing
         std::fill(row_last.begin(), row_last.end(), int32_t(0));
-        for (int64_t p = 0; p < area; ++p) {
-          const int64_t q = base + p, b = p / ts * rs + p % ts;
-          T[b] = Tf[b] = pTf[q];
-          S[b] = 0.0;
-          last[b] = pL[q];
-          if (gT) bT[b] = gT[q];
-          if (gD) bD[b] = gD[q];
-          if (gW) bW[b] = gW[q];
-          if (gF) for (int64_t d = 0; d < D; ++d) bF[d * sa + b] = gF[q * D + d];
-          deepest = std::max(deepest, pL[q]);
-          row_last[p / ts] = std::max(row_last[p / ts], pL[q]);
+        for (int64_t py = 0; py < ts; ++py) {  // rows and columns: no integer division per pixel
+          for (int64_t px = 0; px < ts; ++px) {
+            const int64_t q = base + py * ts + px, b = py * rs + px;
+            T[b] = Tf[b] = pTf[q];
+            S[b] = 0.0;
+            last[b] = pL[q];
+            if (gT) bT[b] = gT[q];
+            if (gD) bD[b] = gD[q];
+            if (gW) bW[b] = gW[q];
+            if (gF) for (int64_t d = 0; d < D; ++d) bF[d * sa + b] = gF[q * D + d];
+            deepest = std::max(deepest, pL[q]);
+            row_last[py] = std::max(row_last[py], pL[q]);
+          }
         }
         td.load(pm, pc, po, pf, pz, D, shapes, pg, ti.s, n, 0, std::min<int64_t>(n, deepest), ti.ox, ti.oy, ts);
         for (int64_t k = std::min<int64_t>(n, deepest) - 1; k >= 0; --k) {
