@@ -281,6 +281,10 @@ def _roofline(out: dict, find) -> None:
             out["roofline"][f"splat {mode} 10k 256"] = flop_fraction(
                 int(r["pixel_pairs"]), float(r["median_s"]), mode, peak
             )
+        if r and r.get("fwd_blocks"):  # the lanes the forward evaluated (8 per block), counted
+            out["roofline"][f"splat {mode} 10k 256, counted lanes"] = flop_fraction(
+                int(r["fwd_blocks"]) * 8, float(r["median_s"]), mode, peak
+            ) | {"pairs_are": "8 x the forward's blocks (work_counters): early termination and the spans, counted"}
     # the fixed cost is the intercept of the fit against the work done (blocks and N) where the
     # compositor's counters are at hand; against intersections (most of which early termination
     # skips: 32k of 74k visited at 10k/256 px) it also holds per-pixel and per-Gaussian work

@@ -3,7 +3,10 @@ render (pixel-Gaussian pairs the compositor evaluates, times the operations per 
 the machine's measured peak (a float32 matrix product on the same threads, in the same run).
 
 The pairs are counted from the projection: every Gaussian visits the pixel centres of its
-alpha >= alpha_min box inside the image (an upper bound: early termination skips some).
+alpha >= alpha_min box inside the image (an upper bound: early termination skips most of them
+in a dense scene). ``bm_render`` also reports the bound for the lanes the C++ forward evaluated,
+8 per block of its work counters (at 10k Gaussians, 256 px: 3.2M lanes against 7.8M box pairs),
+the closer measure of the work done.
 Operations per pair, forward: the power (10), exp (about 20: range reduction and a degree-7
 polynomial), alpha, the clamp and the transmittance (5), and the accumulation of D colour
 channels, depth and weight_sq (2 D + 4): 45 for RGB. The backward recomputes the forward's
