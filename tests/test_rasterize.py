@@ -116,6 +116,25 @@ def test_same_input_same_output(compositor):
     assert all(torch.equal(a, b) for a, b in zip(runs[0][1], runs[1][1]))
 
 
+def test_a_render_without_gradients_gives_the_bits_of_one_with_them(compositor):
+    """Without anything to differentiate the C++ path calls its kernels without the autograd
+    Functions, and a render without alpha, depth or background lays out no transmittance: every
+    output must keep the bits of the differentiable render."""
+    gs = random_gaussians(300, seed=4)
+    cams = ring_cameras(2, 40, 40)
+    names = ("rgb", "alpha", "depth", "weight_sq")
+    params = [p.requires_grad_(True) for p in _args(gs)]
+    ref = rasterize(*params, cams.viewmats, cams.Ks, 40, 40, outputs=names, backend=compositor)
+    with torch.no_grad():
+        plain = rasterize(*params, cams.viewmats, cams.Ks, 40, 40, outputs=names, backend=compositor)
+        lean = rasterize(*params, cams.viewmats, cams.Ks, 40, 40, outputs=("rgb", "weight_sq"), backend=compositor)
+    assert float(ref.alpha.detach().max()) > 0.5 and ref.rgb.requires_grad and not plain.rgb.requires_grad
+    for n in names:
+        assert torch.equal(getattr(plain, n), getattr(ref, n).detach()), n
+    assert torch.equal(lean.rgb, ref.rgb.detach()) and torch.equal(lean.weight_sq, ref.weight_sq.detach())
+    assert lean.alpha is None and lean.depth is None
+
+
 # ------------------------------------------------------------------ extreme cases
 def _single(z, scale, opacity=0.8, quat=(1.0, 0.0, 0.0, 0.0), n=1, dtype=torch.float32):
     t = lambda x: torch.tensor(x, dtype=dtype).expand(n, -1).clone()  # noqa: E731

@@ -129,6 +129,13 @@ def composite(
 ) -> Outputs:
     """Differentiable tiled compositing; outputs in tile layout, None where not requested."""
     backend = resolve_backend(backend, splats.means2d.device)
+    if backend == "cpp" and not (torch.is_grad_enabled() and any(t.requires_grad for t in splats)):
+        # nothing to differentiate: the kernel without the autograd Function's bookkeeping
+        feat, trans, dep, wsq, _ = load_extension().composite_forward(
+            *(x.contiguous() for x in splats), bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y,
+            bins.tile_size, *blend, features, depth, weight_sq,
+        )  # fmt: skip
+        return Outputs(feat if features else None, trans, dep if depth else None, wsq if weight_sq else None)
     feat, trans, dep, wsq = _Composite.apply(
         *splats, bins, n_images, blend, (features, depth, weight_sq), budget, backend
     )

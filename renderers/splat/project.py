@@ -210,7 +210,12 @@ def project_cpu(
         Ks.reshape(Bt, C, 3, 3).contiguous(),
     )
     settings = (width, height, near_plane, far_plane, eps2d, alpha_min)
-    m2d, con, dep, rad, vis = _ProjectCPU.apply(*flat, settings)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in flat[:3]):
+        m2d, con, dep, rad, vis = _ProjectCPU.apply(*flat, settings)
+    else:  # nothing to differentiate: the kernel without the autograd Function's bookkeeping
+        from ._ext import load_extension
+
+        m2d, con, dep, rad, vis = load_extension().project_forward(*flat, *settings)
     lead = batch + (C, N)
     return Projection(
         m2d.reshape(lead + (2,)),
