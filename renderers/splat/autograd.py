@@ -40,6 +40,15 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     return "cpp"
 
 
+def _cpp_forward(splats: Splats, bins: TileBins, blend: BlendParams, want: tuple[bool, bool, bool]):
+    """The C++ compositor's forward: features, transmittance, depth, weight_sq (tile layout; empty
+    where not wanted) and each pixel's stop index."""
+    return load_extension().composite_forward(
+        *(x.contiguous() for x in splats), bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y,
+        bins.tile_size, *blend, *want,
+    )  # fmt: skip
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(  # type: ignore[override]
@@ -60,9 +69,7 @@ class _Composite(torch.autograd.Function):
         last = None
         if backend == "cpp":
             chunks = None
-            feat, trans, dep, wsq, last = load_extension().composite_forward(
-                *splats, bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y, bins.tile_size, *blend, *want
-            )
+            feat, trans, dep, wsq, last = _cpp_forward(splats, bins, blend, want)
         else:
             chunks = plan_chunks(bins, budget)
             out = composite_forward(
@@ -129,14 +136,10 @@ def composite(
 ) -> Outputs:
     """Differentiable tiled compositing; outputs in tile layout, None where not requested."""
     backend = resolve_backend(backend, splats.means2d.device)
+    want = (features, depth, weight_sq)
     if backend == "cpp" and not (torch.is_grad_enabled() and any(t.requires_grad for t in splats)):
         # nothing to differentiate: the kernel without the autograd Function's bookkeeping
-        feat, trans, dep, wsq, _ = load_extension().composite_forward(
-            *(x.contiguous() for x in splats), bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y,
-            bins.tile_size, *blend, features, depth, weight_sq,
-        )  # fmt: skip
-        return Outputs(feat if features else None, trans, dep if depth else None, wsq if weight_sq else None)
-    feat, trans, dep, wsq = _Composite.apply(
-        *splats, bins, n_images, blend, (features, depth, weight_sq), budget, backend
-    )
+        feat, trans, dep, wsq, _ = _cpp_forward(splats, bins, blend, want)
+    else:
+        feat, trans, dep, wsq = _Composite.apply(*splats, bins, n_images, blend, want, budget, backend)
     return Outputs(feat if features else None, trans, dep if depth else None, wsq if weight_sq else None)

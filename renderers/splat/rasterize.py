@@ -154,8 +154,9 @@ def _composite_images(p: Prepared, feats: Tensor, per_camera: bool, D: int, back
         return x.reshape(batch + (C, height, width, x.shape[-1]))
 
     if want & {"alpha", "depth"} or (background is not None and "rgb" in want):
-        T = untile(out.transmittance)
-        rgb, alpha, depth = finish_images(untile(out.features), T, untile(out.depth), background)
+        rgb, alpha, depth = finish_images(
+            untile(out.features), untile(out.transmittance), untile(out.depth), background
+        )
     else:  # the features as they are: no transmittance to lay out (structured noise: rgb and weight_sq)
         rgb, alpha, depth = untile(out.features), None, None
     result |= {"rgb": rgb, "alpha": alpha if "alpha" in want else None, "depth": depth}
