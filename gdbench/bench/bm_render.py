@@ -174,7 +174,7 @@ def compositor_work(path: str, fn: Callable[[], object]) -> dict:
     from renderers.splat._ext import load_extension
 
     ext = load_extension() if path in ("splat", FIXED[0]) else None
-    if ext is None or not hasattr(ext, "work_counters"):
+    if ext is None:
         return {}
     ext.work_counters(True)
     fn()
