@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from .camera import Cameras
+from .rand import randn
 
 Redraw = Literal["step", "run", "ou"]
 RatioMode = Literal["amplitude", "variance"]
@@ -160,7 +161,7 @@ def advance_colors(state: NoiseState, redraw: Redraw, *, beta: float = 0.1, gene
     c = state.colors
     if redraw == "run":
         return NoiseState(c, state.step + 1)
-    eps = torch.randn(c.shape, generator=generator, device=generator.device).to(c)
+    eps = randn(c.shape, generator=generator).to(c)
     if redraw == "step":
         return NoiseState(eps, state.step + 1)
     if redraw == "ou":
@@ -236,7 +237,7 @@ class NoiseRenderer:
             V = out.weight_sq
             covered = V >= self.v_min if self.v_min > 0 else V > 0
             n_s = out.rgb / torch.sqrt(torch.where(covered, V, torch.ones_like(V)))
-            iid = torch.randn(out.rgb.shape, generator=generator, device=generator.device).to(n_s)
+            iid = randn(out.rgb.shape, generator=generator).to(n_s)
             noise = torch.where(covered, n_s, iid)
         return StructuredNoise(noise, covered.to(noise.dtype))
 
@@ -265,7 +266,7 @@ def mix(structured: Tensor, ratio: float, *, generator: torch.Generator, mode: R
     ``structured`` (so a run without structured noise, drawing its noise from the same stream,
     sees the same iid field)."""
     a = structured_amplitude(ratio, mode)
-    iid = torch.randn(structured.shape, generator=generator, device=generator.device).to(structured)
+    iid = randn(structured.shape, generator=generator).to(structured)
     return a * structured + math.sqrt(1 - a * a) * iid
 
 

@@ -17,6 +17,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from .rand import randn
+
 
 def vp_level(sigma: float) -> float:
     """s(sigma) = sigma / sqrt(1 + sigma^2), in [0, 1)."""
@@ -48,7 +50,7 @@ def jitter(
     amp = gamma * vp_level(sigma)
 
     def noise(x: Tensor) -> Tensor:
-        return torch.randn(x.shape, generator=generator, device=generator.device).to(x)
+        return randn(x.shape, generator=generator).to(x)
 
     m = means + (amp * scene_radius) * noise(means) if "means" in parts else means
     s = log_scales + amp * noise(log_scales) if "log_scales" in parts else log_scales

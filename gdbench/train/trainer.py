@@ -32,6 +32,7 @@ from torch import Tensor
 
 from ..camera import Cameras, SphericalPoses
 from ..noise import NoiseRenderer, NoiseState, advance_colors, init_colors, make_noise_cloud, mix, ratio_schedule
+from ..rand import randn
 from ..scene import GaussianScene
 from ..variational import jitter
 from .config import TrainConfig
@@ -287,7 +288,7 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
     cfg = ctx.cfg
     iid = state.streams["noise_iid"]
     if ctx.noise is None:
-        return [torch.randn(shape, generator=iid) for _ in range(cfg.samples_per_step)]
+        return [randn(shape, generator=iid) for _ in range(cfg.samples_per_step)]
     colors = state.noise_colors
     if state.step > 0:  # step 0 uses the initial draw
         nc = NoiseState(colors)

@@ -2,7 +2,8 @@
 the projection and tile binning (``csrc/project_cpu.cpp``), the SH colour without gradients
 (``csrc/sh_cpu.cpp``) and, for the empirical prior's image bank, the separable zoom of
 ``gdbench.assets.zoom`` and the squared distances of ``gdbench.priors.empirical``
-(``csrc/bank_cpu.cpp``).
+(``csrc/bank_cpu.cpp``), and the training step's normal draws (``gdbench.rand``,
+``csrc/normal_cpu.cpp``).
 
 The built module lives in one file, ``<cache>/gdbench_splat_cpu_<hash of the sources>.so``
 (``<cache>`` is ``$GDBENCH_CACHE/ext/torch<version>-py<version>``, default under
@@ -31,7 +32,13 @@ from types import ModuleType
 
 _STATE: dict[str, object] = {}
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp", CSRC / "sh_cpu.cpp", CSRC / "bank_cpu.cpp")
+SOURCES = (
+    CSRC / "composite_cpu.cpp",
+    CSRC / "project_cpu.cpp",
+    CSRC / "sh_cpu.cpp",
+    CSRC / "bank_cpu.cpp",
+    CSRC / "normal_cpu.cpp",
+)
 HEADERS = (CSRC / "splat_cpu.h", CSRC / "simd.h")
 
 

@@ -1,5 +1,5 @@
 // Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp, sh_cpu.cpp
-// and bank_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
+// bank_cpu.cpp and normal_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
 #pragma once
 #include <torch/extension.h>
 
@@ -28,3 +28,7 @@ torch::Tensor zoom_taps(const torch::Tensor& images, const torch::Tensor& iy, co
                         const torch::Tensor& ix, const torch::Tensor& wx);
 
 torch::Tensor sqdist_rows(const torch::Tensor& x, const torch::Tensor& Y);
+
+torch::Tensor philox_normal(int64_t n, int64_t seed);
+std::vector<int64_t> philox4x32(std::vector<int64_t> counter, std::vector<int64_t> key);
+torch::Tensor normal_parts(const torch::Tensor& u, int64_t which);
