@@ -221,7 +221,9 @@ inline int32_t walk(const TileData<scalar_t>& td, Spans<scalar_t>& sp, int64_t k
       dy[g] = scalar_t(oy + sp.by[b]) + scalar_t(0.5) - my;
       // scalar_t(ox + c0 + j) + 0.5 - mx: integers and halves below 2^24 are exact in float
       dx[g] = (splat<V>(scalar_t(ox + sp.bx[b])) + lanes) - mx;
-      pw[g] = scalar_t(-0.5) * (A * dx[g] * dx[g] + C * dy[g] * dy[g]) - B * dx[g] * dy[g];
+      // -1/2 (A dx^2 + C dy^2) - B dx dy, two of its steps fused (the same code in both passes)
+      const V q = fmadd(A * dx[g], dx[g], splat<V>(C * dy[g] * dy[g]));
+      pw[g] = fmadd(splat<V>(scalar_t(-0.5)), q, -(B * dx[g] * dy[g]));
       G[g] = vexp(pw[g]);
     }
     for (int g = 0; g < n; ++g) seg(sp.by[b0 + g], sp.bx[b0 + g], sp.bm[b0 + g], dx[g], dy[g], pw[g], G[g]);
@@ -370,13 +372,13 @@ void forward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, con
           for (int64_t d = 0; want_feat && d < D; ++d) {
             scalar_t* ap = acc.data() + d * sa + p0;
             const V a = loadu<V>(ap);
-            storeu(ap, adds ? a + w * td.f[k * D + d] : a);
+            storeu(ap, adds ? fmadd(w, splat<V>(td.f[k * D + d]), a) : a);
           }
           if (want_depth) {
             const V a = loadu<V>(dep.data() + p0);
-            storeu(dep.data() + p0, adds ? a + w * z : a);
+            storeu(dep.data() + p0, adds ? fmadd(w, splat<V>(z), a) : a);
           }
-          if (want_wsq) storeu(wsq.data() + p0, loadu<V>(wsq.data() + p0) + w * w);
+          if (want_wsq) storeu(wsq.data() + p0, fmadd(w, w, loadu<V>(wsq.data() + p0)));
         });
       }
       for (int64_t py = 0; py < ts; ++py) {  // rows and columns: no integer division per pixel
