@@ -49,7 +49,35 @@ def _cpp_forward(splats: Splats, bins: TileBins, blend: BlendParams, want: tuple
     )  # fmt: skip
 
 
+def tiles_to_images(x: Tensor, bins: TileBins, size: tuple[int, int]) -> Tensor:
+    """[T, area] or [T, area, D] in tile layout -> [I, H, W, 1 or D] images (``size`` = (H, W));
+    an empty tensor (an output not asked for) stays empty."""
+    if x.numel() == 0:
+        return x
+    ts, ty, tx = bins.tile_size, bins.tiles_y, bins.tiles_x
+    x = x.reshape(-1, ty, tx, ts, ts, 1 if x.dim() == 2 else x.shape[-1]).permute(0, 1, 3, 2, 4, 5)
+    x = x.reshape(x.shape[0], ty * ts, tx * ts, x.shape[-1])
+    H, W = size
+    return x if (ty * ts, tx * ts) == (H, W) else x[:, :H, :W].contiguous()
+
+
+def images_to_tiles(g: Tensor, bins: TileBins, size: tuple[int, int], channels: bool) -> Tensor:
+    """The inverse of ``tiles_to_images`` for gradients: [I, H, W, d] -> [T, area(, d)], zero in
+    the tiles' padding beyond the image."""
+    ts, ty, tx = bins.tile_size, bins.tiles_y, bins.tiles_x
+    H, W = size
+    if (ty * ts, tx * ts) != (H, W):
+        full = g.new_zeros(g.shape[0], ty * ts, tx * ts, g.shape[-1])
+        full[:, :H, :W] = g
+        g = full
+    g = g.reshape(-1, ty, ts, tx, ts, g.shape[-1]).permute(0, 1, 3, 2, 4, 5)
+    return g.reshape((-1, ts * ts) + ((g.shape[-1],) if channels else ()))
+
+
 class _Composite(torch.autograd.Function):
+    """Flattens its inputs to the kernels' [I N, .] and lays their tile outputs out as images
+    [I, H, W, .] inside the Function: those views and copies are then no autograd nodes."""
+
     @staticmethod
     def forward(  # type: ignore[override]
         ctx: Any,
@@ -64,8 +92,10 @@ class _Composite(torch.autograd.Function):
         want: tuple[bool, bool, bool],
         budget: int,
         backend: str,
+        size: tuple[int, int],
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        splats = Splats(*(x.contiguous() for x in (means2d, conics, opacities, features, depths)))
+        ctx.shapes = [x.shape for x in (means2d, conics, opacities, features, depths)]
+        splats = _flat(means2d, conics, opacities, features, depths)
         last = None
         if backend == "cpp":
             chunks = None
@@ -78,11 +108,11 @@ class _Composite(torch.autograd.Function):
             empty = means2d.new_zeros(0)
             feat, trans, dep, wsq = (x if x is not None else empty for x in out)
         ctx.save_for_backward(*splats)
-        ctx.bins, ctx.chunks, ctx.blend, ctx.want, ctx.backend = bins, chunks, blend, want, backend
+        ctx.bins, ctx.chunks, ctx.blend, ctx.want, ctx.backend, ctx.size = bins, chunks, blend, want, backend, size
         # the C++ backward runs back to front from each pixel's final transmittance and stop index
         ctx.trans, ctx.last = (trans.detach(), last) if last is not None else (None, None)
-        results = (feat, dep, wsq)
-        for r, w in zip(results, want, strict=True):
+        feat, trans, dep, wsq = (tiles_to_images(x, bins, size) for x in (feat, trans, dep, wsq))
+        for r, w in zip((feat, dep, wsq), want, strict=True):
             if not w:
                 ctx.mark_non_differentiable(r)
         return feat, trans, dep, wsq
@@ -91,15 +121,19 @@ class _Composite(torch.autograd.Function):
     def backward(ctx: Any, g_feat: Tensor, g_trans: Tensor, g_depth: Tensor, g_wsq: Tensor):  # type: ignore[override]
         splats = Splats(*ctx.saved_tensors)
         bins: TileBins = ctx.bins
-        want = ctx.want
+        want, size = ctx.want, ctx.size
         ref = splats.means2d
         n_tiles = bins.tile_start.numel() - 1
         area = bins.tile_size**2
+
+        def tiles(g: Tensor | None, wanted: bool, channels: bool = False) -> Tensor | None:
+            return images_to_tiles(g, bins, size, channels) if wanted and g is not None else None
+
         grads = Outputs(
-            g_feat if want[0] and g_feat is not None else None,
-            g_trans if g_trans is not None else ref.new_zeros(n_tiles, area),
-            g_depth if want[1] and g_depth is not None else None,
-            g_wsq if want[2] and g_wsq is not None else None,
+            tiles(g_feat, want[0], channels=True),
+            tiles(g_trans, True) if g_trans is not None else ref.new_zeros(n_tiles, area),
+            tiles(g_depth, want[1]),
+            tiles(g_wsq, want[2]),
         )
         if ctx.backend == "cpp":
             empty = ref.new_zeros(0)
@@ -119,7 +153,19 @@ class _Composite(torch.autograd.Function):
             )
         else:
             g = composite_backward(splats, bins, ctx.chunks, ctx.blend, grads)
-        return g.means2d, g.conics, g.opacities, g.features, g.depths, None, None, None, None, None, None
+        g = [x.reshape(shape) for x, shape in zip(g, ctx.shapes, strict=True)]
+        return (*g, None, None, None, None, None, None, None)
+
+
+def _flat(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor) -> Splats:
+    """The compositor's flat [I N, .] inputs (contiguous) from per-image ones [..., N, .]."""
+    return Splats(
+        means2d.reshape(-1, 2).contiguous(),
+        conics.reshape(-1, 3).contiguous(),
+        opacities.reshape(-1).contiguous(),
+        features.reshape(-1, features.shape[-1]).contiguous(),
+        depths.reshape(-1).contiguous(),
+    )
 
 
 def composite(
@@ -128,18 +174,24 @@ def composite(
     n_images: int,
     blend: BlendParams,
     *,
+    size: tuple[int, int],
     features: bool = True,
     depth: bool = False,
     weight_sq: bool = False,
+    transmittance: bool = True,
     budget: int = 1 << 22,
     backend: str = "auto",
 ) -> Outputs:
-    """Differentiable tiled compositing; outputs in tile layout, None where not requested."""
+    """Differentiable tiled compositing of per-image inputs [I, N, .] (any leading shape that
+    flattens to I N); outputs are images [I, H, W, 1 or D] (``size`` = (H, W)), None where not
+    requested (``transmittance=False`` lets a render without gradients skip laying out T)."""
     backend = resolve_backend(backend, splats.means2d.device)
     want = (features, depth, weight_sq)
     if backend == "cpp" and not (torch.is_grad_enabled() and any(t.requires_grad for t in splats)):
         # nothing to differentiate: the kernel without the autograd Function's bookkeeping
-        feat, trans, dep, wsq, _ = _cpp_forward(splats, bins, blend, want)
+        feat, trans, dep, wsq = _cpp_forward(_flat(*splats), bins, blend, want)[:4]
+        trans = tiles_to_images(trans, bins, size) if transmittance else None
+        feat, dep, wsq = (tiles_to_images(x, bins, size) for x in (feat, dep, wsq))
     else:
-        feat, trans, dep, wsq = _Composite.apply(*splats, bins, n_images, blend, want, budget, backend)
+        feat, trans, dep, wsq = _Composite.apply(*splats, bins, n_images, blend, want, budget, backend, size)
     return Outputs(feat if features else None, trans, dep if depth else None, wsq if weight_sq else None)

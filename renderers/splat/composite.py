@@ -63,10 +63,11 @@ class Splats(NamedTuple):
 
 
 class Outputs(NamedTuple):
-    """Compositor outputs in tile layout [T, tile_size^2, ...]; None when not requested."""
+    """Compositor outputs, None when not requested: in tile layout [T, tile_size^2, ...] from this
+    module's passes, as images [I, H, W, 1 or D] from ``autograd.composite``."""
 
     features: Tensor | None
-    transmittance: Tensor
+    transmittance: Tensor | None
     depth: Tensor | None
     weight_sq: Tensor | None
 

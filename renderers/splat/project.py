@@ -158,16 +158,19 @@ def view_dirs(means: Float[Tensor, "*B N 3"], viewmats: Float[Tensor, "*B C 4 4"
 
 class _ProjectCPU(torch.autograd.Function):
     """``project`` by the C++ extension (``csrc/project_cpu.cpp``), with its hand-written backward
-    (gradients reach means, quats and scales; radii and visibility carry none)."""
+    (gradients reach means, quats and scales; radii and visibility carry none). The inputs are
+    flattened to the kernel's [Bt, N, .] and the outputs shaped [*B, C, N, .] inside the Function,
+    so those views are no autograd nodes (a training step walked ~11 of them)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, settings):  # type: ignore[override]
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, settings, lead):  # type: ignore[override]
         from ._ext import load_extension
 
-        ext = load_extension()
-        m2d, con, dep, rad, vis = ext.project_forward(means, quats, scales, opacities, viewmats, Ks, *settings)
-        ctx.save_for_backward(means, quats, scales, viewmats, Ks)
-        ctx.settings = settings
+        flat = _flatten(means, quats, scales, opacities, viewmats, Ks)
+        outs = load_extension().project_forward(*flat, *settings)
+        ctx.save_for_backward(*flat[:3], *flat[4:])
+        ctx.settings, ctx.shapes = settings, (means.shape, quats.shape, scales.shape)
+        m2d, con, dep, rad, vis = _shape_outputs(outs, lead)
         ctx.mark_non_differentiable(rad, vis)
         return m2d, con, dep, rad, vis
 
@@ -179,7 +182,33 @@ class _ProjectCPU(torch.autograd.Function):
         empty = means.new_zeros(0)
         grads = (g.contiguous() if g is not None else empty for g in (g_m2d, g_con, g_dep))
         gm, gq, gs = load_extension().project_backward(means, quats, scales, viewmats, Ks, *ctx.settings, *grads)
-        return gm, gq, gs, None, None, None, None
+        sm, sq, ss = ctx.shapes
+        return gm.reshape(sm), gq.reshape(sq), gs.reshape(ss), None, None, None, None, None
+
+
+def _flatten(means, quats, scales, opacities, viewmats, Ks) -> tuple[Tensor, ...]:
+    """The kernel's contiguous [Bt, N, .] and [Bt, C, ., .] views of ``project_cpu``'s inputs."""
+    N, C = means.shape[-2], viewmats.shape[-3]
+    Bt = int(torch.Size(means.shape[:-2]).numel())
+    return (
+        means.reshape(Bt, N, 3).contiguous(),
+        quats.reshape(Bt, N, 4).contiguous(),
+        scales.reshape(Bt, N, 3).contiguous(),
+        opacities.reshape(Bt, N).contiguous(),
+        viewmats.reshape(Bt, C, 4, 4).contiguous(),
+        Ks.reshape(Bt, C, 3, 3).contiguous(),
+    )
+
+
+def _shape_outputs(outs, lead: tuple[int, ...]) -> tuple[Tensor, ...]:
+    m2d, con, dep, rad, vis = outs
+    return (
+        m2d.reshape(lead + (2,)),
+        con.reshape(lead + (3,)),
+        dep.reshape(lead),
+        rad.reshape(lead + (2,)),
+        vis.reshape(lead),
+    )
 
 
 def project_cpu(
@@ -199,28 +228,12 @@ def project_cpu(
 ) -> Projection:
     """``project`` fused in C++ (CPU tensors; the C++ extension must be loaded). Same results as
     ``project`` to float rounding; gradients for means, quats and scales only (not the cameras)."""
-    batch, N, C = means.shape[:-2], means.shape[-2], viewmats.shape[-3]
-    Bt = int(torch.Size(batch).numel())
-    flat = (
-        means.reshape(Bt, N, 3).contiguous(),
-        quats.reshape(Bt, N, 4).contiguous(),
-        scales.reshape(Bt, N, 3).contiguous(),
-        opacities.reshape(Bt, N).contiguous(),
-        viewmats.reshape(Bt, C, 4, 4).contiguous(),
-        Ks.reshape(Bt, C, 3, 3).contiguous(),
-    )
+    lead = tuple(means.shape[:-2]) + (viewmats.shape[-3], means.shape[-2])
     settings = (width, height, near_plane, far_plane, eps2d, alpha_min)
-    if torch.is_grad_enabled() and any(t.requires_grad for t in flat[:3]):
-        m2d, con, dep, rad, vis = _ProjectCPU.apply(*flat, settings)
-    else:  # nothing to differentiate: the kernel without the autograd Function's bookkeeping
-        from ._ext import load_extension
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales)):
+        return Projection(*_ProjectCPU.apply(means, quats, scales, opacities, viewmats, Ks, settings, lead))
+    # nothing to differentiate: the kernel without the autograd Function's bookkeeping
+    from ._ext import load_extension
 
-        m2d, con, dep, rad, vis = load_extension().project_forward(*flat, *settings)
-    lead = batch + (C, N)
-    return Projection(
-        m2d.reshape(lead + (2,)),
-        con.reshape(lead + (3,)),
-        dep.reshape(lead),
-        rad.reshape(lead + (2,)),
-        vis.reshape(lead),
-    )
+    flat = _flatten(means, quats, scales, opacities, viewmats, Ks)
+    return Projection(*_shape_outputs(load_extension().project_forward(*flat, *settings), lead))

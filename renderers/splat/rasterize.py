@@ -134,33 +134,26 @@ def _composite_images(p: Prepared, feats: Tensor, per_camera: bool, D: int, back
         return RenderOutput(**result)
     I = C * int(torch.Size(batch).numel())
     feats = feats if per_camera else feats[..., None, :, :].expand(batch + (C, N, D))
-    flat = Splats(
-        proj.means2d.reshape(I * N, 2),
-        proj.conics.reshape(I * N, 3),
-        p.opacities,
-        feats.reshape(I * N, D),
-        proj.depths.reshape(I * N),
-    )
+    splats = Splats(proj.means2d, proj.conics, p.opacities, feats, proj.depths)
     s = p.settings
-    out = composite(flat, bins, I, s.blend, features="rgb" in want, depth="depth" in want,
-                    weight_sq="weight_sq" in want, budget=s.chunk_budget, backend=s.backend)  # fmt: skip
+    # the transmittance as an image only for alpha, depth or a background (not for structured noise)
+    finish = bool(want & {"alpha", "depth"}) or (background is not None and "rgb" in want)
+    out = composite(splats, bins, I, s.blend, size=(height, width), features="rgb" in want, depth="depth" in want,
+                    weight_sq="weight_sq" in want, transmittance=finish, budget=s.chunk_budget,
+                    backend=s.backend)  # fmt: skip
+    images = batch + (C, height, width)
 
-    def untile(x: Tensor | None) -> Tensor | None:
-        if x is None:
-            return None
-        ts = bins.tile_size
-        x = x.reshape(I, bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 1, 3, 2, 4, 5)
-        x = x.reshape(I, bins.tiles_y * ts, bins.tiles_x * ts, -1)[:, :height, :width]
-        return x.reshape(batch + (C, height, width, x.shape[-1]))
+    def shaped(x: Tensor | None) -> Tensor | None:  # [I, H, W, d] -> [*B, C, H, W, d]
+        return x if x is None or x.shape[:-1] == images else x.reshape(images + (x.shape[-1],))
 
-    if want & {"alpha", "depth"} or (background is not None and "rgb" in want):
+    if finish:
         rgb, alpha, depth = finish_images(
-            untile(out.features), untile(out.transmittance), untile(out.depth), background
+            shaped(out.features), shaped(out.transmittance), shaped(out.depth), background
         )
-    else:  # the features as they are: no transmittance to lay out (structured noise: rgb and weight_sq)
-        rgb, alpha, depth = untile(out.features), None, None
+    else:  # the features as they are (structured noise: rgb and weight_sq)
+        rgb, alpha, depth = shaped(out.features), None, None
     result |= {"rgb": rgb, "alpha": alpha if "alpha" in want else None, "depth": depth}
-    result["weight_sq"] = untile(out.weight_sq)
+    result["weight_sq"] = shaped(out.weight_sq)
     return RenderOutput(**result)
 
 
