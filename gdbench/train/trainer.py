@@ -241,7 +241,8 @@ def sample_views(ctx: Context, state: TrainState) -> Views:
 
 
 def render_for_prior(ctx: Context, state: TrainState, views: Views):
-    """(render output, x): the (jittered) scene rendered and mapped into the prior's space."""
+    """(render output, x): the (jittered) scene rendered and mapped into the prior's space (in rgb
+    mode x = 2 rgb - 1 is computed outside the graph; ``apply_update`` backpropagates through rgb)."""
     from renderers.splat import rasterize
 
     cfg, p = ctx.cfg, state.params
@@ -278,8 +279,9 @@ def render_for_prior(ctx: Context, state: TrainState, views: Views):
         x = out.rgb  # the 4 latent channels themselves
     elif ctx.mode == "sd-rgb":
         x = ctx.prior.encode_images(out.rgb * 2 - 1)  # differentiable: the VAE encoder is in the graph
-    else:
-        x = out.rgb * 2 - 1
+    else:  # x = 2 rgb - 1 outside the graph: apply_update hands 2 dL/dx to rgb itself
+        with torch.no_grad():
+            x = out.rgb * 2 - 1
     return out, x
 
 
@@ -333,7 +335,11 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
     # mean over pixels and channels: Adam does not care about the scale, but densification thresholds
     # on screen-space gradients then mean what they mean in 3DGS (per-pixel-averaged losses). The
     # gradient of -(w) mean(score * x), handed to x directly: no loss graph to build and walk
-    x.backward(score * (-(cfg.weight * views.weight) / score.numel()))
+    g = score * (-(cfg.weight * views.weight) / score.numel())
+    if x.requires_grad:
+        x.backward(g)
+    else:  # rgb mode: x = 2 rgb - 1 (render_for_prior), dL/drgb = 2 dL/dx exactly (autograd's bits)
+        out.rgb.backward(g * 2)
     if not _all_finite([p[k].grad for k in PARAM_NAMES if p[k].grad is not None]):
         state.bad_steps += 1
         if state.bad_steps > cfg.max_bad_steps:
