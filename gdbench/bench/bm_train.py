@@ -1,8 +1,10 @@
 """Training-side figures, written to CSV/JSON: the empirical denoiser's time for a 64x64x3 query
 against the 360-image bank, and the default generation (`make demo`): its wall time (target: at
 most 2 minutes on the 2-core machine) and the median training step over the run (target:
-8 ms) with the shares of the render (forward and update: backward, Adam, densification), the
-structured noise and the prior.
+8 ms; with its 10th and 90th percentiles) with the shares of the render (forward and update:
+backward, Adam, densification), the structured noise and the prior, and the machine's float32
+matrix product just before and after the run (the shared machine's phase moves every time here
+by up to 2x).
 
     python -m gdbench.bench.bm_train --out bench_results/train.csv [--skip-run]
 """
@@ -44,13 +46,17 @@ def denoise_time(view_mode: str = "window") -> dict:
 def default_run(out: Path) -> list[dict]:
     from ..train.config import preset
     from ..train.run import train
+    from .roofline import peak_gflops
 
+    before = peak_gflops()
     t0 = time.perf_counter()
     r = train(preset("gd", out=out, progress=False), resume=False, overwrite=True)
     s = time.perf_counter() - t0
+    after = peak_gflops()
     hist = r.state.history
     train_s = sum(h["seconds"] for h in hist)
-    step = statistics.median(h["seconds"] for h in hist)
+    steps = sorted(h["seconds"] for h in hist)
+    step = statistics.median(steps)
     shares = {p: statistics.median(h[p] for h in hist) for p in PARTS}
     rows = [
         {
@@ -71,8 +77,16 @@ def default_run(out: Path) -> list[dict]:
             "seconds": step,
             "target_s": TARGET_STEP_S,
             "met": step <= TARGET_STEP_S,
+            "p10_s": steps[len(steps) // 10],
+            "p90_s": steps[(9 * len(steps)) // 10],
         },
-    ]
+        # the shared machine's speed swings by up to 2x between hours: its float32 matrix product
+        # just before and after the run says which phase the run saw
+        {"what": "machine: float32 matrix product before the run (GFLOP/s)", "seconds": float("nan"),
+         "gflops": before},
+        {"what": "machine: float32 matrix product after the run (GFLOP/s)", "seconds": float("nan"),
+         "gflops": after},
+    ]  # fmt: skip
     names = {"t_views": "views", "t_render": "render (forward)", "t_noise": "structured noise",
              "t_prior": "prior (denoiser)", "t_update": "update (backward, Adam, densify)"}  # fmt: skip
     for p in PARTS:
@@ -94,6 +108,11 @@ def main(argv: list[str] | None = None) -> int:
             tail = f" (target <= {r['target_s']} s) -> {'met' if r['met'] else 'NOT met'}"
         elif "share" in r:
             tail = f" ({100 * r['share']:.0f}% of the step)"
+        elif "gflops" in r:
+            print(f"{r['what']}: {r['gflops']:.0f}")
+            continue
+        if "p10_s" in r:
+            tail += f"; p10 {r['p10_s']:.4g} s, p90 {r['p90_s']:.4g} s"
         print(f"{r['what']}: {r['seconds']:.4g} s{tail}")
     write_csv(rows, args.out)
     write_json({"environment": environment(), "rows": rows}, args.out.with_name(args.out.stem + "_summary.json"))
