@@ -33,6 +33,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -159,19 +160,21 @@ class EmpiricalPrior:
         """The image bank behind a condition (for initialisation from its depth maps)."""
         return self._banks.get(cond.caption)
 
-    def _allowed(self, cond: EmpiricalCond, azimuth: Tensor | None, elevation: Tensor | None, B: int) -> Tensor:
-        """[B, V] mask of bank views each query may use."""
+    def _allowed(self, cond: EmpiricalCond, azimuth: Tensor | None, elevation: Tensor | None, B: int) -> np.ndarray:
+        """[B, V] mask of bank views each query may use (numpy: a few hundred entries per step,
+        where torch's per-operation cost exceeded the work)."""
         V = cond.images.shape[0]
         if self.view_mode == "none" or azimuth is None:
-            return torch.ones(B, V, dtype=torch.bool)
-        el = elevation if elevation is not None else torch.zeros_like(azimuth)
+            return np.ones((B, V), dtype=bool)
         if self.view_mode == "buckets":
-            mask = bucket(azimuth, el)[:, None] == bucket(cond.azimuth, cond.elevation)[None, :]
-        else:
-            d = (azimuth[:, None] - cond.azimuth[None, :] + 180.0) % 360.0 - 180.0
-            mask = d.abs() <= self.window_deg
+            el = elevation if elevation is not None else torch.zeros_like(azimuth)
+            mask = (bucket(azimuth, el)[:, None] == bucket(cond.azimuth, cond.elevation)[None, :]).numpy()
+        else:  # in the queries' and the bank's dtypes, as the torch expression would
+            a, c = _array(azimuth), _array(cond.azimuth)
+            d = (a[:, None] - c[None, :] + 180.0) % 360.0 - 180.0
+            mask = np.abs(d) <= self.window_deg
         # a query whose range holds no bank view falls back to the whole bank
-        return torch.where(mask.any(1, keepdim=True), mask, torch.ones_like(mask))
+        return np.where(mask.any(1, keepdims=True), mask, True)
 
     def fov_level(self, fovy: float) -> float:
         """The field of view (degrees) a query at ``fovy`` is served at: rounded to ``fov_step``."""
@@ -193,13 +196,13 @@ class EmpiricalPrior:
         if x.dim() != 4 or x.shape[-1] != 3:
             raise ValueError(f"x: expected shape [B, H, W, 3], got {list(x.shape)}")
         B, H, W, _ = x.shape
-        sigma = torch.as_tensor(sigma, dtype=torch.float64).reshape(-1).expand(B)
-        if bool((sigma <= 0).any()) or not bool(torch.isfinite(sigma).all()):
-            raise ValueError(f"sigma: expected positive finite noise levels, got {sigma.tolist()}")
+        sig = _per_query(sigma, B, "sigma")
+        if (sig <= 0).any() or not np.isfinite(sig).all():
+            raise ValueError(f"sigma: expected positive finite noise levels, got {sig.tolist()}")
         fovs = [None] * B
         if fovy is not None:
-            f = torch.as_tensor(fovy, dtype=torch.float64).reshape(-1).expand(B)
-            if not bool(((f > 0) & (f < 180)).all()):
+            f = _per_query(fovy, B, "fovy")
+            if not ((f > 0) & (f < 180)).all():
                 raise ValueError(f"fovy: expected degrees in (0, 180), got {f.tolist()}")
             fovs = [self.fov_level(float(v)) for v in f]
         use_depth = depth is not None and self.depth_weight > 0
@@ -209,15 +212,18 @@ class EmpiricalPrior:
         for b in range(B):
             level = self._level(cond, H, W, fovs[b], use_depth)
             runs = _runs(mask[b])  # the allowed views as contiguous row ranges: slices, no copies
-            d2 = torch.cat([_sqdist(xf[b : b + 1], level.images[i:j]) for i, j in runs])
+            d2 = _cat([_sqdist(xf[b : b + 1], level.images[i:j]) for i, j in runs]).cpu().numpy()
             if use_depth:
                 zb = depth[b].reshape(1, -1).float()
-                d2 = d2 + self.depth_weight * torch.cat([_sqdist(zb, level.depth[i:j]) for i, j in runs])
-            logits = -d2 / (2 * float(sigma[b]) ** 2)
+                d2 = d2 + self.depth_weight * _cat([_sqdist(zb, level.depth[i:j]) for i, j in runs]).cpu().numpy()
+            # the posterior weights over the allowed views, in float64 numpy (a few hundred entries)
+            logits = -d2 / (2 * float(sig[b]) ** 2)
             if self.front_bias:
-                az = torch.cat([cond.azimuth[i:j] for i, j in runs])
-                logits = logits + self.front_bias * torch.cos(torch.deg2rad(az.double()))
-            w = torch.softmax(logits, dim=0).float()
+                az_bank = _array(cond.azimuth).astype(np.float64)
+                az = np.concatenate([az_bank[i:j] for i, j in runs])
+                logits = logits + self.front_bias * np.cos(np.deg2rad(az))
+            e = np.exp(logits - logits.max())
+            w = torch.from_numpy((e / e.sum()).astype(np.float32)).to(level.images.device)
             acc, k = None, 0
             for i, j in runs:
                 part = w[k : k + j - i] @ level.images[i:j]
@@ -253,16 +259,33 @@ class EmpiricalPrior:
         return level
 
 
-def _runs(mask: Tensor) -> list[tuple[int, int]]:
-    """Maximal runs [i, j) of True in a 1D mask (bank views are stored azimuth-major, so a view
-    window is one run, or two where it wraps around 180 degrees)."""
-    idx = torch.nonzero(mask).squeeze(1)
-    if idx.numel() == 0:
+def _runs(mask) -> list[tuple[int, int]]:
+    """Maximal runs [i, j) of True in a 1D mask (numpy or torch; bank views are stored
+    azimuth-major, so a view window is one run, or two where it wraps around 180 degrees)."""
+    idx = np.flatnonzero(np.asarray(mask, dtype=bool))
+    if idx.size == 0:
         return []
-    cut = torch.nonzero(idx[1:] != idx[:-1] + 1).squeeze(1)
-    starts = [int(idx[0])] + (idx[cut + 1]).tolist()
+    cut = np.flatnonzero(np.diff(idx) != 1)
+    starts = [int(idx[0])] + idx[cut + 1].tolist()
     ends = (idx[cut] + 1).tolist() + [int(idx[-1]) + 1]
     return list(zip(starts, ends))
+
+
+def _array(x) -> np.ndarray:
+    """A tensor's (or array-like's) values as a 1D numpy array of its dtype."""
+    return (x.detach().cpu().numpy() if isinstance(x, Tensor) else np.asarray(x)).reshape(-1)
+
+
+def _per_query(x, B: int, name: str) -> np.ndarray:
+    """A scalar or one value per query, as float64 [B]."""
+    a = _array(x).astype(np.float64)
+    if a.size not in (1, B):
+        raise ValueError(f"{name}: expected one value or {B} (one per query), got {a.size}")
+    return np.broadcast_to(a, (B,))
+
+
+def _cat(parts: list[Tensor]) -> Tensor:
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
 def _sqdist(x: Tensor, Y: Tensor) -> Tensor:

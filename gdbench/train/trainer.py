@@ -306,24 +306,20 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
 def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Tensor | None, update: bool):
     """(score g [B, h, w, C], mean squared residual |D - x|^2, seconds in the noise, seconds in
     the prior) averaged over the K noise samples."""
-    cfg, sigma = ctx.cfg, views.sigma
-    score = torch.zeros_like(xd)
-    resid = 0.0
+    sigma, K = views.sigma, ctx.cfg.samples_per_step
     t0 = time.perf_counter()
     noises = _noise_fields(ctx, state, views, xd.shape, update)
     t_noise = time.perf_counter() - t0
+    p = views.poses
+    az, el, fovy = p.azimuth.float(), p.elevation.float(), p.fovy.float()
+    sig = torch.full((xd.shape[0],), sigma)
+    score, resid = None, 0.0
     for n in noises:
-        D = ctx.prior.denoise(
-            xd + sigma * n,
-            torch.full((xd.shape[0],), sigma),
-            ctx.cond,
-            azimuth=views.poses.azimuth.float(),
-            elevation=views.poses.elevation.float(),
-            depth=depth,
-            fovy=views.poses.fovy.float(),
-        )
-        score += (D - xd) / sigma / cfg.samples_per_step
-        resid += float(((D - xd) ** 2).mean()) / cfg.samples_per_step
+        D = ctx.prior.denoise(xd + sigma * n, sig, ctx.cond, azimuth=az, elevation=el, depth=depth, fovy=fovy)
+        diff = D - xd
+        part = diff / sigma if K == 1 else diff / sigma / K  # / 1 is exact: the same bits
+        score = part if score is None else score + part
+        resid += float((diff**2).mean()) / K
     return score, resid, t_noise, time.perf_counter() - t0 - t_noise
 
 
