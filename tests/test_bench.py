@@ -147,6 +147,7 @@ def test_work_fit_recovers_the_fixed_cost_and_becomes_the_intercept_target():
         assert w["intercept_s"] == pytest.approx(law["a"], rel=1e-6) and w["r2"] > 0.999999
         assert w["slopes_s"]["blocks"] == pytest.approx(law["blocks"], rel=1e-6)
         assert w["slopes_s"]["n"] == pytest.approx(law["n"], rel=1e-6)
+        assert w["intercept_se_s"] < 1e-9  # an exact law: no spread
     target = summary["targets"]["splat_fit_intercept_s"]
     assert target["fit"] == "vs_work" and target["value"] == pytest.approx(law["a"], rel=1e-6) and target["met"]
     assert summary["fits"]["splat fwd"]["vs_intersections"]["r2"] < 0.99  # intersections are not the work here

@@ -200,7 +200,14 @@ def _fit(rows: list[dict], key: str | tuple[str, ...]) -> dict:
     coef = torch.linalg.lstsq(A, y[:, None]).solution[:, 0]
     resid = y - A @ coef
     r2 = 1 - float((resid**2).sum() / ((y - y.mean()) ** 2).sum()) if len(rows) > len(keys) + 1 else float("nan")
-    out = {"intercept_s": float(coef[0]), "r2": r2, "points": len(rows)}
+    # the intercept's standard error (ordinary least squares): an extrapolation to zero work, so
+    # its spread says how far to trust it
+    dof = len(rows) - A.shape[1]
+    se = float("nan")
+    if dof > 0:
+        cov = float((resid**2).sum()) / dof * torch.linalg.pinv(A.T @ A)
+        se = float(cov[0, 0].clamp_min(0).sqrt())
+    out = {"intercept_s": float(coef[0]), "intercept_se_s": se, "r2": r2, "points": len(rows)}
     if isinstance(key, str):
         return out | {"slope_s": float(coef[1])}
     return out | {"slopes_s": {k: float(c) for k, c in zip(keys, coef[1:])}}
@@ -208,8 +215,10 @@ def _fit(rows: list[dict], key: str | tuple[str, ...]) -> dict:
 
 def _work_fit(rows: list[dict]) -> dict | None:
     """time = a + b blocks + c N: the compositor's 8-pixel blocks evaluated (forward plus backward)
-    and the Gaussians projected, binned and set up; a is the fixed cost per call. None without
-    the work counters or with fewer than 4 points."""
+    and the Gaussians projected, binned and set up; a is the fixed cost per call, an extrapolation
+    to zero work (its standard error comes with it). A per-pixel term (the pixels each call
+    initialises and lays out) was tried: over a 64-512 px sweep it is collinear with the blocks
+    and came out negative. None without the work counters or with fewer than 4 points."""
     if len(rows) < 4 or not all("fwd_blocks" in r for r in rows):
         return None
     work = [r | {"blocks": int(r["fwd_blocks"]) + int(r.get("bwd_blocks") or 0)} for r in rows]
@@ -437,8 +446,8 @@ def report(rows: list[dict], summary: dict, out: Path) -> None:
         if "vs_work" in v:
             w = v["vs_work"]
             b, c = w["slopes_s"]["blocks"], w["slopes_s"]["n"]
-            print(f"fit {k} vs work: {w['intercept_s'] * 1e3:.2f} ms + {b * 1e9:.1f} ns/block + "
-                  f"{c * 1e9:.0f} ns/Gaussian (R^2 {w['r2']:.3f})")  # fmt: skip
+            print(f"fit {k} vs work: ({w['intercept_s'] * 1e3:.2f} +- {w['intercept_se_s'] * 1e3:.2f}) ms + "
+                  f"{b * 1e9:.1f} ns/block + {c * 1e9:.0f} ns/Gaussian (R^2 {w['r2']:.3f})")  # fmt: skip
         r2i, r2n = v["vs_intersections"]["r2"], v["vs_n_x_pixels"]["r2"]
         ki, kn = v["loglog_vs_intersections"]["exponent"], v["loglog_vs_n_x_pixels"]["exponent"]
         print(
