@@ -209,6 +209,7 @@ class EmpiricalPrior:
         mask = self._allowed(cond, azimuth, elevation, B)
         xf = x.reshape(B, -1).float()
         out = torch.empty(B, H * W * 3, dtype=torch.float32)
+        az_bank = _array(cond.azimuth).astype(np.float64) if self.front_bias else None
         for b in range(B):
             level = self._level(cond, H, W, fovs[b], use_depth)
             runs = _runs(mask[b])  # the allowed views as contiguous row ranges: slices, no copies
@@ -219,7 +220,6 @@ class EmpiricalPrior:
             # the posterior weights over the allowed views, in float64 numpy (a few hundred entries)
             logits = -d2 / (2 * float(sig[b]) ** 2)
             if self.front_bias:
-                az_bank = _array(cond.azimuth).astype(np.float64)
                 az = np.concatenate([az_bank[i:j] for i, j in runs])
                 logits = logits + self.front_bias * np.cos(np.deg2rad(az))
             e = np.exp(logits - logits.max())

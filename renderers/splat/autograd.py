@@ -41,10 +41,10 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def _cpp_forward(splats: Splats, bins: TileBins, blend: BlendParams, want: tuple[bool, bool, bool]):
-    """The C++ compositor's forward: features, transmittance, depth, weight_sq (tile layout; empty
-    where not wanted) and each pixel's stop index."""
+    """The C++ compositor's forward of flat contiguous inputs (``_flat``): features, transmittance,
+    depth, weight_sq (tile layout; empty where not wanted) and each pixel's stop index."""
     return load_extension().composite_forward(
-        *(x.contiguous() for x in splats), bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y,
+        *splats, bins.gauss_ids, bins.tile_start, bins.tiles_x, bins.tiles_y,
         bins.tile_size, *blend, *want,
     )  # fmt: skip
 

@@ -25,25 +25,7 @@
 
 namespace {
 
-struct Words {
-  uint32_t x[4];
-};
-
-inline Words philox(uint32_t c0, uint32_t c1, uint32_t c2, uint32_t c3, uint32_t k0, uint32_t k1) {
-  for (int round = 0; round < 10; ++round) {
-    const uint64_t p0 = uint64_t(0xD2511F53u) * c0, p1 = uint64_t(0xCD9E8D57u) * c2;
-    const uint32_t hi0 = uint32_t(p0 >> 32), lo0 = uint32_t(p0), hi1 = uint32_t(p1 >> 32), lo1 = uint32_t(p1);
-    c0 = hi1 ^ c1 ^ k0;
-    c1 = lo1;
-    c2 = hi0 ^ c3 ^ k1;
-    c3 = lo0;
-    k0 += 0x9E3779B9u;
-    k1 += 0xBB67AE85u;
-  }
-  return {{c0, c1, c2, c3}};
-}
-
-// eight Philox blocks side by side, one per lane (the same words as philox() per lane)
+// eight Philox blocks side by side, one per lane
 typedef uint32_t U __attribute__((vector_size(32)));
 typedef int32_t SI __attribute__((vector_size(32)));
 typedef float F __attribute__((vector_size(32)));
@@ -175,9 +157,11 @@ torch::Tensor philox_normal(int64_t n, int64_t seed) {
 
 std::vector<int64_t> philox4x32(std::vector<int64_t> counter, std::vector<int64_t> key) {
   TORCH_CHECK(counter.size() == 4 && key.size() == 2, "philox4x32: expected 4 counter and 2 key words");
-  const Words w = philox(uint32_t(counter[0]), uint32_t(counter[1]), uint32_t(counter[2]), uint32_t(counter[3]),
-                         uint32_t(key[0]), uint32_t(key[1]));
-  return {w.x[0], w.x[1], w.x[2], w.x[3]};
+  // the kernel's own eight-lane rounds, every lane on the same block (the tests read lane 0)
+  U w[4];
+  philox8(U{} + uint32_t(counter[0]), U{} + uint32_t(counter[1]), U{} + uint32_t(counter[2]),
+          U{} + uint32_t(counter[3]), uint32_t(key[0]), uint32_t(key[1]), w);
+  return {int64_t(w[0][0]), int64_t(w[1][0]), int64_t(w[2][0]), int64_t(w[3][0])};
 }
 
 torch::Tensor normal_parts(const torch::Tensor& u, int64_t which) {
