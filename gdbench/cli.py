@@ -10,7 +10,7 @@ from typing import Literal
 import tyro
 
 from .train.config import PRESETS
-from .train.options import MethodOptions, train_options
+from .train.options import method_options, train_options
 
 
 @dataclass
@@ -78,6 +78,8 @@ def run_noise(cmd: Noise) -> dict:
     return stats
 
 
+MethodOptions = method_options()
+"""The nested settings' overrides (the noise's redraw and mixing, the densification schedule)."""
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 """The presets' names, from the one place they are defined (train/config.py)."""
 GenerateTrain = train_options(("prompt", "preset", "out", "progress"))
@@ -129,10 +131,14 @@ class Render:
 def run_generate(cmd: Generate) -> dict:
     from .resources import check_generate_memory
     from .train.config import preset
+    from .train.options import inert_options
     from .train.run import train
 
     overrides = cmd.train.overrides() | cmd.method.overrides()
     cfg = preset(cmd.preset, prompt=cmd.prompt, out=cmd.out, progress=cmd.progress, **overrides)
+    inert = inert_options(cfg, overrides)
+    if inert:
+        raise ValueError("; ".join(inert) + ": drop the option, or set the one it needs")
     check_generate_memory(cfg)
     r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite)
     summary = r.summary()

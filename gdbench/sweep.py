@@ -17,6 +17,7 @@ cores here) or ``ray`` (``--address`` of a cluster, or a local instance when emp
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -27,7 +28,7 @@ SETTINGS: dict[str, dict] = {
     "janus": {"view_prompting": "none", "front_bias": 1.0},
     "instance": {"variants": 3},
 }
-"""Ambiguity settings: overrides of every preset in the setting (DESIGN.md 'Priors')."""
+"""Ambiguity settings: overrides of every preset in the setting (docs/scoring.md)."""
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,27 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
             raise ValueError(f"prompts: {pr!r} matched {caption!r} (cosine {sim:.2f}): {why}")
     for spec in specs:
         cell_config(spec)  # a bad override raises here, naming the setting
+
+
+def inert_overrides(specs: list[CellSpec], overrides: dict) -> list[str]:
+    """Options of the sweep that do nothing in some of its cells, one line each (naming the cells'
+    presets and settings); an option that does nothing in every cell raises ValueError."""
+    from .train.options import inert_options
+
+    where: dict[str, list[tuple[str, str]]] = {}
+    why: dict[str, str] = {}
+    for spec in specs:
+        for line in inert_options(cell_config(spec), overrides):
+            opt = line.split()[0]
+            where.setdefault(opt, []).append((spec.preset, spec.setting))
+            why[opt] = line
+    lines = []
+    for opt, cells in where.items():
+        if len(cells) == len(specs):
+            raise ValueError(f"{why[opt]}, in every cell of the sweep: drop the option, or set the one it needs")
+        names = sorted({f"{p} ({s})" for p, s in cells})
+        lines.append(f"{opt} does nothing in {', '.join(names)}: it {why[opt].split(' ', 1)[1]}")
+    return lines
 
 
 def cell_config(spec: CellSpec):
@@ -215,6 +237,8 @@ def sweep(
         for p in per[st]
     ]
     validate_grid(prompts, presets, seeds, specs)
+    for line in inert_overrides(specs, overrides or {}):
+        print(f"sweep: note: {line}", file=sys.stderr)
     rows: dict[int, dict] = {}
     todo = []
     for i, spec in enumerate(specs):

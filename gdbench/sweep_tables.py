@@ -22,6 +22,7 @@ COLUMNS = (
     ("var_theta_deg2", "Var(theta) deg^2", True),
     ("colmap_failure_rate", "COLMAP failure rate", False),
     ("registration_rate", "registration", False),
+    ("gaussians", "Gaussians", False),
     ("train_time_s", "train time s", False),
 )
 """Summarised metrics: (row key, heading, heavy-tailed: report the median too)."""
@@ -74,17 +75,23 @@ def markdown(summary: list[dict], verdicts: list[dict]) -> str:
         for key, _, tailed in COLUMNS:
             cells += [s[key]] + ([_fmt(s[f"median_{key}"])] if tailed else [])
         md.append("| " + " | ".join(cells) + " |")
-    md += ["", "| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% CI] | a better | verdict |"]
-    md.append("|---|---|---|---|---|---|---|---|---|---|")
+    md += ["", "| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% CI] | a better | verdict | "
+           "Gaussians a / b |"]  # fmt: skip
+    md.append("|---|---|---|---|---|---|---|---|---|---|---|")
     if not verdicts:
         md[-2:] = ["No claim is decidable here: each needs both of its presets in one setting."]
     for v in verdicts:
         ci = f"{_fmt(v['mean_diff'])} [{_fmt(v['ci_low'])}, {_fmt(v['ci_high'])}]"
         md.append(
             f"| {v['setting']} | {v['claim']} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
-            f"{_fmt(v['mean_a'])} | {_fmt(v['mean_b'])} | {ci} | {v['a_better_pairs']}/{v['pairs']} | {v['verdict']} |"
+            f"{_fmt(v['mean_a'])} | {_fmt(v['mean_b'])} | {ci} | {v['a_better_pairs']}/{v['pairs']} | {v['verdict']} | "
+            f"{_fmt(v['gaussians_a'])} / {_fmt(v['gaussians_b'])}{_size_note(v)} |"
         )
     return "\n".join(md) + "\n"
+
+
+def _size_note(v: dict) -> str:
+    return f" (sizes differ {v['size_ratio']:.1f}x: growth confounds the pair)" if v["size_confounded"] else ""
 
 
 def tables(rows: list[dict], out: Path) -> dict[str, Path]:
@@ -110,7 +117,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     plt = pyplot()
     settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
     prompts = list(dict.fromkeys(r["prompt"] for r in rows))
-    panels = [c for c in COLUMNS if c[0] != "train_time_s"]
+    panels = [c for c in COLUMNS if c[0] not in ("train_time_s", "gaussians")]
     fig, axes = plt.subplots(
         len(settings), len(panels), figsize=(2.6 * len(panels), 2.6 * len(settings)), squeeze=False
     )

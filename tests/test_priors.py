@@ -1,6 +1,7 @@
 """Priors: the empirical posterior-mean denoiser against its closed form and limits, view and
 depth conditioning, and prompt matching."""
 
+import dataclasses
 import math
 
 import pytest
@@ -218,6 +219,46 @@ def test_prior_answers_at_the_query_fov_like_a_direct_render(fovy):
     if fovy != 70.0:  # the bank's own fov served to every query: the wrong zoom
         wrong = p.denoise(ref * 2 - 1, torch.tensor([0.05]), c, **kw)
         assert float(((wrong + 1) / 2 - ref).abs().mean()) > 4 * bound
+
+
+@pytest.mark.parametrize("radius", [0.8, 1.5])
+def test_the_prior_shows_the_asset_at_its_true_size_from_the_trainers_distance(radius, tmp_path):
+    """Oracle: the asset rendered by pyrender directly from ``radius``. The prior a config builds
+    renders its bank from the config's camera distance, so at a small sigma its answer is that
+    view (the resampling bound of the fov test); a bank rendered from distance 1 shows the object
+    at the wrong size (1.5 or 0.8 times) and misses by far more. The trainer refuses such a bank."""
+    from renderers.pyrender_points._lib import available
+
+    ok, why = available()
+    if not ok:
+        pytest.skip(f"pyrender unavailable: {why}")
+    from gdbench.assets.bank import render_bank
+    from gdbench.camera import SphericalPoses
+    from gdbench.metrics.gt import asset_views
+    from gdbench.priors.factory import make_prior
+    from gdbench.train.config import preset
+    from gdbench.train.trainer import make_context
+
+    cap = "a yellow duck"
+    cfg = preset("gd", camera_radius=radius, out=tmp_path)
+    built = make_prior(cfg).bank_config
+    assert built.radius == radius and built.fovy == 70.0
+    one = lambda v: torch.tensor([v], dtype=torch.float64)  # noqa: E731
+    ref = asset_views(cap, SphericalPoses(one(90.0), one(20.0), one(radius), one(55.0)), 64)
+    kw = dict(azimuth=torch.tensor([90.0]), elevation=torch.tensor([20.0]), fovy=torch.tensor([55.0]))
+    r = ref[0]
+    bound = 0.25 * float((r[1:] - r[:-1]).abs().mean() + (r[:, 1:] - r[:, :-1]).abs().mean())
+    errs = {}
+    for at in (radius, 1.0):
+        small = dataclasses.replace(built, azimuths=4, elevations=(20.0,), radius=at)
+        p = EmpiricalPrior(view_mode="window", banks={cap: render_bank(cap, small)})
+        D = p.denoise(ref * 2 - 1, torch.tensor([0.05]), p.encode(cap), **kw)
+        errs[at] = float(((D + 1) / 2 - ref).abs().mean())
+    assert errs[radius] < bound and errs[1.0] > 4 * bound, (errs, bound)
+    with pytest.raises(
+        ValueError, match=rf"camera_radius: the prior's bank is rendered from distance 1.0, .* {radius}"
+    ):
+        make_context(cfg, p)
 
 
 def test_fov_levels_and_bank_for_training():

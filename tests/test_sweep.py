@@ -202,8 +202,7 @@ def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
 
 
 def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
-    from gdbench.cli import SweepTrain
-    from gdbench.train.options import MethodOptions
+    from gdbench.cli import MethodOptions, SweepTrain
 
     opts = MethodOptions(noise_redraw="ou", noise_ratio="variance")
     train = SweepTrain(view_prompting="none", views_per_step=2)
@@ -261,3 +260,35 @@ def test_settings_dial_the_prior_and_pair_cells(tmp_path):
     assert {(v["setting"], v["a"], v["b"]) for v in verdicts} >= {("janus", "gd", "gd-no-sn"), ("easy", "gd", "sjc-gs")}
     with pytest.raises(ValueError, match="settings: expected distinct names"):
         sweep([PROMPT], ["gd"], [0], out=tmp_path, settings=["hard"])
+
+
+def test_the_verdict_reports_each_arms_model_size_and_flags_a_2x_gap():
+    """Mean final Gaussian count per arm over the pairs (unpaired cells left out), and a flag when
+    the arms differ by more than 2x (the growth, not only the ablation, then differs)."""
+    from gdbench.metrics.claims import CLAIMS, evaluate
+
+    keys = [(p, s) for p in "abc" for s in (0, 1)]
+    rows = [dict(_row("gd", p, s, 0.2), gaussians=7000 + 100 * s) for p, s in keys]
+    rows += [dict(_row("gd-no-sn", p, s, 0.3), gaussians=6000) for p, s in keys]
+    rows += [dict(_row("sds-gs", p, s, 0.3), gaussians=1500) for p, s in keys]
+    rows.append(dict(_row("gd", "z", 0, 0.1), gaussians=1))  # unpaired: not in the means
+    claims = [CLAIMS[0], type(CLAIMS[0])("size", "gd", "sds-gs", "multi_face_rate")]
+    got = {(v["a"], v["b"]): v for v in evaluate(rows, claims)}
+    v = got["gd", "gd-no-sn"]
+    assert (v["gaussians_a"], v["gaussians_b"]) == (7050.0, 6000.0) and not v["size_confounded"]
+    v = got["gd", "sds-gs"]
+    assert v["size_ratio"] == pytest.approx(7050 / 1500) and v["size_confounded"]
+
+
+def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():
+    from gdbench.sweep import CellSpec, inert_overrides
+
+    def specs(presets):
+        return [CellSpec(PROMPT, p, 0, 10, "/tmp/never") for p in presets]
+
+    lines = inert_overrides(specs(["gd", "sjc-gs", "sds-gs"]), {"vgs_gamma": 0.1})
+    assert lines == ["--vgs-gamma does nothing in sds-gs (easy), sjc-gs (easy): it acts only with --vgs True "
+                     "(this preset has VGS off)"]  # fmt: skip
+    with pytest.raises(ValueError, match=r"--vgs-gamma acts only with --vgs True .*in every cell of the sweep"):
+        inert_overrides(specs(["sjc-gs"]), {"vgs_gamma": 0.1})
+    assert inert_overrides(specs(["gd"]), {"vgs_gamma": 0.1}) == []

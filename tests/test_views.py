@@ -57,3 +57,38 @@ def test_a_trained_like_scene_is_matched_to_its_azimuth():
     idx = (((az + 40 + 180) % 360) / 5).round().long()
     s = score_views(imgs[0, idx], torch.ones(36, 8, 8), ref)
     assert s.offset_deg == 40 and s.multi_face_rate == 0 and s.instance_consistency == 1
+
+
+def test_a_run_is_scored_on_its_own_background(tmp_path):
+    """A scene of the duck (its bank's surface points, coloured by the bank) scored as a run on a
+    black background: the GT PSNR that score_run reports is the PSNR against pyrender's asset on
+    black at the reported offset (the oracle, rendered here), not against the asset on white
+    (which the run's own black background would fail by many dB)."""
+    import json
+    import math
+
+    from gdbench.assets.bank import BankConfig, load_bank
+    from gdbench.camera import SphericalPoses
+    from gdbench.metrics.gt import asset_views, heldout_poses, psnr
+    from gdbench.metrics.run_scores import score_run
+    from gdbench.scene import GaussianScene
+    from gdbench.train.init import from_bank_depth
+    from gdbench.turntable import render_views
+
+    bank = load_bank(CAPTION, BankConfig(resolution=64, azimuths=24, elevations=(0.0,)), verbose=False)
+    s = from_bank_depth(bank, 20000, 0.95, generator=torch.Generator().manual_seed(0), views=24)
+    scene = GaussianScene(s.means, s.quats, s.log_scales - math.log(2), s.opacity_logits, s.sh)  # surface-tight
+    black = (0.0, 0.0, 0.0)
+    run = tmp_path / "run"
+    run.mkdir()
+    scene.save_ply(run / "scene.ply")
+    (run / "run.json").write_text(json.dumps({"caption": CAPTION, "config": {"background": list(black)}}))
+    gt = score_run(run, colmap=False)["gt"]
+    assert gt["background"] == list(black)
+    p = heldout_poses(12)
+    poses = SphericalPoses(p.azimuth + gt["offset_deg"], p.elevation, p.radius, p.fovy)
+    img = render_views(scene, poses.cameras(64, 64), background=black)
+    on_black = float(psnr(img, asset_views(CAPTION, poses, 64, background=black)).mean())
+    on_white = float(psnr(img, asset_views(CAPTION, poses, 64)).mean())
+    assert gt["psnr"] == pytest.approx(on_black, abs=1e-3) and on_black > 13
+    assert on_white < on_black - 5, (on_black, on_white)

@@ -158,7 +158,7 @@ COLOURS: dict[str, frozenset[str]] = {
 
 
 VARIANTS = 3
-"""Procedural variants per caption (instance ambiguity, DESIGN.md 'Priors'): 0 the asset as
+"""Procedural variants per caption (instance ambiguity, docs/training.md 'The embedded prior'): 0 the asset as
 written above; 1 longer front to back and squat, in a warmer, darker shade; 2 compact and tall,
 in a lighter shade, wearing a striped hat. Each is the same caption (same colours by name), and
 each differs from the others at every view, so a result can be matched to its instance."""

@@ -72,6 +72,30 @@ def verdict(lo: float, hi: float, diffs: np.ndarray, baseline: np.ndarray | None
     return "undecided (CI spans zero)"
 
 
+SIZE_RATIO_LIMIT = 2.0
+"""Paired arms whose mean Gaussian counts differ by more than this factor are flagged: the size of
+the model, not only what the claim ablates, then differs between them (docs/training.md)."""
+
+
+def _sizes(rows: list[dict], c: Claim, keys: list) -> dict:
+    """Mean final Gaussian count of each arm over the pairs, their ratio (larger / smaller) and
+    whether it exceeds ``SIZE_RATIO_LIMIT``."""
+
+    def mean(preset: str) -> float:
+        n = {(r["prompt"], r["seed"]): r.get("gaussians", math.nan) for r in rows if r["preset"] == preset}
+        vals = [float(n[k]) for k in keys if k in n and n[k] == n[k]]
+        return float(np.mean(vals)) if vals else math.nan
+
+    ga, gb = mean(c.a), mean(c.b)
+    ratio = max(ga, gb) / min(ga, gb) if ga > 0 and gb > 0 else math.nan
+    return {
+        "gaussians_a": ga,
+        "gaussians_b": gb,
+        "size_ratio": ratio,
+        "size_confounded": bool(ratio > SIZE_RATIO_LIMIT),
+    }
+
+
 def _applies(claim: Claim, rows: list[dict], setting: str) -> bool:
     """Instance consistency is only defined where the bank holds several variants."""
     if claim.metric != "instance_inconsistency":
@@ -95,6 +119,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
             keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
             d = np.array([va[k] - vb[k] for k in keys], dtype=np.float64)
             lo, hi = bootstrap_mean_ci(d)
+            size = _sizes(sel, c, keys)
             out.append(
                 {
                     "setting": setting,
@@ -110,6 +135,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "ci_high": hi,
                     "a_better_pairs": int((d < 0).sum()),
                     "verdict": verdict(lo, hi, d, np.array([vb[k] for k in keys])),
+                    **size,
                 }
             )
     return out

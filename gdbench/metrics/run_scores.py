@@ -56,16 +56,19 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
         from .gt import score_against_asset
         from .views import score_scene as view_scores
 
-        variants = int(info.get("config", {}).get("variants", 1))
-        out["views"] = view_scores(scene, info["caption"], variants=variants).as_dict()
+        config = info.get("config", {})
+        variants = int(config.get("variants", 1))
+        bg = tuple(float(c) for c in config.get("background", (1.0, 1.0, 1.0)))  # the run's own background
+        out["views"] = view_scores(scene, info["caption"], variants=variants, background=bg).as_dict()
         v = out["views"]["majority_variant"]  # the instance the run converged to is its ground truth
-        s = score_against_asset(scene, info["caption"], variant=v)
+        s = score_against_asset(scene, info["caption"], variant=v, background=bg)
         out["gt"] = {
             "psnr": s.psnr,
             "ssim": s.ssim,
             "offset_deg": s.offset_deg,
             "psnr_unaligned": s.psnr_unaligned,
             "variant": v,
+            "background": list(bg),
         }
     if colmap:
         from .colmap_consistency import score_scene

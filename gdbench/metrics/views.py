@@ -1,5 +1,5 @@
 """Ground-truth view metrics for runs on the empirical prior: multi-face rate, instance
-consistency and floaters (DESIGN.md, "Scoring"; docs/scoring.md).
+consistency and floaters (docs/scoring.md).
 
 A result is rendered at 36 turntable views (azimuths 0, 10, ..., 350 at elevation 20, fovy 55,
 radius 1, 64 px, white background). The reference is an image bank of that ring: every
@@ -58,12 +58,13 @@ def turntable_poses(frames: int = FRAMES) -> SphericalPoses:
     return SphericalPoses.orbit(frames, radius=1.0, elevation=ELEVATION, fovy=FOVY)
 
 
-def reference(caption: str, variants: int = 1, size: int = SIZE) -> Reference:
-    """The caption's views on the elevation-20 ring (72 azimuths, fovy 55), every variant: an
-    image bank of that one ring, rendered by pyrender and cached like the prior's banks."""
+def reference(caption: str, variants: int = 1, size: int = SIZE, background=(1.0, 1.0, 1.0)) -> Reference:
+    """The caption's views on the elevation-20 ring (72 azimuths, fovy 55), every variant, on
+    ``background``: an image bank of that one ring, rendered by pyrender and cached like the
+    prior's banks."""
     from ..assets.bank import BankConfig, load_bank
 
-    cfg = BankConfig(resolution=size, fovy=FOVY, elevations=(ELEVATION,))
+    cfg = BankConfig(resolution=size, fovy=FOVY, elevations=(ELEVATION,), background=tuple(background))
     imgs, alphas, az = [], [], None
     for v in range(variants):
         bank = load_bank(caption, cfg, variant=v, verbose=False)
@@ -117,16 +118,21 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     )
 
 
-def render_turntable(scene, frames: int = FRAMES, size: int = SIZE) -> tuple[Tensor, Tensor]:
+def render_turntable(
+    scene, frames: int = FRAMES, size: int = SIZE, background=(1.0, 1.0, 1.0)
+) -> tuple[Tensor, Tensor]:
     """(images [F, H, W, 3], alpha [F, H, W]) of a GaussianScene at the metric's views."""
     from ..turntable import render_views_alpha
 
-    return render_views_alpha(scene, turntable_poses(frames).cameras(size, size))
+    return render_views_alpha(scene, turntable_poses(frames).cameras(size, size), background)
 
 
-def score_scene(scene, caption: str, variants: int = 1, ref: Reference | None = None) -> ViewScore:
-    ref = ref if ref is not None else reference(caption, variants)
-    return score_views(*render_turntable(scene), ref)
+def score_scene(
+    scene, caption: str, variants: int = 1, ref: Reference | None = None, background=(1.0, 1.0, 1.0)
+) -> ViewScore:
+    """The view metrics of ``scene``, rendered and compared on ``background`` (a run's own)."""
+    ref = ref if ref is not None else reference(caption, variants, background=background)
+    return score_views(*render_turntable(scene, background=background), ref)
 
 
 def fixture_views(caption: str, mode: str, *, frames: int = FRAMES, size: int = SIZE, seed: int = 0):

@@ -9,7 +9,9 @@ import torch
 
 
 def make_prior(cfg):
-    """The prior of a ``TrainConfig`` (``cfg.prior``: 'empirical' or 'sd')."""
+    """The prior of a ``TrainConfig`` (``cfg.prior``: 'empirical' or 'sd'). The empirical prior's
+    bank is rendered at the trainer's camera distance, background and widest field of view, so it
+    sees the object from where the trainer's cameras do (the object keeps its size in the world)."""
     if cfg.prior == "sd":
         return make_sd_prior(cfg)
     from .empirical import EmpiricalPrior, bank_config_for
@@ -20,7 +22,9 @@ def make_prior(cfg):
         depth_weight=1.0 if cfg.depth_conditioning else 0.0,
         front_bias=cfg.front_bias,
         variants=cfg.variants,
-        bank_config=bank_config_for(cfg.resolution, cfg.fovy_range, background=tuple(cfg.background)),
+        bank_config=bank_config_for(
+            cfg.resolution, cfg.fovy_range, background=tuple(cfg.background), radius=float(cfg.camera_radius)
+        ),
     )
 
 

@@ -104,6 +104,7 @@ def save_checkpoint(state, ctx, path: Path) -> Path:
             "history": state.history,
             "bad_steps": state.bad_steps,
             "config": config_dict(ctx.cfg),
+            "densify_schedule": ctx.strategy.schedule.as_dict(),
         },
         path,
     )
@@ -122,6 +123,12 @@ def load_checkpoint(path: Path, ctx):
         raise CheckpointError(
             f"out: {path.parent} holds a run with a different config (fields {diff}){why}; "
             "use another --out, or --no-resume to start over"
+        )
+    schedule = ctx.strategy.schedule.as_dict()
+    if blob.get("densify_schedule", schedule) != schedule:
+        raise CheckpointError(
+            f"out: {path.parent} holds a run whose densification schedule {blob['densify_schedule']} differs from "
+            f"the one this code resolves from the same config ({schedule}); use another --out, or --no-resume"
         )
     params = {k: v.clone().requires_grad_(True) for k, v in blob["params"].items()}
     opt = _optimizer(params, ctx.cfg)

@@ -9,6 +9,7 @@ reset every 400 steps. One departure, for the 2-core CPU: the training resolutio
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -19,42 +20,188 @@ from ..noise import NoiseConfig
 
 @dataclass(frozen=True)
 class OptimConfig:
-    """Adam learning rates per parameter group (DreamGaussian's, scaled for 64 px)."""
+    """Adam learning rates per parameter group (docs/training.md, "Settings against the
+    references": the references' values and the reasons for ours)."""
 
     means: float = 1e-3
-    """Initial learning rate of the means; decays exponentially to ``means_final``."""
+    """Initial learning rate of the means, per unit of the scene extent over 0.5 (the rate is
+    multiplied by extent / 0.5: 1 at the paper's initial ball); decays exponentially to
+    ``means_final`` over the run."""
     means_final: float = 2e-5
+    """Learning rate of the means at the last step (same units as ``means``)."""
     colors: float = 0.01
+    """Base colour (SH band 0); DreamGaussian's."""
+    sh_rest: float = 0.0005
+    """Higher SH bands (degree >= 1): a twentieth of ``colors``, 3DGS's rule. At the base colour's
+    rate the bands absorb each view's noise (--sh-degree 3: a pale duck speckled with colours)."""
     opacities: float = 0.05
+    """Opacity logits (3DGS, gsplat and DreamGaussian: 0.05)."""
     scales: float = 0.005
+    """Log-scales (3DGS, gsplat and DreamGaussian: 0.005)."""
     quats: float = 0.005
+    """Rotations (DreamGaussian's; 3DGS and gsplat: 0.001)."""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"optim.{f.name}: expected a finite learning rate >= 0, got {v!r}")
+        if self.means_final <= 0 or self.means <= 0:
+            raise ValueError(
+                f"optim.means, optim.means_final: expected positive rates, got {self.means}, {self.means_final}"
+            )
 
 
 @dataclass(frozen=True)
 class DensifyConfig:
     """Adaptive density control (3DGS): clone small and split large Gaussians whose screen-space
-    gradient is high, prune transparent or huge ones, reset opacities periodically."""
+    gradient is high, prune transparent or huge ones, reset opacities periodically.
+
+    The schedule (``start``, ``stop``, ``every``, ``reset_every``) follows the run's length: left
+    unset, each is a fraction of the run (``*_frac``: the paper's 300, 1500, 50 and 400 steps at
+    its 2000), rounded to whole steps; set, it is an absolute step count. ``resolve`` gives the
+    schedule of a run, which never densifies on the last step and never resets opacities in the
+    last ``recover_steps`` steps of the run (docs/training.md, "The densification schedule")."""
 
     enabled: bool = True
-    start: int = 300
-    """First step that densifies (paper: after step 300)."""
-    stop: int = 1500
-    """Last step that densifies."""
-    every: int = 50
-    """Densify every this many steps (paper: 50)."""
+    start: int | None = None
+    """First step after which densification may run (unset: ``start_frac`` of the run)."""
+    stop: int | None = None
+    """Last step that may densify (unset: ``stop_frac`` of the run)."""
+    every: int | None = None
+    """Densify every this many steps (unset: ``every_frac`` of the run, at least 1)."""
+    reset_every: int | None = None
+    """Opacity reset interval (unset: ``reset_frac`` of the run, at least 1); resets fall on its
+    multiples up to ``stop``."""
+    start_frac: float = 0.15
+    """Default ``start`` as a fraction of the run (the paper: 300 of 2000 steps)."""
+    stop_frac: float = 0.75
+    """Default ``stop`` as a fraction of the run (1500 of 2000 steps)."""
+    every_frac: float = 0.025
+    """Default ``every`` as a fraction of the run (the paper: 50 of 2000 steps)."""
+    reset_frac: float = 0.2
+    """Default ``reset_every`` as a fraction of the run (the paper: 400 of 2000 steps)."""
+    recover_steps: int = 100
+    """No opacity reset in the last this many steps of the run: opacities need them to recover from
+    the reset value (measured on the duck: 25-50 steps; docs/training.md). Resets of the default
+    interval that would fall there are dropped; an explicit ``reset_every`` that puts one there is
+    refused."""
     grad_threshold: float = 2e-4
-    """Mean screen-space gradient norm (per unit of half the image size, losses averaged over pixels)
-    above which a Gaussian grows; 3DGS's default. About 5% of Gaussians exceed it mid-run (measured)."""
+    """Mean screen-space gradient norm per view (per unit of half the image size, losses averaged
+    over pixels) above which a Gaussian grows; 3DGS's default. About 5% of Gaussians exceed it
+    mid-run (measured)."""
+    grad_quantile: float | None = None
+    """Instead of ``grad_threshold``: grow the Gaussians whose statistic is above this quantile of
+    the statistic over the Gaussians seen since the last densification (0.95: the top 5%). Growth
+    then does not depend on the score's scale, which differs between guidance rules (sds-gs's
+    weight 1 - abar): a way to hold paired presets' model sizes comparable (docs/training.md)."""
     percent_dense: float = 0.01
-    """Scale (fraction of the scene radius) separating clone (below) from split (above)."""
+    """Scale (fraction of the scene extent) separating clone (below) from split (above)."""
     prune_opacity: float = 0.01
     """Gaussians below this opacity are pruned."""
     prune_scale: float = 0.5
-    """Gaussians larger than this fraction of the scene radius are pruned."""
-    reset_every: int = 400
-    """Opacity reset interval (paper: 400 steps)."""
+    """Gaussians larger than this fraction of the scene extent are pruned."""
+    prune_scale_from: Literal["start", "reset"] = "start"
+    """When the world-size prune (``prune_scale``) starts: with the first densification, or after
+    the first opacity reset (3DGS and gsplat)."""
     reset_value: float = 0.05
+    """Opacities are capped at this value by a reset."""
     max_gaussians: int = 30000
+
+    def __post_init__(self) -> None:
+        for name in ("start", "stop"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, int) or v < 0):
+                raise ValueError(f"densify.{name}: expected a step >= 0 (or unset), got {v!r}")
+        for name in ("every", "reset_every"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, int) or v < 1):
+                raise ValueError(f"densify.{name}: expected an int >= 1 (or unset), got {v!r}")
+        for name in ("start_frac", "stop_frac", "every_frac", "reset_frac"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"densify.{name}: expected a fraction in [0, 1], got {getattr(self, name)!r}")
+        if not isinstance(self.recover_steps, int) or self.recover_steps < 0:
+            raise ValueError(f"densify.recover_steps: expected an int >= 0, got {self.recover_steps!r}")
+        if self.grad_quantile is not None and not 0 <= self.grad_quantile < 1:
+            raise ValueError(
+                f"densify.grad_quantile: expected a quantile in [0, 1) or unset, got {self.grad_quantile!r}"
+            )
+        if self.prune_scale_from not in ("start", "reset"):
+            raise ValueError(f"densify.prune_scale_from: expected 'start' or 'reset', got {self.prune_scale_from!r}")
+        if not 0 < self.reset_value < 1:
+            raise ValueError(f"densify.reset_value: expected an opacity in (0, 1), got {self.reset_value!r}")
+        if self.max_gaussians < 1:
+            raise ValueError(f"densify.max_gaussians: expected an int >= 1, got {self.max_gaussians!r}")
+
+    def resolve(self, steps: int) -> DensifySchedule:
+        """The schedule of a ``steps``-step run; an explicit setting that would densify on the
+        last step or reset opacities in its last ``recover_steps`` steps raises ValueError naming it."""
+        n = int(steps)
+
+        def frac(f: float, least: int = 0) -> int:
+            return max(least, math.floor(f * n + 0.5))
+
+        start = self.start if self.start is not None else frac(self.start_frac)
+        every = self.every if self.every is not None else frac(self.every_frac, 1)
+        reset_every = self.reset_every if self.reset_every is not None else frac(self.reset_frac, 1)
+        stop = self.stop if self.stop is not None else min(frac(self.stop_frac), n - 1)
+        last_grow = (min(stop, n) // every) * every
+        if self.enabled and self.stop is not None and last_grow == n and last_grow > start:
+            raise ValueError(
+                f"densify.stop (--densify-stop): {self.stop} densifies on the last step of a {n}-step run "
+                f"(every {every} steps), and nothing would train what it adds; expected at most {n - 1}"
+            )
+        reset_until = min(stop, n - self.recover_steps)
+        last_reset = (min(stop, n) // reset_every) * reset_every
+        if self.enabled and 0 < last_reset and last_reset > reset_until and self.reset_every is not None:
+            raise ValueError(
+                f"densify.reset_every (--densify-reset-every): {self.reset_every} puts an opacity reset at step "
+                f"{last_reset} of a {n}-step run, {n - last_reset} steps before its end; the last reset must be "
+                f"at or before step {reset_until} "
+                f"(at least {self.recover_steps} steps before its end, densify.recover_steps)"
+            )
+        return DensifySchedule(n, self.enabled, start, stop, every, reset_every, reset_until)
+
+
+@dataclass(frozen=True)
+class DensifySchedule:
+    """The densification schedule of one run, in 1-based steps: grow at the multiples of
+    ``every`` in (``start``, ``stop``], reset opacities at the multiples of ``reset_every`` up to
+    ``reset_until`` (which is at most ``stop``). ``stop < steps`` and ``reset_until <= steps -
+    recover_steps`` hold by construction (``DensifyConfig.resolve``)."""
+
+    steps: int
+    enabled: bool
+    start: int
+    stop: int
+    every: int
+    reset_every: int
+    reset_until: int
+
+    def grows(self, step: int) -> bool:
+        return self.enabled and self.start < step <= min(self.stop, self.steps) and step % self.every == 0
+
+    def resets(self, step: int) -> bool:
+        return self.enabled and 0 < step <= self.reset_until and step % self.reset_every == 0
+
+    def grow_steps(self) -> list[int]:
+        if not self.enabled:
+            return []
+        first = (self.start // self.every + 1) * self.every
+        return list(range(first, min(self.stop, self.steps) + 1, self.every))
+
+    def reset_steps(self) -> list[int]:
+        return list(range(self.reset_every, self.reset_until + 1, self.reset_every)) if self.enabled else []
+
+    def last_collect(self) -> int:
+        """The last step whose screen-space gradients a densification still uses (0: none)."""
+        g = self.grow_steps()
+        return g[-1] if g else 0
+
+    def as_dict(self) -> dict:
+        """What run.json and the checkpoint record: the settings and the steps they give."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        return d | {"grow_steps": self.grow_steps(), "reset_steps": self.reset_steps()}
 
 
 @dataclass(frozen=True)
@@ -64,7 +211,8 @@ class TrainConfig:
     preset: str = "gd"
     """Name of the preset this config came from (recorded in run.json)."""
     steps: int = 2000
-    """Training steps (the paper: 2000)."""
+    """Training steps (the paper: 2000). The densification schedule, the sigma annealing, the noise
+    ratio and the means' learning-rate decay are fractions of it."""
     seed: int = 0
     """Seed of every random stream of the run (train/streams.py): presets with one seed are paired."""
     resolution: int = 64
@@ -80,7 +228,7 @@ class TrainConfig:
     init_ply: Path | None = None
     """init='ply': any point cloud Open3D reads."""
     init_opacity: float = 0.1
-    """Initial opacity (the paper: 0.1)."""
+    """Opacity of every initial Gaussian (the paper: 0.1)."""
     init_color: float = 0.5
     """Initial grey level."""
     # cameras (paper)
@@ -111,15 +259,15 @@ class TrainConfig:
     """Global scale of the score (the 'guidance' multiplier)."""
     view_prompting: Literal["none", "buckets", "window"] = "window"
     """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
-    of +-``view_window_deg`` around the camera azimuth, or none (DESIGN.md 'Priors')."""
+    of +-``view_window_deg`` around the camera azimuth, or none (docs/training.md)."""
     view_window_deg: float = 45.0
     """Half-width of the view window (view_prompting='window'), degrees."""
     front_bias: float = 0.0
+    """Empirical prior: kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform;
+    the Janus setting of the ablation uses it with view prompting off)."""
     variants: int = 1
     """Empirical prior: procedural variants of the caption in the bank (1..3; the instance setting
     of the ablation uses 3)."""
-    """Empirical prior: kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform;
-    the Janus setting of the ablation uses it with view prompting off)."""
     depth_conditioning: bool = False
     """Condition the prior on depth (the ControlNet role; empirical prior: joint rgb-depth posterior)."""
     # the prior
@@ -166,7 +314,7 @@ class TrainConfig:
     log_every: int = 10
     """Steps between progress-bar updates."""
     turntable_frames: int = 36
-    """Frames of the output turntable."""
+    """Frames of the output turntable (GIF, MP4 and contact sheet), evenly spaced around the object."""
     progress: bool = True
     """Show a progress bar."""
     max_bad_steps: int = 20
@@ -204,6 +352,7 @@ class TrainConfig:
             raise ValueError(f"sd_guidance: expected >= 1, got {self.sd_guidance}")
         if self.guidance not in ("sjc", "sds"):
             raise ValueError(f"guidance: expected 'sjc' or 'sds', got {self.guidance!r}")
+        self.densify.resolve(self.steps)  # an explicit schedule that breaks the rules fails here
 
 
 PRESETS: dict[str, TrainConfig] = {

@@ -9,15 +9,27 @@ Adam parameter group.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .config import DensifyConfig
+from .config import DensifyConfig, DensifySchedule
 
-PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
+PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh", "sh_rest")
+"""The trainer's parameters: ``sh`` is the base colour (SH band 0, [N, 1, D]) and ``sh_rest`` the
+higher bands ([N, K - 1, D], empty at degree 0), each its own Adam group (3DGS trains the higher
+bands at a twentieth of the base colour's rate)."""
+SCENE_NAMES = ("means", "quats", "log_scales", "opacity_logits")
+"""The parameters a ``GaussianScene`` takes as they are (its ``sh`` is ``sh`` and ``sh_rest`` joined)."""
+
+
+def sh_coeffs(params: dict[str, Tensor]) -> Tensor:
+    """All SH coefficients [N, K, D] of the trainer's parameters (``sh`` alone at degree 0)."""
+    rest = params["sh_rest"]
+    return params["sh"] if rest.shape[1] == 0 else torch.cat([params["sh"], rest], 1)
 
 
 @dataclass
@@ -50,9 +62,15 @@ def _edit(params: dict[str, Tensor], optimizer: torch.optim.Optimizer, keep: Ten
 
 
 class DensifyStrategy:
-    def __init__(self, config: DensifyConfig, scene_radius: float = 0.5):
+    """Densification of a ``steps``-step run: its schedule is ``config.resolve(steps)``; the
+    clone/split and world-size prune thresholds are fractions of ``extent`` (the scene's radius)."""
+
+    def __init__(self, config: DensifyConfig, steps: int, extent: float = 0.5):
+        if not extent > 0:
+            raise ValueError(f"extent: expected a positive scene radius, got {extent!r}")
         self.cfg = config
-        self.scene_radius = scene_radius
+        self.schedule: DensifySchedule = config.resolve(steps)
+        self.extent = extent
 
     def init_state(self, n: int) -> DensifyState:
         return DensifyState(torch.zeros(n), torch.zeros(n))
@@ -60,28 +78,45 @@ class DensifyStrategy:
     def accumulate(
         self, state: DensifyState, means2d: Tensor, visible: Tensor, width: int, height: int
     ) -> DensifyState:
-        """Add |d loss / d means2d| (per unit of half the image size) of each visible Gaussian.
+        """Add, per view, |d loss / d means2d| (per unit of half the image size) of each visible
+        Gaussian, and count the views it was visible in.
 
-        ``means2d`` [C, N, 2] must have its ``.grad``; ``visible`` [C, N]."""
+        The loss is averaged over the pixels of all C views of the step, so each view's gradient
+        is 1/C of what the same view alone would give: it is multiplied by C (gsplat's
+        DefaultStrategy does the same), which makes the statistic per view whatever the number of
+        views per step, and ``grad_threshold`` mean what it means in 3DGS (one view, a loss
+        averaged over its pixels). ``means2d`` [C, N, 2] must have its ``.grad``; ``visible`` [C, N]."""
         if means2d.grad is None:
             return state
+        C = means2d.shape[0]
         g = means2d.grad.detach().clone()
-        g[..., 0] *= width / 2
-        g[..., 1] *= height / 2
+        g[..., 0] *= width / 2 * C
+        g[..., 1] *= height / 2 * C
         norm = g.norm(dim=-1) * visible
         return DensifyState(state.grad2d + norm.sum(0).cpu(), state.count + visible.sum(0).float().cpu())
+
+    def threshold(self, avg: Tensor, count: Tensor) -> float:
+        """The statistic above which a Gaussian grows: ``grad_threshold``, or with ``grad_quantile``
+        q that quantile of the statistic over the Gaussians seen since the last densification (the
+        top 1 - q of them grow, whatever the scale of the score)."""
+        q = self.cfg.grad_quantile
+        if q is None:
+            return self.cfg.grad_threshold
+        seen = avg[count > 0]
+        return float(torch.quantile(seen.double(), q)) if seen.numel() else math.inf
 
     def collects(self, step: int) -> bool:
         """Whether the screen-space gradients of 1-based ``step`` can still be used (a densification
         is due at this step or later); after the last one, the trainer skips gathering them."""
-        return self.cfg.enabled and step <= self.cfg.stop
+        return step <= self._last_collect
+
+    @functools.cached_property
+    def _last_collect(self) -> int:
+        return self.schedule.last_collect()
 
     def is_due(self, step: int) -> tuple[bool, bool]:
         """(densify now, reset opacities now) at 1-based ``step``."""
-        c = self.cfg
-        grow = c.enabled and c.start < step <= c.stop and step % c.every == 0
-        reset = c.enabled and step <= c.stop and step % c.reset_every == 0
-        return grow, reset
+        return self.schedule.grows(step), self.schedule.resets(step)
 
     @torch.no_grad()
     def step(
@@ -97,7 +132,8 @@ class DensifyStrategy:
         grow, reset = self.is_due(step)
         info = {"cloned": 0, "split": 0, "pruned": 0, "reset": int(reset)}
         if grow:
-            info |= self._grow_and_prune(params, optimizer, state, generator)
+            huge = self.cfg.prune_scale_from == "start" or step > self.schedule.reset_every
+            info |= self._grow_and_prune(params, optimizer, state, generator, prune_huge=huge)
             state = self.init_state(params["means"].shape[0])
         if reset:
             c = self.cfg
@@ -110,13 +146,15 @@ class DensifyStrategy:
                 st["exp_avg_sq"].zero_()
         return state, info
 
-    def _grow_and_prune(self, params, optimizer, state: DensifyState, generator: torch.Generator) -> dict[str, int]:
+    def _grow_and_prune(
+        self, params, optimizer, state: DensifyState, generator: torch.Generator, *, prune_huge: bool = True
+    ) -> dict[str, int]:
         c = self.cfg
         n = params["means"].shape[0]
         avg = state.grad2d / state.count.clamp_min(1)
         scale = params["log_scales"].detach().exp().amax(-1)
-        big = scale > c.percent_dense * self.scene_radius
-        hot = avg > c.grad_threshold
+        big = scale > c.percent_dense * self.extent
+        hot = avg > self.threshold(avg, state.count)
         room = max(0, c.max_gaussians - n)
         clone = hot & ~big
         split = hot & big
@@ -135,18 +173,15 @@ class DensifyStrategy:
         R = _rotmat(p["quats"][si])
         offsets = [torch.randn(si.numel(), 3, generator=generator) * s for _ in range(2)]
         split_means = [p["means"][si] + (R @ o[..., None])[..., 0] for o in offsets]
-        new = {
-            "means": torch.cat([p["means"][clone], *split_means]),
-            "quats": torch.cat([p["quats"][clone], p["quats"][si], p["quats"][si]]),
-            "log_scales": torch.cat([p["log_scales"][clone], *(2 * [p["log_scales"][si] - math.log(1.6)])]),
-            "opacity_logits": torch.cat([p["opacity_logits"][clone], p["opacity_logits"][si], p["opacity_logits"][si]]),
-            "sh": torch.cat([p["sh"][clone], p["sh"][si], p["sh"][si]]),
-        }
+        new = {k: torch.cat([p[k][clone], p[k][si], p[k][si]]) for k in PARAM_NAMES if k not in ("means", "log_scales")}
+        new["means"] = torch.cat([p["means"][clone], *split_means])
+        new["log_scales"] = torch.cat([p["log_scales"][clone], *(2 * [p["log_scales"][si] - math.log(1.6)])])
         # prune over the densified set, as 3DGS does: transparent or huge Gaussians go, new ones included
         opac = torch.sigmoid(p["opacity_logits"])
-        prune = (opac < c.prune_opacity) | (scale > c.prune_scale * self.scene_radius)
+        limit = c.prune_scale * self.extent if prune_huge else math.inf
+        prune = (opac < c.prune_opacity) | (scale > limit)
         new_keep = (torch.sigmoid(new["opacity_logits"]) >= c.prune_opacity) & (
-            new["log_scales"].exp().amax(-1) <= c.prune_scale * self.scene_radius
+            new["log_scales"].exp().amax(-1) <= limit
         )
         # never prune everything: keep the most opaque Gaussian if all would go
         if bool((prune | split).all()) and not bool(new_keep.any()):

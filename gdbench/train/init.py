@@ -67,9 +67,13 @@ def from_bank_depth(bank, n: int, opacity: float, *, generator, views: int = 8) 
     return from_points(torch.cat(pts), torch.cat(cols), n, opacity, generator=generator)
 
 
+SPHERE_RADIUS = 0.5
+"""Radius of the paper's initial ball (the object of interest lies inside radius 0.5)."""
+
+
 def initial_scene(cfg, *, generator, bank=None) -> GaussianScene:
     if cfg.init == "sphere":
-        s = sphere_init(cfg.init_points, 0.5, cfg.init_color, cfg.init_opacity, generator=generator)
+        s = sphere_init(cfg.init_points, SPHERE_RADIUS, cfg.init_color, cfg.init_opacity, generator=generator)
     elif cfg.init == "ply":
         s = from_ply_points(cfg.init_ply, cfg.init_points, cfg.init_opacity, generator=generator)
     elif cfg.init == "bank-depth":
@@ -79,3 +83,16 @@ def initial_scene(cfg, *, generator, bank=None) -> GaussianScene:
     else:
         raise ValueError(f"init: expected 'sphere', 'ply' or 'bank-depth', got {cfg.init!r}")
     return s.with_sh_degree(cfg.sh_degree)
+
+
+def scene_extent(cfg, *, generator, bank=None) -> float:
+    """The scene's radius, the length every world-size setting of the trainer is a fraction of
+    (clone/split and world-size prune thresholds, the means' learning rate, the VGS jitter in
+    'scene' units): the radius of the paper's initial ball (0.5) for ``init='sphere'``, else the
+    radius of the initial point cloud's bounding sphere about its centroid (the largest distance,
+    as 3DGS measures its cameras' extent). The cameras' distance does not enter: the prior fixes
+    the object's size in world units, and the cameras only look at it from further away."""
+    if cfg.init == "sphere":
+        return SPHERE_RADIUS
+    means = initial_scene(cfg, generator=generator, bank=bank).means.detach().double()
+    return max(float((means - means.mean(0)).norm(dim=-1).max()), 1e-3)

@@ -3,7 +3,7 @@ sweep``: every option left unset keeps the preset's value.
 
 ``train_options(exclude)`` builds a dataclass with one optional field per ``TrainConfig`` field
 (its type, and its docstring as the help text), so a new config field is an option without
-touching the CLI. ``MethodOptions`` adds the fields of the nested groups a user tunes: the
+touching the CLI. ``method_options()`` adds the fields of the nested groups a user tunes: the
 structured noise's schedule and the densification schedule.
 """
 
@@ -53,9 +53,9 @@ def train_options(exclude: tuple[str, ...] = ()):
             continue
         default = getattr(base, f.name)
         differs = sorted(p for p, c in PRESETS.items() if getattr(c, f.name) != default)
-        note = f" (default {default!r}" + (f"; the presets {differs} differ" if differs else "") + ")"
-        helptext = docs.get(f.name, f.name.replace("_", " ")) + note
-        typ = Annotated[Optional[hints[f.name]], tyro.conf.arg(help=helptext)]  # noqa: UP045
+        note = f"(default: {default!r}" + (f"; the presets {differs} differ" if differs else "") + ")"
+        helptext = docs.get(f.name, f.name.replace("_", " "))
+        typ = Annotated[Optional[hints[f.name]], tyro.conf.arg(help=helptext, help_behavior_hint=note)]  # noqa: UP045
         specs.append((f.name, typ, field(default=None)))
 
     def overrides(self) -> dict[str, object]:
@@ -65,7 +65,7 @@ def train_options(exclude: tuple[str, ...] = ()):
 
 
 @dataclass
-class MethodOptions:
+class MethodSpec:
     """Overrides of the preset's nested settings (unset: the preset's own)."""
 
     noise_redraw: Literal["run", "ou", "step"] | None = None
@@ -74,21 +74,107 @@ class MethodOptions:
     (Ornstein-Uhlenbeck, --noise-ou-beta), 'step' redraws every step (an ablation: no two steps
     share a source)."""
     noise_ou_beta: float | None = None
-    """b of the Ornstein-Uhlenbeck drift c_t = sqrt(1 - b) c_{t-1} + sqrt(b) eps."""
+    """b of the Ornstein-Uhlenbeck drift c_t = sqrt(1 - b) c_{t-1} + sqrt(b) eps (default 0.1); acts
+    only with --noise-redraw ou."""
     noise_ratio: Literal["amplitude", "variance"] | None = None
     """How the paper's 'proportion of structured noise' (0.3 -> 0.05) mixes: 'variance' (the
     default: n = sqrt(r) n_s + sqrt(1 - r) n_iid) or 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid)."""
     densify_start: int | None = None
-    """First step that densifies (default 300: the paper's)."""
+    """Densification starts after this step (default: 15% of --steps, rounded; the paper's 300 at
+    2000). Set, it is an absolute step."""
     densify_stop: int | None = None
-    """Last step that densifies (default 1500)."""
+    """Last step that may densify (default: 75% of --steps; 1500 at 2000). Set, it is an absolute
+    step, and must not densify on the run's last step."""
     densify_every: int | None = None
-    """Densify every this many steps (default 50: the paper's)."""
+    """Densify every this many steps (default: 2.5% of --steps, at least 1; the paper's 50 at 2000).
+    Set, it is an absolute step count."""
     densify_reset_every: int | None = None
-    """Opacity reset interval (default 400: the paper's); scale the schedule with --steps."""
+    """Opacity reset interval, resets up to the last densification (default: 20% of --steps; the
+    paper's 400 at 2000). Set, it is an absolute step count; no reset may fall in the last 100 steps
+    of the run, where opacities could not recover."""
+
+    densify_grad_quantile: float | None = None
+    """Grow the Gaussians above this quantile of the densification statistic (0.95: the top 5%)
+    instead of above the fixed threshold 2e-4 (default: the threshold): growth then does not follow
+    the score's scale, so paired presets keep comparable model sizes (docs/training.md)."""
 
     def overrides(self) -> dict[str, object]:
         """The set options as TrainConfig overrides (dotted keys for the nested groups)."""
-        key = {"noise_redraw": "noise.redraw", "noise_ou_beta": "noise.ou_beta", "noise_ratio": "noise.ratio_mode"}
-        key |= {f"densify_{k}": f"densify.{k}" for k in ("start", "stop", "every", "reset_every")}
-        return {key[f.name]: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+        return _method_overrides(self)
+
+
+def _method_overrides(self) -> dict[str, object]:
+    key = {"noise_redraw": "noise.redraw", "noise_ou_beta": "noise.ou_beta", "noise_ratio": "noise.ratio_mode"}
+    key |= {f"densify_{k}": f"densify.{k}" for k in ("start", "stop", "every", "reset_every", "grad_quantile")}
+    return {key[f.name]: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+
+@functools.cache
+def method_options():
+    """``MethodSpec`` for the command line: each option's help is its docstring as one paragraph
+    (tyro keeps a docstring's line breaks), which already states the default."""
+    import tyro
+
+    hints = typing.get_type_hints(MethodSpec)
+    docs = _field_docs(MethodSpec)
+    specs = [
+        (f.name, Annotated[hints[f.name], tyro.conf.arg(help=docs[f.name], help_behavior_hint="")], field(default=None))
+        for f in fields(MethodSpec)
+    ]
+    return make_dataclass(
+        "MethodOptions", specs, namespace={"overrides": _method_overrides, "__doc__": MethodSpec.__doc__}
+    )
+
+
+def flag(key: str) -> str:
+    """The command-line option of an override key ('noise.ou_beta' -> '--noise-ou-beta')."""
+    special = {"noise.ratio_mode": "--noise-ratio"}
+    if key in special:
+        return special[key]
+    return "--" + key.replace(".", "-").replace("_", "-")
+
+
+def _acts(cfg) -> dict[str, tuple[bool, str]]:
+    """For each option that acts only under another setting: (whether it acts in ``cfg``, what it
+    needs, named by its option)."""
+    sn = (cfg.structured_noise, "structured noise (--structured-noise True; this preset has it off)")
+    sd = (cfg.prior == "sd", f"--prior sd (this run: --prior {cfg.prior})")
+    sjc = (cfg.guidance == "sjc", f"--guidance sjc (this run: --guidance {cfg.guidance}, whose timestep is annealed)")
+    emp = (cfg.prior == "empirical", f"--prior empirical (this run: --prior {cfg.prior})")
+    return {
+        "noise.ou_beta": (
+            cfg.structured_noise and cfg.noise.redraw == "ou",
+            f"--noise-redraw ou (this run: --noise-redraw {cfg.noise.redraw})" if cfg.structured_noise else sn[1],
+        ),
+        "noise.redraw": sn,
+        "noise.ratio_mode": sn,
+        "log_every": (cfg.progress, "the progress bar (this run: --no-progress)"),
+        "view_window_deg": (
+            cfg.view_prompting == "window",
+            f"--view-prompting window (this run: --view-prompting {cfg.view_prompting})",
+        ),
+        "vgs_gamma": (cfg.vgs, "--vgs True (this preset has VGS off)"),
+        "vgs_unit": (cfg.vgs, "--vgs True (this preset has VGS off)"),
+        "sigma_max": sjc,
+        "anneal": sjc,
+        "front_bias": emp,
+        "variants": emp,
+        "sd_model": sd,
+        "sd_mode": sd,
+        "sd_guidance": sd,
+        "sd_dtype": sd,
+        "semantic_code": sd,
+        "semantic_steps": (cfg.prior == "sd" and cfg.semantic_code, "--prior sd with --semantic-code True"),
+        "sd_controlnet": (
+            cfg.prior == "sd" and cfg.depth_conditioning,
+            "--prior sd with --depth-conditioning True",
+        ),
+        "init_ply": (cfg.init == "ply", f"--init ply (this run: --init {cfg.init})"),
+    }
+
+
+def inert_options(cfg, given) -> list[str]:
+    """One line per option in ``given`` (override keys the user set) that does nothing in ``cfg``,
+    naming the option it needs; empty when every given option acts."""
+    acts = _acts(cfg)
+    return [f"{flag(k)} acts only with {acts[k][1]}" for k in given if k in acts and not acts[k][0]]

@@ -39,7 +39,9 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def write_curves(history: list[dict], path: Path) -> Path:
+def write_curves(history: list[dict], path: Path, schedule=None) -> Path:
+    """The training curves; with ``schedule`` (a ``DensifySchedule``), densification steps are
+    marked by thin grey lines and opacity resets by dashed red ones."""
     from ..plotting import pyplot, save
 
     plt = pyplot()
@@ -63,4 +65,13 @@ def write_curves(history: list[dict], path: Path) -> Path:
             ax.set_yscale("log")
         ax.set_title(label, fontsize=9)
         ax.set_xlabel("step")
+        if schedule is not None and key in ("residual", "n"):
+            for x in schedule.grow_steps():
+                ax.axvline(x, color="0.8", lw=0.5, zorder=0)
+            for x in schedule.reset_steps():
+                ax.axvline(x, color="tab:red", lw=0.8, ls="--", zorder=0)
+    if schedule is not None:
+        axes[2].plot([], [], color="0.8", lw=0.5, label="densify")
+        axes[2].plot([], [], color="tab:red", lw=0.8, ls="--", label="opacity reset")
+        axes[2].legend(fontsize=7, loc="lower right")
     return save(fig, path, dpi=100)

@@ -217,7 +217,7 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
         background=cfg.background,
     )
     paths |= {f"turntable_{k}": v for k, v in tt.paths.items()}
-    paths["curves"] = write_curves(state.history, out / "curves.png")
+    paths["curves"] = write_curves(state.history, out / "curves.png", ctx.strategy.schedule)
     steps_s = [h["seconds"] for h in state.history]
     run = {
         "run_id": rid,
@@ -228,6 +228,8 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
         "preset": cfg.preset,
         "seed": cfg.seed,
         "config": config_dict(cfg),
+        "densify_schedule": ctx.strategy.schedule.as_dict(),
+        "scene_extent": ctx.extent,
         "steps": state.step,
         "gaussians": len(scene),
         "resumed_from_step": resumed_from,

@@ -2,8 +2,8 @@
 seed and the stream's name.
 
 Two presets with one seed then draw the same initial scene, the same views, the same noise
-levels and the same iid noise, and differ only in what they ablate (DESIGN.md, "Score
-distillation"): a preset that switches VGS off simply never touches the ``jitter`` stream, so
+levels and the same iid noise, and differ only in what they ablate (docs/training.md, "Paired
+random streams"): a preset that switches VGS off simply never touches the ``jitter`` stream, so
 it cannot shift the draws of any other. ``gd`` mixes its structured noise with the iid field that
 ``sjc-gs`` uses as its whole noise, so even the noise is paired.
 """

@@ -36,11 +36,10 @@ from ..rand import randn
 from ..scene import GaussianScene
 from ..variational import jitter
 from .config import TrainConfig
-from .densify import PARAM_NAMES, DensifyState, DensifyStrategy
-from .init import initial_scene
+from .densify import PARAM_NAMES, SCENE_NAMES, DensifyState, DensifyStrategy, sh_coeffs
+from .init import SPHERE_RADIUS, initial_scene, scene_extent
 from .streams import make_streams, set_stream_states, stream_states
 
-SCENE_RADIUS = 0.5
 Mode = Literal["rgb", "sd-rgb", "sd-latent"]
 
 
@@ -66,8 +65,10 @@ class Context:
     conditions the ControlNet (3DFuse)."""
     latent_background: Tensor | None = None
     """sd-latent: the latent of the background colour."""
-    jitter_length: float = SCENE_RADIUS
+    jitter_length: float = 0.5
     """World length of one VGS unit for the means (``vgs_unit``)."""
+    extent: float = 0.5
+    """The scene's radius (``init.scene_extent``): world-size settings are fractions of it."""
 
     @functools.cached_property
     def sigma_values(self) -> list[float]:
@@ -88,13 +89,14 @@ class TrainState:
 
     def scene(self) -> GaussianScene:
         p = {k: self.params[k].detach() for k in PARAM_NAMES}
-        if p["sh"].shape[-1] == 4:  # latent-mode features: colours by the linear latent preview
+        sh = sh_coeffs(p)
+        if sh.shape[-1] == 4:  # latent-mode features: colours by the linear latent preview
             from renderers.splat.sh import C0
 
             from ..priors.stable_diffusion import latent_to_rgb
 
-            p["sh"] = ((latent_to_rgb(p["sh"][:, 0]) - 0.5) / C0)[:, None]
-        return GaussianScene(*(p[k] for k in PARAM_NAMES))
+            sh = ((latent_to_rgb(sh[:, 0]) - 0.5) / C0)[:, None]
+        return GaussianScene(*(p[k] for k in SCENE_NAMES), sh)
 
     def rng_state(self) -> dict[str, Tensor]:
         return stream_states(self.streams)
@@ -140,7 +142,10 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         with torch.no_grad():
             bg = torch.tensor(cfg.background, dtype=torch.float32).expand(1, 8 * factor, 8 * factor, 3)
             latent_bg = encoder(bg * 2 - 1).mean((0, 1, 2)).cpu()
-    length = SCENE_RADIUS
+    bank = prior.bank(cond)
+    _check_bank_camera(cfg, bank)
+    extent = scene_extent(cfg, generator=make_streams(cfg.seed)["init"], bank=bank)
+    length = extent
     if cfg.vgs_unit == "pixel":
         mid = math.radians(sum(cfg.fovy_range) / 2)
         length = 2 * cfg.camera_radius * math.tan(mid / 2) / cfg.resolution
@@ -148,7 +153,7 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         cfg,
         prior,
         cond,
-        DensifyStrategy(cfg.densify, SCENE_RADIUS),
+        DensifyStrategy(cfg.densify, cfg.steps, extent),
         noise,
         torch.tensor(cfg.background, dtype=torch.float32),
         prior.sigmas.float(),
@@ -157,7 +162,21 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         depth_points,
         latent_bg,
         length,
+        extent,
     )
+
+
+def _check_bank_camera(cfg: TrainConfig, bank) -> None:
+    """The prior must see the object from the trainer's camera distance: a bank rendered at another
+    radius shows it at another size, and the trainer would fit that size (a duck 1.5 times too
+    large at --camera-radius 1.5 against a bank at radius 1)."""
+    radius = getattr(getattr(bank, "config", None), "radius", None)
+    if radius is not None and not math.isclose(float(radius), cfg.camera_radius, rel_tol=1e-6):
+        raise ValueError(
+            f"camera_radius: the prior's bank is rendered from distance {radius}, the training cameras are at "
+            f"{cfg.camera_radius}; build the prior from this config (priors.factory.make_prior) or render its bank "
+            "at the trainer's radius"
+        )
 
 
 def _optimizer(params: dict[str, Tensor], cfg: TrainConfig) -> torch.optim.Adam:
@@ -167,6 +186,7 @@ def _optimizer(params: dict[str, Tensor], cfg: TrainConfig) -> torch.optim.Adam:
         "log_scales": cfg.optim.scales,
         "opacity_logits": cfg.optim.opacities,
         "sh": cfg.optim.colors,
+        "sh_rest": cfg.optim.sh_rest,
     }
     # fused: one kernel per group instead of ~10 ops (6x faster on CPU, deterministic)
     groups = [{"params": [params[k]], "lr": lr[k], "name": k} for k in PARAM_NAMES]
@@ -178,12 +198,15 @@ def init_state(ctx: Context) -> TrainState:
     streams = make_streams(cfg.seed)
     bank = ctx.prior.bank(ctx.cond)
     scene = initial_scene(cfg, generator=streams["init"], bank=bank)
-    params = {k: getattr(scene, k).detach().clone() for k in PARAM_NAMES}
+    params = {k: getattr(scene, k).detach().clone() for k in SCENE_NAMES}
+    params["sh"] = scene.sh[:, :1].detach().clone()
+    params["sh_rest"] = scene.sh[:, 1:].detach().clone()
     if ctx.mode == "sd-latent":  # 4 latent features per Gaussian, the latent of the initial colour
         with torch.no_grad():
             grey = torch.full((1, 8 * ctx.factor, 8 * ctx.factor, 3), 2 * cfg.init_color - 1)
             z = ctx.prior.encode_images(grey).mean((0, 1, 2)).cpu()
         params["sh"] = z.expand(params["means"].shape[0], 1, 4).clone()
+        params["sh_rest"] = torch.zeros(params["means"].shape[0], 0, 4)
     params = {k: v.requires_grad_(True) for k, v in params.items()}
     colors = init_colors(ctx.noise.cloud, generator=streams["noise_colors"]).colors if ctx.noise is not None else None
     return TrainState(0, params, _optimizer(params, cfg), ctx.strategy.init_state(len(scene)), colors, streams)
@@ -216,9 +239,13 @@ def _f32(x: float) -> float:
     return struct.unpack("f", struct.pack("f", x))[0]
 
 
-def _means_lr(cfg: TrainConfig, step: int) -> float:
+def _means_lr(cfg: TrainConfig, step: int, extent: float = SPHERE_RADIUS) -> float:
+    """The means' learning rate at 0-based ``step``: ``optim.means`` decaying exponentially to
+    ``optim.means_final`` over the run, in units of the scene extent (times extent / 0.5, so 1 at
+    the paper's ball; 3DGS scales its position rate by its scene extent the same way)."""
     t = min(step / max(cfg.steps - 1, 1), 1.0)
-    return math.exp((1 - t) * math.log(cfg.optim.means) + t * math.log(cfg.optim.means_final))
+    lr = math.exp((1 - t) * math.log(cfg.optim.means) + t * math.log(cfg.optim.means_final))
+    return lr * (extent / SPHERE_RADIUS)
 
 
 # ----------------------------------------------------------------------------- the step
@@ -263,7 +290,7 @@ def render_for_prior(ctx: Context, state: TrainState, views: Views):
         p["quats"],
         log_scales.exp(),
         torch.sigmoid(p["opacity_logits"]),
-        p["sh"][:, 0] if latent else p["sh"],
+        p["sh"][:, 0] if latent else sh_coeffs(p),
         views.cams.viewmats,
         views.cams.Ks,
         views.cams.width,
@@ -328,10 +355,12 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
     cfg, p = ctx.cfg, state.params
     for opt_group in state.optimizer.param_groups:
         opt_group["params"][0].grad = None
-    # mean over pixels and channels: Adam does not care about the scale, but densification thresholds
-    # on screen-space gradients then mean what they mean in 3DGS (per-pixel-averaged losses). The
-    # gradient of -(w) mean(score * x), handed to x directly: no loss graph to build and walk
-    g = score * (-(cfg.weight * views.weight) / score.numel())
+    # the loss -(w) sum(score * x) / (elements of the render): averaged over the rendered pixels and
+    # channels in every mode (in sd-rgb mode x is the VAE latent, and the sum runs over latents, but
+    # the average is still per rendered pixel). Adam does not care about the scale; densification
+    # thresholds screen-space gradients, which then mean what they mean in 3DGS (per-pixel-averaged
+    # losses), for every prior. Its gradient is handed to x directly: no loss graph to build and walk
+    g = score * (-(cfg.weight * views.weight) / out.rgb.numel())
     if x.requires_grad:
         x.backward(g)
     else:  # rgb mode: x = 2 rgb - 1 (render_for_prior), dL/drgb = 2 dL/dx exactly (autograd's bits)
@@ -347,7 +376,7 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
     state.bad_steps = 0
     for opt_group in state.optimizer.param_groups:
         if opt_group["name"] == "means":
-            opt_group["lr"] = _means_lr(cfg, state.step)
+            opt_group["lr"] = _means_lr(cfg, state.step, ctx.extent)
     adam_step(state.optimizer)
     if not _all_finite([p[k] for k in PARAM_NAMES]):
         raise TrainingDiverged(

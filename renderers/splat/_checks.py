@@ -1,7 +1,7 @@
 """Input checks at the public boundary of the splat renderer.
 
 Every failure raises ``ValueError`` or ``TypeError`` naming the argument, what was
-expected and what was given (see STYLE.md rule 13). Internal invariants use asserts.
+expected and what was given. Internal invariants use asserts.
 """
 
 from __future__ import annotations

@@ -1,0 +1,187 @@
+"""The training-schedule study of docs/training.md: GT PSNR and Gaussian count against the run's
+length and against views per step, one run per point, scored against the asset.
+
+    python scripts/study_schedule.py run --out runs/study_after --steps 100:2000:100 \
+        --steps 399 401 799 801 1199 1201 1599 1601 --views 1
+    python scripts/study_schedule.py run --out runs/study_after --steps 2000 --views 1 2 4
+    python scripts/study_schedule.py plot runs/study_before/study.csv runs/study_after/study.csv \
+        --labels before after --out docs/figures/schedule_study.png
+
+Resumable: a point already in ``study.csv`` (same steps, views and overrides) is skipped, and a
+run interrupted mid-training resumes from its checkpoint. Every row records the commit of the
+code it ran (``git describe --always --dirty``), the machine's time and the run's wall time.
+It uses only ``train`` and ``score_against_asset``, so it runs unchanged against older commits
+(run it from a clone frozen at that commit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+FIELDS = [
+    "steps", "views", "seed", "overrides", "gaussians", "psnr", "ssim", "mean_opacity",
+    "duplicates", "train_s", "commit", "utc",
+]  # fmt: skip
+
+
+def _commit() -> str:
+    import gdbench
+
+    root = Path(gdbench.__file__).resolve().parents[1]
+    try:
+        return subprocess.check_output(["git", "describe", "--always", "--dirty"], cwd=root, text=True).strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _steps(items: list[str]) -> list[int]:
+    out: list[int] = []
+    for it in items:
+        if ":" in it:
+            a, b, c = (int(x) for x in it.split(":"))
+            out += list(range(a, b + 1, c))
+        else:
+            out.append(int(it))
+    return sorted(set(out))
+
+
+def _parse_overrides(items: list[str]) -> dict:
+    out = {}
+    for it in items:
+        k, _, v = it.partition("=")
+        out[k] = json.loads(v)
+    return out
+
+
+def run(args) -> None:
+    import torch
+
+    from gdbench.metrics.gt import score_against_asset
+    from gdbench.train.config import preset
+    from gdbench.train.run import train
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = out / "study.csv"
+    done = set()
+    if table.is_file():
+        with open(table) as f:
+            done = {(int(r["steps"]), int(r["views"]), int(r["seed"]), r["overrides"]) for r in csv.DictReader(f)}
+    overrides = _parse_overrides(args.set)
+    okey = json.dumps(overrides, sort_keys=True)
+    commit = _commit()
+    todo = [
+        (s, v, seed)
+        for seed in args.seeds
+        for v in args.views
+        for s in _steps(args.steps)
+        if (s, v, seed, okey) not in done
+    ]
+    print(f"study: {len(todo)} runs to do ({len(done)} done) -> {table} (commit {commit})", flush=True)
+    for s, v, seed in todo:
+        t0 = time.perf_counter()
+        tag = "".join(f"_{k.split('.')[-1]}{val}" for k, val in sorted(overrides.items()))
+        folder = out / "runs" / f"s{s}_v{v}_seed{seed}{tag}"
+        cfg = preset(
+            args.preset,
+            prompt=args.prompt,
+            steps=s,
+            seed=seed,
+            views_per_step=v,
+            out=folder,
+            progress=False,
+            **overrides,
+        )
+        r = train(cfg, write_outputs=True, overwrite=False)
+        scene = r.state.scene()
+        bg = tuple(cfg.background)
+        sc = score_against_asset(scene, r.caption, background=bg)
+        key = torch.cat([scene.means, scene.log_scales, scene.opacity_logits[:, None]], 1)
+        dup = len(key) - len(torch.unique(key, dim=0))
+        row = {
+            "steps": s,
+            "views": v,
+            "seed": seed,
+            "overrides": okey,
+            "gaussians": len(scene),
+            "psnr": round(sc.psnr, 3),
+            "ssim": round(sc.ssim, 4),
+            "mean_opacity": round(float(torch.sigmoid(scene.opacity_logits).mean()), 4),
+            "duplicates": dup,
+            "train_s": round(time.perf_counter() - t0, 1),
+            "commit": commit,
+            "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        new = not table.is_file()
+        with open(table, "a", newline="") as f:
+            w = csv.DictWriter(f, FIELDS)
+            if new:
+                w.writeheader()
+            w.writerow(row)
+        print(" ".join(f"{k}={row[k]}" for k in FIELDS if k != "overrides"), flush=True)
+
+
+def plot(args) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for path, label in zip(args.tables, args.labels or [Path(t).parent.name for t in args.tables]):
+        with open(path) as f:
+            rows = [r for r in csv.DictReader(f)]
+        one = sorted((int(r["steps"]), float(r["psnr"]), int(r["gaussians"])) for r in rows if r["views"] == "1")
+        commit = rows[0]["commit"] if rows else "?"
+        if one:
+            s, p, n = zip(*one)
+            axes[0].plot(s, p, "o-", ms=3, label=f"{label} ({commit})")
+            axes[1].plot(s, n, "o-", ms=3, label=f"{label} ({commit})")
+        longest = max((int(r["steps"]) for r in rows), default=0)
+        by_v = sorted((int(r["views"]), int(r["gaussians"])) for r in rows if int(r["steps"]) == longest)
+        if by_v:
+            v, n = zip(*by_v)
+            axes[2].plot(v, n, "o-", label=f"{label}, {longest} steps")
+    for x in (400, 800, 1200, 1600):
+        for ax in axes[:2]:
+            ax.axvline(x, color="0.85", lw=0.8, zorder=0)
+    axes[0].set(xlabel="--steps", ylabel="GT PSNR (dB)", title="PSNR against the run's length (1 view per step)")
+    axes[1].set(xlabel="--steps", ylabel="Gaussians", title="Gaussians against the run's length")
+    axes[2].set(xlabel="--views-per-step", ylabel="Gaussians", title="Gaussians against views per step")
+    axes[2].set_xticks([1, 2, 4])
+    for ax in axes:
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=100)
+    print(f"wrote {args.out}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", help="train and score the points not yet in OUT/study.csv")
+    r.add_argument("--out", required=True)
+    r.add_argument("--steps", nargs="+", default=["2000"], help="step counts, or ranges a:b:c (inclusive)")
+    r.add_argument("--views", nargs="+", type=int, default=[1])
+    r.add_argument("--prompt", default="a yellow duck")
+    r.add_argument("--preset", default="gd")
+    r.add_argument("--seeds", nargs="+", type=int, default=[0])
+    r.add_argument("--set", nargs="*", default=[], help="config overrides key=JSON ('densify.start=150')")
+    p = sub.add_parser("plot", help="the study's figure from one or more study.csv")
+    p.add_argument("tables", nargs="+")
+    p.add_argument("--labels", nargs="*")
+    p.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    {"run": run, "plot": plot}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
