@@ -225,7 +225,9 @@ def run_score(cmd: Score) -> dict:
     return s
 
 
-SweepTrain = train_options(("prompt", "preset", "out", "progress", "seed", "steps"))
+SweepTrain = train_options(("prompt", "preset", "out", "progress", "seed", "steps", "log_every"))
+"""Every other TrainConfig field as an override of every cell (cells run without a progress bar,
+so --log-every has no place here)."""
 
 
 @dataclass

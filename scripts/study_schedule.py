@@ -127,27 +127,45 @@ def run(args) -> None:
         print(" ".join(f"{k}={row[k]}" for k in FIELDS if k != "overrides"), flush=True)
 
 
+def _by(rows: list[dict], key: str, value: str, **where) -> dict[int, list[float]]:
+    """{rows[key]: [rows[value], ...]} over the rows matching ``where`` (one entry per seed)."""
+    out: dict[int, list[float]] = {}
+    for r in rows:
+        if all(str(r[k]) == str(v) for k, v in where.items()):
+            out.setdefault(int(r[key]), []).append(float(r[value]))
+    return dict(sorted(out.items()))
+
+
 def plot(args) -> None:
+    """PSNR and Gaussians against --steps (mean over seeds, band from the lowest to the highest
+    seed), and Gaussians against views per step at the longest run, one line per table."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    for path, label in zip(args.tables, args.labels or [Path(t).parent.name for t in args.tables]):
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
+    labels = args.labels or [Path(t).parent.name for t in args.tables]
+    for i, (path, label) in enumerate(zip(args.tables, labels)):
         with open(path) as f:
-            rows = [r for r in csv.DictReader(f)]
-        one = sorted((int(r["steps"]), float(r["psnr"]), int(r["gaussians"])) for r in rows if r["views"] == "1")
+            rows = [r for r in csv.DictReader(f) if r["overrides"] == "{}"]
         commit = rows[0]["commit"] if rows else "?"
-        if one:
-            s, p, n = zip(*one)
-            axes[0].plot(s, p, "o-", ms=3, label=f"{label} ({commit})")
-            axes[1].plot(s, n, "o-", ms=3, label=f"{label} ({commit})")
+        for ax, value in ((axes[0], "psnr"), (axes[1], "gaussians")):
+            d = _by(rows, "steps", value, views=1)
+            if not d:
+                continue
+            x = list(d)
+            mean = [sum(v) / len(v) for v in d.values()]
+            n = max(len(v) for v in d.values())
+            ax.plot(x, mean, "o-", ms=3, color=f"C{i}", label=f"{label} ({commit}), mean of {n} seeds")
+            ax.fill_between(x, [min(v) for v in d.values()], [max(v) for v in d.values()], color=f"C{i}", alpha=0.15)
         longest = max((int(r["steps"]) for r in rows), default=0)
-        by_v = sorted((int(r["views"]), int(r["gaussians"])) for r in rows if int(r["steps"]) == longest)
-        if by_v:
-            v, n = zip(*by_v)
-            axes[2].plot(v, n, "o-", label=f"{label}, {longest} steps")
+        d = _by(rows, "views", "gaussians", steps=longest)
+        if d:
+            axes[2].plot(list(d), [sum(v) / len(v) for v in d.values()], "o-", color=f"C{i}",
+                         label=f"{label}, {longest} steps")  # fmt: skip
+            for v, ns in d.items():
+                axes[2].scatter([v] * len(ns), ns, s=8, color=f"C{i}", alpha=0.5)
     for x in (400, 800, 1200, 1600):
         for ax in axes[:2]:
             ax.axvline(x, color="0.85", lw=0.8, zorder=0)
@@ -155,8 +173,9 @@ def plot(args) -> None:
     axes[1].set(xlabel="--steps", ylabel="Gaussians", title="Gaussians against the run's length")
     axes[2].set(xlabel="--views-per-step", ylabel="Gaussians", title="Gaussians against views per step")
     axes[2].set_xticks([1, 2, 4])
+    axes[2].set_ylim(bottom=0)
     for ax in axes:
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

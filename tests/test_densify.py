@@ -60,30 +60,38 @@ def test_no_schedule_puts_an_event_on_the_last_step_or_a_reset_in_the_final_stre
     limit = n - recover  # the last step a reset may fall on
     start_ = start if start is not None else math.floor(0.15 * n + 0.5)
     every_ = every if every is not None else max(1, math.floor(0.025 * n + 0.5))
+    stop_ = stop if stop is not None else min(math.floor(0.75 * n + 0.5), n - 1)
+    raw_grows, _ = _events(start_, stop_, every_, 1, n)
+    explicit_growth = any(v is not None for v in (start, stop, every))
     try:
         s = cfg.resolve(n)
     except ValueError as e:  # refused only for an explicit setting, when the raw schedule breaks a rule
         msg = str(e)
         assert f"{n}-step run" in msg
-        if "--densify-stop" in msg:
-            grows, _ = _events(start_, stop, every_, 1, n)
-            assert stop is not None and grows and grows[-1] == n and f"at most {n - 1}" in msg
+        if "--densify-stop)" in msg:
+            assert stop is not None and raw_grows and raw_grows[-1] == n and f"at most {n - 1}" in msg
+        elif "no step of a" in msg:
+            assert explicit_growth and not raw_grows and "--no-densify" in msg
         else:
-            stop_ = stop if stop is not None else min(math.floor(0.75 * n + 0.5), n - 1)
-            _, resets = _events(0, stop_, reset_every, reset_every, n)
             assert "--densify-reset-every" in msg and reset_every is not None
-            assert resets and resets[-1] > min(stop_, limit) and f"at or before step {min(stop_, limit)}" in msg
+            _, resets = _events(0, stop_, reset_every, reset_every, n)
+            until = max(0, min(stop_, limit))
+            assert resets and resets[-1] > until
+            assert (f"at or before step {until}" if until else "too short for one") in msg
         return
     grows, resets = _events(s.start, s.stop, s.every, s.reset_every, n)
-    assert s.grow_steps() == grows
+    assert s.grow_steps() == grows == raw_grows
     assert all(g < n for g in grows), "a densification on the last step"
+    assert grows or not explicit_growth, "an explicit schedule that never densifies"
     assert s.reset_steps() == [r for r in resets if r <= limit]
     assert all(r <= limit for r in s.reset_steps()), "a reset in the final stretch"
     # explicit values keep their meaning as absolute steps; unset ones are fractions of the run
     assert (s.start, s.every) == (start_, every_)
     if stop is not None:
         assert s.stop == stop
-    if reset_every is None:  # the default interval loses only the resets in the final stretch
+    if reset_every is not None:  # an explicit interval is never thinned silently
+        assert s.reset_every == reset_every and s.reset_steps() == resets
+    else:  # the default interval loses only the resets in the final stretch
         assert s.reset_every == max(1, math.floor(0.2 * n + 0.5))
 
 
@@ -94,7 +102,8 @@ def test_no_schedule_puts_an_event_on_the_last_step_or_a_reset_in_the_final_stre
          r"run .*expected at most 999"),
         (400, dict(stop=1500), r"--densify-stop.*400-step run.*at most 399"),
         (2000, dict(stop=1950, reset_every=650), r"--densify-reset-every\): 650 puts an opacity reset at step 1950 "
-         r"of a 2000-step run, 50 steps before its end; the last reset must be at or before step 1900"),
+         r"of a 2000-step run, 50 steps before its end; the last reset must be at least 100 steps before the end "
+         r"\(densify.recover_steps\), so at or before step 1900"),
         (1000, dict(reset_every=475, stop=999), r"--densify-reset-every.*reset at step 950 of a 1000-step run.*"
          r"at or before step 900"),
     ],

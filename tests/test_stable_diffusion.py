@@ -241,3 +241,31 @@ def test_cli_generate_runs_the_sd_prior_and_does_not_score_it_against_an_asset(t
     assert s["steps"] == 2 and "gt" not in s
     run = json.loads((tmp_path / "run.json").read_text())
     assert run["config"]["prior"] == "sd" and run["config"]["sd_mode"] == "rgb" and run["caption"] is None
+
+
+@pytest.mark.parametrize("mode", ["rgb", "latent"])
+def test_the_densification_statistic_is_per_rendered_pixel_for_every_prior(mode, tmp_path):
+    """The definition, written out here: the loss is L = -w sum(score * x) / (elements of the
+    render), averaged over the rendered pixels whatever the prior's input x is (in sd-rgb mode the
+    sum runs over VAE latents; the trainer used to divide by their count, 48x fewer). Oracle:
+    autograd of that L through a fresh render (and the VAE encoder); the trainer hands the score's
+    gradient over by hand. The screen-space gradients, which densification thresholds, agree."""
+    from gdbench.train.config import preset
+    from gdbench.train.trainer import apply_update, init_state, make_context, render_for_prior, sample_views
+
+    cfg = preset("sjc-gs", **_two_sd_steps(tmp_path, sd_mode=mode))
+    ctx = make_context(cfg)
+    state = init_state(ctx)
+    views = sample_views(ctx, state)
+    saved = {k: v.detach().clone() for k, v in state.params.items()}
+    out, x = render_for_prior(ctx, state, views)
+    score = torch.randn(x.shape, generator=torch.Generator().manual_seed(0))
+    apply_update(state, ctx, views, out, x, score)
+    got = out.means2d.grad.clone()
+    state.params = {k: v.clone().requires_grad_(True) for k, v in saved.items()}
+    out2, x2 = render_for_prior(ctx, state, views)
+    assert x2.requires_grad  # both SD modes: x carries the graph (the VAE encoder, or the latent render)
+    loss = -(cfg.weight * views.weight) * (score * x2).sum() / out2.rgb.numel()
+    (want,) = torch.autograd.grad(loss, out2.means2d)
+    assert float(want.abs().max()) > 0
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-9)

@@ -288,7 +288,7 @@ def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():
 
     lines = inert_overrides(specs(["gd", "sjc-gs", "sds-gs"]), {"vgs_gamma": 0.1})
     assert lines == ["--vgs-gamma does nothing in sds-gs (easy), sjc-gs (easy): it acts only with --vgs True "
-                     "(this preset has VGS off)"]  # fmt: skip
+                     "(this run has VGS off)"]  # fmt: skip
     with pytest.raises(ValueError, match=r"--vgs-gamma acts only with --vgs True .*in every cell of the sweep"):
         inert_overrides(specs(["sjc-gs"]), {"vgs_gamma": 0.1})
     assert inert_overrides(specs(["gd"]), {"vgs_gamma": 0.1}) == []

@@ -23,8 +23,8 @@ def prior():
     return EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
 
 
-TINY_DENSIFY = DensifyConfig(start=1, every=2, reset_every=3, grad_threshold=1e-6, recover_steps=0)
-"""Densify every 2 steps from step 2 until 75% of the run, reset every 3 steps."""
+TINY_DENSIFY = DensifyConfig(start_frac=0.1, every_frac=0.2, reset_frac=1 / 3, grad_threshold=1e-6, recover_steps=0)
+"""A schedule that scales down to a few steps: at 9 steps, densify at 2, 4 and 6, reset at 3 and 6."""
 
 
 def tiny(name="gd", tmp=None, **kw):
@@ -156,6 +156,29 @@ def test_init_from_a_point_cloud_ply(prior, tmp_path):
     means = st.params["means"].detach()
     d = (means[:, None] - pts[None]).norm(dim=-1).min(1).values
     assert float(d.max()) < 1e-5 and means.shape[0] == 150
+
+
+def test_world_sizes_follow_the_init_clouds_extent(prior, tmp_path):
+    """A PLY init of points uniform in a ball of radius 2 (centred at (1, 0, 0)): the extent is the
+    99th percentile of their distances from the centroid, R 0.99^(1/3) in closed form, and the
+    clone/split and prune thresholds, the VGS unit and the means' learning rate (3DGS scales its
+    position rate by its extent) all use it; the paper's sphere keeps 0.5 exactly."""
+    o3d = pytest.importorskip("open3d")
+    g = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(20000, 3, generator=g), dim=-1)
+    pts = d * 2.0 * torch.rand(20000, 1, generator=g) ** (1 / 3) + torch.tensor([1.0, 0.0, 0.0])
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.double().numpy()))
+    o3d.io.write_point_cloud(str(tmp_path / "ball.ply"), pc)
+    cfg = tiny("gd", init="ply", init_ply=tmp_path / "ball.ply", init_points=4000, densify=DensifyConfig(enabled=False))
+    ctx = make_context(cfg, prior)
+    assert ctx.extent == pytest.approx(2.0 * 0.99 ** (1 / 3), rel=0.02)
+    assert ctx.strategy.extent == ctx.extent == ctx.jitter_length
+    state = init_state(ctx)
+    train_step(state, ctx)
+    lr = {gr["name"]: gr["lr"] for gr in state.optimizer.param_groups}
+    assert lr["means"] == pytest.approx(cfg.optim.means * ctx.extent / 0.5, rel=1e-12)
+    sphere = make_context(tiny("gd"), prior)
+    assert sphere.extent == 0.5 == sphere.strategy.extent
 
 
 def test_init_from_bank_depth_lies_on_the_surface(prior):

@@ -195,12 +195,14 @@ def _score(est: dict, points: int, cams: Cameras, seconds: float) -> ColmapScore
     )
 
 
-def score_scene(scene, *, views: int = 100, size: int = 256, workdir=None, seed: int = 0, **pose_kw) -> ColmapScore:
-    """Render a GaussianScene on the circle (white background) and score it."""
+def score_scene(
+    scene, *, views: int = 100, size: int = 256, workdir=None, seed: int = 0, background=(1.0, 1.0, 1.0), **pose_kw
+) -> ColmapScore:
+    """Render a GaussianScene on the circle (on ``background``, a run's own) and score it."""
     from ..turntable import render_views, to_uint8
 
     cams = circle_poses(views, **pose_kw).cameras(size, size)
-    return score_images(to_uint8(render_views(scene, cams)), cams, workdir, seed=seed)
+    return score_images(to_uint8(render_views(scene, cams, background=background)), cams, workdir, seed=seed)
 
 
 def asset_circle_images(

@@ -52,13 +52,13 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
         "caption": info.get("caption"),
     }
     t0 = time.perf_counter()
+    config = info.get("config", {})
+    bg = tuple(float(c) for c in config.get("background", (1.0, 1.0, 1.0)))  # the run's own background
     if gt and info.get("caption"):
         from .gt import score_against_asset
         from .views import score_scene as view_scores
 
-        config = info.get("config", {})
         variants = int(config.get("variants", 1))
-        bg = tuple(float(c) for c in config.get("background", (1.0, 1.0, 1.0)))  # the run's own background
         out["views"] = view_scores(scene, info["caption"], variants=variants, background=bg).as_dict()
         v = out["views"]["majority_variant"]  # the instance the run converged to is its ground truth
         s = score_against_asset(scene, info["caption"], variant=v, background=bg)
@@ -73,7 +73,7 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
     if colmap:
         from .colmap_consistency import score_scene
 
-        out["colmap"] = score_scene(scene, views=views, size=size).as_dict()
+        out["colmap"] = score_scene(scene, views=views, size=size, background=bg).as_dict()
     out["seconds"] = time.perf_counter() - t0
     write_json(previous | out, run / "scores.json")
     return previous | out

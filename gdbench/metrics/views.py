@@ -2,7 +2,7 @@
 consistency and floaters (docs/scoring.md).
 
 A result is rendered at 36 turntable views (azimuths 0, 10, ..., 350 at elevation 20, fovy 55,
-radius 1, 64 px, white background). The reference is an image bank of that ring: every
+radius 1, 64 px, on the run's background). The reference is an image bank of that ring: every
 variant's views at 72 azimuths, 5 degrees apart, rendered by pyrender with the same camera.
 Each turntable view is matched to the reference view
 (variant, azimuth) of highest PSNR. Then, after the global azimuth offset that puts the most

@@ -103,24 +103,22 @@ class DensifyConfig:
     """Gaussians larger than this fraction of the scene extent are pruned."""
     prune_scale_from: Literal["start", "reset"] = "start"
     """When the world-size prune (``prune_scale``) starts: with the first densification, or after
-    the first opacity reset (3DGS and gsplat)."""
+    the first opacity reset (3DGS and gsplat; never, in a run without one)."""
     reset_value: float = 0.05
     """Opacities are capped at this value by a reset."""
     max_gaussians: int = 30000
 
     def __post_init__(self) -> None:
-        for name in ("start", "stop"):
+        for name, least in (("start", 0), ("stop", 0), ("every", 1), ("reset_every", 1)):
             v = getattr(self, name)
-            if v is not None and (not isinstance(v, int) or v < 0):
-                raise ValueError(f"densify.{name}: expected a step >= 0 (or unset), got {v!r}")
-        for name in ("every", "reset_every"):
-            v = getattr(self, name)
-            if v is not None and (not isinstance(v, int) or v < 1):
-                raise ValueError(f"densify.{name}: expected an int >= 1 (or unset), got {v!r}")
+            if v is not None and (not _is_int(v) or v < least):
+                raise ValueError(f"densify.{name}: expected an int >= {least} (or unset), got {v!r}")
         for name in ("start_frac", "stop_frac", "every_frac", "reset_frac"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"densify.{name}: expected a fraction in [0, 1], got {getattr(self, name)!r}")
-        if not isinstance(self.recover_steps, int) or self.recover_steps < 0:
+        if self.start_frac > self.stop_frac:
+            raise ValueError(f"densify.start_frac: {self.start_frac} is after stop_frac {self.stop_frac}")
+        if not _is_int(self.recover_steps) or self.recover_steps < 0:
             raise ValueError(f"densify.recover_steps: expected an int >= 0, got {self.recover_steps!r}")
         if self.grad_quantile is not None and not 0 <= self.grad_quantile < 1:
             raise ValueError(
@@ -134,8 +132,11 @@ class DensifyConfig:
             raise ValueError(f"densify.max_gaussians: expected an int >= 1, got {self.max_gaussians!r}")
 
     def resolve(self, steps: int) -> DensifySchedule:
-        """The schedule of a ``steps``-step run; an explicit setting that would densify on the
-        last step or reset opacities in its last ``recover_steps`` steps raises ValueError naming it."""
+        """The schedule of a ``steps``-step run. An explicit setting that would densify on the last
+        step, reset opacities in the last ``recover_steps`` steps, or leave no densification at all
+        raises ValueError naming it, the run's length and the limit."""
+        if not _is_int(steps) or steps < 1:
+            raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
         n = int(steps)
 
         def frac(f: float, least: int = 0) -> int:
@@ -151,24 +152,36 @@ class DensifyConfig:
                 f"densify.stop (--densify-stop): {self.stop} densifies on the last step of a {n}-step run "
                 f"(every {every} steps), and nothing would train what it adds; expected at most {n - 1}"
             )
-        reset_until = min(stop, n - self.recover_steps)
+        explicit = [f"--densify-{k.replace('_', '-')} {getattr(self, k)}" for k in ("start", "stop", "every")
+                    if getattr(self, k) is not None]  # fmt: skip
+        if self.enabled and explicit and (start // every + 1) * every > min(stop, n):
+            raise ValueError(
+                f"densify ({', '.join(explicit)}): no step of a {n}-step run densifies (every {every} steps after "
+                f"step {start}, up to step {min(stop, n)}); to train without densification pass --no-densify"
+            )
+        reset_until = max(0, min(stop, n - self.recover_steps))
         last_reset = (min(stop, n) // reset_every) * reset_every
         if self.enabled and 0 < last_reset and last_reset > reset_until and self.reset_every is not None:
+            limit = f"at or before step {reset_until}" if reset_until else "none: the run is too short for one"
             raise ValueError(
                 f"densify.reset_every (--densify-reset-every): {self.reset_every} puts an opacity reset at step "
                 f"{last_reset} of a {n}-step run, {n - last_reset} steps before its end; the last reset must be "
-                f"at or before step {reset_until} "
-                f"(at least {self.recover_steps} steps before its end, densify.recover_steps)"
+                f"at least {self.recover_steps} steps before the end (densify.recover_steps), so {limit}"
             )
         return DensifySchedule(n, self.enabled, start, stop, every, reset_every, reset_until)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 @dataclass(frozen=True)
 class DensifySchedule:
     """The densification schedule of one run, in 1-based steps: grow at the multiples of
-    ``every`` in (``start``, ``stop``], reset opacities at the multiples of ``reset_every`` up to
-    ``reset_until`` (which is at most ``stop``). ``stop < steps`` and ``reset_until <= steps -
-    recover_steps`` hold by construction (``DensifyConfig.resolve``)."""
+    ``every`` in (``start``, min(``stop``, ``steps``)], reset opacities at the multiples of
+    ``reset_every`` up to ``reset_until`` (at most ``stop``). No growth falls on the last step and
+    ``reset_until <= steps - recover_steps`` (``DensifyConfig.resolve`` refuses settings that
+    would break either); an explicit ``stop`` may lie beyond the run."""
 
     steps: int
     enabled: bool
@@ -230,7 +243,7 @@ class TrainConfig:
     init_opacity: float = 0.1
     """Opacity of every initial Gaussian (the paper: 0.1)."""
     init_color: float = 0.5
-    """Initial grey level."""
+    """Grey level of the initial sphere's Gaussians (init='sphere'; point clouds bring their colours)."""
     # cameras (paper)
     camera_radius: float = 1.0
     """Distance of the training cameras from the origin (the paper: 1)."""
@@ -247,12 +260,13 @@ class TrainConfig:
     """sjc: g = (D(x + sigma n) - x) / sigma with sigma uniform over the prior's ticks;
     sds: the same residual with DreamGaussian's annealed timestep and weight 1 - abar."""
     sigma_min: float = 0.03
-    """Smallest noise level drawn (VE sigma)."""
+    """Smallest noise level drawn (VE sigma; guidance 'sjc' only: 'sds' anneals its timestep)."""
     sigma_max: float = 10.0
-    """Largest noise level drawn at the start of the run (VE sigma)."""
+    """Largest noise level drawn at the start of the run (VE sigma; guidance 'sjc' only)."""
     anneal: bool = True
-    """Anneal sigma: the upper end decays linearly to ``sigma_min`` over the run (measured on the
-    duck: neutral with asset version 3, +1 to +1.7 dB with version 2; docs/training.md)."""
+    """Anneal sigma (guidance 'sjc'): the upper end of its range decays linearly to ``sigma_min``
+    over the run; off, sigma stays uniform over [sigma_min, sigma_max] (measured: docs/training.md,
+    "Options measured")."""
     samples_per_step: int = 1
     """K, perturb-and-average: noise samples averaged per step."""
     weight: float = 1.0
@@ -340,6 +354,10 @@ class TrainConfig:
         for name, ok, want in checks:
             if not ok:
                 raise ValueError(f"{name}: expected {want}, got {getattr(self, name)!r}")
+        if self.init == "bank-depth" and self.prior != "empirical":
+            raise ValueError(
+                f"init: 'bank-depth' needs the empirical prior's image bank; --prior {self.prior} has none"
+            )
         if self.init == "ply" and self.init_ply is None:
             raise ValueError("init_ply: init='ply' needs a PLY path (--init-ply FILE)")
         if self.prior not in ("empirical", "sd"):

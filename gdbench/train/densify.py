@@ -132,7 +132,8 @@ class DensifyStrategy:
         grow, reset = self.is_due(step)
         info = {"cloned": 0, "split": 0, "pruned": 0, "reset": int(reset)}
         if grow:
-            huge = self.cfg.prune_scale_from == "start" or step > self.schedule.reset_every
+            resets = self.schedule.reset_steps()
+            huge = self.cfg.prune_scale_from == "start" or bool(resets and step > resets[0])
             info |= self._grow_and_prune(params, optimizer, state, generator, prune_huge=huge)
             state = self.init_state(params["means"].shape[0])
         if reset:

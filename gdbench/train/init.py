@@ -89,10 +89,11 @@ def scene_extent(cfg, *, generator, bank=None) -> float:
     """The scene's radius, the length every world-size setting of the trainer is a fraction of
     (clone/split and world-size prune thresholds, the means' learning rate, the VGS jitter in
     'scene' units): the radius of the paper's initial ball (0.5) for ``init='sphere'``, else the
-    radius of the initial point cloud's bounding sphere about its centroid (the largest distance,
-    as 3DGS measures its cameras' extent). The cameras' distance does not enter: the prior fixes
-    the object's size in world units, and the cameras only look at it from further away."""
+    radius of the initial point cloud about its centroid: the 99th percentile of the distances (3DGS
+    takes the largest distance of its cameras; a percentile lets no stray point of a PLY rescale
+    every setting). The cameras' distance does not enter: the prior fixes the object's size in
+    world units, and the cameras only look at it from further away."""
     if cfg.init == "sphere":
         return SPHERE_RADIUS
     means = initial_scene(cfg, generator=generator, bank=bank).means.detach().double()
-    return max(float((means - means.mean(0)).norm(dim=-1).max()), 1e-3)
+    return max(float(torch.quantile((means - means.mean(0)).norm(dim=-1), 0.99)), 1e-3)

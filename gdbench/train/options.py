@@ -89,10 +89,13 @@ class MethodSpec:
     """Densify every this many steps (default: 2.5% of --steps, at least 1; the paper's 50 at 2000).
     Set, it is an absolute step count."""
     densify_reset_every: int | None = None
-    """Opacity reset interval, resets up to the last densification (default: 20% of --steps; the
+    """Opacity reset interval, resets at its multiples up to --densify-stop (default: 20% of --steps; the
     paper's 400 at 2000). Set, it is an absolute step count; no reset may fall in the last 100 steps
     of the run, where opacities could not recover."""
 
+    densify: bool | None = None
+    """Densify at all (clone, split, prune, reset opacities; default: on). --no-densify trains the
+    initial Gaussians as they are."""
     densify_grad_quantile: float | None = None
     """Grow the Gaussians above this quantile of the densification statistic (0.95: the top 5%)
     instead of above the fixed threshold 2e-4 (default: the threshold): growth then does not follow
@@ -106,6 +109,7 @@ class MethodSpec:
 def _method_overrides(self) -> dict[str, object]:
     key = {"noise_redraw": "noise.redraw", "noise_ou_beta": "noise.ou_beta", "noise_ratio": "noise.ratio_mode"}
     key |= {f"densify_{k}": f"densify.{k}" for k in ("start", "stop", "every", "reset_every", "grad_quantile")}
+    key["densify"] = "densify.enabled"
     return {key[f.name]: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
 
@@ -137,9 +141,9 @@ def flag(key: str) -> str:
 def _acts(cfg) -> dict[str, tuple[bool, str]]:
     """For each option that acts only under another setting: (whether it acts in ``cfg``, what it
     needs, named by its option)."""
-    sn = (cfg.structured_noise, "structured noise (--structured-noise True; this preset has it off)")
+    sn = (cfg.structured_noise, "structured noise (--structured-noise True; this run has it off)")
     sd = (cfg.prior == "sd", f"--prior sd (this run: --prior {cfg.prior})")
-    sjc = (cfg.guidance == "sjc", f"--guidance sjc (this run: --guidance {cfg.guidance}, whose timestep is annealed)")
+    sjc = (cfg.guidance == "sjc", f"--guidance sjc (this run: --guidance {cfg.guidance}, which anneals its timestep)")
     emp = (cfg.prior == "empirical", f"--prior empirical (this run: --prior {cfg.prior})")
     return {
         "noise.ou_beta": (
@@ -150,11 +154,13 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
         "noise.ratio_mode": sn,
         "log_every": (cfg.progress, "the progress bar (this run: --no-progress)"),
         "view_window_deg": (
-            cfg.view_prompting == "window",
-            f"--view-prompting window (this run: --view-prompting {cfg.view_prompting})",
+            cfg.view_prompting == "window" and cfg.prior == "empirical",
+            f"--view-prompting window and --prior empirical (this run: --view-prompting {cfg.view_prompting}, "
+            f"--prior {cfg.prior}; Stable Diffusion's view prompts are words, with no window)",
         ),
-        "vgs_gamma": (cfg.vgs, "--vgs True (this preset has VGS off)"),
-        "vgs_unit": (cfg.vgs, "--vgs True (this preset has VGS off)"),
+        "vgs_gamma": (cfg.vgs, "--vgs True (this run has VGS off)"),
+        "vgs_unit": (cfg.vgs, "--vgs True (this run has VGS off)"),
+        "sigma_min": sjc,
         "sigma_max": sjc,
         "anneal": sjc,
         "front_bias": emp,
@@ -166,10 +172,22 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
         "semantic_code": sd,
         "semantic_steps": (cfg.prior == "sd" and cfg.semantic_code, "--prior sd with --semantic-code True"),
         "sd_controlnet": (
-            cfg.prior == "sd" and cfg.depth_conditioning,
-            "--prior sd with --depth-conditioning True",
+            cfg.prior == "sd" and cfg.depth_conditioning and cfg.sd_model != "tiny",
+            "--prior sd with --depth-conditioning True and a real --sd-model (the tiny model builds its own)",
         ),
+        **{
+            f"densify.{k}": (cfg.densify.enabled, "densification (this run: --no-densify)")
+            for k in ("start", "stop", "every", "reset_every", "grad_quantile")
+        },
         "init_ply": (cfg.init == "ply", f"--init ply (this run: --init {cfg.init})"),
+        "init_color": (
+            cfg.init == "sphere" or (cfg.prior == "sd" and cfg.sd_mode == "latent"),
+            f"--init sphere (this run: --init {cfg.init}, whose points bring their colours)",
+        ),
+        "sh_degree": (
+            not (cfg.prior == "sd" and cfg.sd_mode == "latent"),
+            "an RGB render (this run: --sd-mode latent renders 4 latent features without SH)",
+        ),
     }
 
 
