@@ -157,7 +157,7 @@ class DensifyConfig:
         if self.enabled and explicit and (start // every + 1) * every > min(stop, n):
             raise ValueError(
                 f"densify ({', '.join(explicit)}): no step of a {n}-step run densifies (every {every} steps after "
-                f"step {start}, up to step {min(stop, n)}); to train without densification pass --no-densify"
+                f"step {start}, up to step {min(stop, n)}); to train without densification pass --densify False"
             )
         reset_until = max(0, min(stop, n - self.recover_steps))
         last_reset = (min(stop, n) // reset_every) * reset_every

@@ -94,7 +94,7 @@ class MethodSpec:
     of the run, where opacities could not recover."""
 
     densify: bool | None = None
-    """Densify at all (clone, split, prune, reset opacities; default: on). --no-densify trains the
+    """Densify at all (clone, split, prune, reset opacities; default: on). --densify False trains the
     initial Gaussians as they are."""
     densify_grad_quantile: float | None = None
     """Grow the Gaussians above this quantile of the densification statistic (0.95: the top 5%)
@@ -176,7 +176,7 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
             "--prior sd with --depth-conditioning True and a real --sd-model (the tiny model builds its own)",
         ),
         **{
-            f"densify.{k}": (cfg.densify.enabled, "densification (this run: --no-densify)")
+            f"densify.{k}": (cfg.densify.enabled, "densification (this run: --densify False)")
             for k in ("start", "stop", "every", "reset_every", "grad_quantile")
         },
         "init_ply": (cfg.init == "ply", f"--init ply (this run: --init {cfg.init})"),
