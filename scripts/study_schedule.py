@@ -156,8 +156,9 @@ def plot(args) -> None:
                 continue
             x = list(d)
             mean = [sum(v) / len(v) for v in d.values()]
-            n = max(len(v) for v in d.values())
-            ax.plot(x, mean, "o-", ms=3, color=f"C{i}", label=f"{label} ({commit}), mean of {n} seeds")
+            lo, hi = min(len(v) for v in d.values()), max(len(v) for v in d.values())
+            seeds = f"{lo}" if lo == hi else f"{lo}-{hi}"
+            ax.plot(x, mean, "o-", ms=3, color=f"C{i}", label=f"{label} ({commit}), mean of {seeds} seeds")
             ax.fill_between(x, [min(v) for v in d.values()], [max(v) for v in d.values()], color=f"C{i}", alpha=0.15)
         longest = max((int(r["steps"]) for r in rows), default=0)
         d = _by(rows, "views", "gaussians", steps=longest)
