@@ -181,6 +181,20 @@ def test_world_sizes_follow_the_init_clouds_extent(prior, tmp_path):
     assert sphere.extent == 0.5 == sphere.strategy.extent
 
 
+def test_the_means_rate_decays_over_at_least_the_papers_2000_steps():
+    """Closed form: lr(s) = means (means_final / means)^(s / (T - 1)) with T = max(steps, 2000): a
+    short run stops partway down the 2000-step decay, a long one stretches it, and the default run
+    keeps its rates."""
+    from gdbench.train.trainer import _means_lr
+
+    for steps, T in ((800, 2000), (2000, 2000), (4000, 4000)):
+        cfg = preset("gd", steps=steps)
+        for s in (0, steps // 2, steps - 1):
+            assert _means_lr(cfg, s) == pytest.approx(1e-3 * 0.02 ** (s / (T - 1)), rel=1e-12)
+    assert _means_lr(preset("gd", steps=800), 799) == pytest.approx(2.09e-4, rel=3e-3)
+    assert _means_lr(preset("gd"), 1999) == pytest.approx(2e-5, rel=1e-12)
+
+
 def test_init_from_bank_depth_lies_on_the_surface(prior):
     ctx = make_context(tiny("gd", init="bank-depth"), prior)
     means = init_state(ctx).params["means"].detach()
@@ -329,7 +343,15 @@ import sys
 from tests.test_train import tiny, CAPTION
 from tests._util import tiny_bank
 from gdbench.priors.empirical import EmpiricalPrior
+import time
+import gdbench.train.run as run
 from gdbench.train.run import train
+save = run.save_checkpoint
+def slow_save(*a, **k):  # paced, so that the kill lands mid-run on a machine of any speed
+    out = save(*a, **k)
+    time.sleep(0.25)
+    return out
+run.save_checkpoint = slow_save
 prior = EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
 train(tiny("gd", sys.argv[1], steps=int(sys.argv[2]), checkpoint_every=3), prior, write_outputs=False)
 """

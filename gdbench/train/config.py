@@ -26,9 +26,13 @@ class OptimConfig:
     means: float = 1e-3
     """Initial learning rate of the means, per unit of the scene extent over 0.5 (the rate is
     multiplied by extent / 0.5: 1 at the paper's initial ball); decays exponentially to
-    ``means_final`` over the run."""
+    ``means_final`` over ``means_decay_steps`` steps or the run, whichever is longer."""
     means_final: float = 2e-5
-    """Learning rate of the means at the last step (same units as ``means``)."""
+    """Learning rate of the means at the end of its decay (same units as ``means``)."""
+    means_decay_steps: int = 2000
+    """The means' rate decays over at least this many steps: a shorter run stops partway down the
+    paper's 2000-step decay instead of squeezing it into fewer steps, which froze the geometry
+    early (800 steps: a blurred duck on three seeds of five; docs/training.md)."""
     colors: float = 0.01
     """Base colour (SH band 0); DreamGaussian's."""
     sh_rest: float = 0.0005
@@ -42,7 +46,11 @@ class OptimConfig:
     """Rotations (DreamGaussian's; 3DGS and gsplat: 0.001)."""
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.means_decay_steps, int) and self.means_decay_steps >= 1):
+            raise ValueError(f"optim.means_decay_steps: expected an int >= 1, got {self.means_decay_steps!r}")
         for f in fields(self):
+            if f.name == "means_decay_steps":
+                continue
             v = getattr(self, f.name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"optim.{f.name}: expected a finite learning rate >= 0, got {v!r}")

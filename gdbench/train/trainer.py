@@ -241,9 +241,10 @@ def _f32(x: float) -> float:
 
 def _means_lr(cfg: TrainConfig, step: int, extent: float = SPHERE_RADIUS) -> float:
     """The means' learning rate at 0-based ``step``: ``optim.means`` decaying exponentially to
-    ``optim.means_final`` over the run, in units of the scene extent (times extent / 0.5, so 1 at
-    the paper's ball; 3DGS scales its position rate by its scene extent the same way)."""
-    t = min(step / max(cfg.steps - 1, 1), 1.0)
+    ``optim.means_final`` over max(run, ``optim.means_decay_steps``) steps, in units of the scene
+    extent (times extent / 0.5, so 1 at the paper's ball; 3DGS scales its position rate by its
+    scene extent the same way)."""
+    t = min(step / max(max(cfg.steps, cfg.optim.means_decay_steps) - 1, 1), 1.0)
     lr = math.exp((1 - t) * math.log(cfg.optim.means) + t * math.log(cfg.optim.means_final))
     return lr * (extent / SPHERE_RADIUS)
 
