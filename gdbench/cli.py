@@ -203,7 +203,9 @@ def run_compare(cmd: Compare) -> dict:
 @dataclass
 class Score:
     """Score a finished run folder: GT PSNR/SSIM against the asset and COLMAP consistency
-    (registration rate, Var(theta), translation-direction error), written to its scores.json."""
+    (registration rate, Var(theta), translation-direction error), written to its scores.json.
+    Each block records its parameters, commit and time; a block is reused (and marked so) only
+    when the scene, its parameters and a clean commit match, and dropped when they do not."""
 
     run: tyro.conf.Positional[Path]
     """A run folder with scene.ply (and run.json for the caption)."""
@@ -212,7 +214,9 @@ class Score:
     colmap: bool = True
     """Run the COLMAP consistency metric (about 30 s on 2 cores)."""
     views: int = 100
+    """COLMAP's: the number of turntable views rendered and registered."""
     size: int = 256
+    """COLMAP's: the side of each rendered view, in pixels."""
 
 
 def run_score(cmd: Score) -> dict:
@@ -325,7 +329,8 @@ class Bench:
     out: Path = Path("bench_results")
     """Folder for the CSV/JSON/plots."""
     quick: bool = False
-    """Small grid (render and peers only): a smoke run, not numbers to publish."""
+    """Small grid (render and peers only), every case in this process (render: no process per
+    case, so peak memory is not per case): a smoke run of a few seconds, not numbers to publish."""
 
 
 def run_bench(cmd: Bench) -> dict:
@@ -336,7 +341,7 @@ def run_bench(cmd: Bench) -> dict:
     if cmd.quick:
         if cmd.which not in ("render", "peers"):
             raise ValueError(f"quick: only render and peers have a quick grid, not {cmd.which!r}")
-        argv.append("--quick")
+        argv += ["--quick"] + (["--inprocess"] if cmd.which == "render" else [])
     code = importlib.import_module(module).main(argv)
     return {"bench": cmd.which, "csv": str(Path(cmd.out) / csv_name), "exit": code}
 

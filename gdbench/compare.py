@@ -6,7 +6,8 @@ the splatting model), then each backend at a ladder of settings, and writes one 
 compared with the twin (``against``); the gsplat peer also with ours at gsplat's alpha clamp;
 pyrender points give centre (px) and depth (relative) errors against our projection.
 Backends that do not apply to a scene, or are not installed here, are listed as skipped with
-the reason. Outputs: ``compare.csv``, ``compare.json``, error maps and a Pareto plot per scene.
+the reason. Outputs: ``compare.csv``, ``compare.json`` (one table over every scene compared into
+the folder: a scene run again replaces its rows), error maps and a Pareto plot per scene.
 """
 
 from __future__ import annotations
@@ -281,11 +282,16 @@ def compare_scene(fx: Fixture, backends: list[str] | None = None) -> Result:
 
 
 def write_report(results: dict[str, Result], out: Path) -> dict[str, Path]:
-    from .bench.common import write_csv, write_json
+    """compare.csv and compare.json hold one table with a ``scene`` column: the rows of the
+    scenes run now replace their earlier rows, other scenes' rows stay, and an error map or
+    Pareto plot whose scene has no row is removed (a file never outlives its rows)."""
+    from .io import read_json, write_csv, write_json
 
     out.mkdir(parents=True, exist_ok=True)
-    rows = [r for res in results.values() for r in res.rows]
-    skipped = [s for res in results.values() for s in res.skipped]
+    old = read_json(out / "compare.json", what="compare.json") if (out / "compare.json").is_file() else {}
+    keep = lambda items: [r for r in items if isinstance(r, dict) and r.get("scene") not in results]  # noqa: E731
+    rows = keep(old.get("rows", [])) + [r for res in results.values() for r in res.rows]
+    skipped = keep(old.get("skipped", [])) + [s for res in results.values() for s in res.skipped]
     paths = {
         "csv": write_csv(rows, out / "compare.csv"),
         "json": write_json({"rows": rows, "skipped": skipped}, out / "compare.json"),
@@ -293,6 +299,11 @@ def write_report(results: dict[str, Result], out: Path) -> dict[str, Path]:
     for scene, res in results.items():
         paths[f"{scene}_errors"] = _error_maps(res, out / f"{scene}_errors.png")
         paths[f"{scene}_pareto"] = _pareto(scene, res.rows, out / f"{scene}_pareto.png")
+    scenes = {r["scene"] for r in rows}
+    for kind in ("errors", "pareto"):
+        for png in out.glob(f"*_{kind}.png"):
+            if png.name.removesuffix(f"_{kind}.png") not in scenes:
+                png.unlink()
     return paths
 
 

@@ -1,10 +1,14 @@
-"""Files a run writes and reads: atomic writes with the user's umask, JSON that names the file
-when it is broken, content hashes, and a lock that keeps two writers out of one run folder."""
+"""Files a run writes and reads: atomic writes with the user's umask, strict JSON (null for a
+missing number) that names the file when it is broken, CSV with empty cells for missing
+numbers, content hashes, and a lock that keeps two writers out of one run folder."""
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import json
+import math
 import os
 import socket
 import tempfile
@@ -40,10 +44,81 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
     return path
 
 
-def write_json(obj: dict, path: str | Path) -> Path:
-    """Atomic JSON (indent 2; non-JSON values written as strings)."""
-    data = json.dumps(obj, indent=2, default=str).encode()
+def jsonable(obj):
+    """``obj`` with every value JSON can hold strictly: NaN and infinities become None (null),
+    tuples lists, numpy scalars and arrays Python numbers and lists, paths strings."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, bool) or obj is None or isinstance(obj, (int, str)):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if hasattr(obj, "tolist"):  # numpy scalars and arrays, torch tensors
+        return jsonable(obj.tolist())
+    if isinstance(obj, Path):
+        return str(obj)
+    return str(obj)
+
+
+def json_bytes(obj) -> bytes:
+    """Strict JSON (RFC 8259: no NaN or Infinity; a missing number is null), indent 2."""
+    return json.dumps(jsonable(obj), indent=2, allow_nan=False).encode()
+
+
+def write_json(obj, path: str | Path) -> Path:
+    """Atomic strict JSON (``json_bytes``): a missing number is written as null, so browsers
+    and strict readers load every file the project writes; ``num`` reads it back as NaN."""
+    data = json_bytes(obj)
     return atomic_write(path, lambda f: f.write(data))
+
+
+def num(x) -> float:
+    """A number read back from a file: null (None) or an empty CSV cell is NaN."""
+    return math.nan if x is None or x == "" else float(x)
+
+
+def write_csv(rows: list[dict], path: str | Path) -> Path:
+    """Atomic CSV of ``rows`` (columns in order of first appearance). A missing number (None,
+    NaN, infinity) is an empty cell, so numeric columns hold numbers only."""
+
+    def cell(v):
+        if v is None or (isinstance(v, float) and not math.isfinite(v)):
+            return ""
+        return v
+
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    w.writerows({k: cell(v) for k, v in r.items()} for r in rows)
+    data = buf.getvalue().encode()
+    return atomic_write(path, lambda f: f.write(data))
+
+
+def read_csv(path: str | Path) -> list[dict]:
+    """Rows of a CSV written by ``write_csv``, with numbers, booleans and empty cells converted
+    (empty cells become None)."""
+
+    def convert(v: str):
+        if v == "":
+            return None
+        if v in ("True", "False"):
+            return v == "True"
+        try:
+            return int(v)
+        except ValueError:
+            pass
+        try:
+            return float(v)
+        except ValueError:
+            return v
+
+    with open(path, newline="") as f:
+        return [{k: convert(v) for k, v in r.items()} for r in csv.DictReader(f)]
 
 
 def read_json(path: str | Path, *, what: str | None = None) -> dict:

@@ -41,7 +41,7 @@ def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, see
     corr_len = autocorrelation_length(big.noise[0], big.coverage[0])
     coupling = view_coupling(cloud, poses.cameras(48, 48), v_min=cfg.v_min)
 
-    fig = plt.figure(figsize=(13, 3.4))
+    fig = plt.figure(figsize=(13, 3.9), layout="constrained")  # constrained: the title is laid out too
     for i in range(4):
         ax = fig.add_subplot(1, 5, i + 1)
         img = (0.5 + 0.18 * first.noise[i]).clamp(0, 1).numpy()
@@ -58,7 +58,7 @@ def preview(out: Path, config: NoiseConfig | None = None, *, res: int = 128, see
     ax.legend(fontsize=7)
     fig.suptitle(
         f"Structured noise: one source, 4 views ({res}px, M={cfg.n_gaussians}, scale {cfg.scale}); "
-        f"coverage {first.coverage_fraction:.2f} (black: edge of coverage, iid outside); "
+        f"coverage {first.coverage_fraction:.2f} (black: edge of coverage, iid outside)\n"
         f"correlation length {corr_len:.1f} px; shared with view 1: "
         + ", ".join(f"{float(c):.2f} at {float(a):.0f}°" for a, c in zip(az[1:], coupling[1:])),
         fontsize=9,

@@ -16,9 +16,11 @@ def pyplot():
 
 
 def save(fig, path: str | Path, *, dpi: int = 110) -> Path:
-    """Lay out, write (creating the folder) and close ``fig``; returns the path."""
+    """Lay out (tight, unless the figure has its own layout engine), write (creating the
+    folder) and close ``fig``; returns the path."""
     path = Path(path)
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
     pyplot().close(fig)

@@ -17,6 +17,7 @@ cores here) or ``ray`` (``--address`` of a cluster, or a local instance when emp
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -131,8 +132,9 @@ def cell_config(spec: CellSpec):
 
 def run_cell(spec: CellSpec) -> dict:
     """Train (or resume) and score one cell; writes and returns its row."""
-    from .io import write_json
+    from .io import num, read_json, write_json
     from .metrics.run_scores import score_run
+    from .provenance import code_commit
     from .train.checkpoint import CheckpointError
     from .train.run import train
 
@@ -145,8 +147,10 @@ def run_cell(spec: CellSpec) -> dict:
         ) from None
     train_s = sum(h["seconds"] for h in r.state.history)
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
-    col, views, gt = scores.get("colmap", {}), scores.get("views", {}), scores.get("gt", {})
-    nan = float("nan")
+    # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
+    col = scores.get("colmap", {}) if spec.colmap else {}
+    views, gt = scores.get("views", {}), scores.get("gt", {})
+    get = lambda block, key: num(block.get(key))  # noqa: E731  (null in a file: NaN)
     row = {
         "setting": spec.setting,
         "prompt": spec.prompt,
@@ -156,29 +160,38 @@ def run_cell(spec: CellSpec) -> dict:
         "iterations": r.state.step,
         "train_time_s": train_s,
         "gaussians": scores["gaussians"],
-        "gt_psnr": gt.get("psnr", nan),
-        "gt_ssim": gt.get("ssim", nan),
-        "multi_face_rate": views.get("multi_face_rate", nan),
-        "front_share": views.get("front_share", nan),
-        "instance_inconsistency": 1.0 - views.get("instance_consistency", nan),
-        "majority_variant": views.get("majority_variant", -1),
-        "floaters": views.get("floaters", nan),
-        "registration_rate": col.get("registration_rate", nan),
-        "var_theta_deg2": col.get("var_theta_deg2", nan),
-        "colmap_failure_rate": col.get("failure_rate", nan),
-        "translation_dir_err_deg": col.get("translation_dir_err_deg", nan),
+        "gt_psnr": get(gt, "psnr"),
+        "gt_ssim": get(gt, "ssim"),
+        "multi_face_rate": get(views, "multi_face_rate"),
+        "front_share": get(views, "front_share"),
+        "instance_inconsistency": 1.0 - get(views, "instance_consistency"),
+        "majority_variant": int(views.get("majority_variant", -1)),
+        "floaters": get(views, "floaters"),
+        "registration_rate": get(col, "registration_rate"),
+        "var_theta_deg2": get(col, "var_theta_deg2"),
+        "colmap_failure_rate": get(col, "failure_rate"),
+        "translation_dir_err_deg": get(col, "translation_dir_err_deg"),
         "cell_s": time.perf_counter() - t0,
+        "train_commit": read_json(spec.dir / "run.json", what="run.json").get("commit", "unknown"),
+        "score_commit": code_commit(),
     }
     write_json({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")
     return row
 
 
 def _done(spec: CellSpec) -> dict | None:
+    """The row of a cell finished with this spec and scored by this code; None otherwise (the
+    cell is then scored again: its training resumes, or is found finished, from its folder)."""
+    from .io import read_json
+    from .provenance import same_code
+
     p = spec.dir / "cell.json"
     if not p.is_file():
         return None
-    blob = json.loads(p.read_text())
-    return blob["row"] if blob.get("spec") == json.loads(json.dumps(asdict(spec))) else None
+    blob = read_json(p, what="cell.json")
+    if blob.get("spec") != json.loads(json.dumps(asdict(spec))) or not same_code(blob["row"].get("score_commit")):
+        return None
+    return {k: math.nan if v is None else v for k, v in blob["row"].items()}  # null: a missing number
 
 
 def sweep(

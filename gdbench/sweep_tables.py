@@ -1,8 +1,11 @@
 """The sweep's tables and figure, rewritten after every cell:
 
 - ``cells.csv``: one row per (setting, prompt, preset, seed) cell;
-- ``summary.csv`` / ``summary.md``: per (setting, preset) the mean ± std over prompts and seeds of
-  every metric, with the median of the heavy-tailed COLMAP variance beside its mean;
+- ``summary.csv``: per (setting, preset), numbers only: each metric's mean, standard deviation
+  and number of cells it was measured on (``<metric>_mean``, ``_std``, ``_n``; empty where
+  missing), and the median of the heavy-tailed COLMAP variance;
+- ``summary.md``: the same as mean ± std, "(k of n)" where a metric was measured on only k of n
+  cells, and the commits that trained and scored the cells;
 - ``verdict.csv`` (and in ``summary.md``): each of the paper's claims in each setting, as the
   paired difference with a 95% bootstrap interval (``metrics/claims.py``);
 - ``ablation.png``: every cell's metrics per preset and setting.
@@ -41,41 +44,68 @@ def _fmt(x: float) -> str:
     return "n/a" if x != x else f"{x:.3g}"
 
 
-def _mean_std(xs: list[float]) -> str:
+def _mean_std(xs: list) -> tuple[float, float, int]:
+    """Mean, sample standard deviation (NaN for fewer than two values) and count of the finite
+    values of ``xs``."""
     xs = _finite(xs)
-    if not xs:
+    mean = statistics.mean(xs) if xs else math.nan
+    std = statistics.stdev(xs) if len(xs) > 1 else math.nan
+    return mean, std, len(xs)
+
+
+def _pretty(mean: float, std: float, n: int, cells: int) -> str:
+    if n == 0:
         return "n/a"
-    if len(xs) == 1:
-        return f"{xs[0]:.4g}"
-    return f"{statistics.mean(xs):.4g} ± {statistics.stdev(xs):.2g}"
+    text = f"{mean:.4g}" if std != std else f"{mean:.4g} ± {std:.2g}"
+    return text if n == cells else f"{text} ({n} of {cells})"
 
 
 def summarise(rows: list[dict]) -> list[dict]:
+    """Per (setting, preset): numbers only, for a dataframe: ``<metric>_mean``, ``_std`` and
+    ``_n`` (the cells the metric could be measured on; NaN, written empty, where none), and the
+    median of the heavy-tailed ones."""
     out = []
     groups = list(dict.fromkeys((r.get("setting", "easy"), r["preset"]) for r in rows))
     for setting, preset in groups:
         sel = [r for r in rows if r.get("setting", "easy") == setting and r["preset"] == preset]
         s = {"setting": setting, "preset": preset, "cells": len(sel)}
-        for key, _, tailed in COLUMNS:
-            s[key] = _mean_std([r.get(key) for r in sel])
+        for key, _, tailed in COLUMNS + (("iterations", "iterations", False),):
+            vals = [r.get(key) for r in sel]
+            s[f"{key}_mean"], s[f"{key}_std"], s[f"{key}_n"] = _mean_std(vals)
             if tailed:
-                s[f"median_{key}"] = _median([r.get(key) for r in sel])
-        s["iterations"] = _mean_std([r.get("iterations") for r in sel])
+                s[f"{key}_median"] = _median(vals)
         out.append(s)
     return out
 
 
-def markdown(summary: list[dict], verdicts: list[dict]) -> str:
+def commits(rows: list[dict]) -> str:
+    """Which code trained and scored the cells, e.g. 'trained at 69486f7c3a34 (30 cells);
+    scored at 69486f7c3a34 (30)'."""
+    parts = []
+    for what, key in (("trained", "train_commit"), ("scored", "score_commit")):
+        counts: dict[str, int] = {}
+        for r in rows:
+            c = r.get(key) or "unknown"
+            counts[c] = counts.get(c, 0) + 1
+        parts.append(f"{what} at " + ", ".join(f"{c} ({n} cells)" for c, n in counts.items()))
+    return "; ".join(parts)
+
+
+def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None = None) -> str:
     head = ["setting", "preset", "cells"]
     for _key, name, tailed in COLUMNS:
         head += [name] + ([f"median {name}"] if tailed else [])
-    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    md = [f"Cells {commits(rows)}.", ""] if rows else []
+    md += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in summary:
         cells = [s["setting"], s["preset"], str(s["cells"])]
         for key, _, tailed in COLUMNS:
-            cells += [s[key]] + ([_fmt(s[f"median_{key}"])] if tailed else [])
+            cells.append(_pretty(s[f"{key}_mean"], s[f"{key}_std"], s[f"{key}_n"], s["cells"]))
+            if tailed:
+                cells.append(_fmt(s[f"{key}_median"]))
         md.append("| " + " | ".join(cells) + " |")
-    md += ["", "| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% CI] | a better | verdict | "
+    md += ["", "(k of n): the metric could be measured on k of the n cells; n/a: on none.", ""]
+    md += ["| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% CI] | a better | verdict | "
            "Gaussians a / b |"]  # fmt: skip
     md.append("|---|---|---|---|---|---|---|---|---|---|---|")
     if not verdicts:
@@ -95,7 +125,7 @@ def _size_note(v: dict) -> str:
 
 
 def tables(rows: list[dict], out: Path) -> dict[str, Path]:
-    from .bench.common import write_csv
+    from .io import write_csv
     from .metrics.claims import evaluate
 
     out.mkdir(parents=True, exist_ok=True)
@@ -104,7 +134,7 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
     paths["summary_csv"] = write_csv(summary, out / "summary.csv")
     verdicts = evaluate(rows)
     paths["verdict_csv"] = write_csv(verdicts, out / "verdict.csv")
-    (out / "summary.md").write_text(markdown(summary, verdicts))
+    (out / "summary.md").write_text(markdown(summary, verdicts, rows))
     paths["summary_md"] = out / "summary.md"
     paths["plot"] = plot(rows, out / "ablation.png")
     return paths
@@ -144,7 +174,7 @@ def plot(rows: list[dict], path: Path) -> Path:
             elif log and any(v > 0 for v in vals):
                 ax.set_yscale("log")
             ax.grid(True, axis="y", alpha=0.3)
-    if prompts:
+    if axes[0][0].get_legend_handles_labels()[0]:
         axes[0][0].legend(fontsize=6)
     return save(fig, path, dpi=100)
 

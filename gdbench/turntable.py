@@ -110,7 +110,6 @@ def write_turntable(
 
 def demo(out: Path, *, frames: int = 36, size: int = 256, gaussians: int = 3000, seed: int = 0) -> dict:
     """``gdbench demo``: the built-in scene as a turntable; writes summary.json and prints timings."""
-    import json
     import platform
     import time
 
@@ -141,7 +140,9 @@ def demo(out: Path, *, frames: int = 36, size: int = 256, gaussians: int = 3000,
         "machine": platform.machine(),
         "outputs": {k: str(v) for k, v in res.paths.items()} | {"ply": str(ply)},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    from .io import write_json
+
+    write_json(summary, out / "summary.json")
     print(f"gdbench demo: {len(scene)} Gaussians, {frames} frames at {size}x{size}")
     print(f"  first frame {summary['first_frame_s'] * 1e3:8.1f} ms (includes loading the compositor)")
     print(f"  median      {summary['median_frame_s'] * 1e3:8.1f} ms  ({summary['fps_median']:.1f} frames/s)")

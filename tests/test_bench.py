@@ -151,6 +151,11 @@ def test_work_fit_recovers_the_fixed_cost_and_becomes_the_intercept_target():
     target = summary["targets"]["splat_fit_intercept_s"]
     assert target["fit"] == "vs_work" and target["value"] == pytest.approx(law["a"], rel=1e-6) and target["met"]
     assert summary["fits"]["splat fwd"]["vs_intersections"]["r2"] < 0.99  # intersections are not the work here
+    # a law with a negative cost per Gaussian (what a 4-point quick grid can fit): no verdict on the target
+    for r in rows:
+        r["median_s"] = law["a"] + law["blocks"] * (r["fwd_blocks"] + r["bwd_blocks"]) - 1e-9 * r["n"]
+    target = bm_render.summarise(rows)["targets"]["splat_fit_intercept_s"]
+    assert target["met"] is None and "negative cost per n" in target["why"]
 
 
 def test_timeit_counts_repeats():

@@ -46,10 +46,23 @@ def test_import_is_cheap():
     assert out.stdout.strip() == ""
 
 
-def test_noise_preview_writes_figure_with_unit_variance(tmp_path):
+def test_noise_preview_writes_figure_with_unit_variance(tmp_path, monkeypatch):
+    from gdbench import plotting
     from gdbench.cli import Noise
 
+    inside, real = [], plotting.save
+
+    def save(fig, path, **kw):  # every title lies inside the figure once it is laid out
+        fig.canvas.draw()
+        frame = fig.bbox
+        for text in [fig._suptitle] + [ax.title for ax in fig.axes]:
+            box = text.get_window_extent()
+            inside.append(frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1)
+        return real(fig, path, **kw)
+
+    monkeypatch.setattr(plotting, "save", save)
     stats = main(Noise(preview=True, out=tmp_path / "p.png", res=48, n_gaussians=800, scale=0.04))
+    assert len(inside) == 6 and all(inside), inside
     assert (tmp_path / "p.png").stat().st_size > 10_000
     assert 0.3 < stats["coverage"] <= 1.0
     assert abs(stats["var"] - 1.0) < 0.05 and abs(stats["mean"]) < 0.05

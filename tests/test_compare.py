@@ -72,6 +72,33 @@ def test_run_writes_report_and_lists_skips(tmp_path, monkeypatch):
     ]
 
 
+def test_comparing_another_scene_into_the_same_folder_keeps_one_table_and_no_orphan_image(tmp_path):
+    import csv
+    import json
+
+    first, second = "isotropic", next(n for n in fixture_names() if n != "isotropic")
+    a = run(first, backends=["splat"], out=tmp_path, verbose=False)
+    run(second, backends=["splat"], out=tmp_path, verbose=False)
+    (tmp_path / "gone_errors.png").write_bytes(b"an image whose scene has no row")
+
+    def strict(path):
+        return json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{path}: {c} in strict JSON"))
+
+    strict(tmp_path / "compare.json")
+    again = run(first, backends=["splat"], out=tmp_path, verbose=False)  # the first scene again: its rows replaced
+    blob = strict(tmp_path / "compare.json")
+    with open(tmp_path / "compare.csv") as f:
+        table = list(csv.DictReader(f))
+    scenes = [r["scene"] for r in blob["rows"]]
+    assert scenes.count(first) == len(again[first].rows) == len(a[first].rows) and second in scenes
+    assert [r["scene"] for r in table] == scenes
+    # the float64 twin against itself: PSNR infinite in memory, null (empty) in the files
+    twin = next(r for r in blob["rows"] if r["scene"] == first and r["renderer"] == "reference")
+    assert twin["psnr"] is None and next(r for r in table if r["renderer"] == "reference")["psnr"] == ""
+    images = {p.name for p in tmp_path.glob("*.png")}
+    assert images == {f"{n}_{k}.png" for n in (first, second) for k in ("errors", "pareto")}
+
+
 def test_bad_scene_and_backend_names():
     with pytest.raises(ValueError, match="scene: no fixture named 'nope'"):
         load_fixture("nope")

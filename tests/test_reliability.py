@@ -101,11 +101,14 @@ def test_scores_belong_to_the_scene_they_measured(prior, tmp_path, monkeypatch):
 
     out = tmp_path / "run"
     train(tiny("gd", out, steps=2), prior)
+    from gdbench.provenance import code_commit
+
     sha = sha256_file(out / "scene.ply")
-    colmap = {"registration_rate": 1.0, "var_theta_deg2": 0.1}
+    made = {"params": {"views": 100, "size": 256, "background": [1.0, 1.0, 1.0]}, "commit": code_commit()}
+    colmap = {"registration_rate": 1.0, "var_theta_deg2": 0.1, "made": made}
     (out / "scores.json").write_text(json.dumps({"scene_sha256": sha, "colmap": colmap}))
     s = run_scores.score_run(out, gt=False, colmap=False)
-    assert s["colmap"] == colmap  # same scene: kept
+    assert s["colmap"] == colmap and s["kept"] == ["colmap"]  # same scene, same code: kept
     (out / "scores.json").write_text(json.dumps({"scene_sha256": "another scene", "colmap": colmap}))
     s = run_scores.score_run(out, gt=False, colmap=False)
     assert "colmap" not in s and s["scene_sha256"] == sha  # another scene's block: dropped

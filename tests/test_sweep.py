@@ -9,6 +9,8 @@ import shutil
 import statistics
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from gdbench.cli import Score, Sweep, main
 from gdbench.metrics.run_scores import score_run
@@ -46,8 +48,9 @@ def test_sweep_writes_every_cell_and_tables_that_summarise_them(tiny_sweep):
     summary = {s["preset"]: s for s in _read_csv(out / "summary.csv")}
     for p in ("gd", "sjc-gs"):
         ps = [float(c["gt_psnr"]) for c in cells if c["preset"] == p]
-        mean = float(summary[p]["gt_psnr"].split(" ± ")[0])
-        assert mean == pytest.approx(statistics.mean(ps), rel=2e-3)
+        assert float(summary[p]["gt_psnr_mean"]) == pytest.approx(statistics.mean(ps), rel=1e-9)
+        assert float(summary[p]["gt_psnr_std"]) == pytest.approx(statistics.stdev(ps), rel=1e-9)
+        assert int(summary[p]["gt_psnr_n"]) == 2 and summary[p]["var_theta_deg2_mean"] == ""  # not measured
     md = (out / "summary.md").read_text()
     assert md.count("\n| easy | gd |") == 1 and md.count("\n| easy | sjc-gs |") == 1
 
@@ -178,6 +181,13 @@ def test_claims_verdict_from_paired_bootstrap_intervals():
     assert evaluate(same)[0]["verdict"] == "does not hold (no difference)"
     never_fails = [dict(r, multi_face_rate=0.0) for r in rows]  # nothing for the mechanism to fix
     assert evaluate(never_fails)[0]["verdict"] == "not testable here (neither preset fails)"
+    always_fails = [dict(r, multi_face_rate=1.0) for r in rows]  # the metric cannot see a difference
+    assert evaluate(always_fails)[0]["verdict"] == "not testable here (both always fail)"
+    # five pairs that all agree: a sign test gives p = 2^-4 = 0.0625, so no verdict is read
+    few = [r for r in rows if r["prompt"] in "abcde" and r["seed"] == 0]
+    assert evaluate(few)[0]["pairs"] == 5 and evaluate(few)[0]["verdict"] == "too few pairs (n < 6)"
+    six = [r for r in rows if r["prompt"] in "abcdef" and r["seed"] == 0]
+    assert evaluate(six)[0]["pairs"] == 6 and evaluate(six)[0]["verdict"] == "holds"
     # the interval against its closed form: the mean of n iid differences has sd s/sqrt(n)
     d = rng.normal(1.0, 2.0, 400)
     lo, hi = bootstrap_mean_ci(d)
@@ -292,3 +302,173 @@ def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():
     with pytest.raises(ValueError, match=r"--vgs-gamma acts only with --vgs True .*in every cell of the sweep"):
         inert_overrides(specs(["sjc-gs"]), {"vgs_gamma": 0.1})
     assert inert_overrides(specs(["gd"]), {"vgs_gamma": 0.1}) == []
+
+
+# ------------------------------------------------------------ provenance and strict files
+def _strict(path):
+    """json.loads that refuses NaN and Infinity, as browsers and strict readers do."""
+
+    def refuse(name):
+        raise ValueError(f"{path}: non-standard JSON constant {name}")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def _stub_colmap(monkeypatch, calls, registered=0):
+    """COLMAP's scorer replaced by a stub that counts its calls (registering nothing by default:
+    NaN variance, failure rate 1)."""
+    from gdbench.metrics import colmap_consistency as cc
+
+    def fake(scene, *, views, size, background):
+        calls.append((views, size))
+        nan = float("nan")
+        var = nan if registered < 3 else 0.5
+        return cc.ColmapScore(views, registered, registered / views, var, nan, nan, 0, 0.01, 1.0)
+
+    monkeypatch.setattr(cc, "score_scene", fake)
+
+
+def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypatch, tmp_path, capsys):
+    from gdbench.provenance import code_commit
+
+    out, _ = tiny_sweep
+    run = tmp_path / "run"
+    shutil.copytree(CellSpec(PROMPT, "gd", 0, 4, str(out)).dir, run)
+    calls = []
+    _stub_colmap(monkeypatch, calls)
+    s = score_run(run, colmap=True, views=9, size=48)
+    # the sweep's own GT blocks, same code: reused; COLMAP at parameters never scored: computed
+    assert calls == [(9, 48)] and s["reused"] == ["gt", "views"]
+    made = s["colmap"]["made"]
+    assert made["params"] == {"views": 9, "size": 48, "background": [1.0, 1.0, 1.0]}
+    assert made["commit"] == code_commit() and made["utc"].endswith("Z")
+    # same parameters: reused, and said so; other parameters: computed again
+    s = score_run(run, gt=False, colmap=True, views=9, size=48)
+    assert calls == [(9, 48)] and s["reused"] == ["colmap"]
+    from gdbench.metrics.run_scores import report
+
+    assert "COLMAP: registered 0.00" in report(s) and "(reused: made" in report(s)
+    s = score_run(run, gt=False, colmap=True, views=7, size=48)
+    assert calls == [(9, 48), (7, 48)] and s["reused"] == [] and "reused" not in report(s)
+    # a block made by other code (or planted with made-up numbers) is dropped, never printed
+    blob = _strict(run / "scores.json")
+    blob["colmap"] = {"registration_rate": 0.93, "var_theta_deg2": 1.5, "failure_rate": 0.1,
+                      "translation_dir_err_deg": 2.0, "made": dict(made, commit="0123456789ab")}  # fmt: skip
+    (run / "scores.json").write_text(json.dumps(blob))
+    s = score_run(run, gt=False, colmap=False)
+    assert "colmap" not in s and "colmap" not in _strict(run / "scores.json")
+    text = report(s)
+    assert "0.93" not in text and "COLMAP" not in text and "GT:" not in text
+    assert "nothing scored" in text and "also keeps, not recomputed now: gt, views" in text
+    del blob["colmap"]["made"]  # from before blocks recorded their provenance
+    (run / "scores.json").write_text(json.dumps(blob))
+    assert "colmap" not in score_run(run, gt=False, colmap=False)
+    # --no-gt --no-colmap through the CLI prints no score at all
+    main(Score(run=run, gt=False, colmap=False))
+    printed = capsys.readouterr().out
+    assert "PSNR" not in printed and "COLMAP:" not in printed and "nothing scored" in printed
+
+
+def test_a_cell_holds_only_what_the_sweep_asked_for(tiny_sweep, monkeypatch, tmp_path):
+    """A COLMAP block the cell's scores.json holds from an earlier pass stays out of a row whose
+    cell is outside --colmap-presets; a cell inside gets strict files with null for the variance
+    COLMAP could not measure."""
+    out, rows = tiny_sweep
+    src = CellSpec(PROMPT, "sjc-gs", 0, 4, str(out), colmap=False, overrides=TINY)
+    spec = CellSpec(PROMPT, "sjc-gs", 0, 4, str(tmp_path), colmap=True, overrides=TINY, colmap_views=8)
+    shutil.copytree(src.dir, spec.dir)
+    calls = []
+    _stub_colmap(monkeypatch, calls)
+    row = run_cell(spec)
+    assert calls == [(8, 256)] and row["colmap_failure_rate"] == 1.0 and math.isnan(row["var_theta_deg2"])
+    for name in ("scores.json", "cell.json", "run.json"):
+        _strict(spec.dir / name)  # NaN written as null
+    assert _strict(spec.dir / "scores.json")["colmap"]["var_theta_deg2"] is None
+    assert _strict(spec.dir / "cell.json")["row"]["var_theta_deg2"] is None
+    asked_less = CellSpec(PROMPT, "sjc-gs", 0, 4, str(tmp_path), colmap=False, overrides=TINY)
+    row = run_cell(asked_less)
+    assert "colmap" in _strict(spec.dir / "scores.json")  # kept in the file (same scene and code) ...
+    assert math.isnan(row["colmap_failure_rate"]) and math.isnan(row["registration_rate"])  # ... not in the row
+    assert row["gt_psnr"] == rows[1]["gt_psnr"] and row["score_commit"] == row["train_commit"]
+
+
+def test_every_json_a_sweep_writes_is_strict_and_tables_are_numeric(tiny_sweep):
+    out, _ = tiny_sweep
+    files = sorted(out.rglob("*.json"))
+    assert {f.name for f in files} >= {"run.json", "scores.json", "cell.json"}
+    for f in files:
+        _strict(f)
+    summary = _read_csv(out / "summary.csv")
+    for row in summary:
+        for key, value in row.items():
+            if key.endswith(("_mean", "_std", "_median", "_n")):
+                assert value == "" or math.isfinite(float(value)), (key, value)
+    for row in _read_csv(out / "cells.csv") + _read_csv(out / "verdict.csv"):
+        assert "nan" not in {v.lower() for v in row.values()} and "n/a" not in row.values()
+
+
+def _oracle_verdict(a: list, b: list, fails_at) -> str:
+    """The verdict words from the pairs alone, written out independently of claims.verdict (its
+    interval is only needed where the values differ)."""
+    pairs = [(x, y) for x, y in zip(a, b) if x is not None and y is not None and x == x and y == y]
+    if not pairs:
+        return "not measured"
+    if len(pairs) < 6:
+        return "too few pairs (n < 6)"
+    if all(x == 0 and y == 0 for x, y in pairs):
+        return "not testable here (neither preset fails)"
+    if fails_at is not None and all(x == fails_at and y == fails_at for x, y in pairs):
+        return "not testable here (both always fail)"
+    if all(x == y for x, y in pairs):
+        return "does not hold (no difference)"
+    if all(x < y for x, y in pairs):
+        return "holds"  # every resampled mean is negative
+    if all(x > y for x, y in pairs):
+        return "does not hold"
+    return "interval"  # decided by the interval: one of the interval words
+
+
+values = st.one_of(st.none(), st.just(float("nan")), st.just(0.0), st.just(1.0), st.floats(0, 1, width=32))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(pairs=st.lists(st.tuples(values, values), min_size=0, max_size=12), gaussians=st.integers(1, 10_000))
+def test_tables_from_any_mix_of_values_are_strict_and_numeric_with_the_right_verdict(
+    tmp_path, monkeypatch, pairs, gaussians
+):
+    from gdbench import sweep_tables
+    from gdbench.io import num, write_json
+    from gdbench.sweep_tables import tables
+
+    monkeypatch.setattr(sweep_tables, "plot", lambda rows, path: path)  # the figure is not under test here
+
+    rows = []
+    for i, (a, b) in enumerate(pairs):
+        for preset, v in (("gd", a), ("gd-no-sn", b)):
+            rows.append({"setting": "easy", "prompt": f"p{i}", "preset": preset, "seed": 0,
+                         "multi_face_rate": v, "colmap_failure_rate": v, "gaussians": gaussians})  # fmt: skip
+    out = tmp_path / "t"
+    shutil.rmtree(out, ignore_errors=True)
+    if not rows:
+        return
+    tables(rows, out)
+    write_json({"rows": rows}, out / "rows.json")
+    back = _strict(out / "rows.json")["rows"]
+    assert [num(r["multi_face_rate"]) == num(r["multi_face_rate"]) for r in back] == [
+        r["multi_face_rate"] is not None and r["multi_face_rate"] == r["multi_face_rate"] for r in rows
+    ]
+    for row in _read_csv(out / "summary.csv"):
+        for key, value in row.items():
+            if key.endswith(("_mean", "_std", "_median", "_n")):
+                assert value == "" or math.isfinite(float(value)), (key, value)
+    verdicts = {v["metric"]: v for v in _read_csv(out / "verdict.csv")}
+    want = _oracle_verdict([a for a, _ in pairs], [b for _, b in pairs], 1.0)
+    for metric in ("multi_face_rate",):
+        got = verdicts[metric]["verdict"]
+        if want == "interval":
+            assert got in ("holds", "does not hold", "undecided (CI spans zero)")
+        else:
+            assert got == want
+        for key in ("mean_a", "mean_b", "mean_diff", "ci_low", "ci_high"):
+            value = verdicts[metric][key]
+            assert value == "" or math.isfinite(float(value))

@@ -1,10 +1,8 @@
 """Shared pieces of the benchmarks: timing with warm-up and synchronisation, peak memory,
-scene generators, and CSV/JSON writing."""
+scene generators; CSV/JSON writing is ``gdbench.io``'s (re-exported here)."""
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 import os
 import platform
@@ -12,9 +10,10 @@ import resource
 import statistics
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
+
+from ..io import read_csv, write_csv, write_json  # noqa: F401  (the benchmarks' writers)
 
 
 def sync(device: torch.device | str) -> None:
@@ -88,47 +87,3 @@ def environment() -> dict[str, object]:
         "python": platform.python_version(),
         "cuda": torch.cuda.is_available(),
     }
-
-
-def write_csv(rows: list[dict], path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    keys: list[str] = []
-    for r in rows:
-        keys += [k for k in r if k not in keys]
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    os.replace(tmp, path)
-    return path
-
-
-def write_json(obj: object, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=str))
-    os.replace(tmp, path)
-    return path
-
-
-def read_csv(path: str | Path) -> list[dict]:
-    """Rows of a CSV written by ``write_csv``, with numbers, booleans and empty cells converted
-    (for the notebooks; empty cells become None)."""
-
-    def convert(v: str):
-        if v == "":
-            return None
-        if v in ("True", "False"):
-            return v == "True"
-        try:
-            return int(v)
-        except ValueError:
-            pass
-        try:
-            return float(v)
-        except ValueError:
-            return v
-
-    with open(path, newline="") as f:
-        return [{k: convert(v) for k, v in r.items()} for r in csv.DictReader(f)]

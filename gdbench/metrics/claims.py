@@ -3,14 +3,21 @@
 Each claim says preset ``a`` scores lower than preset ``b`` on a metric where lower is better.
 Over the (prompt, seed) pairs that both presets ran in one setting, the paired differences
 d = metric(a) - metric(b) are resampled (percentile bootstrap, 10,000 resamples of the pairs,
-a fixed seed); the verdict reads the 95% interval of their mean:
+a fixed seed); the verdict reads the 95% interval of their mean. The words, checked in order:
 
+- **not measured**: no pair has the metric in both arms (not scored, or nothing to score);
+- **too few pairs (n < 6)**: fewer than ``MIN_PAIRS`` pairs. Below six, even pairs that all
+  agree are not significant (a two-sided sign test gives p = 2^(1-n) >= 0.0625), while the
+  percentile bootstrap of a few same-signed numbers never spans 0 and would say "holds";
+- **not testable here (neither preset fails)**: the metric is 0 in every pair: the mechanism
+  had nothing to fix in this setting, which is no evidence either way;
+- **not testable here (both always fail)**: the metric sits at its failure value in every pair
+  of both arms (COLMAP registers nothing in either, so its failure rate is 1.0 throughout): the
+  metric cannot see a difference, which is no evidence either way;
+- **does not hold (no difference)**: every difference is 0 while the baseline does fail;
 - **holds**: the interval lies below 0;
-- **does not hold**: the interval lies above 0 (the opposite holds), or every difference is 0
-  while the baseline ``b`` does fail (the metric cannot tell the presets apart);
-- **not testable here**: neither preset ever fails (the metric is 0 in every pair), so the
-  mechanism had nothing to fix in this setting; that is no evidence either way;
-- **undecided**: the interval spans 0.
+- **does not hold**: the interval lies above 0 (the opposite holds);
+- **undecided (CI spans zero)**: the interval spans 0.
 """
 
 from __future__ import annotations
@@ -20,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io import num
+
 
 @dataclass(frozen=True)
 class Claim:
@@ -28,19 +37,22 @@ class Claim:
     b: str
     metric: str
     """A row key; lower is better."""
+    fails_at: float | None = None
+    """The metric's value in a cell where the failure always happens (a rate's 1.0), or None
+    where it has no such value."""
 
 
 CLAIMS = (
-    Claim("structured noise reduces multi-face failures", "gd", "gd-no-sn", "multi_face_rate"),
-    Claim("structured noise reduces multi-face failures", "gd-no-vgs", "sjc-gs", "multi_face_rate"),
+    Claim("structured noise reduces multi-face failures", "gd", "gd-no-sn", "multi_face_rate", 1.0),
+    Claim("structured noise reduces multi-face failures", "gd-no-vgs", "sjc-gs", "multi_face_rate", 1.0),
     Claim("structured noise reduces instance inconsistency", "gd", "gd-no-sn", "instance_inconsistency"),
     Claim("structured noise reduces instance inconsistency", "gd-no-vgs", "sjc-gs", "instance_inconsistency"),
     Claim("variational Gaussians reduce floaters", "gd", "gd-no-vgs", "floaters"),
     Claim("variational Gaussians reduce floaters", "gd-no-sn", "sjc-gs", "floaters"),
     Claim("gd is more consistent than SJC on COLMAP (variance)", "gd", "sjc-gs", "var_theta_deg2"),
-    Claim("gd is more consistent than SJC on COLMAP (failure rate)", "gd", "sjc-gs", "colmap_failure_rate"),
+    Claim("gd is more consistent than SJC on COLMAP (failure rate)", "gd", "sjc-gs", "colmap_failure_rate", 1.0),
     Claim("gd is more consistent than SDS on COLMAP (variance)", "gd", "sds-gs", "var_theta_deg2"),
-    Claim("gd is more consistent than SDS on COLMAP (failure rate)", "gd", "sds-gs", "colmap_failure_rate"),
+    Claim("gd is more consistent than SDS on COLMAP (failure rate)", "gd", "sds-gs", "colmap_failure_rate", 1.0),
 )
 """The paper's claims (section 4) in the ablation's terms."""
 
@@ -56,14 +68,36 @@ def bootstrap_mean_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, se
     return float(lo), float(hi)
 
 
-def verdict(lo: float, hi: float, diffs: np.ndarray, baseline: np.ndarray | None = None) -> str:
+MIN_PAIRS = 6
+"""Fewest pairs a verdict is read from (module docstring: a sign test's reach)."""
+
+
+def verdict(
+    lo: float,
+    hi: float,
+    diffs: np.ndarray,
+    baseline: np.ndarray | None = None,
+    treated: np.ndarray | None = None,
+    fails_at: float | None = None,
+) -> str:
     """The verdict of one claim from the interval of the mean paired difference (a - b), the
-    differences themselves and the baseline's (b's) values."""
+    differences themselves, both arms' values (``treated``: a's, ``baseline``: b's) and the
+    metric's always-fails value (module docstring: the words and their order)."""
     if diffs.size == 0 or math.isnan(lo):
         return "not measured"
+    if diffs.size < MIN_PAIRS:
+        return f"too few pairs (n < {MIN_PAIRS})"
+    if baseline is not None and np.all(np.asarray(baseline) == 0) and np.all(diffs == 0):
+        return "not testable here (neither preset fails)"
+    if (
+        fails_at is not None
+        and baseline is not None
+        and treated is not None
+        and np.all(np.asarray(baseline) == fails_at)
+        and np.all(np.asarray(treated) == fails_at)
+    ):
+        return "not testable here (both always fail)"
     if np.all(diffs == 0):
-        if baseline is not None and np.all(np.asarray(baseline) == 0):
-            return "not testable here (neither preset fails)"
         return "does not hold (no difference)"
     if hi < 0:
         return "holds"
@@ -82,7 +116,7 @@ def _sizes(rows: list[dict], c: Claim, keys: list) -> dict:
     whether it exceeds ``SIZE_RATIO_LIMIT``."""
 
     def mean(preset: str) -> float:
-        n = {(r["prompt"], r["seed"]): r.get("gaussians", math.nan) for r in rows if r["preset"] == preset}
+        n = {(r["prompt"], r["seed"]): num(r.get("gaussians")) for r in rows if r["preset"] == preset}
         vals = [float(n[k]) for k in keys if k in n and n[k] == n[k]]
         return float(np.mean(vals)) if vals else math.nan
 
@@ -114,8 +148,8 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
         for c in claims:
             if not {c.a, c.b} <= ran or not _applies(c, sel, setting):
                 continue
-            va = {(r["prompt"], r["seed"]): r.get(c.metric, math.nan) for r in sel if r["preset"] == c.a}
-            vb = {(r["prompt"], r["seed"]): r.get(c.metric, math.nan) for r in sel if r["preset"] == c.b}
+            va = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.a}
+            vb = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.b}
             keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
             d = np.array([va[k] - vb[k] for k in keys], dtype=np.float64)
             lo, hi = bootstrap_mean_ci(d)
@@ -134,7 +168,9 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "ci_low": lo,
                     "ci_high": hi,
                     "a_better_pairs": int((d < 0).sum()),
-                    "verdict": verdict(lo, hi, d, np.array([vb[k] for k in keys])),
+                    "verdict": verdict(
+                        lo, hi, d, np.array([vb[k] for k in keys]), np.array([va[k] for k in keys]), c.fails_at
+                    ),
                     **size,
                 }
             )

@@ -5,10 +5,12 @@
 - COLMAP consistency (``colmap_consistency.py``): registration rate, Var(theta) of adjacent
   relative-rotation angles (the headline), translation-direction error.
 
-Scores are tied to the scene they measured: ``scores.json`` records the SHA-256 of
-``scene.ply`` (and the run id), and blocks measured on another scene are dropped, never shown
-beside new ones. A broken ``run.json`` or ``scores.json`` is reported (naming the file) before
-any scoring starts.
+Every block records how it was made (``made``: its parameters, the commit, the UTC time, its
+seconds; ``gdbench.provenance``). A block of an earlier ``scores.json`` is reused only when the
+scene (its SHA-256), the block's parameters and the commit all match and the commit is clean;
+the report marks it "reused". Blocks that do not match are recomputed when asked for and dropped
+otherwise, so nothing made by other code or on another scene is ever shown as current. A broken
+``run.json`` or ``scores.json`` is reported (naming the file) before any scoring starts.
 """
 
 from __future__ import annotations
@@ -16,24 +18,42 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ..io import read_json, sha256_file, write_json
+from ..io import jsonable, num, read_json, sha256_file, write_json
 from ..scene import GaussianScene
+
+BLOCKS = ("gt", "views", "colmap")
+"""The blocks of scores.json; ``gt`` and ``views`` are made together (the view metrics pick the
+variant the GT PSNR is measured against)."""
 
 
 def previous_scores(run: Path, scene_sha: str) -> dict:
-    """The blocks of ``run/scores.json`` that belong to the scene with hash ``scene_sha``."""
+    """The blocks of ``run/scores.json`` still valid for the scene with hash ``scene_sha``: made
+    on that scene by this code (``provenance.same_code``); others are stale and left out."""
+    from ..provenance import same_code
+
     path = run / "scores.json"
     if not path.is_file():
         return {}
     old = read_json(path, what="scores.json")
     if old.get("scene_sha256") != scene_sha:
         return {}  # measured on another scene (or before scores were tied to scenes): stale
-    return old
+    ok = lambda b: isinstance(b, dict) and same_code(b.get("made", {}).get("commit"))  # noqa: E731
+    return {k: old[k] for k in BLOCKS if ok(old.get(k))}
+
+
+def _reusable(previous: dict, name: str, params: dict) -> bool:
+    block = previous.get(name)
+    return block is not None and block.get("made", {}).get("params") == jsonable(params)
 
 
 def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256) -> dict:
-    """Scores of a finished run folder into its scores.json; ``gt`` adds the ground-truth blocks
-    (PSNR/SSIM, and the view metrics: multi-face rate, instance consistency, floaters)."""
+    """Scores of a finished run folder into its scores.json; ``gt`` asks for the ground-truth
+    blocks (PSNR/SSIM, and the view metrics: multi-face rate, instance consistency, floaters),
+    ``colmap`` for the COLMAP block (``views`` renders of ``size`` px). Returns the file's
+    content plus ``reused``: the asked-for blocks taken from an earlier call (same scene,
+    parameters and commit), and ``kept``: blocks not asked for that the file still holds."""
+    from ..provenance import made
+
     run = Path(run)
     if not run.is_dir():
         raise FileNotFoundError(f"run: no run folder at {run}")
@@ -51,51 +71,87 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
         "gaussians": len(scene),
         "caption": info.get("caption"),
     }
-    t0 = time.perf_counter()
+    t_call = time.perf_counter()
     config = info.get("config", {})
     bg = tuple(float(c) for c in config.get("background", (1.0, 1.0, 1.0)))  # the run's own background
+    blocks: dict = {}
+    reused: list[str] = []
     if gt and info.get("caption"):
-        from .gt import score_against_asset
-        from .views import score_scene as view_scores
-
         variants = int(config.get("variants", 1))
-        out["views"] = view_scores(scene, info["caption"], variants=variants, background=bg).as_dict()
-        v = out["views"]["majority_variant"]  # the instance the run converged to is its ground truth
-        s = score_against_asset(scene, info["caption"], variant=v, background=bg)
-        out["gt"] = {
-            "psnr": s.psnr,
-            "ssim": s.ssim,
-            "offset_deg": s.offset_deg,
-            "psnr_unaligned": s.psnr_unaligned,
-            "variant": v,
-            "background": list(bg),
-        }
-    if colmap:
-        from .colmap_consistency import score_scene
+        params = {"caption": info["caption"], "variants": variants, "background": list(bg)}
+        if _reusable(previous, "gt", params) and _reusable(previous, "views", params):
+            blocks |= {"gt": previous["gt"], "views": previous["views"]}
+            reused += ["gt", "views"]
+        else:
+            from .gt import score_against_asset
+            from .views import score_scene as view_scores
 
-        out["colmap"] = score_scene(scene, views=views, size=size, background=bg).as_dict()
-    out["seconds"] = time.perf_counter() - t0
-    write_json(previous | out, run / "scores.json")
-    return previous | out
+            t0 = time.perf_counter()
+            v = view_scores(scene, info["caption"], variants=variants, background=bg).as_dict()
+            # the instance the run converged to is its ground truth
+            s = score_against_asset(scene, info["caption"], variant=v["majority_variant"], background=bg)
+            g = {
+                "psnr": s.psnr,
+                "ssim": s.ssim,
+                "offset_deg": s.offset_deg,
+                "psnr_unaligned": s.psnr_unaligned,
+                "variant": v["majority_variant"],
+                "background": list(bg),
+            }
+            stamp = made(params, time.perf_counter() - t0)
+            blocks |= {"gt": g | {"made": stamp}, "views": v | {"made": stamp}}
+    if colmap:
+        params = {"views": views, "size": size, "background": list(bg)}
+        if _reusable(previous, "colmap", params):
+            blocks["colmap"] = previous["colmap"]
+            reused.append("colmap")
+        else:
+            from .colmap_consistency import score_scene
+
+            t0 = time.perf_counter()
+            c = score_scene(scene, views=views, size=size, background=bg).as_dict()
+            blocks["colmap"] = c | {"made": made(params, time.perf_counter() - t0)}
+    kept = {k: v for k, v in previous.items() if k not in blocks}
+    out |= kept | blocks
+    out["seconds"] = time.perf_counter() - t_call  # this call's, reuse included
+    write_json(out, run / "scores.json")
+    return out | {"reused": reused, "kept": sorted(kept)}
+
+
+def _mark(s: dict, name: str) -> str:
+    m = s[name].get("made", {})
+    if name in s.get("reused", ()):
+        return f" (reused: made {m.get('utc', '?')} at {m.get('commit', '?')})"
+    return ""
 
 
 def report(s: dict) -> str:
-    """The lines ``gdbench score`` prints."""
+    """The lines ``gdbench score`` prints: the blocks asked for (reused ones marked), and the
+    names of those the file keeps from earlier calls of the same code."""
     lines = [f"gdbench score: {s['run']} ({s['gaussians']} Gaussians) -> {Path(s['run']) / 'scores.json'}"]
-    if "gt" in s:
+    kept = set(s.get("kept", ()))
+    if "gt" in s and "gt" not in kept:
         g = s["gt"]
-        lines.append(f"  GT: PSNR {g['psnr']:.2f} dB, SSIM {g['ssim']:.3f} (offset {g['offset_deg']:.0f} deg)")
-    if "views" in s:
+        lines.append(
+            f"  GT: PSNR {num(g['psnr']):.2f} dB, SSIM {num(g['ssim']):.3f} (offset {num(g['offset_deg']):.0f} deg)"
+            + _mark(s, "gt")
+        )
+    if "views" in s and "views" not in kept:
         v = s["views"]
         lines.append(
-            f"  views: multi-face {v['multi_face_rate']:.2f}, front share {v['front_share']:.2f}, "
-            f"instance consistency {v['instance_consistency']:.2f}, floaters {v['floaters']:.3f}"
+            f"  views: multi-face {num(v['multi_face_rate']):.2f}, front share {num(v['front_share']):.2f}, "
+            f"instance consistency {num(v['instance_consistency']):.2f}, floaters {num(v['floaters']):.3f}"
+            + _mark(s, "views")
         )
-    if "colmap" in s:
+    if "colmap" in s and "colmap" not in kept:
         c = s["colmap"]
         lines.append(
-            f"  COLMAP: registered {c['registration_rate']:.2f}, Var(theta) {c['var_theta_deg2']:.4g} deg^2, "
-            f"failure rate {c.get('failure_rate', float('nan')):.2f}, "
-            f"translation-direction error {c['translation_dir_err_deg']:.3g} deg"
+            f"  COLMAP: registered {num(c['registration_rate']):.2f}, Var(theta) {num(c['var_theta_deg2']):.4g} deg^2, "
+            f"failure rate {num(c.get('failure_rate')):.2f}, "
+            f"translation-direction error {num(c['translation_dir_err_deg']):.3g} deg" + _mark(s, "colmap")
         )
+    if len(lines) == 1:
+        lines.append("  nothing scored (--no-gt --no-colmap, or a run without a caption for the GT scores)")
+    if kept:
+        lines.append(f"  scores.json also keeps, not recomputed now: {', '.join(sorted(kept))} (same scene and commit)")
     return "\n".join(lines)

@@ -179,7 +179,9 @@ def semantic_code(prior, prompt: str, out: str | Path, cfg: SemanticCodeConfig |
         "ti_losses": ti,
         "lora_losses": lora,
     }
-    (out / "semantic.json").write_text(json.dumps(record, indent=2))
+    from ..io import write_json
+
+    write_json(record, out / "semantic.json")
     prior.code_text = text
     return record
 

@@ -199,6 +199,7 @@ def _progress(cfg: TrainConfig, start: int, last: int):
 
 
 def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float, resumed_from: int) -> dict[str, Path]:
+    from ..provenance import code_commit, utc_now
     from ..turntable import write_turntable
 
     cfg = ctx.cfg
@@ -243,6 +244,8 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
         "final_residual_mean_last_100": sum(h["residual"] for h in state.history[-100:])
         / max(1, len(state.history[-100:])),
         "versions": package_versions(),
+        "commit": code_commit(),
+        "utc": utc_now(),
         "threads": torch.get_num_threads(),
         "outputs": {k: str(v) for k, v in paths.items()},
     }
