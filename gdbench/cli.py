@@ -205,7 +205,8 @@ class Score:
     """Score a finished run folder: GT PSNR/SSIM against the asset and COLMAP consistency
     (registration rate, Var(theta), translation-direction error), written to its scores.json.
     Each block records its parameters, commit and time; a block is reused (and marked so) only
-    when the scene, its parameters and a clean commit match, and dropped when they do not."""
+    when the scene, its parameters and the code (commit and uncommitted edits) match, and
+    dropped when they do not."""
 
     run: tyro.conf.Positional[Path]
     """A run folder with scene.ply (and run.json for the caption)."""
@@ -329,8 +330,8 @@ class Bench:
     out: Path = Path("bench_results")
     """Folder for the CSV/JSON/plots."""
     quick: bool = False
-    """Small grid (render and peers only), every case in this process (render: no process per
-    case, so peak memory is not per case): a smoke run of a few seconds, not numbers to publish."""
+    """Small grid (render and peers only; render's cases all in this process, so its peak memory
+    is not per case): a smoke run, not numbers to publish."""
 
 
 def run_bench(cmd: Bench) -> dict:

@@ -281,14 +281,22 @@ def compare_scene(fx: Fixture, backends: list[str] | None = None) -> Result:
     return res
 
 
-def write_report(results: dict[str, Result], out: Path) -> dict[str, Path]:
+def earlier_report(out: Path) -> dict:
+    """The compare.json already in ``out`` ({} if none); a broken one raises, naming it."""
+    from .io import read_json
+
+    return read_json(out / "compare.json", what="compare.json") if (out / "compare.json").is_file() else {}
+
+
+def write_report(results: dict[str, Result], out: Path, old: dict | None = None) -> dict[str, Path]:
     """compare.csv and compare.json hold one table with a ``scene`` column: the rows of the
-    scenes run now replace their earlier rows, other scenes' rows stay, and an error map or
-    Pareto plot whose scene has no row is removed (a file never outlives its rows)."""
-    from .io import read_json, write_csv, write_json
+    scenes run now replace their earlier rows (``old``: the earlier compare.json), other
+    scenes' rows stay, and an error map or Pareto plot of a fixture scene that has no row is
+    removed (a file never outlives its rows)."""
+    from .io import write_csv, write_json
 
     out.mkdir(parents=True, exist_ok=True)
-    old = read_json(out / "compare.json", what="compare.json") if (out / "compare.json").is_file() else {}
+    old = earlier_report(out) if old is None else old
     keep = lambda items: [r for r in items if isinstance(r, dict) and r.get("scene") not in results]  # noqa: E731
     rows = keep(old.get("rows", [])) + [r for res in results.values() for r in res.rows]
     skipped = keep(old.get("skipped", [])) + [s for res in results.values() for s in res.skipped]
@@ -300,10 +308,9 @@ def write_report(results: dict[str, Result], out: Path) -> dict[str, Path]:
         paths[f"{scene}_errors"] = _error_maps(res, out / f"{scene}_errors.png")
         paths[f"{scene}_pareto"] = _pareto(scene, res.rows, out / f"{scene}_pareto.png")
     scenes = {r["scene"] for r in rows}
-    for kind in ("errors", "pareto"):
-        for png in out.glob(f"*_{kind}.png"):
-            if png.name.removesuffix(f"_{kind}.png") not in scenes:
-                png.unlink()
+    for scene in set(fixture_names()) - scenes:  # only names compare writes
+        for kind in ("errors", "pareto"):
+            (out / f"{scene}_{kind}.png").unlink(missing_ok=True)
     return paths
 
 
@@ -378,10 +385,11 @@ def run(
     unknown = [b for b in backends or [] if b not in BACKENDS]
     if unknown:
         raise ValueError(f"backends: unknown {unknown}; known: {sorted(BACKENDS)}")
+    old = earlier_report(Path(out))  # a broken table is named before any rendering
     results = {}
     for n in names:
         results[n] = compare_scene(load_fixture(n), backends)
-    paths = write_report(results, Path(out))
+    paths = write_report(results, Path(out), old)
     if verbose:
         print_table(results)
         print(f"wrote {paths['csv']}, {paths['json']} and per-scene error maps and Pareto plots in {out}")

@@ -9,6 +9,7 @@ import hashlib
 import io
 import json
 import math
+import numbers
 import os
 import socket
 import tempfile
@@ -79,13 +80,25 @@ def num(x) -> float:
     return math.nan if x is None or x == "" else float(x)
 
 
+def nulls_to_nan(obj):
+    """``obj`` read from strict JSON with every null turned back into NaN (for code that formats
+    the numbers it reads)."""
+    if isinstance(obj, dict):
+        return {k: nulls_to_nan(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [nulls_to_nan(v) for v in obj]
+    return math.nan if obj is None else obj
+
+
 def write_csv(rows: list[dict], path: str | Path) -> Path:
     """Atomic CSV of ``rows`` (columns in order of first appearance). A missing number (None,
     NaN, infinity) is an empty cell, so numeric columns hold numbers only."""
 
     def cell(v):
-        if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        if v is None:
             return ""
+        if isinstance(v, numbers.Real) and not isinstance(v, bool) and not math.isfinite(float(v)):
+            return ""  # NaN and infinities, numpy's included
         return v
 
     keys: list[str] = []

@@ -9,44 +9,52 @@ import subprocess
 import time
 from pathlib import Path
 
+CODE = ("gdbench", "renderers", "pyproject.toml")
+"""What counts as the code: edits elsewhere (docs, results, the README) do not change it."""
+
 
 def _git(root: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(["git", *args], cwd=root, capture_output=True, timeout=30)
 
 
+def _source_hash(root: Path) -> str:
+    """SHA-256 (12 hex digits) of the package's source files, for a copy git cannot describe."""
+    h = hashlib.sha256()
+    for top in ("gdbench", "renderers"):
+        for path in sorted((root / top).rglob("*")):
+            if path.suffix in (".py", ".cpp", ".h") and "__pycache__" not in path.parts:
+                h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()[:12]
+
+
 @functools.cache
 def code_commit() -> str:
-    """The commit of the checkout this package runs from (12 hex digits); when tracked files
-    differ from it or new source files exist, ``<commit>-dirty-<hash of the changes>``, so
-    the same edits give the same name and other edits another; ``gdbench <version>`` for an
-    installed (non-checkout) copy."""
+    """The code this package runs: the commit of its checkout (12 hex digits); when the code
+    (``CODE``) differs from it, ``<commit>-dirty-<hash of the changes>``, so the same edits give
+    the same name and other edits another. Where git cannot say (an installed copy, git missing
+    or refusing the folder): ``src-<hash of the source files>``."""
     root = Path(__file__).resolve().parents[1]
     if (root / ".git").exists():
         try:
             head = _git(root, "rev-parse", "--short=12", "HEAD")
-            if head.returncode == 0:
-                h = hashlib.sha256(_git(root, "diff", "HEAD", "--binary").stdout)
-                new = _git(root, "ls-files", "--others", "--exclude-standard", "-z", "--", "gdbench", "renderers")
+            diff = _git(root, "diff", "HEAD", "--binary", "--no-ext-diff", "--no-color", "--", *CODE)
+            new = _git(root, "ls-files", "--others", "--exclude-standard", "-z", "--", *CODE)
+            if head.returncode == 0 and diff.returncode == 0 and new.returncode == 0:
+                h = hashlib.sha256(diff.stdout)
                 names = sorted(n for n in new.stdout.decode().split("\0") if n.endswith((".py", ".cpp", ".h")))
                 for name in names:
                     h.update(name.encode() + b"\0" + (root / name).read_bytes())
-                dirty = h.hexdigest() != hashlib.sha256(b"").hexdigest() or bool(names)
+                dirty = bool(diff.stdout) or bool(names)
                 return head.stdout.decode().strip() + (f"-dirty-{h.hexdigest()[:8]}" if dirty else "")
         except (OSError, subprocess.SubprocessError):
             pass
-    from importlib import metadata
-
-    try:
-        return f"gdbench {metadata.version('gdbench')}"
-    except metadata.PackageNotFoundError:
-        return "unknown"
+    return f"src-{_source_hash(root)}"
 
 
 def same_code(commit: str | None) -> bool:
     """Whether a result recorded under ``commit`` was made by this code: the same commit (for a
     dirty tree, the same changes to it)."""
-    now = code_commit()
-    return commit == now and now != "unknown"
+    return commit is not None and commit == code_commit()
 
 
 def utc_now() -> str:

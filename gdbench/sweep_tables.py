@@ -32,7 +32,7 @@ COLUMNS = (
 
 
 def _finite(xs: list) -> list[float]:
-    return [float(x) for x in xs if isinstance(x, (int, float)) and x == x]
+    return [float(x) for x in xs if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)]
 
 
 def _median(xs: list[float]) -> float:

@@ -149,6 +149,8 @@ def plot(args) -> None:
     for i, (path, label) in enumerate(zip(args.tables, labels)):
         with open(path) as f:
             rows = [r for r in csv.DictReader(f) if r["overrides"] == "{}"]
+        if args.seeds is not None:  # the same seeds at every point, so that the means compare
+            rows = [r for r in rows if int(r["seed"]) in args.seeds]
         commit = rows[0]["commit"] if rows else "?"
         for ax, value in ((axes[0], "psnr"), (axes[1], "gaussians")):
             d = _by(rows, "steps", value, views=1)
@@ -198,6 +200,7 @@ def main(argv: list[str] | None = None) -> None:
     p = sub.add_parser("plot", help="the study's figure from one or more study.csv")
     p.add_argument("tables", nargs="+")
     p.add_argument("--labels", nargs="*")
+    p.add_argument("--seeds", nargs="+", type=int, default=None, help="plot only these seeds (default: all)")
     p.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     {"run": run, "plot": plot}[args.cmd](args)

@@ -255,3 +255,27 @@ def test_error_benchmark_writes_one_csv_with_skips(tmp_path):
     assert any(r["pareto"] == "True" for r in splat)
     summary = json.loads((tmp_path / "err_summary.json").read_text())
     assert summary["pareto"]["isotropic"]
+
+
+def test_bench_quick_runs_render_in_one_process_and_peers_as_asked(monkeypatch, tmp_path):
+    import importlib
+
+    from gdbench.cli import Bench, run_bench
+
+    seen = {}
+
+    class Fake:
+        @staticmethod
+        def main(argv):
+            seen["argv"] = argv
+            return 0
+
+    real = importlib.import_module
+    fake = lambda name: Fake if name.startswith("gdbench.bench") else real(name)  # noqa: E731
+    monkeypatch.setattr(importlib, "import_module", fake)
+    run_bench(Bench("render", out=tmp_path, quick=True))
+    assert "--quick" in seen["argv"] and "--inprocess" in seen["argv"]
+    run_bench(Bench("render", out=tmp_path))
+    assert "--quick" not in seen["argv"] and "--inprocess" not in seen["argv"]
+    with pytest.raises(ValueError, match="quick: only render and peers"):
+        run_bench(Bench("train", out=tmp_path, quick=True))

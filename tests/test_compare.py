@@ -72,14 +72,16 @@ def test_run_writes_report_and_lists_skips(tmp_path, monkeypatch):
     ]
 
 
-def test_comparing_another_scene_into_the_same_folder_keeps_one_table_and_no_orphan_image(tmp_path):
+def test_comparing_another_scene_into_the_same_folder_keeps_one_table_and_no_orphan_image(tmp_path, monkeypatch):
     import csv
     import json
 
     first, second = "isotropic", next(n for n in fixture_names() if n != "isotropic")
     a = run(first, backends=["splat"], out=tmp_path, verbose=False)
     run(second, backends=["splat"], out=tmp_path, verbose=False)
-    (tmp_path / "gone_errors.png").write_bytes(b"an image whose scene has no row")
+    third = next(n for n in fixture_names() if n not in (first, second))
+    (tmp_path / f"{third}_errors.png").write_bytes(b"an image whose scene has no row")
+    (tmp_path / "mine_errors.png").write_bytes(b"a file compare never writes: left alone")
 
     def strict(path):
         return json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{path}: {c} in strict JSON"))
@@ -96,7 +98,13 @@ def test_comparing_another_scene_into_the_same_folder_keeps_one_table_and_no_orp
     twin = next(r for r in blob["rows"] if r["scene"] == first and r["renderer"] == "reference")
     assert twin["psnr"] is None and next(r for r in table if r["renderer"] == "reference")["psnr"] == ""
     images = {p.name for p in tmp_path.glob("*.png")}
-    assert images == {f"{n}_{k}.png" for n in (first, second) for k in ("errors", "pareto")}
+    assert images == {f"{n}_{k}.png" for n in (first, second) for k in ("errors", "pareto")} | {"mine_errors.png"}
+    (tmp_path / "compare.json").write_text('{"rows": [')
+    import gdbench.compare as cmp
+
+    monkeypatch.setattr(cmp, "compare_scene", lambda *a: pytest.fail("rendered before reading the broken table"))
+    with pytest.raises(ValueError, match=r"compare\.json: .* is not valid JSON"):
+        run(first, backends=["splat"], out=tmp_path, verbose=False)
 
 
 def test_bad_scene_and_backend_names():

@@ -350,6 +350,14 @@ def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypa
     assert "COLMAP: registered 0.00" in report(s) and "(reused: made" in report(s)
     s = score_run(run, gt=False, colmap=True, views=7, size=48)
     assert calls == [(9, 48), (7, 48)] and s["reused"] == [] and "reused" not in report(s)
+    # GT blocks made under other parameters (here: another background) are computed again
+    blob = _strict(run / "scores.json")
+    for name in ("gt", "views"):
+        blob[name]["made"]["params"]["background"] = [0.0, 0.0, 0.0]
+    (run / "scores.json").write_text(json.dumps(blob))
+    s = score_run(run, colmap=False)
+    assert s["reused"] == [] and s["gt"]["made"]["params"]["background"] == [1.0, 1.0, 1.0]
+    assert s["gt"]["psnr"] == blob["gt"]["psnr"]  # the same scene and parameters: the same score
     # a block made by other code (or planted with made-up numbers) is dropped, never printed
     blob = _strict(run / "scores.json")
     blob["colmap"] = {"registration_rate": 0.93, "var_theta_deg2": 1.5, "failure_rate": 0.1,
@@ -472,3 +480,52 @@ def test_tables_from_any_mix_of_values_are_strict_and_numeric_with_the_right_ver
         for key in ("mean_a", "mean_b", "mean_diff", "ci_low", "ci_high"):
             value = verdicts[metric][key]
             assert value == "" or math.isfinite(float(value))
+
+
+def test_the_code_name_follows_the_code_and_only_the_code(tmp_path, monkeypatch):
+    """A checkout is named by its commit; the same edits give the same name and other edits
+    another; edits outside the code (docs, results) none; where git cannot say, the source
+    files' hash names it."""
+    import subprocess
+
+    from gdbench import provenance
+
+    root = tmp_path / "repo"
+    (root / "gdbench").mkdir(parents=True)
+    (root / "renderers").mkdir()
+    (root / "docs").mkdir()
+    src = root / "gdbench" / "provenance.py"
+    src.write_text(open(provenance.__file__).read())
+    (root / "gdbench" / "a.py").write_text("x = 1\n")
+    (root / "docs" / "notes.md").write_text("notes\n")
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
+    subprocess.run([*git, "init", "-q"], cwd=root, check=True)
+    subprocess.run([*git, "add", "-A"], cwd=root, check=True)
+    subprocess.run([*git, "commit", "-qm", "c"], cwd=root, check=True)
+    head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True, text=True)
+
+    def name():
+        monkeypatch.setattr(provenance, "__file__", str(src))
+        provenance.code_commit.cache_clear()
+        try:
+            return provenance.code_commit()
+        finally:
+            provenance.code_commit.cache_clear()
+
+    clean = name()
+    assert clean == head.stdout.strip()
+    (root / "docs" / "notes.md").write_text("other notes\n")  # not the code
+    assert name() == clean
+    (root / "gdbench" / "a.py").write_text("x = 2\n")
+    edited = name()
+    assert edited.startswith(clean + "-dirty-") and name() == edited  # the same edits, the same name
+    (root / "gdbench" / "a.py").write_text("x = 3\n")
+    assert name() not in (clean, edited)
+    (root / "gdbench" / "a.py").write_text("x = 1\n")
+    (root / "gdbench" / "b.py").write_text("y = 1\n")  # a new source file is an edit too
+    assert name().startswith(clean + "-dirty-")
+    monkeypatch.setenv("PATH", str(tmp_path / "no-git-here"))  # git missing: the sources' hash
+    by_source = name()
+    assert by_source.startswith("src-") and len(by_source) == 16
+    (root / "gdbench" / "b.py").write_text("y = 2\n")
+    assert name().startswith("src-") and name() != by_source

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from ..io import nulls_to_nan
 from .common import environment, peak_rss_mb, random_cloud, rss_mb, timeit, write_csv, write_json
 
 PATHS = ("splat", "splat_torch", "dense")
@@ -427,12 +428,17 @@ def main(argv: list[str] | None = None) -> int:
             r["n"], r["res"] = int(r["n"]), int(r["res"])
         write_json(summarise(rows), args.out.with_name(args.out.stem + "_summary.json"))
         plot(rows, args.out.with_name(args.out.stem + "_fit.png"))
-        report(rows, json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text()), args.out)
+        report(rows, _read_summary(args.out), args.out)
         return 0
     paths = (PEER_PATHS if args.peers else PATHS) if args.backend == "all" else (args.backend,)
     rows = sweep(args.out, quick=args.quick, inprocess=args.inprocess, paths=paths, device=args.device)
-    report(rows, json.loads(args.out.with_name(args.out.stem + "_summary.json").read_text()), args.out)
+    report(rows, _read_summary(args.out), args.out)
     return 0
+
+
+def _read_summary(out: Path) -> dict:
+    """The summary as written (strict JSON), with its nulls back as NaN for the report."""
+    return nulls_to_nan(json.loads(out.with_name(out.stem + "_summary.json").read_text()))
 
 
 def report(rows: list[dict], summary: dict, out: Path) -> None:

@@ -7,10 +7,11 @@
 
 Every block records how it was made (``made``: its parameters, the commit, the UTC time, its
 seconds; ``gdbench.provenance``). A block of an earlier ``scores.json`` is reused only when the
-scene (its SHA-256), the block's parameters and the commit all match and the commit is clean;
-the report marks it "reused". Blocks that do not match are recomputed when asked for and dropped
-otherwise, so nothing made by other code or on another scene is ever shown as current. A broken
-``run.json`` or ``scores.json`` is reported (naming the file) before any scoring starts.
+scene (its SHA-256), the block's parameters and the code all match (``provenance.same_code``:
+the same commit, and for a tree with edits the same edits); the report marks it "reused".
+Blocks that do not match are recomputed when asked for and dropped otherwise, so nothing made
+by other code or on another scene is ever shown as current. A broken ``run.json`` or
+``scores.json`` is reported (naming the file) before any scoring starts.
 """
 
 from __future__ import annotations
@@ -37,13 +38,17 @@ def previous_scores(run: Path, scene_sha: str) -> dict:
     old = read_json(path, what="scores.json")
     if old.get("scene_sha256") != scene_sha:
         return {}  # measured on another scene (or before scores were tied to scenes): stale
-    ok = lambda b: isinstance(b, dict) and same_code(b.get("made", {}).get("commit"))  # noqa: E731
-    return {k: old[k] for k in BLOCKS if ok(old.get(k))}
+    return {k: old[k] for k in BLOCKS if same_code(_made(old.get(k)).get("commit"))}
+
+
+def _made(block) -> dict:
+    """A block's provenance, {} for a block that has none (or is not a block)."""
+    made = block.get("made") if isinstance(block, dict) else None
+    return made if isinstance(made, dict) else {}
 
 
 def _reusable(previous: dict, name: str, params: dict) -> bool:
-    block = previous.get(name)
-    return block is not None and block.get("made", {}).get("params") == jsonable(params)
+    return name in previous and _made(previous[name]).get("params") == jsonable(params)
 
 
 def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256) -> dict:
@@ -119,7 +124,7 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
 
 
 def _mark(s: dict, name: str) -> str:
-    m = s[name].get("made", {})
+    m = _made(s[name])
     if name in s.get("reused", ()):
         return f" (reused: made {m.get('utc', '?')} at {m.get('commit', '?')})"
     return ""
