@@ -105,18 +105,26 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
                 cells.append(_fmt(s[f"{key}_median"]))
         md.append("| " + " | ".join(cells) + " |")
     md += ["", "(k of n): the metric could be measured on k of the n cells; n/a: on none.", ""]
-    md += ["| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% CI] | a better | verdict | "
-           "Gaussians a / b |"]  # fmt: skip
-    md.append("|---|---|---|---|---|---|---|---|---|---|---|")
+    md += ["| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% BCa CI] | a better | "
+           "p (Holm) | equivalence p (margin) | pairs for 80% power | verdict | Gaussians a / b |"]  # fmt: skip
+    md.append("|---" * 14 + "|")
     if not verdicts:
         md[-2:] = ["No claim is decidable here: each needs both of its presets in one setting."]
     for v in verdicts:
         ci = f"{_fmt(v['mean_diff'])} [{_fmt(v['ci_low'])}, {_fmt(v['ci_high'])}]"
+        p = f"{_fmt(v['p_value'])} ({_fmt(v['p_holm'])})"
+        eq = f"{_fmt(v['p_equivalence'])} (+-{_fmt(v['margin'])})"
         md.append(
             f"| {v['setting']} | {v['claim']} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
-            f"{_fmt(v['mean_a'])} | {_fmt(v['mean_b'])} | {ci} | {v['a_better_pairs']}/{v['pairs']} | {v['verdict']} | "
+            f"{_fmt(v['mean_a'])} | {_fmt(v['mean_b'])} | {ci} | {v['a_better_pairs']}/{v['pairs']} | {p} | {eq} | "
+            f"{_fmt(v['pairs_for_80pct_power'])} | {v['verdict']} | "
             f"{_fmt(v['gaussians_a'])} / {_fmt(v['gaussians_b'])}{_size_note(v)} |"
         )
+    if verdicts:
+        md += ["", "Per prompt, the mean difference a - b (pairs):", "", "| setting | a vs b | metric | per prompt |"]
+        md.append("|---|---|---|---|")
+        for v in verdicts:
+            md.append(f"| {v['setting']} | {v['a']} vs {v['b']} | {v['metric']} | {v['by_prompt'] or 'n/a'} |")
     return "\n".join(md) + "\n"
 
 

@@ -152,13 +152,13 @@ def _row(preset, prompt, seed, value, metric="multi_face_rate", setting="janus")
     return {"setting": setting, "preset": preset, "prompt": prompt, "seed": seed, metric: value}
 
 
-def test_claims_verdict_from_paired_bootstrap_intervals():
-    """Paired differences over (prompt, seed) decide: an interval below 0 holds, above 0 does not,
-    one spanning 0 is undecided, all-zero differences cannot tell the presets apart (and where
-    neither preset ever fails, the claim is not testable)."""
+def test_claims_verdict_from_paired_tests():
+    """Paired differences over (prompt, seed) decide: a signed-rank test significant after Holm
+    holds (or, the other way, does not hold), a tie within the margin is a null result of its
+    own, too few pairs or a metric that cannot fail (or always fails) gives no verdict."""
     import numpy as np
 
-    from gdbench.metrics.claims import CLAIMS, bootstrap_mean_ci, evaluate
+    from gdbench.metrics.claims import CLAIMS, evaluate
 
     keys = [(p, s) for p in "abcdef" for s in (0, 1, 2)]
     rng = np.random.default_rng(0)
@@ -166,34 +166,68 @@ def test_claims_verdict_from_paired_bootstrap_intervals():
     rows = [_row("gd-no-sn", p, s, v) for (p, s), v in zip(keys, sn)]
     rows += [_row("gd", p, s, v - 0.15) for (p, s), v in zip(keys, sn)]  # better in every pair
     rows += [_row("sjc-gs", p, s, v) for (p, s), v in zip(keys, sn)]
-    rows += [_row("gd-no-vgs", p, s, v + rng.normal(0, 0.05)) for (p, s), v in zip(keys, sn)]  # noise only
+    rows += [_row("gd-no-vgs", p, s, v + rng.normal(0, 0.2)) for (p, s), v in zip(keys, sn)]  # noise only
     rows.append(_row("gd", "z", 0, 0.1))  # unpaired cells are left out
     got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(rows)}
     v = got["gd", "gd-no-sn", "multi_face_rate"]
     assert v["verdict"] == "holds" and v["pairs"] == 18 and v["a_better_pairs"] == 18
-    assert v["mean_diff"] == pytest.approx(-0.15) and v["ci_low"] <= -0.15 + 1e-9 <= v["ci_high"] + 1e-9
-    assert got["gd-no-vgs", "sjc-gs", "multi_face_rate"]["verdict"] == "undecided (CI spans zero)"
+    assert v["p_value"] < 1e-4 and v["p_holm"] == pytest.approx(2 * v["p_value"])  # the smaller of 2 tests
+    assert v["mean_diff"] == pytest.approx(-0.15) and v["ci_low"] == pytest.approx(-0.15) == v["ci_high"]
+    assert v["by_prompt"].startswith("a -0.15 (3); b -0.15 (3)")
+    assert got["gd-no-vgs", "sjc-gs", "multi_face_rate"]["verdict"] == "undecided"
     assert got["gd", "gd-no-vgs", "floaters"]["verdict"] == "not measured"  # no floaters column
     flipped = [dict(r, multi_face_rate=-r["multi_face_rate"]) for r in rows]
     flipped_got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(flipped)}
     assert flipped_got["gd", "gd-no-sn", "multi_face_rate"]["verdict"] == "does not hold"
-    same = [dict(r, multi_face_rate=0.25) for r in rows]
-    assert evaluate(same)[0]["verdict"] == "does not hold (no difference)"
+    same = [dict(r, multi_face_rate=0.25) for r in rows]  # a tie in every pair: the presets do the same
+    assert evaluate(same)[0]["verdict"] == "no effect beyond +-0.05"
     never_fails = [dict(r, multi_face_rate=0.0) for r in rows]  # nothing for the mechanism to fix
     assert evaluate(never_fails)[0]["verdict"] == "not testable here (neither preset fails)"
     always_fails = [dict(r, multi_face_rate=1.0) for r in rows]  # the metric cannot see a difference
     assert evaluate(always_fails)[0]["verdict"] == "not testable here (both always fail)"
-    # five pairs that all agree: a sign test gives p = 2^-4 = 0.0625, so no verdict is read
     few = [r for r in rows if r["prompt"] in "abcde" and r["seed"] == 0]
     assert evaluate(few)[0]["pairs"] == 5 and evaluate(few)[0]["verdict"] == "too few pairs (n < 6)"
-    six = [r for r in rows if r["prompt"] in "abcdef" and r["seed"] == 0]
-    assert evaluate(six)[0]["pairs"] == 6 and evaluate(six)[0]["verdict"] == "holds"
-    # the interval against its closed form: the mean of n iid differences has sd s/sqrt(n)
-    d = rng.normal(1.0, 2.0, 400)
-    lo, hi = bootstrap_mean_ci(d)
-    half = 1.96 * d.std(ddof=1) / np.sqrt(d.size)
-    assert lo == pytest.approx(d.mean() - half, abs=0.03) and hi == pytest.approx(d.mean() + half, abs=0.03)
+    # ten pairs, three of them differ (by more than the margin): the test cannot reach 5%
+    ties = [
+        _row(p, f"q{i}", 0, 0.3 + (0.3 if p == "gd" and i < 3 else 0.0)) for i in range(10) for p in ("gd", "gd-no-sn")
+    ]
+    v = evaluate(ties)[0]
+    assert v["nonzero_pairs"] == 3 and v["verdict"] == "too few non-tied pairs (k < 6)"
     assert {c.metric for c in CLAIMS} >= {"multi_face_rate", "instance_inconsistency", "floaters", "var_theta_deg2"}
+
+
+def test_the_statistics_against_independent_oracles():
+    """BCa against the t interval, the signed-rank p against enumerating every sign flip, Holm
+    by hand, the power formula against a simulation, and the equivalence test both ways."""
+    import itertools
+
+    import numpy as np
+    from scipy import stats
+
+    from gdbench.metrics.claims import bca_ci, equivalence_p, holm, pairs_for_power, signed_rank_p
+
+    rng = np.random.default_rng(1)
+    d = rng.normal(1.0, 2.0, 400)
+    lo, hi = bca_ci(d)
+    half = stats.t.ppf(0.975, d.size - 1) * d.std(ddof=1) / np.sqrt(d.size)
+    assert lo == pytest.approx(d.mean() - half, abs=0.03) and hi == pytest.approx(d.mean() + half, abs=0.03)
+    # exact two-sided signed-rank p: the share of the 2^n sign patterns at least as extreme
+    x = np.array([0.3, -0.1, 0.25, 0.7, -0.05, 0.4, 0.9, 0.15])
+    ranks = stats.rankdata(np.abs(x))
+    w = ranks[x > 0].sum()
+    centre = ranks.sum() / 2
+    flips = [sum(r for r, s in zip(ranks, signs) if s) for signs in itertools.product((0, 1), repeat=x.size)]
+    exact = np.mean([abs(f - centre) >= abs(w - centre) - 1e-12 for f in flips])
+    assert signed_rank_p(x) == pytest.approx(exact, rel=1e-9)
+    assert holm([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert np.isnan(holm([0.01, float("nan")])[1]) and holm([0.01, float("nan")])[0] == pytest.approx(0.01)
+    # 80% power: the planned number of pairs rejects in about 80% of simulated experiments
+    n = int(pairs_for_power(rng.normal(0.5, 1.0, 20_000)))
+    assert 30 <= n <= 36
+    hits = [stats.wilcoxon(rng.normal(0.5, 1.0, n)).pvalue < 0.05 for _ in range(1500)]
+    assert np.mean(hits) == pytest.approx(0.8, abs=0.04)
+    assert equivalence_p(rng.normal(0.0, 0.01, 30), 0.05) < 0.05  # within the margin: said so
+    assert equivalence_p(rng.normal(0.1, 0.01, 30), 0.05) > 0.5  # an effect twice the margin: not
 
 
 def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
@@ -416,24 +450,24 @@ def test_every_json_a_sweep_writes_is_strict_and_tables_are_numeric(tiny_sweep):
 
 
 def _oracle_verdict(a: list, b: list, fails_at) -> str:
-    """The verdict words from the pairs alone, written out independently of claims.verdict (its
-    interval is only needed where the values differ)."""
+    """The verdict words from the pairs alone, written out independently of claims.verdict
+    (with one claim in the table; where only the tests can decide, the words they may give)."""
     pairs = [(x, y) for x, y in zip(a, b) if x is not None and y is not None and x == x and y == y]
     if not pairs:
         return "not measured"
-    if len(pairs) < 6:
-        return "too few pairs (n < 6)"
     if all(x == 0 and y == 0 for x, y in pairs):
         return "not testable here (neither preset fails)"
     if fails_at is not None and all(x == fails_at and y == fails_at for x, y in pairs):
         return "not testable here (both always fail)"
-    if all(x == y for x, y in pairs):
-        return "does not hold (no difference)"
+    if len(pairs) < 6:
+        return "too few pairs (n < 6)"
     if all(x < y for x, y in pairs):
-        return "holds"  # every resampled mean is negative
+        return "holds"  # exact p = 2 / 2^n < 0.05
     if all(x > y for x, y in pairs):
         return "does not hold"
-    return "interval"  # decided by the interval: one of the interval words
+    if all(x == y for x, y in pairs):
+        return "no effect beyond +-0.05"  # every one-sided test of d -+ m has p <= 2^-n
+    return "tests"
 
 
 values = st.one_of(st.none(), st.just(float("nan")), st.just(0.0), st.just(1.0), st.floats(0, 1, width=32))
@@ -473,11 +507,13 @@ def test_tables_from_any_mix_of_values_are_strict_and_numeric_with_the_right_ver
     want = _oracle_verdict([a for a, _ in pairs], [b for _, b in pairs], 1.0)
     for metric in ("multi_face_rate",):
         got = verdicts[metric]["verdict"]
-        if want == "interval":
-            assert got in ("holds", "does not hold", "undecided (CI spans zero)")
+        if want == "tests":
+            assert got in ("holds", "does not hold", "no effect beyond +-0.05", "undecided") or got.startswith(
+                "too few non-tied pairs"
+            )
         else:
             assert got == want
-        for key in ("mean_a", "mean_b", "mean_diff", "ci_low", "ci_high"):
+        for key in ("mean_a", "mean_b", "mean_diff", "ci_low", "ci_high", "p_value", "p_holm", "p_equivalence"):
             value = verdicts[metric][key]
             assert value == "" or math.isfinite(float(value))
 

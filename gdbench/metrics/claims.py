@@ -1,23 +1,41 @@
-"""The paper's claims as paired comparisons with bootstrap confidence intervals.
+"""The paper's claims as paired comparisons a statistician would sign.
 
 Each claim says preset ``a`` scores lower than preset ``b`` on a metric where lower is better.
 Over the (prompt, seed) pairs that both presets ran in one setting, the paired differences
-d = metric(a) - metric(b) are resampled (percentile bootstrap, 10,000 resamples of the pairs,
-a fixed seed); the verdict reads the 95% interval of their mean. The words, checked in order:
+d = metric(a) - metric(b) give:
+
+- the mean difference with a **BCa** 95% interval (``scipy.stats.bootstrap``, 10,000 resamples
+  of the pairs, a fixed seed; the percentile interval where BCa is undefined, e.g. all
+  differences equal);
+- a **Wilcoxon signed-rank** two-sided p-value (zero differences dropped: ``zero_method
+  "wilcox"``; exact for small samples without ties), and the same p-value **Holm**-adjusted
+  across every claim of the table (``evaluate``'s rows);
+- an **equivalence** test against the claim's margin m (``MARGINS``: the smallest effect that
+  would matter, with its reason): two one-sided Wilcoxon tests of d + m > 0 and d - m < 0
+  (TOST), p = the larger of the two;
+- the **pairs needed** for 80% power at a two-sided 5% level, from the observed mean and
+  standard deviation of d (normal approximation, divided by the Wilcoxon test's asymptotic
+  relative efficiency 3/pi);
+- the mean difference **per prompt** (``by_prompt``), so that one prompt cannot carry a pooled
+  verdict unseen.
+
+The verdict words, checked in this order:
 
 - **not measured**: no pair has the metric in both arms (not scored, or nothing to score);
-- **too few pairs (n < 6)**: fewer than ``MIN_PAIRS`` pairs. Below six, even pairs that all
-  agree are not significant (a two-sided sign test gives p = 2^(1-n) >= 0.0625), while the
-  percentile bootstrap of a few same-signed numbers never spans 0 and would say "holds";
 - **not testable here (neither preset fails)**: the metric is 0 in every pair: the mechanism
   had nothing to fix in this setting, which is no evidence either way;
 - **not testable here (both always fail)**: the metric sits at its failure value in every pair
   of both arms (COLMAP registers nothing in either, so its failure rate is 1.0 throughout): the
   metric cannot see a difference, which is no evidence either way;
-- **does not hold (no difference)**: every difference is 0 while the baseline does fail;
-- **holds**: the interval lies below 0;
-- **does not hold**: the interval lies above 0 (the opposite holds);
-- **undecided (CI spans zero)**: the interval spans 0.
+- **too few pairs (n < 6)**: fewer than ``MIN_PAIRS`` pairs: below six, even pairs that all
+  agree are not significant (the exact two-sided signed-rank p is 2^(1-n) >= 0.0625);
+- **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 and the mean
+  difference is negative (the claim holds) or positive (the opposite holds);
+- **no effect beyond +-m**: the equivalence test's p is below 0.05: a null result with the
+  power to say so (a tie in every pair counts here: the presets do the same);
+- **too few non-tied pairs (k < 6)**: the pairs are enough but fewer than six differ, so the
+  signed-rank test cannot reach 5%;
+- **undecided**: none of the above: more pairs are needed (see the power column).
 """
 
 from __future__ import annotations
@@ -57,53 +75,111 @@ CLAIMS = (
 """The paper's claims (section 4) in the ablation's terms."""
 
 
-def bootstrap_mean_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, seed: int = 0) -> tuple[float, float]:
-    """Percentile bootstrap interval of the mean of ``d`` (resampling its entries)."""
+MIN_PAIRS = 6
+"""Fewest pairs (and non-tied pairs) a difference is read from (module docstring)."""
+
+ALPHA = 0.05
+
+MARGINS = {
+    "multi_face_rate": (0.05, "one view in twenty of the turntable"),
+    "instance_inconsistency": (0.05, "one view in twenty of the turntable"),
+    "colmap_failure_rate": (0.05, "one view in twenty of COLMAP's circle"),
+    "floaters": (0.01, "a tenth of the 40-floater fixture's 0.113; per-view jitter alone gives 0.009"),
+    "var_theta_deg2": (1.0, "the asset scores 0.06 deg^2; a view off by 1 degree adds about 0.02"),
+}
+"""Equivalence margin of each metric: the smallest difference that would matter, and why."""
+
+
+def bca_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """BCa bootstrap interval of the mean of ``d`` (percentile where BCa is undefined: a
+    constant sample, or a jackknife without spread); (NaN, NaN) for no data."""
+    from scipy import stats
+
     d = np.asarray(d, dtype=np.float64)
     if d.size == 0:
         return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    means = d[rng.integers(0, d.size, size=(n, d.size))].mean(1)
-    lo, hi = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
-    return float(lo), float(hi)
+    if d.size == 1 or np.all(d == d[0]):
+        return float(d[0]), float(d[0])
+    for method in ("BCa", "percentile"):
+        with np.errstate(all="ignore"):
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = stats.bootstrap(
+                    (d,), np.mean, confidence_level=level, n_resamples=n, method=method,
+                    rng=np.random.default_rng(seed),
+                )  # fmt: skip
+        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        if math.isfinite(lo) and math.isfinite(hi):
+            return lo, hi
+    return math.nan, math.nan
 
 
-MIN_PAIRS = 6
-"""Fewest pairs a verdict is read from (module docstring: a sign test's reach)."""
+def signed_rank_p(d: np.ndarray, alternative: str = "two-sided") -> float:
+    """Wilcoxon signed-rank p-value of ``d`` (zeros dropped); 1 when nothing differs."""
+    from scipy import stats
+
+    d = np.asarray(d, dtype=np.float64)
+    if not np.any(d != 0):
+        return 1.0
+    return float(stats.wilcoxon(d, zero_method="wilcox", alternative=alternative).pvalue)
 
 
-def verdict(
-    lo: float,
-    hi: float,
-    diffs: np.ndarray,
-    baseline: np.ndarray | None = None,
-    treated: np.ndarray | None = None,
-    fails_at: float | None = None,
-) -> str:
-    """The verdict of one claim from the interval of the mean paired difference (a - b), the
-    differences themselves, both arms' values (``treated``: a's, ``baseline``: b's) and the
-    metric's always-fails value (module docstring: the words and their order)."""
-    if diffs.size == 0 or math.isnan(lo):
+def equivalence_p(d: np.ndarray, margin: float) -> float:
+    """TOST with two one-sided signed-rank tests: H0 |mean effect| >= margin; small p says the
+    effect lies within +-margin."""
+    d = np.asarray(d, dtype=np.float64)
+    if d.size == 0:
+        return math.nan
+    return max(signed_rank_p(d + margin, "greater"), signed_rank_p(d - margin, "less"))
+
+
+def holm(p: list[float]) -> list[float]:
+    """Holm's step-down adjustment of the p-values ``p`` (NaN entries are left out and stay NaN)."""
+    idx = [i for i, x in enumerate(p) if x == x]
+    order = sorted(idx, key=lambda i: p[i])
+    m, out, running = len(order), [math.nan] * len(p), 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        out[i] = running
+    return out
+
+
+def pairs_for_power(d: np.ndarray, power: float = 0.8, alpha: float = ALPHA) -> float:
+    """Pairs a two-sided level-``alpha`` signed-rank test needs for ``power`` against the
+    observed mean effect, from its mean and standard deviation (normal approximation over the
+    Wilcoxon test's efficiency 3/pi); inf where the observed mean is 0, NaN under 2 pairs."""
+    from scipy import stats
+
+    d = np.asarray(d, dtype=np.float64)
+    if d.size < 2:
+        return math.nan
+    mean, sd = float(d.mean()), float(d.std(ddof=1))
+    if mean == 0:
+        return math.inf
+    z = stats.norm.ppf(1 - alpha / 2) + stats.norm.ppf(power)
+    return float(math.ceil((z * sd / abs(mean)) ** 2 / (3 / math.pi))) if sd > 0 else float(MIN_PAIRS)
+
+
+def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str:
+    """The verdict words of one claim's row (module docstring: the words and their order)."""
+    d = treated - baseline
+    if d.size == 0:
         return "not measured"
-    if diffs.size < MIN_PAIRS:
-        return f"too few pairs (n < {MIN_PAIRS})"
-    if baseline is not None and np.all(np.asarray(baseline) == 0) and np.all(diffs == 0):
+    if np.all(baseline == 0) and np.all(treated == 0):
         return "not testable here (neither preset fails)"
-    if (
-        fails_at is not None
-        and baseline is not None
-        and treated is not None
-        and np.all(np.asarray(baseline) == fails_at)
-        and np.all(np.asarray(treated) == fails_at)
-    ):
+    if fails_at is not None and np.all(baseline == fails_at) and np.all(treated == fails_at):
         return "not testable here (both always fail)"
-    if np.all(diffs == 0):
-        return "does not hold (no difference)"
-    if hi < 0:
-        return "holds"
-    if lo > 0:
-        return "does not hold"
-    return "undecided (CI spans zero)"
+    if d.size < MIN_PAIRS:
+        return f"too few pairs (n < {MIN_PAIRS})"
+    if row["p_holm"] < ALPHA and row["mean_diff"] != 0:
+        return "holds" if row["mean_diff"] < 0 else "does not hold"
+    if row["p_equivalence"] < ALPHA:
+        return f"no effect beyond +-{row['margin']:g}"
+    if row["nonzero_pairs"] < MIN_PAIRS:
+        return f"too few non-tied pairs (k < {MIN_PAIRS})"
+    return "undecided"
 
 
 SIZE_RATIO_LIMIT = 2.0
@@ -139,8 +215,8 @@ def _applies(claim: Claim, rows: list[dict], setting: str) -> bool:
 
 def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
     """One result per (setting, claim) whose two presets ran in that setting (instance claims
-    only where the prior held several variants)."""
-    out = []
+    only where the prior held several variants); p-values Holm-adjusted across all of them."""
+    out, arms = [], []
     settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
     for setting in settings:
         sel = [r for r in rows if r.get("setting", "easy") == setting]
@@ -151,9 +227,11 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
             va = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.a}
             vb = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.b}
             keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
-            d = np.array([va[k] - vb[k] for k in keys], dtype=np.float64)
-            lo, hi = bootstrap_mean_ci(d)
-            size = _sizes(sel, c, keys)
+            a = np.array([va[k] for k in keys], dtype=np.float64)
+            b = np.array([vb[k] for k in keys], dtype=np.float64)
+            d = a - b
+            lo, hi = bca_ci(d)
+            margin, why = MARGINS.get(c.metric, (math.nan, "no margin stated"))
             out.append(
                 {
                     "setting": setting,
@@ -162,16 +240,34 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "b": c.b,
                     "metric": c.metric,
                     "pairs": len(keys),
-                    "mean_a": float(np.mean([va[k] for k in keys])) if keys else math.nan,
-                    "mean_b": float(np.mean([vb[k] for k in keys])) if keys else math.nan,
+                    "nonzero_pairs": int((d != 0).sum()),
+                    "mean_a": float(a.mean()) if keys else math.nan,
+                    "mean_b": float(b.mean()) if keys else math.nan,
                     "mean_diff": float(d.mean()) if keys else math.nan,
                     "ci_low": lo,
                     "ci_high": hi,
                     "a_better_pairs": int((d < 0).sum()),
-                    "verdict": verdict(
-                        lo, hi, d, np.array([vb[k] for k in keys]), np.array([va[k] for k in keys]), c.fails_at
-                    ),
-                    **size,
+                    "p_value": signed_rank_p(d) if keys else math.nan,
+                    "p_holm": math.nan,
+                    "margin": margin,
+                    "margin_reason": why,
+                    "p_equivalence": equivalence_p(d, margin) if keys and margin == margin else math.nan,
+                    "pairs_for_80pct_power": pairs_for_power(d),
+                    "by_prompt": by_prompt(keys, d),
+                    **_sizes(sel, c, keys),
                 }
             )
+            arms.append((b, a, c.fails_at))
+    for row, p in zip(out, holm([r["p_value"] for r in out])):
+        row["p_holm"] = p
+    for row, (b, a, fails_at) in zip(out, arms):
+        row["verdict"] = verdict(row, baseline=b, treated=a, fails_at=fails_at)
     return out
+
+
+def by_prompt(keys: list[tuple], d: np.ndarray) -> str:
+    """The mean difference per prompt with its pair count, e.g. 'a corgi -0.05 (3); a duck 0 (3)'."""
+    per: dict[str, list[float]] = {}
+    for (prompt, _seed), x in zip(keys, d):
+        per.setdefault(prompt, []).append(float(x))
+    return "; ".join(f"{p} {np.mean(v):+.3g} ({len(v)})" for p, v in per.items())
