@@ -238,9 +238,10 @@ so --log-every has no place here)."""
 @dataclass
 class Sweep:
     """Train and score every (setting, prompt, preset, seed) cell; write cells.csv, summary.csv,
-    summary.md, verdict.csv (the paper's claims with 95% bootstrap intervals over (prompt, seed)
-    pairs) and ablation.png. Resumable: finished cells are skipped, an interrupted cell resumes
-    from its checkpoint. The grid is validated before the first cell."""
+    summary.md, verdict.csv (the paper's claims over (prompt, seed) pairs: BCa intervals,
+    signed-rank p-values Holm-adjusted, equivalence tests, power, per-prompt effects) and
+    ablation.png. Resumable: finished cells (scored by the same code) are skipped, an
+    interrupted cell resumes from its checkpoint. The grid is validated before the first cell."""
 
     prompts: tuple[str, ...] = ("a yellow duck", "a corgi", "a penguin")
     """Prompts (free text; matched to the embedded prior's assets)."""
