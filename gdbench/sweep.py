@@ -147,6 +147,7 @@ def run_cell(spec: CellSpec) -> dict:
         ) from None
     train_s = sum(h["seconds"] for h in r.state.history)
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
+    run_info = read_json(spec.dir / "run.json", what="run.json")
     # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
     col = scores.get("colmap", {}) if spec.colmap else {}
     views, gt = scores.get("views", {}), scores.get("gt", {})
@@ -162,6 +163,8 @@ def run_cell(spec: CellSpec) -> dict:
         "gaussians": scores["gaussians"],
         "gt_psnr": get(gt, "psnr"),
         "gt_ssim": get(gt, "ssim"),
+        "gt_offset_deg": get(gt, "offset_deg"),
+        "gt_psnr_unaligned": get(gt, "psnr_unaligned"),
         "multi_face_rate": get(views, "multi_face_rate"),
         "front_share": get(views, "front_share"),
         "instance_inconsistency": 1.0 - get(views, "instance_consistency"),
@@ -172,7 +175,8 @@ def run_cell(spec: CellSpec) -> dict:
         "colmap_failure_rate": get(col, "failure_rate"),
         "translation_dir_err_deg": get(col, "translation_dir_err_deg"),
         "cell_s": time.perf_counter() - t0,
-        "train_commit": read_json(spec.dir / "run.json", what="run.json").get("commit", "unknown"),
+        "run_id": run_info.get("run_id"),  # the hash of the config that changes the result
+        "train_commit": run_info.get("commit", "unknown"),
         "score_commit": code_commit(),
     }
     write_json({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")

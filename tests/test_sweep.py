@@ -44,6 +44,9 @@ def test_sweep_writes_every_cell_and_tables_that_summarise_them(tiny_sweep):
         assert r["iterations"] == 4 and 5.0 < r["gt_psnr"] < 40.0 and math.isnan(r["var_theta_deg2"])
         # the row's training time is the run's own record of its steps
         assert r["train_time_s"] == pytest.approx(run["timings"]["train_steps_s"])
+        scores = json.loads((CellSpec(PROMPT, r["preset"], r["seed"], 4, str(out)).dir / "scores.json").read_text())
+        assert r["gt_offset_deg"] == scores["gt"]["offset_deg"] and r["run_id"] == run["run_id"]
+        assert r["gt_psnr_unaligned"] == scores["gt"]["psnr_unaligned"] <= r["gt_psnr"]
     # the summary is the mean over seeds of the per-cell values, recomputed here from cells.csv
     summary = {s["preset"]: s for s in _read_csv(out / "summary.csv")}
     for p in ("gd", "sjc-gs"):
