@@ -92,3 +92,31 @@ def test_a_run_is_scored_on_its_own_background(tmp_path):
     on_white = float(psnr(img, asset_views(CAPTION, poses, 64)).mean())
     assert gt["psnr"] == pytest.approx(on_black, abs=1e-3) and on_black > 13
     assert on_white < on_black - 5, (on_black, on_white)
+
+
+def test_gt_ssim_is_the_standard_one_and_held_out_views_are_not_bank_views():
+    """SSIM against pytorch-msssim's (11x11 Gaussian window, sigma 1.5, valid region), on
+    images related as a trained scene's are to the asset (blur, noise, a shift); the held-out
+    poses lie off the bank's azimuth and elevation grid (half its step away in azimuth)."""
+    import pytorch_msssim
+
+    from gdbench.assets.bank import BankConfig
+    from gdbench.metrics.gt import heldout_poses, ssim
+
+    g = torch.Generator().manual_seed(0)
+    ref = torch.rand(4, 48, 56, 3, generator=g, dtype=torch.float64)
+    ref = torch.nn.functional.avg_pool2d(ref.permute(0, 3, 1, 2), 5, 1, 2).permute(0, 2, 3, 1)  # some structure
+    noisy = (ref + 0.1 * torch.randn(ref.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    shifted = ref.roll(2, dims=2)
+    for img in (ref, noisy, shifted):
+        want = pytorch_msssim.ssim(
+            img.permute(0, 3, 1, 2), ref.permute(0, 3, 1, 2), data_range=1.0, size_average=False, win_size=11
+        )
+        assert torch.allclose(ssim(img, ref).double(), want.double(), atol=1e-5), (ssim(img, ref), want)
+    assert ssim(ref, ref).min() > 0.9999 and ssim(noisy, ref).max() < 0.95
+    bank = BankConfig()
+    step = 360.0 / bank.azimuths
+    az = heldout_poses(12).azimuth
+    gap = torch.remainder(az, step)
+    assert torch.allclose(torch.minimum(gap, step - gap), torch.full_like(az, step / 2))
+    assert all(float(e) not in bank.elevations for e in heldout_poses(12).elevation)

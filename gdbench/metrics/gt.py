@@ -2,7 +2,9 @@
 its procedural asset at held-out poses, after the best azimuth alignment.
 
 Held-out poses avoid the bank's grid: elevation 15 degrees (the bank has -40, -20, 0, 20,
-40) and azimuths 15 + 30 k (the bank's are multiples of 5 from 0). Score distillation may
+40) and azimuths 17.5 + 30 k (the bank's are multiples of 5 from 0; 15 + 30 k before
+2026-11-25 lay on them). SSIM is the standard one (11x11 Gaussian window; a 7x7 uniform window
+before 2026-11-25, so earlier SSIM figures are not comparable). Score distillation may
 produce the object turned about +Z, so the scene is scored at every azimuth offset in
 ``offsets`` (degrees) and the best mean PSNR is kept; the offset is reported.
 """
@@ -28,7 +30,9 @@ class GTScore:
 
 
 def heldout_poses(n: int = 12, elevation: float = 15.0, radius: float = 1.0, fovy: float = 55.0) -> SphericalPoses:
-    return SphericalPoses.orbit(n, radius=radius, elevation=elevation, fovy=fovy, start=15.0)
+    """``n`` poses on a ring at ``elevation``, azimuths 17.5 + k 360/n: midway between the bank's
+    5-degree azimuths (and its elevations -40, -20, 0, 20, 40), so no held-out view is a bank view."""
+    return SphericalPoses.orbit(n, radius=radius, elevation=elevation, fovy=fovy, start=17.5)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -37,14 +41,24 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return -10 * torch.log10(mse)
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 7) -> torch.Tensor:
-    """Mean SSIM per image (uniform window, constants of Wang et al. 2004), [C, H, W, 3] in [0, 1]."""
+def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM per image of [C, H, W, 3] images in [0, 1]: the standard one (Wang et al. 2004,
+    as papers report it): an 11x11 Gaussian window of sigma 1.5 over the valid region, per
+    channel, K1 = 0.01, K2 = 0.03, data range 1 (pytorch-msssim's ``ssim``, its test oracle)."""
     import torch.nn.functional as F
 
     x, y = a.permute(0, 3, 1, 2).double(), b.permute(0, 3, 1, 2).double()
-    pool = lambda t: F.avg_pool2d(t, window, 1)  # noqa: E731
-    mx, my = pool(x), pool(y)
-    vx, vy, cxy = pool(x * x) - mx**2, pool(y * y) - my**2, pool(x * y) - mx * my
+    r = torch.arange(window, dtype=torch.float64) - (window - 1) / 2
+    g = torch.exp(-(r**2) / (2 * sigma**2))
+    g = (g / g.sum()).to(x.device)
+    ch = x.shape[1]
+
+    def blur(t):  # separable Gaussian, valid region, each channel on its own
+        t = F.conv2d(t, g.view(1, 1, 1, -1).expand(ch, 1, 1, window), groups=ch)
+        return F.conv2d(t, g.view(1, 1, -1, 1).expand(ch, 1, window, 1), groups=ch)
+
+    mx, my = blur(x), blur(y)
+    vx, vy, cxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
     c1, c2 = 0.01**2, 0.03**2
     s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx**2 + my**2 + c1) * (vx + vy + c2))
     return s.flatten(1).mean(1).float()
