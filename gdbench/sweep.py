@@ -148,6 +148,7 @@ def run_cell(spec: CellSpec) -> dict:
     train_s = sum(h["seconds"] for h in r.state.history)
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
     run_info = read_json(spec.dir / "run.json", what="run.json")
+    front_defined = cell_config(spec).view_prompting != "none"
     # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
     col = scores.get("colmap", {}) if spec.colmap else {}
     views, gt = scores.get("views", {}), scores.get("gt", {})
@@ -170,6 +171,9 @@ def run_cell(spec: CellSpec) -> dict:
         "instance_inconsistency": 1.0 - get(views, "instance_consistency"),
         "majority_variant": int(views.get("majority_variant", -1)),
         "floaters": get(views, "floaters"),
+        "turned_deg": get(views, "turned_deg"),
+        # turned more than 45 degrees: a failure where view prompting defines the front
+        "turned": float(abs(get(views, "turned_deg")) > 45) if front_defined and "turned_deg" in views else math.nan,
         "registration_rate": get(col, "registration_rate"),
         "var_theta_deg2": get(col, "var_theta_deg2"),
         "colmap_failure_rate": get(col, "failure_rate"),

@@ -22,6 +22,7 @@ COLUMNS = (
     ("multi_face_rate", "multi-face rate", False),
     ("instance_inconsistency", "instance inconsistency", False),
     ("floaters", "floaters", False),
+    ("turned", "turned > 45 deg", False),
     ("var_theta_deg2", "Var(theta) deg^2", True),
     ("colmap_failure_rate", "COLMAP failure rate", False),
     ("registration_rate", "registration", False),

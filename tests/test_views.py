@@ -57,6 +57,22 @@ def test_a_trained_like_scene_is_matched_to_its_azimuth():
     idx = (((az + 40 + 180) % 360) / 5).round().long()
     s = score_views(imgs[0, idx], torch.ones(36, 8, 8), ref)
     assert s.offset_deg == 40 and s.multi_face_rate == 0 and s.instance_consistency == 1
+    assert s.turned_deg == -40  # its view from t is the asset's from t + 40 = t - (-40)
+
+
+@pytest.mark.parametrize("turn", [0.0, 90.0, -60.0, 180.0, 135.0])
+def test_turned_deg_reads_the_turn_of_a_result(turn):
+    """Views whose image from azimuth t is the asset's view from t - turn (a result turned by
+    ``turn`` about +Z) read turned_deg = turn, in (-180, 180]."""
+    from gdbench.metrics.views import Reference, score_views, turntable_poses
+
+    g = torch.Generator().manual_seed(1)
+    imgs = torch.rand(1, 72, 8, 8, 3, generator=g)
+    ref = Reference(imgs, torch.ones(1, 72, 8, 8), torch.arange(72, dtype=torch.float32) * 5 - 180)
+    az = turntable_poses(36).azimuth
+    idx = (((az - turn + 180) % 360) / 5).round().long()
+    s = score_views(imgs[0, idx], torch.ones(36, 8, 8), ref)
+    assert s.turned_deg == turn and s.multi_face_rate == 0
 
 
 def test_a_run_is_scored_on_its_own_background(tmp_path):

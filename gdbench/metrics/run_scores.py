@@ -145,8 +145,8 @@ def report(s: dict) -> str:
         v = s["views"]
         lines.append(
             f"  views: multi-face {num(v['multi_face_rate']):.2f}, front share {num(v['front_share']):.2f}, "
-            f"instance consistency {num(v['instance_consistency']):.2f}, floaters {num(v['floaters']):.3f}"
-            + _mark(s, "views")
+            f"instance consistency {num(v['instance_consistency']):.2f}, floaters {num(v['floaters']):.3f}, "
+            f"turned {num(v.get('turned_deg')):.0f} deg" + _mark(s, "views")
         )
     if "colmap" in s and "colmap" not in kept:
         c = s["colmap"]

@@ -14,7 +14,11 @@ matches within 45 degrees of their view's true azimuth (results may settle turne
   gives ~0.25, a multi-faced one more);
 - **instance consistency**: the share of views matched to the majority variant;
 - **floaters**: the share of rendered opacity outside the majority variant's silhouette at the
-  aligned pose, dilated by ``dilate`` pixels.
+  aligned pose, dilated by ``dilate`` pixels;
+- **turned_deg**: the turn of the result about +Z, in (-180, 180]: its view from azimuth t is
+  the asset's view from t - turned_deg (the global offset above, signed). Where view prompting
+  defines the front, a turn of more than 45 degrees is a failure of its own (the sweep's
+  ``turned`` column).
 """
 
 from __future__ import annotations
@@ -47,6 +51,8 @@ class ViewScore:
     majority_variant: int
     floaters: float
     offset_deg: float
+    turned_deg: float
+    """The result's turn about +Z in (-180, 180] (module docstring)."""
     matched_azimuth: list[float]
     matched_variant: list[int]
 
@@ -113,6 +119,7 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
         majority_variant=majority,
         floaters=floaters,
         offset_deg=offset,
+        turned_deg=-((offset + 180.0) % 360.0 - 180.0) or 0.0,  # matched = truth + offset = truth - turn
         matched_azimuth=matched.tolist(),
         matched_variant=variant.tolist(),
     )
