@@ -13,8 +13,10 @@ matches within 45 degrees of their view's true azimuth (results may settle turne
 - **front share**: the share of views matched to the front (|azimuth| <= 45; a correct object
   gives ~0.25, a multi-faced one more);
 - **instance consistency**: the share of views matched to the majority variant;
-- **floaters**: the share of rendered opacity outside the majority variant's silhouette at the
-  aligned pose, dilated by ``dilate`` pixels;
+- **floaters**: the share of rendered opacity outside the silhouette of the reference view each
+  frame matched, dilated by ``dilate`` pixels: opacity no view of the asset explains, kept apart
+  from shape error (a two-faced result matches its back views to front views, whose silhouettes
+  it fills);
 - **turned_deg**: the turn of the result about +Z, in (-180, 180]: its view from azimuth t is
   the asset's view from t - turned_deg (the global offset above, signed). Where view prompting
   defines the front, a turn of more than 45 degrees is a failure of its own (the sweep's
@@ -104,10 +106,9 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     k = int(score.argmax())
     offset = float(offsets[k])
     majority = int(torch.mode(variant).values)
-    # floaters: opacity outside the majority variant's (dilated) silhouette at the aligned pose
-    want = (truth + offset + 180.0) % 360.0 - 180.0
-    idx = _circ(ref.azimuth.double()[None] - want[:, None]).argmin(1)
-    mask = ref.alpha[majority, idx] > 0.5
+    # floaters: opacity outside the (dilated) silhouette of the reference view each frame matched,
+    # so a wrong view (a second face, another variant) is shape error, not floaters
+    mask = ref.alpha[variant, az_idx] > 0.5
     if dilate > 0:
         mask = torch.nn.functional.max_pool2d(mask[:, None].float(), 2 * dilate + 1, 1, dilate)[:, 0] > 0
     total = float(alpha.sum())
