@@ -167,6 +167,7 @@ def run_cell(spec: CellSpec) -> dict:
         "gt_offset_deg": get(gt, "offset_deg"),
         "gt_psnr_unaligned": get(gt, "psnr_unaligned"),
         "multi_face_rate": get(views, "multi_face_rate"),
+        "featureless_rate": get(views, "featureless_rate"),
         "front_share": get(views, "front_share"),
         "instance_inconsistency": 1.0 - get(views, "instance_consistency"),
         "majority_variant": int(views.get("majority_variant", -1)),

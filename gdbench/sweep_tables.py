@@ -20,6 +20,7 @@ from pathlib import Path
 COLUMNS = (
     ("gt_psnr", "GT PSNR dB", False),
     ("multi_face_rate", "multi-face rate", False),
+    ("featureless_rate", "featureless rate", False),
     ("instance_inconsistency", "instance inconsistency", False),
     ("floaters", "floaters", False),
     ("turned", "turned > 45 deg", False),

@@ -17,7 +17,7 @@ def scores():
     from gdbench.metrics.views import fixture_views, reference, score_views
 
     ref = reference(CAPTION, variants=2)
-    modes = ("asset", "two-faced", "chimera", "jittered", "floaters")
+    modes = ("asset", "two-faced", "chimera", "jittered", "floaters", "spun")
     return {m: score_views(*fixture_views(CAPTION, m), ref) for m in modes}
 
 
@@ -32,6 +32,13 @@ def test_multi_face_rate_separates_a_two_faced_asset(scores):
     s = scores["two-faced"]
     assert s.multi_face_rate > 0.4 and s.front_share > 0.45  # the back half sees a front
     assert scores["jittered"].multi_face_rate == 0  # +-30 degrees is not a second face
+
+
+def test_featureless_rate_separates_a_solid_of_revolution_and_is_no_second_face(scores):
+    assert scores["spun"].featureless_rate == 1 and scores["spun"].multi_face_rate == 0
+    for mode in ("asset", "two-faced", "chimera", "jittered", "floaters"):
+        assert scores[mode].featureless_rate == 0, mode
+    assert scores["two-faced"].multi_face_rate > 0.4  # a second face stays one
 
 
 def test_instance_consistency_separates_a_chimera(scores):

@@ -144,7 +144,8 @@ def report(s: dict) -> str:
     if "views" in s and "views" not in kept:
         v = s["views"]
         lines.append(
-            f"  views: multi-face {num(v['multi_face_rate']):.2f}, front share {num(v['front_share']):.2f}, "
+            f"  views: multi-face {num(v['multi_face_rate']):.2f}, featureless {num(v.get('featureless_rate')):.2f}, "
+            f"front share {num(v['front_share']):.2f}, "
             f"instance consistency {num(v['instance_consistency']):.2f}, floaters {num(v['floaters']):.3f}, "
             f"turned {num(v.get('turned_deg')):.0f} deg" + _mark(s, "views")
         )
