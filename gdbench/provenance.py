@@ -12,6 +12,9 @@ from pathlib import Path
 CODE = ("gdbench", "renderers", "pyproject.toml")
 """What counts as the code: edits elsewhere (docs, results, the README) do not change it."""
 
+SOURCES = (".py", ".cpp", ".h")
+"""Suffixes of the source files a new, untracked file or a non-checkout copy is hashed by."""
+
 
 def _git(root: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(["git", *args], cwd=root, capture_output=True, timeout=30)
@@ -20,9 +23,9 @@ def _git(root: Path, *args: str) -> subprocess.CompletedProcess:
 def _source_hash(root: Path) -> str:
     """SHA-256 (12 hex digits) of the package's source files, for a copy git cannot describe."""
     h = hashlib.sha256()
-    for top in ("gdbench", "renderers"):
-        for path in sorted((root / top).rglob("*")):
-            if path.suffix in (".py", ".cpp", ".h") and "__pycache__" not in path.parts:
+    for top in (root / c for c in CODE if (root / c).is_dir()):
+        for path in sorted(top.rglob("*")):
+            if path.suffix in SOURCES and "__pycache__" not in path.parts:
                 h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
     return h.hexdigest()[:12]
 
@@ -41,7 +44,7 @@ def code_commit() -> str:
             new = _git(root, "ls-files", "--others", "--exclude-standard", "-z", "--", *CODE)
             if head.returncode == 0 and diff.returncode == 0 and new.returncode == 0:
                 h = hashlib.sha256(diff.stdout)
-                names = sorted(n for n in new.stdout.decode().split("\0") if n.endswith((".py", ".cpp", ".h")))
+                names = sorted(n for n in new.stdout.decode().split("\0") if n.endswith(SOURCES))
                 for name in names:
                     h.update(name.encode() + b"\0" + (root / name).read_bytes())
                 dirty = bool(diff.stdout) or bool(names)

@@ -139,8 +139,9 @@ def run_cell(spec: CellSpec) -> dict:
     from .train.run import train
 
     t0 = time.perf_counter()
+    cfg = cell_config(spec)
     try:
-        r = train(cell_config(spec))
+        r = train(cfg)
     except CheckpointError as e:
         raise CheckpointError(
             f"{str(e).split(';')[0]}; delete {spec.dir} to retrain this cell, or sweep into another --out"
@@ -148,7 +149,7 @@ def run_cell(spec: CellSpec) -> dict:
     train_s = sum(h["seconds"] for h in r.state.history)
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
     run_info = read_json(spec.dir / "run.json", what="run.json")
-    front_defined = cell_config(spec).view_prompting != "none"
+    front_defined = cfg.view_prompting != "none"
     # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
     col = scores.get("colmap", {}) if spec.colmap else {}
     views, gt = scores.get("views", {}), scores.get("gt", {})
@@ -158,7 +159,7 @@ def run_cell(spec: CellSpec) -> dict:
         "prompt": spec.prompt,
         "preset": spec.preset,
         "seed": spec.seed,
-        "variants": cell_config(spec).variants,
+        "variants": cfg.variants,
         "iterations": r.state.step,
         "train_time_s": train_s,
         "gaussians": scores["gaussians"],

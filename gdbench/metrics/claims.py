@@ -41,6 +41,7 @@ The verdict words, checked in this order:
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,16 +103,12 @@ def bca_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, seed: int = 0
     if d.size == 1 or np.all(d == d[0]):
         return float(d[0]), float(d[0])
     for method in ("BCa", "percentile"):
-        with np.errstate(all="ignore"):
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                res = stats.bootstrap(
-                    (d,), np.mean, confidence_level=level, n_resamples=n, method=method,
-                    rng=np.random.default_rng(seed),
-                )  # fmt: skip
-        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        with warnings.catch_warnings(), np.errstate(all="ignore"):  # BCa warns where it is undefined
+            warnings.simplefilter("ignore")
+            ci = stats.bootstrap(
+                (d,), np.mean, confidence_level=level, n_resamples=n, method=method, rng=np.random.default_rng(seed)
+            ).confidence_interval
+        lo, hi = float(ci.low), float(ci.high)
         if math.isfinite(lo) and math.isfinite(hi):
             return lo, hi
     return math.nan, math.nan

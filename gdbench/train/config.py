@@ -46,7 +46,7 @@ class OptimConfig:
     """Rotations (DreamGaussian's; 3DGS and gsplat: 0.001)."""
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.means_decay_steps, int) and self.means_decay_steps >= 1):
+        if not (_is_int(self.means_decay_steps) and self.means_decay_steps >= 1):
             raise ValueError(f"optim.means_decay_steps: expected an int >= 1, got {self.means_decay_steps!r}")
         for f in fields(self):
             if f.name == "means_decay_steps":
