@@ -130,6 +130,17 @@ def cell_config(spec: CellSpec):
     )
 
 
+def turned_failure(views: dict, front_defined: bool) -> float:
+    """1.0 when a result is turned by more than 45 degrees, 0.0 when not; NaN where that is no
+    failure: view prompting does not define the front, or the result has none to turn (mostly
+    featureless views: a blob's turn is arbitrary), or the views were not scored."""
+    from .io import num
+
+    if not front_defined or "turned_deg" not in views or not num(views.get("featureless_rate")) <= 0.5:
+        return math.nan
+    return float(abs(num(views["turned_deg"])) > 45)
+
+
 def run_cell(spec: CellSpec) -> dict:
     """Train (or resume) and score one cell; writes and returns its row."""
     from .io import num, read_json, write_json
@@ -174,8 +185,7 @@ def run_cell(spec: CellSpec) -> dict:
         "majority_variant": int(views.get("majority_variant", -1)),
         "floaters": get(views, "floaters"),
         "turned_deg": get(views, "turned_deg"),
-        # turned more than 45 degrees: a failure where view prompting defines the front
-        "turned": float(abs(get(views, "turned_deg")) > 45) if front_defined and "turned_deg" in views else math.nan,
+        "turned": turned_failure(views, front_defined),
         "registration_rate": get(col, "registration_rate"),
         "var_theta_deg2": get(col, "var_theta_deg2"),
         "colmap_failure_rate": get(col, "failure_rate"),
@@ -184,6 +194,7 @@ def run_cell(spec: CellSpec) -> dict:
         "run_id": run_info.get("run_id"),  # the hash of the config that changes the result
         "train_commit": run_info.get("commit", "unknown"),
         "score_commit": code_commit(),
+        "versions": "; ".join(f"{k} {v}" for k, v in run_info.get("versions", {}).items()),
     }
     write_json({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")
     return row

@@ -90,6 +90,9 @@ def commits(rows: list[dict]) -> str:
             c = r.get(key) or "unknown"
             counts[c] = counts.get(c, 0) + 1
         parts.append(f"{what} at " + ", ".join(f"{c} ({n} cells)" for c, n in counts.items()))
+    versions = {r.get("versions") for r in rows if r.get("versions")}
+    if len(versions) > 1:
+        parts.append(f"MIXED package versions ({len(versions)} sets; cells.csv's versions column)")
     return "; ".join(parts)
 
 

@@ -1,5 +1,6 @@
 """COLMAP consistency (gdbench/metrics/colmap_consistency.py): the alignment in closed form, and
-the calibration fixtures it must separate (consistent, two-faced, per-view jittered)."""
+its calibration on 3D failure fixtures: what it sees (flicker, per-view jitter) and what it
+cannot (a second face, floaters)."""
 
 import math
 
@@ -23,35 +24,53 @@ def test_umeyama_recovers_a_similarity():
 
 @pytest.fixture(scope="module")
 def calibration():
+    """COLMAP on the 3D failure fixtures of the duck (Gaussian scenes rendered on the circle),
+    and on per-view jitter (each view turned by up to +-12 degrees, which no scene renders)."""
+    from gdbench.metrics.colmap_consistency import fixture_circle_images
     from renderers.pyrender_points._lib import available
 
     if not available()[0]:
         pytest.skip(f"pyrender unavailable: {available()[1]}")
     cams = circle_poses(100).cameras(256, 256)
-    return {m: score_images(asset_circle_images("a yellow duck", cams, mode=m), cams)
-            for m in ("consistent", "two-faced", "jittered")}  # fmt: skip
+    out = {k: score_images(fixture_circle_images("a yellow duck", cams, k, flicker=0.2), cams)
+           for k in ("asset", "flicker", "floaters", "two-faced")}  # fmt: skip
+    out["jittered"] = score_images(asset_circle_images("a yellow duck", cams, mode="jittered"), cams)
+    return out
 
 
-def test_consistent_asset_registers_with_the_true_step(calibration):
-    s = calibration["consistent"]
+def test_the_asset_scene_registers_with_the_true_step(calibration):
+    s = calibration["asset"]
     assert s.registration_rate >= 0.95
     assert s.mean_theta_deg == pytest.approx(3.6, abs=0.1)  # 100 views on a circle
     assert s.var_theta_deg2 < 0.5 and s.translation_dir_err_deg < 5
     assert s.failure_rate <= 0.05  # pairs unregistered or off by > 5 degrees
 
 
-def test_metric_separates_inconsistent_fixtures(calibration):
-    ok = calibration["consistent"]
-    for mode in ("two-faced", "jittered"):
-        bad = calibration[mode]
-        # variance jumps by orders of magnitude, or views fail to register
-        assert bad.var_theta_deg2 > 100 * ok.var_theta_deg2 or bad.registration_rate < 0.8, (mode, bad)
-        assert bad.translation_dir_err_deg > 5 * ok.translation_dir_err_deg or bad.registration_rate < 0.8
-        # failure rate: the two-faced circle flips at +-90 degrees (2 of 100 pairs, measured 0.02),
-        # jitter breaks many adjacent steps
-        assert bad.failure_rate >= ok.failure_rate + 0.02, (mode, bad.failure_rate, ok.failure_rate)
+def test_view_to_view_inconsistency_fails_colmap(calibration):
+    """Colour flicker (+-0.2 per channel, anew per view; +-0.15 already fails 63% of pairs) and
+    per-view jitter break the circle:
+    what COLMAP measures is view-to-view inconsistency."""
+    ok = calibration["asset"]
+    for kind in ("flicker", "jittered"):
+        bad = calibration[kind]
+        assert bad.failure_rate >= ok.failure_rate + 0.2, (kind, bad.failure_rate, ok.failure_rate)
+
+
+def test_colmap_cannot_see_a_3d_second_face_and_barely_sees_floaters(calibration):
+    """A two-faced object is one consistent 3D scene: COLMAP registers it like the asset (the
+    view metrics' multi-face rate is the instrument for it). Floaters are consistent 3D points
+    too: they stay registered."""
+    ok = calibration["asset"]
+    for kind in ("two-faced", "floaters"):
+        s = calibration[kind]
+        assert s.registration_rate >= 0.95 and s.failure_rate <= ok.failure_rate + 0.05, (kind, s)
+        assert s.var_theta_deg2 < 0.5
 
 
 def test_bad_mode():
     with pytest.raises(ValueError, match="mode: expected 'consistent'"):
-        asset_circle_images("a yellow duck", circle_poses(2).cameras(16, 16), mode="four-faced")
+        asset_circle_images("a yellow duck", circle_poses(2).cameras(16, 16), mode="two-faced")
+    from gdbench.metrics.colmap_consistency import fixture_circle_images
+
+    with pytest.raises(ValueError, match="kind: expected one of"):
+        fixture_circle_images("a yellow duck", circle_poses(2).cameras(16, 16), "spun")

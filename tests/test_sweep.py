@@ -436,6 +436,11 @@ def test_a_cell_holds_only_what_the_sweep_asked_for(tiny_sweep, monkeypatch, tmp
     assert "colmap" in _strict(spec.dir / "scores.json")  # kept in the file (same scene and code) ...
     assert math.isnan(row["colmap_failure_rate"]) and math.isnan(row["registration_rate"])  # ... not in the row
     assert row["gt_psnr"] == rows[1]["gt_psnr"] and row["score_commit"] == row["train_commit"]
+    assert "torch " in row["versions"] and "pycolmap " in row["versions"]  # the packages that made it
+    from gdbench.sweep_tables import commits
+
+    assert "MIXED" not in commits([row, row])
+    assert "MIXED package versions" in commits([row, dict(row, versions="torch 0")])
 
 
 def test_every_json_a_sweep_writes_is_strict_and_tables_are_numeric(tiny_sweep):
@@ -569,3 +574,16 @@ def test_the_code_name_follows_the_code_and_only_the_code(tmp_path, monkeypatch)
     assert by_source.startswith("src-") and len(by_source) == 16
     (root / "gdbench" / "b.py").write_text("y = 2\n")
     assert name().startswith("src-") and name() != by_source
+
+
+def test_turned_is_a_failure_only_where_the_front_is_defined_and_the_result_has_one():
+    import math
+
+    from gdbench.sweep import turned_failure
+
+    assert turned_failure({"turned_deg": 90.0, "featureless_rate": 0.0}, True) == 1.0
+    assert turned_failure({"turned_deg": -45.0, "featureless_rate": 0.0}, True) == 0.0
+    assert turned_failure({"turned_deg": 180.0, "featureless_rate": 0.0}, True) == 1.0
+    assert math.isnan(turned_failure({"turned_deg": 90.0, "featureless_rate": 0.0}, False))  # janus: no front
+    assert math.isnan(turned_failure({"turned_deg": 95.0, "featureless_rate": 1.0}, True))  # a blob
+    assert math.isnan(turned_failure({}, True))  # not scored

@@ -210,31 +210,48 @@ def asset_circle_images(
 ) -> np.ndarray:
     """Calibration images of a procedural asset on the circle, uint8 [K, H, W, 3].
 
-    ``consistent``: the asset as it is; ``two-faced``: views from the back half see the asset
-    turned 180 degrees (its front on both sides, the multi-face failure); ``jittered``: every
-    view sees the asset turned by a random angle (uniform +-``jitter_deg``) about +Z.
+    ``consistent``: the asset as it is; ``jittered``: every view sees the asset turned by a
+    random angle (uniform +-``jitter_deg``) about +Z, which no single scene renders (the failures
+    a scene can show are ``fixture_circle_images``').
     """
     from renderers.pyrender_points.mesh import render_mesh
 
     from ..assets.library import build
 
-    if mode not in ("consistent", "two-faced", "jittered"):
-        raise ValueError(f"mode: expected 'consistent', 'two-faced' or 'jittered', got {mode!r}")
+    if mode not in ("consistent", "jittered"):
+        raise ValueError(f"mode: expected 'consistent' or 'jittered', got {mode!r}")
     mesh = build(caption)
     pose_gl, Ks = cams.to_opengl()
-    centres = cams.centers.double()
-    az = torch.rad2deg(torch.atan2(centres[:, 1], centres[:, 0]))
     g = torch.Generator().manual_seed(seed)
     poses = []
     for i in range(len(cams)):
-        turn = 0.0
-        if mode == "two-faced" and abs(float(az[i])) > 90.0:
-            turn = 180.0
-        elif mode == "jittered":
-            turn = float((torch.rand(1, generator=g) * 2 - 1) * jitter_deg)
+        turn = float((torch.rand(1, generator=g) * 2 - 1) * jitter_deg) if mode == "jittered" else 0.0
         c, s = math.cos(math.radians(turn)), math.sin(math.radians(turn))
         Rz = np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
         # turning the object by Rz is turning the camera by Rz^-1 about the origin
         poses.append(np.linalg.inv(Rz) @ pose_gl[i].double().numpy())
     rgb, _, _ = render_mesh(mesh, np.stack(poses), Ks.double().numpy(), cams.width, cams.height)
     return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+FIXTURES = ("asset", "flicker", "floaters", "two-faced")
+
+
+def fixture_circle_images(caption: str, cams: Cameras, kind: str, *, seed: int = 0, flicker: float = 0.2) -> np.ndarray:
+    """Calibration images of a 3D failure fixture (``metrics/fixtures3d.py``) on the circle,
+    rendered by gdbench's splatting renderer, uint8 [K, H, W, 3]: ``asset``, ``floaters`` and
+    ``two-faced`` are the fixtures of those names; ``flicker`` is the asset with every
+    Gaussian's colour jittered by a random +-``flicker`` per channel anew in each view (the
+    view-to-view colour inconsistency a scene's unconstrained view-dependent colour shows)."""
+    from ..turntable import render_views, to_uint8
+    from .fixtures3d import failure_scene, flicker_colors
+
+    if kind not in FIXTURES:
+        raise ValueError(f"kind: expected one of {FIXTURES}, got {kind!r}")
+    scene = failure_scene(caption, "asset" if kind == "flicker" else kind, seed=seed)
+    if kind != "flicker":
+        return to_uint8(render_views(scene, cams))
+    views = [
+        render_views(flicker_colors(scene, i, amount=flicker, seed=seed), cams[i : i + 1]) for i in range(len(cams))
+    ]
+    return to_uint8(torch.cat(views))

