@@ -587,3 +587,28 @@ def test_turned_is_a_failure_only_where_the_front_is_defined_and_the_result_has_
     assert math.isnan(turned_failure({"turned_deg": 90.0, "featureless_rate": 0.0}, False))  # janus: no front
     assert math.isnan(turned_failure({"turned_deg": 95.0, "featureless_rate": 1.0}, True))  # a blob
     assert math.isnan(turned_failure({}, True))  # not scored
+
+
+def test_holm_family_holds_only_the_claims_a_test_decides():
+    """A claim that cannot be tested (neither preset fails) adds no hypothesis: the one tested
+    claim beside it keeps its raw p-value (Holm over a family of one)."""
+    import numpy as np
+
+    from gdbench.metrics.claims import evaluate
+
+    keys = [(p, s) for p in "abcdef" for s in (0, 1)]
+    rng = np.random.default_rng(1)
+    base = rng.uniform(0.2, 0.4, len(keys))
+    rows = []
+    for (p, s), v in zip(keys, base):
+        rows += [
+            dict(_row("gd-no-sn", p, s, v), floaters=0.0),
+            dict(_row("gd", p, s, v - 0.1), floaters=0.0),
+            dict(_row("gd-no-vgs", p, s, v), floaters=0.0),
+        ]
+    got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(rows)}
+    tested = got["gd", "gd-no-sn", "multi_face_rate"]
+    untested = got["gd", "gd-no-vgs", "floaters"]
+    assert untested["verdict"] == "not testable here (neither preset fails)"
+    assert untested["p_holm"] != untested["p_holm"]  # NaN: no hypothesis tested
+    assert tested["p_holm"] == pytest.approx(tested["p_value"]) and tested["verdict"] == "holds"

@@ -9,7 +9,8 @@ d = metric(a) - metric(b) give:
   differences equal);
 - a **Wilcoxon signed-rank** two-sided p-value (zero differences dropped: ``zero_method
   "wilcox"``; exact for small samples without ties), and the same p-value **Holm**-adjusted
-  across every claim of the table (``evaluate``'s rows);
+  across the claims of the table that a test decides (``evaluate``'s rows; a row not measured,
+  not testable or with too few pairs is no hypothesis tested and stays out of the family);
 - an **equivalence** test against the claim's margin m (``MARGINS``: the smallest effect that
   would matter, with its reason): two one-sided Wilcoxon tests of d + m > 0 and d - m < 0
   (TOST), p = the larger of the two;
@@ -164,17 +165,25 @@ def pairs_for_power(d: np.ndarray, power: float = 0.8, alpha: float = ALPHA) -> 
     return float(math.ceil((z * sd / abs(mean)) ** 2 / (3 / math.pi))) if sd > 0 else float(MIN_PAIRS)
 
 
-def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str:
-    """The verdict words of one claim's row (module docstring: the words and their order)."""
-    d = treated - baseline
-    if d.size == 0:
+def untested(baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str | None:
+    """Why a claim's pairs admit no test (its verdict words), or None: such a row is left out of
+    the Holm family, which holds only the claims a test decides."""
+    if baseline.size == 0:
         return "not measured"
     if np.all(baseline == 0) and np.all(treated == 0):
         return "not testable here (neither preset fails)"
     if fails_at is not None and np.all(baseline == fails_at) and np.all(treated == fails_at):
         return "not testable here (both always fail)"
-    if d.size < MIN_PAIRS:
+    if baseline.size < MIN_PAIRS:
         return f"too few pairs (n < {MIN_PAIRS})"
+    return None
+
+
+def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str:
+    """The verdict words of one claim's row (module docstring: the words and their order)."""
+    why = untested(baseline, treated, fails_at)
+    if why is not None:
+        return why
     if row["p_holm"] < ALPHA and row["mean_diff"] != 0:
         return "holds" if row["mean_diff"] < 0 else "does not hold"
     if row["p_equivalence"] < ALPHA:
@@ -217,7 +226,8 @@ def _applies(claim: Claim, rows: list[dict], setting: str) -> bool:
 
 def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
     """One result per (setting, claim) whose two presets ran in that setting (instance claims
-    only where the prior held several variants); p-values Holm-adjusted across all of them."""
+    only where the prior held several variants); p-values Holm-adjusted across the claims a test
+    decides (rows not measured, not testable or with too few pairs have no adjusted p)."""
     out, arms = [], []
     settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
     for setting in settings:
@@ -260,7 +270,8 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                 }
             )
             arms.append((b, a, c.fails_at))
-    for row, p in zip(out, holm([r["p_value"] for r in out])):
+    family = [r["p_value"] if untested(b, a, f) is None else math.nan for r, (b, a, f) in zip(out, arms)]
+    for row, p in zip(out, holm(family)):
         row["p_holm"] = p
     for row, (b, a, fails_at) in zip(out, arms):
         row["verdict"] = verdict(row, baseline=b, treated=a, fails_at=fails_at)
