@@ -184,6 +184,13 @@ def test_claims_verdict_from_paired_tests():
     assert flipped_got["gd", "gd-no-sn", "multi_face_rate"]["verdict"] == "does not hold"
     same = [dict(r, multi_face_rate=0.25) for r in rows]  # a tie in every pair: the presets do the same
     assert evaluate(same)[0]["verdict"] == "no effect beyond +-0.05"
+    # a failure too rare for the claim: 3 baseline cells and 1 treated cell fail a little, the
+    # rest are clean; an equivalence test would pass whatever the mechanism did
+    fails = {("gd-no-sn", "a"), ("gd-no-sn", "b"), ("gd-no-sn", "c"), ("gd", "d")}
+    rare = [
+        dict(r, multi_face_rate=0.1 if (r["preset"], r["prompt"]) in fails and r["seed"] == 0 else 0.0) for r in rows
+    ]
+    assert evaluate(rare)[0]["verdict"] == "not testable here (baseline fails < 0.05)"  # not "no effect"
     never_fails = [dict(r, multi_face_rate=0.0) for r in rows]  # nothing for the mechanism to fix
     assert evaluate(never_fails)[0]["verdict"] == "not testable here (neither preset fails)"
     always_fails = [dict(r, multi_face_rate=1.0) for r in rows]  # the metric cannot see a difference
@@ -474,6 +481,8 @@ def _oracle_verdict(a: list, b: list, fails_at) -> str:
         return "holds"  # exact p = 2 / 2^n < 0.05
     if all(x > y for x, y in pairs):
         return "does not hold"
+    if sum(y for _, y in pairs) / len(pairs) < 0.05:
+        return "not testable here (baseline fails < 0.05)"  # no reduction could reach the margin
     if all(x == y for x, y in pairs):
         return "no effect beyond +-0.05"  # every one-sided test of d -+ m has p <= 2^-n
     return "tests"

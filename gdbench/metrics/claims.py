@@ -32,6 +32,10 @@ The verdict words, checked in this order:
   agree are not significant (the exact two-sided signed-rank p is 2^(1-n) >= 0.0625);
 - **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 and the mean
   difference is negative (the claim holds) or positive (the opposite holds);
+- **not testable here (baseline fails < m)**: not significant, and the baseline arm's mean is
+  under the margin m: every metric here is a failure measure of at least 0, so no reduction
+  could reach m and an equivalence test would pass whatever the mechanism does (a setting
+  where the failure is too rare to test the claim);
 - **no effect beyond +-m**: the equivalence test's p is below 0.05: a null result with the
   power to say so (a tie in every pair counts here: the presets do the same);
 - **too few non-tied pairs (k < 6)**: the pairs are enough but fewer than six differ, so the
@@ -186,6 +190,8 @@ def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: f
         return why
     if row["p_holm"] < ALPHA and row["mean_diff"] != 0:
         return "holds" if row["mean_diff"] < 0 else "does not hold"
+    if baseline.mean() < row["margin"]:  # a reduction could never reach the margin
+        return f"not testable here (baseline fails < {row['margin']:g})"
     if row["p_equivalence"] < ALPHA:
         return f"no effect beyond +-{row['margin']:g}"
     if row["nonzero_pairs"] < MIN_PAIRS:
