@@ -58,18 +58,21 @@ VOTE, EXPLAINED, WINDOW, MIN_VOTES = 0.5, 0.01, 7, 200
 a WINDOW x WINDOW window) is under VOTE of the next variant's and under EXPLAINED (an RMS of
 0.058 per channel: a clean run's pixels, not a blur's). Fewer than MIN_VOTES votes over all
 views (a featureless or blurred result): the whole views' variants decide. Calibrated on the
-duck's 3D fixtures: the asset and the two-faced object 0.98-0.99, the blurred asset 0.89, clean
-runs 0.99-1.0, the chimeras 0.52-0.53 (0.66-0.80 with EXPLAINED 0.02 or 0.005)."""
+3D fixtures of the six assets (docs/scoring.md): single variants 0.98-1.0 (blurred 0.78-1.0),
+left/right chimeras 0.42-0.75, front/back 0.52-0.86 (the views from the front see one variant);
+clean runs 0.98-1.0."""
 DISTINCT = 0.6
 """A band is distinctive when its best match's error is under 0.4 of the median over azimuths
-(1 - min / median >= 0.6). On the 3D fixtures (docs/scoring.md) the two- and four-faced
-objects' views have a band at 0.67-0.94, the blurred asset's at most 0.57."""
+(1 - min / median >= 0.6); with SECOND and GAP it separates the two- and four-faced fixtures
+(0.58-1.0 of views) from the others (0-0.03, the blurred hamburger 0.28) in docs/scoring.md's
+table."""
 FEATURELESS = 0.3
 """A view is featureless when it differs from the result's views 60 or more degrees away by
-under 0.3 of what the asset's view differs from the asset's (mean squared error). Calibrated:
-the spun asset 0.15, blobs trained on the duck 0.08-0.10 and on the hamburger 0.25-0.27; the
-two-faced object 0.69-1.07, the four-faced 0.47-0.65, the blurred asset 1.3-1.6, clean runs 0.5
-and more, a half-failed duck (a face at the front, a blur behind) 0.30-0.46."""
+under 0.3 of what the asset's view differs from the asset's (mean squared error). Calibrated
+(the ratio's median): blobs trained on the duck 0.08-0.10 and on the hamburger 0.25-0.27, clean
+runs 0.5 and more, a half-failed duck (a face at the front, a blur behind) 0.40; the 3D fixtures:
+the spun assets 1 featureless, the four-faced ones up to 0.28 (faces 90 degrees apart look
+alike), every other 0 (docs/scoring.md)."""
 
 
 @dataclass(frozen=True)
