@@ -191,6 +191,9 @@ def test_claims_verdict_from_paired_tests():
         dict(r, multi_face_rate=0.1 if (r["preset"], r["prompt"]) in fails and r["seed"] == 0 else 0.0) for r in rows
     ]
     assert evaluate(rare)[0]["verdict"] == "not testable here (baseline fails < 0.05)"  # not "no effect"
+    # ... but a treated arm that fails beyond the margin is not hidden behind a rare baseline
+    worse = [dict(r, multi_face_rate=0.4) if r["preset"] == "gd" and r["prompt"] in "abc" else r for r in rare]
+    assert evaluate(worse)[0]["verdict"] in ("undecided", "does not hold")
     never_fails = [dict(r, multi_face_rate=0.0) for r in rows]  # nothing for the mechanism to fix
     assert evaluate(never_fails)[0]["verdict"] == "not testable here (neither preset fails)"
     always_fails = [dict(r, multi_face_rate=1.0) for r in rows]  # the metric cannot see a difference

@@ -208,3 +208,20 @@ def test_fixtures_turn_and_mirror_gaussians_with_their_view_dependent_colour():
     mirrored = at(_mirrored(asset), az)
     assert (mirrored - at(asset, [180 - a for a in az]).flip(2)).abs().mean() < 2e-3
     assert (mirrored - at(asset, az)).abs().mean() > 0.02  # the duck is not its own mirror image from there
+
+
+def test_score_views_names_bad_input():
+    from gdbench.metrics.views import Reference, reference, score_views
+
+    ref = Reference(torch.rand(1, 72, 8, 8, 3), torch.ones(1, 72, 8, 8), torch.arange(72.0) * 5 - 180)
+    good = torch.rand(36, 8, 8, 3)
+    with pytest.raises(ValueError, match="alpha: expected"):
+        score_views(good, torch.ones(36, 8, 8, 1), ref)
+    with pytest.raises(ValueError, match="images: expected"):
+        score_views(good[:0], torch.ones(0, 8, 8), ref)
+    broken = good.clone()
+    broken[3, 2, 2] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        score_views(broken, torch.ones(36, 8, 8), ref)
+    with pytest.raises(ValueError, match="variants: expected at least 1"):
+        reference(CAPTION, variants=0)

@@ -50,8 +50,8 @@ KINDS = (
     "floaters",
 )
 POINTS = 24000
-"""Discs per asset: about 2 per pixel of surface at the metric's 64 px (the duck's surface is
-1.2 square units; a pixel is 0.016 wide at distance 1)."""
+"""Discs per asset: about 4 per pixel's area of surface at the metric's 64 px (the duck's surface
+is 1.5 square units; a pixel is 0.016 wide at distance 1)."""
 
 
 SH_DEGREE = 2
@@ -245,8 +245,9 @@ def _quat_mul(a: Tensor, b: Tensor) -> Tensor:
 
 def _turned(scene: GaussianScene, deg: float | Tensor) -> GaussianScene:
     """``scene`` turned about +Z by ``deg`` (one angle, or one per Gaussian): means, orientations
-    and view-dependent colour."""
-    a = torch.deg2rad(torch.as_tensor(deg, dtype=torch.float64))
+    and view-dependent colour (computed on the CPU, returned on the scene's device)."""
+    device, scene = scene.means.device, scene.to("cpu")
+    a = torch.deg2rad(torch.as_tensor(deg, dtype=torch.float64).cpu())
     R = _rot_z(torch.rad2deg(a))
     qz = torch.stack([torch.cos(a / 2), *(torch.zeros_like(a),) * 2, torch.sin(a / 2)], -1)
     q = torch.nn.functional.normalize(scene.quats.double(), dim=-1)
@@ -257,12 +258,13 @@ def _turned(scene: GaussianScene, deg: float | Tensor) -> GaussianScene:
         scene.log_scales,
         scene.opacity_logits,
         _turn_sh(scene.sh.double(), R).float(),
-    )
+    ).to(device)
 
 
 def _mirrored(scene: GaussianScene) -> GaussianScene:
     """``scene`` mirrored in the plane x = 0: a Gaussian's rotation R becomes M R M (M the mirror;
-    its axes' lengths stay), the quaternion (w, x, -y, -z)."""
+    its axes' lengths stay), the quaternion (w, x, -y, -z); computed on the CPU."""
+    device, scene = scene.means.device, scene.to("cpu")
     M = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
     q = scene.quats * torch.tensor([1.0, 1.0, -1.0, -1.0])
     return GaussianScene(
@@ -271,7 +273,7 @@ def _mirrored(scene: GaussianScene) -> GaussianScene:
         scene.log_scales,
         scene.opacity_logits,
         _turn_sh(scene.sh.double(), M).float(),
-    )
+    ).to(device)
 
 
 def failure_scene(caption: str, kind: str, *, n: int = POINTS, seed: int = 0) -> GaussianScene:
@@ -284,7 +286,7 @@ def failure_scene(caption: str, kind: str, *, n: int = POINTS, seed: int = 0) ->
     x = asset.means[:, 0]
     g = torch.Generator().manual_seed(seed)
     if kind == "asset":
-        return asset
+        return asset.clone()  # the cached scene stays as fitted
     if kind.startswith("turned-"):
         return _turned(asset, float(kind.split("-")[1]))
     if kind == "two-faced":
@@ -330,7 +332,8 @@ def flicker_colors(scene: GaussianScene, view: int, *, amount: float = 0.15, see
     view-dependent colour left unconstrained between views shows it)."""
     g = torch.Generator().manual_seed(seed * 1_000_003 + view)
     sh = scene.sh.clone()
+    jitter = (torch.rand(sh[:, 0].shape, generator=g) * 2 - 1).to(sh.device, sh.dtype)
     from renderers.splat.sh import C0
 
-    sh[:, 0] = sh[:, 0] + (torch.rand(sh[:, 0].shape, generator=g) * 2 - 1) * amount / C0
+    sh[:, 0] = sh[:, 0] + jitter * amount / C0
     return GaussianScene(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, sh)

@@ -113,6 +113,8 @@ def reference(caption: str, variants: int = 1, size: int = SIZE, background=(1.0
     prior's banks."""
     from ..assets.bank import BankConfig, load_bank
 
+    if variants < 1:
+        raise ValueError(f"variants: expected at least 1, got {variants}")
     cfg = BankConfig(resolution=size, fovy=FOVY, elevations=(ELEVATION,), background=tuple(background))
     imgs, alphas, az = [], [], None
     for v in range(variants):
@@ -159,6 +161,13 @@ def _self_difference(images: Tensor, azimuth: Tensor) -> Tensor:
 def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 2) -> ViewScore:
     """Metrics of turntable views ``images`` [F, H, W, 3] / ``alpha`` [F, H, W] taken at
     ``turntable_poses(F)`` against ``ref``."""
+    if images.dim() != 4 or images.shape[0] == 0 or images.shape[-1] != 3:
+        raise ValueError(f"images: expected [F >= 1, H, W, 3] turntable views, got {tuple(images.shape)}")
+    if tuple(alpha.shape) != tuple(images.shape[:3]):
+        raise ValueError(f"alpha: expected {tuple(images.shape[:3])} like images, got {tuple(alpha.shape)}")
+    if not (bool(torch.isfinite(images).all()) and bool(torch.isfinite(alpha).all())):
+        raise ValueError("images, alpha: expected finite values (a broken render is no result to score)")
+    images, alpha = images.detach().cpu(), alpha.detach().cpu()  # small: the scoring runs on the CPU
     F, H, W, _ = images.shape
     V, A = ref.images.shape[:2]
     if ref.images.shape[2:4] != (H, W):
