@@ -29,6 +29,7 @@ views are the asset's under the bank's lighting. The failure fixtures cut and mo
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -59,49 +60,47 @@ SH_DEGREE = 2
 lobe about the view direction), so a face seen obliquely is as dark as pyrender draws it."""
 
 
-@functools.lru_cache(maxsize=8)
-def _surface(caption: str, variant: int, n: int, seed: int) -> tuple[Tensor, Tensor, Tensor, float]:
-    """(points [n, 3], normals [n, 3], SH coefficients [n, K, 3], spacing) of the asset's surface."""
+def _surface(bank, variant: int, n: int, seed: int) -> tuple[Tensor, Tensor, Tensor, float]:
+    """(points [n, 3], normals [n, 3], SH coefficients [n, K, 3], spacing) of the surface of the
+    asset variant ``variant`` whose image bank is ``bank``."""
     import numpy as np
     import trimesh
 
     from ..assets.library import build
 
-    mesh = build(caption, variant)
+    mesh = build(bank.caption, variant)
     pts, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
     normals = np.asarray(mesh.face_normals)[face]
     p = torch.from_numpy(np.asarray(pts)).double()
     nrm = torch.nn.functional.normalize(torch.from_numpy(normals).double(), dim=-1)
-    return p, nrm, _bank_sh(caption, variant, p, nrm), math.sqrt(float(mesh.area) / n)
+    return p, nrm, _bank_sh(bank, p, nrm), math.sqrt(float(mesh.area) / n)
 
 
-def _bank_sh(caption: str, variant: int, p: Tensor, nrm: Tensor, tol: float = 0.02, ridge: float = 1.0) -> Tensor:
+def _bank_sh(bank, p: Tensor, nrm: Tensor, tol: float = 0.02, ridge: float = 1.0) -> Tensor:
     """Each point's colour as SH of degree ``SH_DEGREE`` [N, K, 3], fitted by least squares to
-    the bank views that see it (facing the camera, and within ``tol`` of the depth the bank
+    the views of ``bank`` that see it (facing the camera, and within ``tol`` of the depth the bank
     recorded at its pixel), with a ``ridge`` on the view-dependent terms; grey where none does."""
     from renderers.splat.sh import sh_basis
 
-    from ..assets.bank import BankConfig, load_bank
+    from ..camera import Cameras
 
-    bank = load_bank(caption, BankConfig(), variant=variant, verbose=False)
-    cams = bank.cameras()
+    c = bank.cameras()
+    cams = Cameras(c.viewmats.double(), c.Ks.double(), c.width, c.height)
+    centres = cams.centers
     H = W = bank.config.resolution
     K = (SH_DEGREE + 1) ** 2
     ata = torch.zeros(len(p), K, K, dtype=torch.float64)
     atb = torch.zeros(len(p), K, 3, dtype=torch.float64)
     for v in range(len(bank)):
-        V, Kv = cams.viewmats[v].double(), cams.Ks[v].double()
-        pc = p @ V[:3, :3].T + V[:3, 3]
-        z = pc[:, 2].clamp_min(1e-6)
-        u = (Kv[0, 0] * pc[:, 0] / z + Kv[0, 2]).floor().long()
-        w = (Kv[1, 1] * pc[:, 1] / z + Kv[1, 2]).floor().long()
-        inside = (u >= 0) & (u < W) & (w >= 0) & (w < H) & (pc[:, 2] > 0)
+        uv, z = cams[v : v + 1].project(p)
+        u, w = uv[0, :, 0].floor().long(), uv[0, :, 1].floor().long()
+        z = z[0]
+        inside = (u >= 0) & (u < W) & (w >= 0) & (w < H) & (z > 0)
         u, w = u.clamp(0, W - 1), w.clamp(0, H - 1)
-        centre = -V[:3, :3].T @ V[:3, 3]
-        facing = ((centre - p) * nrm).sum(-1) > 0
+        facing = ((centres[v] - p) * nrm).sum(-1) > 0
         depth = bank.depth[v, w, u].double()
-        seen = inside & facing & (bank.alpha[v, w, u] > 0.99) & ((depth - pc[:, 2]).abs() < tol)
-        y = sh_basis(SH_DEGREE, torch.nn.functional.normalize(p[seen] - centre, dim=-1))  # [M, K]
+        seen = inside & facing & (bank.alpha[v, w, u] > 0.99) & ((depth - z).abs() < tol)
+        y = sh_basis(SH_DEGREE, torch.nn.functional.normalize(p[seen] - centres[v], dim=-1))  # [M, K]
         ata[seen] += y[:, :, None] * y[:, None, :]
         atb[seen] += y[:, :, None] * (bank.images[v, w[seen], u[seen]].double() - 0.5)[:, None, :]
     reg = torch.full((K,), ridge, dtype=torch.float64)
@@ -144,6 +143,8 @@ def _discs(p: Tensor, nrm: Tensor, sh: Tensor, radius: float, opacity: float = 0
     return GaussianScene(p.float(), q.float(), scales.float().log(), torch.full((n,), float(logit)), sh.float())
 
 
+FIELDS = tuple(f.name for f in dataclasses.fields(GaussianScene))
+
 FIT_STEPS, FIT_VIEWS, FIT_VERSION = 200, 8, 1
 """The asset's discs are then fitted to its bank (every parameter, Adam, 200 steps of 8 views at
 64 px, seeded): splatting widens a silhouette where many discs line up edge-on (about a pixel at
@@ -163,7 +164,7 @@ def _fitted(caption: str, variant: int, n: int, seed: int) -> GaussianScene:
     import hashlib
     import json
 
-    from ..assets.bank import ASSET_VERSION, cache_dir
+    from ..assets.bank import ASSET_VERSION, BankConfig, cache_dir, load_bank
     from ..io import atomic_write
 
     key = json.dumps([caption, variant, n, seed, SH_DEGREE, FIT_STEPS, FIT_VIEWS, FIT_VERSION, ASSET_VERSION])
@@ -177,8 +178,9 @@ def _fitted(caption: str, variant: int, n: int, seed: int) -> GaussianScene:
             return GaussianScene(**torch.load(path, weights_only=True))
         except Exception:  # a corrupt cache entry is rebuilt, never trusted
             pass
-    p, nrm, sh, spacing = _surface(caption, variant, n, seed)
-    scene = _fit(_discs(p, nrm, sh, 0.8 * spacing), caption, variant, seed)
+    bank = load_bank(caption, BankConfig(), variant=variant, verbose=False)
+    p, nrm, sh, spacing = _surface(bank, variant, n, seed)
+    scene = _fit(_discs(p, nrm, sh, 0.8 * spacing), bank, seed)
     try:
         atomic_write(path, lambda f: torch.save({k: getattr(scene, k) for k in FIELDS}, f))
     except OSError:
@@ -186,17 +188,11 @@ def _fitted(caption: str, variant: int, n: int, seed: int) -> GaussianScene:
     return scene
 
 
-FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
-
-
-def _fit(scene: GaussianScene, caption: str, variant: int, seed: int) -> GaussianScene:
+def _fit(scene: GaussianScene, bank, seed: int) -> GaussianScene:
     import torch.nn.functional as F
 
     from renderers.splat import rasterize
 
-    from ..assets.bank import BankConfig, load_bank
-
-    bank = load_bank(caption, BankConfig(), variant=variant, verbose=False)
     size = bank.config.resolution // 2
     cams = bank.config.poses().cameras(size, size)
     target = F.avg_pool2d(bank.images.permute(0, 3, 1, 2), 2).permute(0, 2, 3, 1)

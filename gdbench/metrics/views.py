@@ -185,8 +185,8 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     k = int(score.argmax())
     offset = float(offsets[k])
     # featureless: the view is about as its views from other sides (the asset's differ more)
-    near = _circ(ref.azimuth.double()[None] - (truth[:, None] + offset)) <= 45.0  # [F, A]
-    at = _circ(ref.azimuth.double()[None] - (truth[:, None] + offset)).argmin(1)
+    apart = _circ(ref.azimuth.double()[None] - (truth[:, None] + offset))  # [F, A]: from each turned view
+    near, at = apart <= 45.0, apart.argmin(1)
     majority_view = int(torch.mode(variant).values)
     featureless = _self_difference(images, truth) < FEATURELESS * _self_difference(ref.images[majority_view, at], truth)
     # parts: each band against every azimuth, the best variant at each
