@@ -88,8 +88,8 @@ GenerateTrain = train_options(("prompt", "preset", "out", "progress"))
 
 @dataclass
 class Generate:
-    """Text to a 3D Gaussian scene: score distillation on the embedded CPU prior (or Stable
-    Diffusion with --prior sd).
+    """Text to a 3D Gaussian scene: score distillation on the embedded CPU prior (or the learned
+    prior with --prior learned, Stable Diffusion with --prior sd).
 
     Writes scene.ply, turntable.{gif,mp4}, turntable_sheet.png, curves.png, run.json and a
     checkpoint to --out; an interrupted run resumes from its checkpoint. Every training setting
@@ -348,6 +348,48 @@ def run_bench(cmd: Bench) -> dict:
     return {"bench": cmd.which, "csv": str(Path(cmd.out) / csv_name), "exit": code}
 
 
+@dataclass
+class TrainPrior:
+    """Train the learned prior: a small conditional diffusion model of the built-in assets
+    (docs/learned_prior.md). Renders its data on first use (cached), checkpoints and resumes in
+    --out, and writes model.safetensors (use it with generate --prior learned --learned-model OUT),
+    loss.csv and loss.png."""
+
+    out: Path = Path("runs/prior")
+    """The run folder (reused with the same settings: the run resumes)."""
+    front_bias: float = 0.0
+    """kappa: training views drawn with probability ~ exp(kappa cos azimuth) (the shipped 'front'
+    model: 2)."""
+    steps: int = 10000
+    batch: int = 32
+    lr: float = 6e-4
+    """Peak learning rate (AdamW; warm-up, then cosine decay to a tenth)."""
+    seed: int = 0
+    size: int = 32
+    """The model's resolution (a divisor of --resolution; the 64 px renders are box-filtered to it)."""
+    views: int = 1024
+    """Rendered cameras per (asset, variant)."""
+    resolution: int = 64
+    """Resolution the data is rendered at."""
+    threads: int = 0
+    """torch CPU threads (0: torch's default); a result reproduces for one thread count."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    progress: bool = True
+
+
+def run_train_prior(cmd: TrainPrior) -> dict:
+    from .priors.learned_data import DataConfig
+    from .priors.learned_train import PriorTrainConfig, train_prior
+    from .priors.unet import UNetConfig
+
+    cfg = PriorTrainConfig(
+        out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
+        threads=cmd.threads, device=cmd.device, progress=cmd.progress, unet=UNetConfig(size=cmd.size),
+        data=DataConfig(views=cmd.views, resolution=cmd.resolution),
+    )  # fmt: skip
+    return train_prior(cfg)
+
+
 COMMANDS = {
     "generate": (Generate, run_generate),
     "render": (Render, run_render),
@@ -357,6 +399,7 @@ COMMANDS = {
     "score": (Score, run_score),
     "sweep": (Sweep, run_sweep),
     "bench": (Bench, run_bench),
+    "train-prior": (TrainPrior, run_train_prior),
 }
 """Subcommand name -> (its options, the function that runs them)."""
 

@@ -31,6 +31,10 @@ SETTINGS: dict[str, dict] = {
 }
 """Ambiguity settings: overrides of every preset in the setting (docs/scoring.md)."""
 
+LEARNED_SETTINGS: dict[str, dict] = {"janus": {"front_bias": 2.0}}
+"""What changes in a setting under --prior learned: the janus setting takes the shipped model
+trained on front-heavy views (kappa 2; the learned prior has no kappa-1 model)."""
+
 
 @dataclass(frozen=True)
 class CellSpec:
@@ -126,8 +130,13 @@ def cell_config(spec: CellSpec):
         seed=spec.seed,
         out=spec.dir,
         progress=False,
-        **(SETTINGS[spec.setting] | spec.overrides),
+        **(setting_overrides(spec.setting, spec.overrides.get("prior")) | spec.overrides),
     )
+
+
+def setting_overrides(setting: str, prior: str | None) -> dict:
+    """The overrides of an ambiguity setting for a prior ('empirical' when None)."""
+    return SETTINGS[setting] | (LEARNED_SETTINGS.get(setting, {}) if prior == "learned" else {})
 
 
 def turned_failure(views: dict, front_defined: bool) -> float:

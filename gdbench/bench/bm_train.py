@@ -4,7 +4,8 @@ most 2 minutes on the 2-core machine) and the median training step over the run 
 8 ms; with its 10th and 90th percentiles) with the shares of the render (forward and update:
 backward, Adam, densification), the structured noise and the prior, and the machine's float32
 matrix product just before and after the run (the shared machine's phase moves every time here
-by up to 2x).
+by up to 2x); and the training step with the empirical and the learned prior side by side (target
+for the learned prior with classifier-free guidance: 40 ms).
 
     python -m gdbench.bench.bm_train --out bench_results/train.csv [--skip-run]
 """
@@ -23,6 +24,7 @@ from .common import environment, timeit, write_csv, write_json
 TARGET_DENOISE_S = 0.005
 TARGET_RUN_S = 120.0
 TARGET_STEP_S = 0.008
+TARGET_LEARNED_STEP_S = 0.040
 PARTS = ("t_views", "t_render", "t_noise", "t_prior", "t_update")
 
 
@@ -41,6 +43,42 @@ def denoise_time(view_mode: str = "window") -> dict:
         "target_s": TARGET_DENOISE_S,
         "met": t["median_s"] <= TARGET_DENOISE_S,
     }
+
+
+def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -> list[dict]:
+    """Median training step (gd preset, 64 px) with the empirical prior and with the learned prior
+    (classifier-free guidance: two network evaluations per view; target 40 ms), measured in one
+    process in alternating blocks of steps (an A/B: the machine's phase moves both alike), after
+    ``warmup`` steps of each (the empirical prior's zoom levels fill its cache as they are met)."""
+    from ..train.config import preset
+    from ..train.trainer import init_state, make_context, train_step
+
+    runs = {}
+    for name in ("empirical", "learned"):
+        cfg = preset("gd", prior=name, out=out / name, progress=False)
+        ctx = make_context(cfg)
+        state = init_state(ctx)
+        for _ in range(warmup):
+            train_step(state, ctx)
+        runs[name] = (ctx, state, [], [])
+    for _ in range(blocks):
+        for ctx, state, times, prior_times in runs.values():
+            for _ in range(block):
+                t0 = time.perf_counter()
+                m = train_step(state, ctx)
+                times.append(time.perf_counter() - t0)
+                prior_times.append(m["t_prior"])
+    rows = []
+    for name, (_, _, times, prior_times) in runs.items():
+        step = statistics.median(times)
+        target = TARGET_LEARNED_STEP_S if name == "learned" else TARGET_STEP_S
+        what = "learned prior (guidance 3, 32 px model)" if name == "learned" else "empirical prior"
+        rows.append({"what": f"training step with the {what}, median of {len(times)}", "seconds": step,
+                     "target_s": target, "met": step <= target, "p10_s": sorted(times)[len(times) // 10],
+                     "p90_s": sorted(times)[(9 * len(times)) // 10]})  # fmt: skip
+        rows.append({"what": "  of which the prior (median)", "seconds": statistics.median(prior_times),
+                     "share": statistics.median(prior_times) / step})  # fmt: skip
+    return rows
 
 
 def default_run(out: Path) -> list[dict]:
@@ -97,9 +135,13 @@ def default_run(out: Path) -> list[dict]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench_results/train.csv"))
-    ap.add_argument("--skip-run", action="store_true", help="only time the denoiser")
+    ap.add_argument("--skip-run", action="store_true", help="only time the denoiser and the priors' steps")
     args = ap.parse_args(argv)
+    from .roofline import peak_gflops
+
     rows = [denoise_time("window"), denoise_time("none")]
+    rows.append({"what": "machine: float32 matrix product (GFLOP/s)", "seconds": float("nan"), "gflops": peak_gflops()})
+    rows += prior_steps(args.out.parent / "bm_train_priors")
     if not args.skip_run:
         rows += default_run(args.out.parent / "bm_train_run")
     for r in rows:

@@ -55,9 +55,14 @@ class Prior(Protocol):
         ...
 
 
+def sd_abar(beta_start: float = 0.00085, beta_end: float = 0.012, steps: int = 1000) -> Tensor:
+    """Cumulative alphas abar_t [steps] (float64) of Stable Diffusion's scaled-linear DDPM betas."""
+    betas = torch.linspace(beta_start**0.5, beta_end**0.5, steps, dtype=torch.float64) ** 2
+    return torch.cumprod(1 - betas, 0)
+
+
 def ve_sigmas_from_betas(beta_start: float = 0.00085, beta_end: float = 0.012, steps: int = 1000) -> Tensor:
     """VE noise levels sigma_t = sqrt((1 - abar_t) / abar_t) of Stable Diffusion's scaled-linear
     DDPM schedule (as SJC converts them), ascending; about 0.029 to 14.6."""
-    betas = torch.linspace(beta_start**0.5, beta_end**0.5, steps, dtype=torch.float64) ** 2
-    abar = torch.cumprod(1 - betas, 0)
+    abar = sd_abar(beta_start, beta_end, steps)
     return torch.sqrt((1 - abar) / abar)

@@ -9,11 +9,22 @@ import torch
 
 
 def make_prior(cfg):
-    """The prior of a ``TrainConfig`` (``cfg.prior``: 'empirical' or 'sd'). The empirical prior's
+    """The prior of a ``TrainConfig`` (``cfg.prior``: 'empirical', 'learned' or 'sd'). The empirical prior's
     bank is rendered at the trainer's camera distance, background and widest field of view, so it
     sees the object from where the trainer's cameras do (the object keeps its size in the world)."""
     if cfg.prior == "sd":
         return make_sd_prior(cfg)
+    if cfg.prior == "learned":
+        from .learned import LearnedPrior, model_for_front_bias
+
+        model = model_for_front_bias(cfg.front_bias) if cfg.learned_model == "auto" else cfg.learned_model
+        return LearnedPrior(
+            model,
+            guidance_scale=cfg.learned_guidance,
+            view_mode=cfg.view_prompting,
+            variants=cfg.variants,
+            resolution=cfg.resolution,
+        )
     from .empirical import EmpiricalPrior, bank_config_for
 
     return EmpiricalPrior(

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from . import sd_abar
 from .learned_data import DataConfig, load_dataset, to_model_images, view_weights
 from .unet import UNet, UNetConfig
 
@@ -99,13 +100,6 @@ class PriorTrainConfig:
         return d
 
 
-def abar_schedule(steps: int = 1000) -> torch.Tensor:
-    """Cumulative alphas [steps] (float64) of Stable Diffusion's scaled-linear betas; the VE sigmas
-    of the priors are sqrt((1 - abar) / abar) of these."""
-    betas = torch.linspace(0.00085**0.5, 0.012**0.5, steps, dtype=torch.float64) ** 2
-    return torch.cumprod(1 - betas, 0)
-
-
 def lr_at(cfg: PriorTrainConfig, step: int) -> float:
     """Learning rate at 0-based ``step``: linear warm-up, then cosine from ``lr`` to ``lr / 10``."""
     if step < cfg.warmup:
@@ -128,7 +122,7 @@ class Batches:
     def __init__(self, cfg: PriorTrainConfig, data, images: torch.Tensor):
         self.cfg, self.data, self.images = cfg, data, images
         self.weights = view_weights(data.azimuth, cfg.front_bias).float()
-        self.abar = abar_schedule().float()
+        self.abar = sd_abar().float()
         self.g = torch.Generator().manual_seed(cfg.seed + 1)
 
     def draw(self) -> dict[str, torch.Tensor]:
@@ -157,10 +151,11 @@ def loss_of(model: UNet, b: dict[str, torch.Tensor], device: torch.device) -> to
     return (model(b["x_t"], emb) - b["eps"]).pow(2).mean()
 
 
-def train_prior(cfg: PriorTrainConfig) -> dict:
-    """Train (or resume) the prior of ``cfg`` in ``cfg.out``; returns a summary."""
+def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
+    """Train (or resume) the prior of ``cfg`` in ``cfg.out``; returns a summary. ``stop_at`` ends
+    the call after that many steps with a checkpoint, as if the run had been killed there (calling
+    again resumes it, to the same weights as an uninterrupted run on the same thread count)."""
     from ..io import atomic_write
-    from ..provenance import code_commit
 
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -209,8 +204,9 @@ def train_prior(cfg: PriorTrainConfig) -> dict:
 
         bar = tqdm(total=cfg.steps, initial=step, desc=f"train-prior kappa={cfg.front_bias:g}", unit="step")
     acc, n, t0 = 0.0, 0, time.perf_counter()
+    last = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
     try:
-        while step < cfg.steps:
+        while step < last:
             for group in opt.param_groups:
                 group["lr"] = lr_at(cfg, step)
             loss = loss_of(model, batches.draw(), device)
@@ -242,22 +238,40 @@ def train_prior(cfg: PriorTrainConfig) -> dict:
         if bar is not None:
             bar.close()
     save()
+    if step < cfg.steps:
+        return {"out": str(out), "steps": step, "final_loss": _final_loss(log), "weights": None}
     final = _final_loss(log)
-    meta = {
-        "unet": json.dumps(asdict(cfg.unet)), "train": json.dumps(cfg.identity()), "steps": str(step),
-        "commit": code_commit(), "final_loss": f"{final:.6f}", "data_key": _data_key(cfg),
-    }  # fmt: skip
-    save_weights(ema, out / "model.safetensors", meta)
+    _write_model(ema, out / "model.safetensors", cfg.unet, cfg.identity(), cfg.data, step, final)
     plot_loss(log, out / "loss.png", title=f"kappa={cfg.front_bias:g}")
     summary = {"out": str(out), "steps": step, "final_loss": final, "weights": str(out / "model.safetensors")}
     print(f"trained {step} steps, loss {final:.4f} (mean of the last tenth) -> {out / 'model.safetensors'}")
     return summary
 
 
-def _data_key(cfg: PriorTrainConfig) -> str:
+def _write_model(ema: UNet, path: Path, unet: UNetConfig, identity: dict, data: DataConfig, step: int, loss: float):
+    from ..provenance import code_commit
     from .learned_data import data_key
 
-    return data_key(cfg.data)
+    meta = {
+        "unet": json.dumps(asdict(unet)), "train": json.dumps(identity), "steps": str(step),
+        "commit": code_commit(), "final_loss": f"{loss:.6f}", "data_key": data_key(data),
+    }  # fmt: skip
+    save_weights(ema, path, meta)
+
+
+def export_weights(run: Path, path: Path | None = None) -> Path:
+    """The averaged weights of a run's latest checkpoint as a model.safetensors (an unfinished
+    run's model, to look at while it trains); default path: <run>/model-step<N>.safetensors."""
+    run = Path(run)
+    ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    ident = ck["identity"]
+    unet = UNetConfig(**{**ident["unet"], "widths": tuple(ident["unet"]["widths"])})
+    data = DataConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in ident["data"].items()})
+    net = UNet(unet)
+    net.load_state_dict(ck["ema"])
+    path = Path(path) if path is not None else run / f"model-step{ck['step']}.safetensors"
+    _write_model(net, path, unet, ident, data, ck["step"], _final_loss(ck["log"]))
+    return path
 
 
 def _final_loss(log: list[dict]) -> float:

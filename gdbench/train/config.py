@@ -286,15 +286,24 @@ class TrainConfig:
     """Half-width of the view window (view_prompting='window'), degrees."""
     front_bias: float = 0.0
     """Empirical prior: kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform;
-    the Janus setting of the ablation uses it with view prompting off)."""
+    the Janus setting of the ablation uses it with view prompting off). Learned prior: picks the
+    shipped model trained at that kappa (0 or 2) when --learned-model is 'auto'."""
     variants: int = 1
     """Empirical prior: procedural variants of the caption in the bank (1..3; the instance setting
-    of the ablation uses 3)."""
+    of the ablation uses 3). Learned prior: 1 (variant 0) or 3 (the variant dropped: all three)."""
     depth_conditioning: bool = False
     """Condition the prior on depth (the ControlNet role; empirical prior: joint rgb-depth posterior)."""
     # the prior
-    prior: Literal["empirical", "sd"] = "empirical"
-    """empirical: the embedded CPU prior (image banks of procedural assets); sd: Stable Diffusion."""
+    prior: Literal["empirical", "learned", "sd"] = "empirical"
+    """empirical: the embedded CPU prior (the exact posterior over image banks of procedural assets);
+    learned: a small diffusion model trained on the same assets (docs/learned_prior.md); sd: Stable
+    Diffusion."""
+    learned_model: str = "auto"
+    """learned: 'uniform', 'front' (the shipped models, trained on views uniform in azimuth or drawn
+    with probability ~ exp(2 cos azimuth)), a model.safetensors or run folder of `gdbench
+    train-prior`, or 'auto' (the shipped model of --front-bias)."""
+    learned_guidance: float = 3.0
+    """learned: classifier-free guidance scale (1: none, one network evaluation per view)."""
     sd_model: str = "tiny"
     """sd: a local diffusers folder or a repo id in the Hugging Face cache (offline), or 'tiny'
     (random weights built from configs: smoke runs and tests, meaningless images)."""
@@ -368,8 +377,17 @@ class TrainConfig:
             )
         if self.init == "ply" and self.init_ply is None:
             raise ValueError("init_ply: init='ply' needs a PLY path (--init-ply FILE)")
-        if self.prior not in ("empirical", "sd"):
-            raise ValueError(f"prior: expected 'empirical' or 'sd', got {self.prior!r}")
+        if self.prior not in ("empirical", "learned", "sd"):
+            raise ValueError(f"prior: expected 'empirical', 'learned' or 'sd', got {self.prior!r}")
+        if self.prior == "learned":
+            if self.depth_conditioning:
+                raise ValueError(
+                    "depth_conditioning: the learned prior has no depth input (use --prior empirical or sd)"
+                )
+            if self.variants not in (1, 3):
+                raise ValueError(f"variants: the learned prior takes 1 or 3 (all of a caption's), got {self.variants}")
+            if self.learned_guidance < 1:
+                raise ValueError(f"learned_guidance: expected >= 1 (1 is no guidance), got {self.learned_guidance}")
         if self.sd_mode not in ("rgb", "latent"):
             raise ValueError(f"sd_mode: expected 'rgb' or 'latent', got {self.sd_mode!r}")
         if self.prior == "sd" and self.resolution % 8:

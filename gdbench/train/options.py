@@ -144,7 +144,8 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
     sn = (cfg.structured_noise, "structured noise (--structured-noise True; this run has it off)")
     sd = (cfg.prior == "sd", f"--prior sd (this run: --prior {cfg.prior})")
     sjc = (cfg.guidance == "sjc", f"--guidance sjc (this run: --guidance {cfg.guidance}, which anneals its timestep)")
-    emp = (cfg.prior == "empirical", f"--prior empirical (this run: --prior {cfg.prior})")
+    lp = (cfg.prior == "learned", f"--prior learned (this run: --prior {cfg.prior})")
+    emp_lp = (cfg.prior in ("empirical", "learned"), f"--prior empirical or learned (this run: --prior {cfg.prior})")
     return {
         "noise.ou_beta": (
             cfg.structured_noise and cfg.noise.redraw == "ou",
@@ -163,8 +164,14 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
         "sigma_min": sjc,
         "sigma_max": sjc,
         "anneal": sjc,
-        "front_bias": emp,
-        "variants": emp,
+        "front_bias": (
+            cfg.prior == "empirical" or (cfg.prior == "learned" and cfg.learned_model == "auto"),
+            f"--prior empirical, or --prior learned with --learned-model auto (this run: --prior {cfg.prior}"
+            + (f", --learned-model {cfg.learned_model})" if cfg.prior == "learned" else ")"),
+        ),
+        "variants": emp_lp,
+        "learned_model": lp,
+        "learned_guidance": lp,
         "sd_model": sd,
         "sd_mode": sd,
         "sd_guidance": sd,

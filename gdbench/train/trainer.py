@@ -128,7 +128,9 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
     prior = make_prior(cfg) if prior is None else prior
     cond = prior.encode(cfg.prompt)
     encoder = prior.encode_images  # Prior protocol: None for pixel priors
-    mode: Mode = "rgb" if encoder is None else ("sd-latent" if cfg.sd_mode == "latent" else "sd-rgb")
+    # sd-rgb: the render encoded into the prior's input (SD's VAE, the learned prior's box filter)
+    latent = cfg.sd_mode == "latent" and cfg.prior == "sd"
+    mode: Mode = "rgb" if encoder is None else ("sd-latent" if latent else "sd-rgb")
     factor = int(prior.factor)
     streams = make_streams(cfg.seed)
     noise = None

@@ -1,0 +1,280 @@
+"""The learned prior against its oracles: the tables and figures of docs/learned_prior.md.
+
+    python scripts/eval_learned_prior.py --out docs/results/learned_prior --figures docs/figures \
+        --runs runs/prior-uniform runs/prior-front
+
+Writes, with the code commit in every file: loss.csv summary (where each curve flattens),
+denoising_error.csv (the model against the exact posterior mean of its training views, per
+noise level), off_grid.csv (learned vs the runtime empirical prior between the bank's cameras),
+samples.csv (DDIM samples matched to ground-truth renders), mechanism.csv (structured vs
+independent noise, per prior), summary.json; figures learned_prior_{loss,denoising,off_grid,
+samples_uniform,samples_front,mechanism}.png. About 10 minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def write_csv(path: Path, rows: list[dict], commit: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    names = list(rows[0]) + ["commit"]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, names)
+        w.writeheader()
+        for r in rows:
+            w.writerow({**{k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()}, "commit": commit})
+
+
+def flattening(log_csv: Path) -> dict:
+    """Where a loss curve flattens: the first step whose running mean (a tenth of the run) is within
+    5% of the final one, and the final loss."""
+    rows = list(csv.DictReader(open(log_csv)))
+    steps = np.array([float(r["step"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    k = max(1, len(loss) // 10)
+    smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+    final = smooth[-1]
+    at = steps[k - 1 :][np.argmax(smooth <= 1.05 * final)]
+    return {"final_loss": float(final), "flat_at_step": int(at), "steps": int(steps[-1]),
+            "seconds": float(rows[-1]["seconds"])}  # fmt: skip
+
+
+def plot_losses(runs: dict[str, Path], out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    for name, run in runs.items():
+        rows = list(csv.DictReader(open(run / "loss.csv")))
+        s = np.array([float(r["step"]) for r in rows])
+        v = np.array([float(r["loss"]) for r in rows])
+        k = max(1, len(v) // 20)
+        ax.plot(s, v, lw=0.5, alpha=0.35)
+        ax.plot(s[k - 1 :], np.convolve(v, np.ones(k) / k, mode="valid"), lw=1.6, label=f"{name} (running mean)")
+    ax.set(xlabel="step (batch 32)", ylabel="epsilon MSE", yscale="log", title="learned prior: training loss")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def plot_denoising(rows: list[dict], out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    for model, style in (("uniform", "-"), ("front", "--")):
+        sel = [r for r in rows if r["model"] == model]
+        if not sel:
+            continue
+        sig = sorted({r["sigma"] for r in sel})
+        mean = lambda k, sel=sel, sig=sig: [np.mean([r[k] for r in sel if r["sigma"] == s]) for s in sig]  # noqa: E731
+        ax.plot(sig, mean("mse_learned_exact"), style, marker="o", label=f"{model}: learned vs exact posterior mean")
+        ax.plot(sig, mean("mse_exact_x0"), style, color="grey", lw=1, label=f"{model}: exact posterior vs clean view")
+    ax.set(xscale="log", yscale="log", xlabel="sigma (VE)", ylabel="MSE (images in [-1, 1])",
+           title="denoising error against the optimal denoiser of the training views")  # fmt: skip
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def show(img) -> np.ndarray:
+    return ((img.clamp(-1, 1) + 1) / 2).numpy()
+
+
+def plot_off_grid(examples: dict, out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    keys = list(examples)
+    fig, axes = plt.subplots(len(keys), 4, figsize=(6, 1.6 * len(keys)))
+    for i, k in enumerate(keys):
+        for j, (img, name) in enumerate(zip(examples[k], ("truth", "noisy", "empirical", "learned"))):
+            ax = axes[i, j]
+            ax.imshow(show(img), interpolation="nearest")
+            ax.set_xticks([]), ax.set_yticks([])
+            if i == 0:
+                ax.set_title(name, fontsize=8)
+            if j == 0:
+                ax.set_ylabel(f"{k[0][2:]}\nsigma {k[1]:g}", fontsize=7)
+    fig.suptitle("between the bank's cameras (az +2.5, el +-10, fovy off-grid)", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=130)
+    plt.close(fig)
+
+
+def plot_samples(grids: dict[str, torch.Tensor], captions, views, out: Path) -> None:
+    """Rows: captions; columns: asked azimuths x the first 3 seeds; one panel per camera mode."""
+    import matplotlib.pyplot as plt
+
+    modes = list(grids)
+    fig, axes = plt.subplots(1, len(modes), figsize=(6.5 * len(modes), 6.6))
+    for ax, mode in zip(np.atleast_1d(axes), modes):
+        g = grids[mode][:, :, :3]  # [C, V, S, h, w, 3]
+        C, V, S, h, w, _ = g.shape
+        sheet = g.permute(0, 3, 1, 2, 4, 5).reshape(C * h, V * S * w, 3)
+        ax.imshow(show(sheet), interpolation="nearest")
+        ax.set_yticks([h * (i + 0.5) for i in range(C)], [c[2:] for c in captions], fontsize=8)
+        ax.set_xticks([w * S * (i + 0.5) for i in range(V)], [f"az {a:g}" for a in views], fontsize=8)
+        ax.set_title(mode, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def plot_mechanism(summary: list[dict], out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 0.35 * len(summary) + 1.2))
+    y = np.arange(len(summary))
+    r = np.array([s["ratio"] for s in summary])
+    err = np.array([[s["ratio"] - s["lo"], s["hi"] - s["ratio"]] for s in summary]).T
+    ax.errorbar(r, y, xerr=err, fmt="o")
+    ax.axvline(1.0, color="grey", lw=1)
+    ax.set_yticks(y, [f"{s['prior']}, sigma {s['sigma']:g}, ratio {s['noise_ratio']:g}" for s in summary], fontsize=7)
+    ax.set_xlabel("MSE between the two views' predictions (warped): structured / independent noise (95% CI)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from gdbench.priors.empirical import EmpiricalPrior, bank_config_for
+    from gdbench.priors.learned import LearnedPrior
+    from gdbench.priors.learned_data import load_dataset
+    from gdbench.priors.learned_eval import (
+        denoising_error,
+        mechanism,
+        off_grid,
+        paired_ratio,
+        reference_set,
+        sample_scores,
+    )
+    from gdbench.provenance import code_commit
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--uniform", default="uniform", help="the uniform model (name or path)")
+    p.add_argument("--front", default="front", help="the front-biased model (name or path)")
+    p.add_argument("--runs", nargs="*", default=[], type=Path, help="train-prior run folders (their loss.csv)")
+    p.add_argument("--out", type=Path, default=Path("docs/results/learned_prior"))
+    p.add_argument("--figures", type=Path, default=Path("docs/figures"))
+    p.add_argument("--quick", action="store_true", help="fewer queries and draws (a smoke run)")
+    p.add_argument("--only", nargs="*", default=[], help="parts to run: loss denoising off_grid samples mechanism")
+    a = p.parse_args(argv)
+    parts = set(a.only) or {"loss", "denoising", "off_grid", "samples", "mechanism"}
+    torch.manual_seed(0)
+    commit = code_commit()
+    a.out.mkdir(parents=True, exist_ok=True)
+    a.figures.mkdir(parents=True, exist_ok=True)
+    summary: dict = {"commit": commit, "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    models = {"uniform": a.uniform, "front": a.front}
+    from gdbench.priors.learned import load_model
+
+    summary["models"] = {k: {m: load_model(v)[1].get(m) for m in ("commit", "steps", "final_loss")}
+                         for k, v in models.items()}  # fmt: skip
+    q = 2 if a.quick else 1
+    t0 = time.perf_counter()
+
+    if "loss" in parts and a.runs:
+        runs = {r.name.replace("prior-", ""): r for r in a.runs}
+        summary["loss"] = {k: flattening(r / "loss.csv") for k, r in runs.items()}
+        plot_losses(runs, a.figures / "learned_prior_loss.png")
+
+    if "denoising" in parts:
+        data = load_dataset()
+        rows = []
+        for name, m in models.items():
+            prior = LearnedPrior(m, guidance_scale=1.0, view_mode="none")
+            sig = [0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0]
+            rows += [{"model": name, **r} for r in denoising_error(prior, data, sig, queries=48 // q)]
+        write_csv(a.out / "denoising_error.csv", rows, commit)
+        plot_denoising(rows, a.figures / "learned_prior_denoising.png")
+        summary["denoising"] = {
+            f"{m} sigma {s:g}": {k: float(np.mean([r[k] for r in rows if r["model"] == m and r["sigma"] == s]))
+                                 for k in ("mse_learned_exact", "mse_exact_x0", "mse_learned_x0")}
+            for m in models for s in sorted({r["sigma"] for r in rows})
+        }  # fmt: skip
+        print(f"denoising error done ({time.perf_counter() - t0:.0f} s)")
+
+    captions = list(LearnedPrior(a.uniform).captions)
+    if "off_grid" in parts:
+        learned = LearnedPrior(a.uniform, view_mode="window")
+        empirical = EmpiricalPrior(view_mode="window", bank_config=bank_config_for(64, (40.0, 70.0)))
+        rows, ex = off_grid(learned, empirical, captions, [0.5, 2.0, 8.0])
+        write_csv(a.out / "off_grid.csv", rows, commit)
+        pick = {k: v for k, v in ex.items() if k[0] in ("a yellow duck", "a lego figure")}
+        plot_off_grid(pick, a.figures / "learned_prior_off_grid.png")
+        summary["off_grid"] = {
+            f"{pr} sigma {s:g}": {k: float(np.mean([r[k] for r in rows if r["prior"] == pr and r["sigma"] == s]))
+                                  for k in ("psnr", "sharpness")}
+            for pr in ("learned", "empirical") for s in (0.5, 2.0, 8.0)
+        }  # fmt: skip
+        print(f"off-grid done ({time.perf_counter() - t0:.0f} s)")
+
+    if "samples" in parts:
+        refs, ref_az = reference_set(captions)
+        rows, views = [], (0.0, 90.0, 180.0, -90.0)
+        summary["samples"] = {}
+        for name, m in models.items():
+            prior = LearnedPrior(m, view_mode="window")
+            grids = {}
+            for camera in (True, False):
+                r, grid = sample_scores(prior, refs, ref_az, views=views, seeds=8 // q, camera=camera)
+                rows += [{"model": name, **x} for x in r]
+                mode = "camera given" if camera else "camera dropped (view prompting none)"
+                grids[mode] = grid
+                share = lambda k, r=r: float(np.mean([x[k] for x in r]))  # noqa: E731
+                back = [x for x in r if abs(x["asked_azimuth"]) == 180.0]
+                summary["samples"][f"{name}, {mode}"] = {
+                    "caption_ok": share("caption_ok"), "variant_ok": share("variant_ok"),
+                    "azimuth_ok": share("azimuth_ok"), "front": share("front"), "back": share("back"),
+                    "front_where_back_asked": float(np.mean([x["front"] for x in back])), "n": len(r),
+                }  # fmt: skip
+            plot_samples(grids, captions, views, a.figures / f"learned_prior_samples_{name}.png")
+        write_csv(a.out / "samples.csv", rows, commit)
+        print(f"samples done ({time.perf_counter() - t0:.0f} s)")
+
+    if "mechanism" in parts:
+        emp_cfg = bank_config_for(64, (40.0, 70.0))
+        priors = {
+            "learned uniform, camera given": LearnedPrior(a.uniform, view_mode="window"),
+            "learned uniform, camera dropped": LearnedPrior(a.uniform, view_mode="none"),
+            "learned front, camera dropped": LearnedPrior(a.front, view_mode="none"),
+            "empirical, window": EmpiricalPrior(view_mode="window", bank_config=emp_cfg),
+            "empirical, none": EmpiricalPrior(view_mode="none", bank_config=emp_cfg),
+        }
+        rows, summ = [], []
+        for name, prior in priors.items():
+            r = mechanism(prior, captions, draws=16 // q)
+            rows += [{"prior": name, **x} for x in r]
+            for s in sorted({x["sigma"] for x in r}):
+                for ratio in sorted({x["ratio"] for x in r}):
+                    sel = [x for x in r if x["sigma"] == s and x["ratio"] == ratio]
+                    summ.append({"prior": name, "sigma": s, "noise_ratio": ratio, **paired_ratio(sel)})
+        write_csv(a.out / "mechanism.csv", rows, commit)
+        summary["mechanism"] = summ
+        plot_mechanism(summ, a.figures / "learned_prior_mechanism.png")
+        print(f"mechanism done ({time.perf_counter() - t0:.0f} s)")
+
+    summary["seconds"] = time.perf_counter() - t0
+    old = json.loads((a.out / "summary.json").read_text()) if (a.out / "summary.json").is_file() else {}
+    (a.out / "summary.json").write_text(json.dumps(old | summary, indent=1))
+    print(json.dumps(summary, indent=1)[:4000])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,277 @@
+"""The learned prior (gdbench/priors/unet.py, learned*.py): the network, its training, the
+Prior conventions shared with Stable Diffusion, and the shipped models against oracles."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import pytest
+import torch
+
+from gdbench.priors.learned_data import DataConfig
+from gdbench.priors.learned_train import Batches, PriorTrainConfig, loss_of, save_weights, train_prior
+from gdbench.priors.unet import UNet, UNetConfig
+
+TINY = UNetConfig(size=16, widths=(16, 32), emb=32)
+TINY_DATA = DataConfig(views=3, resolution=32)
+
+
+def _emb(net: UNet, B: int, camera=True, **kw):
+    g = torch.Generator().manual_seed(1)
+    cam = torch.stack([torch.rand(B, generator=g) * 360 - 180, torch.rand(B, generator=g) * 90 - 45,
+                       40 + 30 * torch.rand(B, generator=g)], 1)  # fmt: skip
+    t = torch.randint(0, 1000, (B,), generator=g)
+    cap = kw.get("caption", torch.randint(0, net.config.captions, (B,), generator=g))
+    var = kw.get("variant", torch.randint(0, net.config.variants, (B,), generator=g))
+    return net.embedding(t, cap, var, cam if camera else None, kw.get("camera_drop")), (t, cap, var, cam)
+
+
+@pytest.mark.parametrize("patch", [1, 2])
+def test_unet_shapes(patch):
+    torch.manual_seed(0)
+    net = UNet(UNetConfig(size=16, widths=(16, 32), emb=32, patch=patch))
+    e, _ = _emb(net, 3)
+    x = torch.randn(3, 3, 16, 16)
+    assert net(x, e).shape == x.shape
+    with pytest.raises(ValueError, match="size"):
+        UNetConfig(size=18, widths=(16, 32), patch=2)
+    with pytest.raises(ValueError, match="widths"):
+        UNetConfig(widths=(12, 32))
+
+
+def test_camera_dropout_is_the_null_embedding():
+    """A dropped camera row is the embedding without a camera; kept rows see their camera."""
+    torch.manual_seed(0)
+    net = UNet(TINY)
+    torch.nn.init.normal_(net.cam_null)  # a non-zero null row, so equality means something
+    drop = torch.tensor([True, False, True, False])
+    e, (t, cap, var, cam) = _emb(net, 4, camera_drop=drop)
+    e_none = net.embedding(t, cap, var, None)
+    e_cam = net.embedding(t, cap, var, cam)
+    assert torch.equal(e[drop], e_none[drop])
+    assert torch.equal(e[~drop], e_cam[~drop])
+    assert (e_cam[~drop] - e_none[~drop]).abs().max() > 1e-3
+    # the camera's azimuth wraps around: -180 and 180 degrees are one camera
+    c1, c2 = cam[:1].clone(), cam[:1].clone()
+    c1[0, 0], c2[0, 0] = -180.0, 180.0
+    torch.testing.assert_close(net.embedding(t[:1], cap[:1], var[:1], c1), net.embedding(t[:1], cap[:1], var[:1], c2))
+
+
+def _fake_data(n: int = 4000, seed: int = 0):
+    from gdbench.priors.learned_data import Dataset, captions
+
+    g = torch.Generator().manual_seed(seed)
+    return Dataset(
+        images=torch.zeros(n, 4, 4, 3, dtype=torch.uint8),
+        caption=torch.randint(0, 6, (n,), generator=g),
+        variant=torch.randint(0, 3, (n,), generator=g),
+        azimuth=torch.rand(n, generator=g) * 360 - 180,
+        elevation=torch.zeros(n),
+        fovy=torch.full((n,), 55.0),
+        captions=captions(),
+    )
+
+
+def test_batches_drop_rates_and_front_bias():
+    """Condition drops happen at their rates and views follow exp(kappa cos azimuth) (binomial and
+    mean tests at 5 standard errors against the exact expectations over the data set)."""
+    data = _fake_data()
+    cfg = PriorTrainConfig(batch=20000, front_bias=2.0, caption_drop=0.1, variant_drop=0.3, camera_drop=0.3)
+    images = torch.zeros(len(data), 3, 4, 4)
+    b = Batches(cfg, data, images).draw()
+    B = cfg.batch
+    no_cap = b["caption"] == 6
+    p_var = 0.1 + 0.9 * 0.3  # dropped with the caption, or alone
+    for frac, p in ((no_cap.float().mean(), 0.1), ((b["variant"] == 3).float().mean(), p_var),
+                    (b["camera_drop"].float().mean(), p_var)):  # fmt: skip
+        assert abs(float(frac) - p) < 5 * (p * (1 - p) / B) ** 0.5
+    assert bool((b["variant"][no_cap] == 3).all()) and bool(b["camera_drop"][no_cap].all())
+    w = torch.exp(2.0 * torch.cos(torch.deg2rad(data.azimuth.double())))
+    c = torch.cos(torch.deg2rad(data.azimuth.double()))
+    mean = float((w * c).sum() / w.sum())
+    sd = float(((w * (c - mean) ** 2).sum() / w.sum()) ** 0.5)
+    got = float(torch.cos(torch.deg2rad(b["camera"][:, 0].double())).mean())
+    assert abs(got - mean) < 5 * sd / B**0.5
+    assert mean > 0.6  # the bias is real: a uniform draw would give about 0
+
+
+def test_schedule_and_denoiser_match_stable_diffusion():
+    """The learned prior's sigmas, tick snapping and VE conversion are Stable Diffusion's: the
+    same ticks as the SD prior's scheduler, and D = x - sigma eps(x / sqrt(1 + sigma^2), t)."""
+    from gdbench.priors.learned import LearnedPrior
+    from gdbench.priors.stable_diffusion import StableDiffusionPrior
+
+    sd = StableDiffusionPrior.tiny(seed=0, controlnet=False, guidance_scale=1.0)
+    prior = LearnedPrior(_random_weights(), guidance_scale=1.0, clip=False)
+    # diffusers takes the cumulative product in float32, this prior in float64: 1.3e-5 apart at most
+    torch.testing.assert_close(prior.sigmas, sd.sigmas, rtol=3e-5, atol=0)
+    s = torch.exp(torch.empty(50).uniform_(-3.5, 2.7, generator=torch.Generator().manual_seed(0)))
+    assert torch.equal(prior.timestep(s), sd.timestep(s))
+    seen = {}
+
+    def eps(x_t, t, cond, camera, guided=True):  # a stand-in network: eps = 0.5 x_t
+        seen["x_t"], seen["t"] = x_t, t
+        return 0.5 * x_t
+
+    prior.eps = eps
+    x = torch.randn(2, 32, 32, 3, generator=torch.Generator().manual_seed(1))
+    sig = torch.tensor([0.7, 5.0])
+    D = prior.denoise(x, sig, prior.encode("a yellow duck"))
+    snapped = sd.sigmas[sd.timestep(sig)].double()[:, None, None, None]
+    want = x.double() - snapped * 0.5 * x.double() / torch.sqrt(1 + snapped**2)
+    torch.testing.assert_close(D.double(), want, rtol=1e-5, atol=1e-6)
+    assert torch.equal(seen["t"], sd.timestep(sig))
+    prior.clip = True  # the default: the estimate clipped to the images' range
+    torch.testing.assert_close(prior.denoise(x, sig, prior.encode("a yellow duck")).double(), want.clamp(-1, 1))
+
+
+def test_guidance_is_classifier_free():
+    """eps = eps_u + s (eps_c - eps_u), eps_u with every condition dropped, eps_c with the caption,
+    the variant and the camera."""
+    from gdbench.priors.learned import LearnedPrior
+
+    prior = LearnedPrior(_random_weights(perturb=True), guidance_scale=4.0)
+    cond = prior.encode("a penguin")
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(2, 3, 32, 32, generator=g)
+    t = torch.tensor([100, 700])
+    cam = prior.camera(torch.tensor([10.0, -120.0]), torch.tensor([5.0, 30.0]), torch.tensor([45.0, 60.0]), 2)
+    net, c = prior.unet, prior.unet.config
+    with torch.no_grad():
+        eu = net(x, net.embedding(t, torch.full((2,), c.captions), torch.full((2,), c.variants), None))
+        ec = net(x, net.embedding(t, torch.full((2,), cond.caption_index), torch.zeros(2, dtype=torch.long), cam))
+    torch.testing.assert_close(prior.eps(x, t, cond, cam), eu + 4.0 * (ec - eu), rtol=1e-4, atol=1e-5)
+    assert (ec - eu).abs().mean() > 1e-3
+
+
+def test_view_modes():
+    from gdbench.priors.learned import LearnedPrior
+
+    path = _random_weights()
+    az, el = torch.tensor([30.0, 100.0, -170.0, -60.0]), torch.tensor([5.0, 0.0, 20.0, -30.0])
+    fv = torch.full((4,), 50.0)
+    assert LearnedPrior(path, view_mode="none").camera(az, el, fv, 4) is None
+    w = LearnedPrior(path, view_mode="window").camera(az, el, fv, 4)
+    torch.testing.assert_close(w, torch.stack([az, el, fv], 1))
+    b = LearnedPrior(path, view_mode="buckets").camera(az, el, fv, 4)
+    assert b[:, 0].tolist() == [0.0, 90.0, 180.0, -90.0]
+    cond3 = LearnedPrior(path, variants=3).encode("a corgi")
+    assert cond3.variant_index == 3  # the null variant: the caption's variants mixed
+
+
+def test_learned_prior_bad_input(tmp_path):
+    from gdbench.priors.learned import LearnedPrior
+
+    path = _random_weights()
+    with pytest.raises(ValueError, match="variants"):
+        LearnedPrior(path, variants=2)
+    with pytest.raises(ValueError, match="resolution"):
+        LearnedPrior(path, resolution=48)
+    with pytest.raises(ValueError, match="guidance_scale"):
+        LearnedPrior(path, guidance_scale=0.5)
+    with pytest.raises(FileNotFoundError, match="learned_model"):
+        LearnedPrior(tmp_path / "nothing")
+    prior = LearnedPrior(path, resolution=64)
+    assert prior.factor == 2
+    with pytest.raises(ValueError, match="32 x 32"):
+        prior.denoise(torch.zeros(1, 64, 64, 3), torch.tensor([1.0]), prior.encode("a sofa"))
+    with pytest.raises(ValueError, match="sigma"):
+        prior.denoise(torch.zeros(1, 32, 32, 3), torch.tensor([0.0]), prior.encode("a sofa"))
+    with pytest.raises(ValueError, match="asks for blue"):
+        prior.encode("a blue duck")
+
+
+def test_train_config_for_learned_prior():
+    from gdbench.train.config import preset
+
+    with pytest.raises(ValueError, match="depth_conditioning"):
+        preset("gd", prior="learned", depth_conditioning=True)
+    with pytest.raises(ValueError, match="variants"):
+        preset("gd", prior="learned", variants=2)
+    from gdbench.priors.learned import model_for_front_bias
+
+    assert model_for_front_bias(0.0) == "uniform" and model_for_front_bias(2.0) == "front"
+    with pytest.raises(ValueError, match="front_bias"):
+        model_for_front_bias(1.0)
+    from gdbench.sweep import setting_overrides
+
+    assert setting_overrides("janus", "learned")["front_bias"] == 2.0
+    assert setting_overrides("janus", None)["front_bias"] == 1.0
+
+
+def test_trainer_step_with_learned_prior(tmp_path):
+    """The trainer serves the learned prior through its encoded-render path: a 64 px render box-
+    filtered to the model's 32 px, structured noise rendered at 32 px in 3 channels, and the
+    score's gradient reaching the Gaussians."""
+    from gdbench.train.config import preset
+    from gdbench.train.trainer import init_state, make_context, train_step
+
+    cfg = preset("gd", prior="learned", learned_model=str(_random_weights()), steps=5, out=tmp_path / "run",
+                 progress=False, init_points=512)  # fmt: skip
+    ctx = make_context(cfg)
+    assert ctx.mode == "sd-rgb" and ctx.factor == 2
+    state = init_state(ctx)
+    before = {k: v.detach().clone() for k, v in state.params.items()}
+    m = train_step(state, ctx)
+    assert m["sigma"] > 0 and torch.isfinite(torch.tensor(m["residual"]))
+    moved = [k for k in before if not torch.equal(before[k], state.params[k].detach())]
+    assert "means" in moved and "sh" in moved
+
+
+def _tiny_train(out: Path, steps: int, stop_at: int | None = None) -> PriorTrainConfig:
+    cfg = PriorTrainConfig(out=out, steps=steps, batch=8, warmup=2, lr=2e-3, unet=TINY, data=TINY_DATA, log_every=5,
+                           checkpoint_every=100, progress=False, threads=1)  # fmt: skip
+    train_prior(cfg, stop_at=stop_at)
+    return cfg
+
+
+def test_tiny_training_lowers_the_loss_and_is_deterministic(tmp_path):
+    """A 60-step run lowers the loss on a fixed batch by 15% from its start (1.0: the untrained network
+    predicts 0); two runs from one seed, one of them stopped and resumed, give the same weights."""
+    from safetensors.torch import load_file
+
+    from gdbench.priors.learned_data import load_dataset, to_model_images
+
+    cfg = _tiny_train(tmp_path / "a", 60)
+    data = load_dataset(TINY_DATA, progress=False)
+    fixed = Batches(PriorTrainConfig(batch=64, unet=TINY, data=TINY_DATA, seed=7), data,
+                    to_model_images(data.images, TINY.size)).draw()  # fmt: skip
+    torch.manual_seed(cfg.seed)
+    untrained = UNet(TINY)
+    trained = UNet(TINY)
+    trained.load_state_dict({k: v.float() for k, v in load_file(tmp_path / "a" / "model.safetensors").items()})
+    with torch.no_grad():
+        l0, l1 = float(loss_of(untrained, fixed, "cpu")), float(loss_of(trained, fixed, "cpu"))
+    assert abs(l0 - float(fixed["eps"].pow(2).mean())) < 1e-6  # the zero-initialised output
+    assert l1 < 0.85 * l0, (l0, l1)
+    _tiny_train(tmp_path / "b", 60, stop_at=25)
+    assert not (tmp_path / "b" / "model.safetensors").exists()
+    _tiny_train(tmp_path / "b", 60)
+    a = load_file(tmp_path / "a" / "model.safetensors")
+    b = load_file(tmp_path / "b" / "model.safetensors")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="other settings"):
+        train_prior(PriorTrainConfig(out=tmp_path / "a", steps=60, batch=4, unet=TINY, data=TINY_DATA, progress=False))
+
+
+_RANDOM: dict[bool, Path] = {}
+
+
+def _random_weights(perturb: bool = False) -> Path:
+    """A randomly initialised 32 px model saved as train-prior saves one (perturbed: the zero-
+    initialised output layers made random, so the conditions change the output)."""
+    if perturb not in _RANDOM:
+        import tempfile
+
+        torch.manual_seed(0)
+        net = UNet()
+        if perturb:
+            for p in net.parameters():
+                if p.abs().max() == 0:
+                    torch.nn.init.normal_(p, std=0.05)
+        path = Path(tempfile.mkdtemp()) / "model.safetensors"
+        save_weights(net, path, {"unet": json.dumps(asdict(net.config))})
+        _RANDOM[perturb] = path
+    return _RANDOM[perturb]
