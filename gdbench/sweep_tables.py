@@ -192,9 +192,12 @@ def plot(rows: list[dict], path: Path) -> Path:
     return save(fig, path, dpi=100)
 
 
-def turntable_grid(out: Path, prompt: str, seed: int = 0, frames: int = 6) -> Path | None:
-    """One figure: for ``prompt`` and ``seed``, a row per (setting, preset) cell with ``frames``
-    evenly spaced turntable views (from each cell's turntable.gif). None when no cell has one."""
+def turntable_grid(
+    out: Path, prompt: str | None, seed: int = 0, frames: int = 6, setting: str | None = None
+) -> Path | None:
+    """One figure of turntables (``frames`` evenly spaced views from each cell's turntable.gif), a
+    row per cell of ``seed``: for ``prompt``, one per (setting, preset); with ``prompt`` None, one
+    per (prompt, preset) of ``setting``. None when no cell has one."""
     import imageio.v3 as iio
     import numpy as np
 
@@ -202,9 +205,11 @@ def turntable_grid(out: Path, prompt: str, seed: int = 0, frames: int = 6) -> Pa
     from .sweep import SETTINGS, cell_name
     from .train.config import PRESETS
 
-    order = lambda p: (list(SETTINGS).index(p.parts[-5]) if p.parts[-5] in SETTINGS else 99,  # noqa: E731
+    order = lambda p: (p.parts[-4] if prompt is None else "",  # noqa: E731
+                       list(SETTINGS).index(p.parts[-5]) if p.parts[-5] in SETTINGS else 99,
                        list(PRESETS).index(p.parts[-3]) if p.parts[-3] in PRESETS else 99)  # fmt: skip
-    cells = sorted((Path(out) / "cells").glob(f"*/{cell_name(prompt)}/*/seed{seed}/turntable.gif"), key=order)
+    pattern = f"*/{cell_name(prompt)}/*" if prompt is not None else f"{setting or '*'}/*/*"
+    cells = sorted((Path(out) / "cells").glob(f"{pattern}/seed{seed}/turntable.gif"), key=order)
     if not cells:
         return None
     plt = pyplot()
@@ -213,9 +218,13 @@ def turntable_grid(out: Path, prompt: str, seed: int = 0, frames: int = 6) -> Pa
         video = iio.imread(gif)
         pick = np.linspace(0, len(video), frames, endpoint=False).astype(int)
         ax.imshow(np.concatenate([video[i][..., :3] for i in pick], 1))
-        setting, preset = gif.parts[-5], gif.parts[-3]
-        ax.set_title(f"{setting}: {preset}", loc="left", fontsize=8, pad=2)
+        setting_, preset = gif.parts[-5], gif.parts[-3]
+        label = f"{setting_}: {preset}" if prompt is not None else f"{gif.parts[-4].replace('_', ' ')}: {preset}"
+        ax.set_title(label, loc="left", fontsize=8, pad=2)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9)
-    return save(fig, Path(out) / f"turntables_{cell_name(prompt)}.png", dpi=90)
+    if prompt is not None:
+        fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9)
+        return save(fig, Path(out) / f"turntables_{cell_name(prompt)}.png", dpi=90)
+    fig.suptitle(f"{setting or 'all settings'}, seed {seed}: turntables per prompt and preset", fontsize=9)
+    return save(fig, Path(out) / f"turntables_{setting or 'all'}.png", dpi=90)

@@ -18,13 +18,15 @@ def make_prior(cfg):
         from .learned import LearnedPrior, model_for_front_bias
 
         model = model_for_front_bias(cfg.front_bias) if cfg.learned_model == "auto" else cfg.learned_model
-        return LearnedPrior(
+        prior = LearnedPrior(
             model,
             guidance_scale=cfg.learned_guidance,
             view_mode=cfg.view_prompting,
             variants=cfg.variants,
             resolution=cfg.resolution,
         )
+        prior.check_cameras(cfg.camera_radius, cfg.background, cfg.fovy_range, cfg.elevation_range)
+        return prior
     from .empirical import EmpiricalPrior, bank_config_for
 
     return EmpiricalPrior(

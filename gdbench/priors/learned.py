@@ -153,11 +153,41 @@ class LearnedPrior:
         from .learned_data import captions
 
         self.captions = captions()
+        known = json.loads(self.meta.get("captions", "null")) or list(self.captions)
+        if list(known) != list(self.captions) or self.unet.config.captions != len(self.captions):
+            raise ValueError(
+                f"learned_model: {model} was trained on the captions {known}, this code has {list(self.captions)}; "
+                "retrain it with `gdbench train-prior`"
+            )
         self.matcher = CaptionMatcher(list(self.captions), threshold)
         self.front_bias = float(json.loads(self.meta.get("train", "{}")).get("front_bias", 0.0))
         """kappa of the model's training views (from its metadata)."""
         self.abar = sd_abar()
         self.sigmas = ve_sigmas_from_betas().float()
+
+    def check_cameras(self, radius: float, background, fovy_range, elevation_range) -> None:
+        """ValueError naming the trainer's setting the model was not trained for: another camera
+        distance or background (the model would draw the object at its training size and on its
+        training background), or fields of view or elevations outside its training ranges."""
+        data = json.loads(self.meta.get("train", "{}")).get("data")
+        if not data:
+            return
+        if abs(float(data["radius"]) - float(radius)) > 1e-6:
+            raise ValueError(
+                f"camera_radius: the learned model was trained at distance {data['radius']}, the training cameras "
+                f"are at {radius}; train a model at that distance (train-prior) or use --prior empirical"
+            )
+        if any(abs(float(a) - float(b)) > 1e-6 for a, b in zip(data["background"], background)):
+            raise ValueError(
+                f"background: the learned model was trained on {tuple(data['background'])}, got {tuple(background)}"
+            )
+        for name, have, want in (("fovy_range", data["fovy_range"], fovy_range),
+                                 ("elevation_range", data["elevation_range"], elevation_range)):  # fmt: skip
+            if want[0] < have[0] - 1e-6 or want[1] > have[1] + 1e-6:
+                raise ValueError(
+                    f"{name}: the learned model saw {tuple(have)} degrees in training; expected a range inside it, "
+                    f"got {tuple(want)}"
+                )
 
     def _pool(self, rgb: Tensor) -> Tensor:
         """Renders [B, H, W, 3] -> the model's input [B, H/f, W/f, 3]: the f x f box filter."""

@@ -87,54 +87,69 @@ def data_key(config: DataConfig) -> str:
 
 def render_dataset(config: DataConfig, *, progress: bool = True) -> Dataset:
     """Render the data set (no cache). Each (caption, variant) draws its cameras from its own
-    generator, seeded from ``config.seed`` and its index, so a set is the same whatever renders first."""
+    generator, seeded from ``config.seed`` and its index, so a set is the same whatever renders first
+    (and ``render_subset`` gives one part of it alone)."""
+    from ..assets.library import VARIANTS
+
+    caps = captions()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(caps) * VARIANTS * config.views, desc="rendering the learned prior's data", unit="view")
+    parts = [render_subset(config, c, v, bar=bar) for c in caps for v in range(VARIANTS)]
+    if bar is not None:
+        bar.close()
+    fields = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
+    return Dataset(**{k: torch.cat([getattr(p, k) for p in parts]) for k in fields}, captions=caps)
+
+
+def render_subset(config: DataConfig, caption: str, variant: int, *, bar=None) -> Dataset:
+    """The views of one (caption, variant) of the data set of ``config``, exactly as in it."""
     from renderers.pyrender_points.mesh import render_mesh
 
     from ..assets.library import VARIANTS, build
     from ..camera import SphericalPoses
 
     caps = captions()
-    jobs = [(c, v) for c in range(len(caps)) for v in range(VARIANTS)]
-    parts: dict[str, list] = {k: [] for k in ("images", "caption", "variant", "azimuth", "elevation", "fovy")}
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs) * config.views, desc="rendering the learned prior's data", unit="view")
+    if caption not in caps:
+        raise ValueError(f"caption: unknown asset {caption!r}; known: {list(caps)}")
+    c = caps.index(caption)
+    g = torch.Generator().manual_seed(config.seed * 1000 + c * VARIANTS + variant)
+    poses = SphericalPoses.sample(
+        config.views,
+        generator=g,
+        radius=config.radius,
+        fovy_range=config.fovy_range,
+        elevation_range=config.elevation_range,
+    )
     R = config.resolution
-    for c, v in jobs:
-        g = torch.Generator().manual_seed(config.seed * 1000 + c * VARIANTS + v)
-        poses = SphericalPoses.sample(
-            config.views,
-            generator=g,
-            radius=config.radius,
-            fovy_range=config.fovy_range,
-            elevation_range=config.elevation_range,
+    pose_gl, K = poses.cameras(R, R).to_opengl()
+    mesh = build(caption, variant)
+    images = []
+    chunk = 128  # one pyrender context per chunk keeps a progress bar moving
+    for i in range(0, config.views, chunk):
+        rgb, _, _ = render_mesh(
+            mesh,
+            pose_gl[i : i + chunk].double().numpy(),
+            K[i : i + chunk].double().numpy(),
+            R,
+            R,
+            background=config.background,
         )
-        pose_gl, K = poses.cameras(R, R).to_opengl()
-        mesh = build(caps[c], v)
-        chunk = 128  # one pyrender context per chunk keeps the progress bar moving
-        for i in range(0, config.views, chunk):
-            rgb, _, _ = render_mesh(
-                mesh,
-                pose_gl[i : i + chunk].double().numpy(),
-                K[i : i + chunk].double().numpy(),
-                R,
-                R,
-                background=config.background,
-            )
-            parts["images"].append(torch.from_numpy(np.round(rgb * 255).astype(np.uint8)))
-            if bar is not None:
-                bar.update(len(rgb))
-        n = config.views
-        parts["caption"].append(torch.full((n,), c, dtype=torch.int64))
-        parts["variant"].append(torch.full((n,), v, dtype=torch.int64))
-        parts["azimuth"].append(poses.azimuth.float())
-        parts["elevation"].append(poses.elevation.float())
-        parts["fovy"].append(poses.fovy.float())
-    if bar is not None:
-        bar.close()
-    return Dataset(**{k: torch.cat(p) for k, p in parts.items()}, captions=caps)
+        images.append(torch.from_numpy(np.round(rgb * 255).astype(np.uint8)))
+        if bar is not None:
+            bar.update(len(rgb))
+    n = config.views
+    return Dataset(
+        torch.cat(images),
+        torch.full((n,), c, dtype=torch.int64),
+        torch.full((n,), variant, dtype=torch.int64),
+        poses.azimuth.float(),
+        poses.elevation.float(),
+        poses.fovy.float(),
+        caps,
+    )
 
 
 def load_dataset(config: DataConfig | None = None, *, progress: bool = True) -> Dataset:

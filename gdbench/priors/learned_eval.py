@@ -14,7 +14,6 @@ figures of docs/learned_prior.md from these).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,7 +39,7 @@ def exact_posterior_mean(y: Tensor, sigma: Tensor, images: Tensor, log_weights: 
 def render_views(caption: str, azimuth, elevation, fovy, *, variant: int = 0, size: int = SIZE, depth: bool = False):
     """Ground-truth renders [V, size, size, 3] in [-1, 1] of an asset at the given cameras (64 px
     renders box-filtered to ``size``, as the model's data), and camera z [V, size, size] if asked
-    (rendered at ``size``)."""
+    (rendered at ``size``) and the cameras at ``size``."""
     from renderers.pyrender_points.mesh import render_mesh
 
     from ..assets.library import build
@@ -71,6 +70,8 @@ def denoising_error(prior, data, sigmas: list[float], *, queries: int = 48, seed
     views drawn with the same weights."""
     from .learned_data import to_model_images, view_weights
 
+    if prior.guidance_scale != 1 or prior.view_mode != "none":
+        raise ValueError("prior: the oracle compares the model's own posterior mean (guidance 1, view_mode 'none')")
     kappa = prior.front_bias
     g = torch.Generator().manual_seed(seed)
     rows = []
@@ -205,7 +206,8 @@ def warp(src: Tensor, depth_dst: Tensor, cams_dst, cams_src, depth_src: Tensor, 
     sampled = torch.nn.functional.grid_sample(src.permute(2, 0, 1)[None].float(), grid, align_corners=False)[0]
     zsrc = torch.nn.functional.grid_sample(depth_src[None, None].float(), grid, mode="nearest", align_corners=False)
     zsrc = zsrc[0, 0].double().reshape(-1)
-    inside = (gx.abs() < 1) & (gy.abs() < 1)
+    # inside the source image by half a pixel: bilinear samples nearer the border mix in zero padding
+    inside = (uv[:, 0] >= 0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] >= 0.5) & (uv[:, 1] <= h - 0.5)
     valid = (z.reshape(-1) > 0) & inside & (zsrc > 0) & ((zsrc - zs).abs() < tol * zs)
     return sampled.permute(1, 2, 0), valid.reshape(h, w)
 
@@ -214,11 +216,12 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
               separation: float = 30.0, seed: int = 0) -> list[dict]:  # fmt: skip
     """For each caption, two cameras ``separation`` degrees apart (elevation 15, fovy 55): render
     the asset, add noise at sigma with (a) independent fields in the two views and (b) structured
-    noise from one cloud (mixed with iid at amplitude ``ratio``, 1 = pure; the trainer starts at
-    0.3), denoise both views, warp view B's prediction into view A with the asset's depth and take
+    noise from one cloud (mixed with iid noise as the trainer mixes it, ``noise.mix`` with the
+    default ratio mode: 1 = pure structured noise; the trainer's schedule starts at 0.3), denoise
+    both views, warp view B's prediction into view A with the asset's depth and take
     the MSE to A's prediction over the pixels both views see. One row per (caption, sigma, ratio,
     draw) with both noises' MSE (the same draw of everything else: a paired comparison)."""
-    from ..noise import NoiseConfig, NoiseRenderer, init_colors, make_noise_cloud
+    from ..noise import NoiseConfig, NoiseRenderer, init_colors, make_noise_cloud, mix
 
     g = torch.Generator().manual_seed(seed)
     rows = []
@@ -234,7 +237,7 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
                     colors = init_colors(cloud, generator=g).colors
                     n_s = NoiseRenderer(cloud, cache_size=0).render(colors, cams, generator=g).noise
                     iid = torch.randn((2, *x0.shape[1:]), generator=g)
-                    n_b = ratio * n_s + math.sqrt(1 - ratio**2) * torch.randn(n_s.shape, generator=g)
+                    n_b = mix(n_s, ratio, generator=g, mode=NoiseConfig().ratio_mode)
                     out = {}
                     for name, n in (("independent", iid), ("structured", n_b)):
                         y = x0 + s * n

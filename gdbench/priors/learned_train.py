@@ -93,7 +93,9 @@ class PriorTrainConfig:
         return d
 
     def identity(self) -> dict:
-        """The settings a resumed run must share (all but where it runs and how it reports)."""
+        """The settings a resumed run must share: all but where it runs and how it reports, and
+        ``steps`` (a finished run can be extended; its cosine schedule then follows the new length
+        from where it stands, so the result differs from a run made at that length at once)."""
         d = self.to_dict()
         for k in ("out", "steps", "threads", "device", "checkpoint_every", "log_every", "progress"):
             d.pop(k)
@@ -155,10 +157,20 @@ def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
     """Train (or resume) the prior of ``cfg`` in ``cfg.out``; returns a summary. ``stop_at`` ends
     the call after that many steps with a checkpoint, as if the run had been killed there (calling
     again resumes it, to the same weights as an uninterrupted run on the same thread count)."""
-    from ..io import atomic_write
-
+    threads = torch.get_num_threads()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    try:
+        with torch.random.fork_rng(devices=[]):  # the seed below stays inside this call
+            return _train(cfg, stop_at)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
+    from ..io import atomic_write
+    from ..train.run import RunInterrupted, _defer_sigint
+
     device = _device(cfg.device)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -173,9 +185,10 @@ def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     batches = Batches(cfg, data, images)
     log: list[dict] = []
-    step = 0
+    step, elapsed = 0, 0.0
+    acc, n = 0.0, 0  # the loss summed over the interval being logged
     if ckpt_path.is_file():
-        ck = torch.load(ckpt_path, map_location=device, weights_only=False)
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         if ck["identity"] != cfg.identity():
             changed = sorted(k for k in cfg.identity() if ck["identity"].get(k) != cfg.identity()[k])
             raise ValueError(
@@ -186,14 +199,18 @@ def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
         ema.load_state_dict(ck["ema"])
         opt.load_state_dict(ck["optimizer"])
         batches.g.set_state(ck["generator"])
-        log, step = ck["log"], ck["step"]
+        log, step, elapsed = ck["log"], ck["step"], ck.get("seconds", 0.0)
+        acc, n = ck.get("partial", (0.0, 0))
         print(f"resuming {out} at step {step}")
     (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+
+    t0 = time.perf_counter()
 
     def save() -> None:
         state = {
             "identity": cfg.identity(), "model": model.state_dict(), "ema": ema.state_dict(),
             "optimizer": opt.state_dict(), "generator": batches.g.get_state(), "log": log, "step": step,
+            "seconds": elapsed + time.perf_counter() - t0, "partial": (acc, n),
         }  # fmt: skip
         atomic_write(ckpt_path, lambda f: torch.save(state, f))
         write_log(out / "loss.csv", log)
@@ -203,40 +220,42 @@ def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
         from tqdm import tqdm
 
         bar = tqdm(total=cfg.steps, initial=step, desc=f"train-prior kappa={cfg.front_bias:g}", unit="step")
-    acc, n, t0 = 0.0, 0, time.perf_counter()
+    t0 = time.perf_counter()
     last = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
-    try:
-        while step < last:
-            for group in opt.param_groups:
-                group["lr"] = lr_at(cfg, step)
-            loss = loss_of(model, batches.draw(), device)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-            opt.step()
-            decay = min(cfg.ema, (1 + step) / (10 + step))
-            with torch.no_grad():
-                for pe, pm in zip(ema.parameters(), model.parameters()):
-                    pe.lerp_(pm, 1 - decay)
-            step += 1
-            acc, n = acc + loss.item(), n + 1
-            if step % cfg.log_every == 0 or step == cfg.steps:
-                secs = time.perf_counter() - t0
-                log.append({"step": step, "loss": acc / n, "lr": lr_at(cfg, step - 1), "seconds": secs})
-                acc, n = 0.0, 0
+    interrupted: list = []
+    with _defer_sigint(interrupted):  # Ctrl-C ends the step it lands in: the checkpoint holds whole steps
+        try:
+            while step < last and not interrupted:
+                for group in opt.param_groups:
+                    group["lr"] = lr_at(cfg, step)
+                loss = loss_of(model, batches.draw(), device)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+                opt.step()
+                decay = min(cfg.ema, (1 + step) / (10 + step))
+                with torch.no_grad():
+                    for pe, pm in zip(ema.parameters(), model.parameters()):
+                        pe.lerp_(pm, 1 - decay)
+                step += 1
+                acc, n = acc + loss.item(), n + 1
+                if step % cfg.log_every == 0 or step == cfg.steps:
+                    secs = elapsed + time.perf_counter() - t0
+                    log.append({"step": step, "loss": acc / n, "lr": lr_at(cfg, step - 1), "seconds": secs})
+                    acc, n = 0.0, 0
+                    if bar is not None:
+                        bar.set_postfix(loss=f"{log[-1]['loss']:.4f}")
                 if bar is not None:
-                    bar.set_postfix(loss=f"{log[-1]['loss']:.4f}")
+                    bar.update(1)
+                if step % cfg.checkpoint_every == 0:
+                    save()
+        finally:
             if bar is not None:
-                bar.update(1)
-            if step % cfg.checkpoint_every == 0:
-                save()
-    except KeyboardInterrupt:
+                bar.close()
+    if interrupted:
         save()
-        print(f"\ninterrupted at step {step}: checkpoint saved, run the same command to resume")
-        raise
-    finally:
-        if bar is not None:
-            bar.close()
+        raise RunInterrupted(f"interrupted at step {step} of {cfg.steps}; checkpoint saved to {ckpt_path}; run the "
+                             "same command again to resume")  # fmt: skip
     save()
     if step < cfg.steps:
         return {"out": str(out), "steps": step, "final_loss": _final_loss(log), "weights": None}
@@ -250,11 +269,12 @@ def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
 
 def _write_model(ema: UNet, path: Path, unet: UNetConfig, identity: dict, data: DataConfig, step: int, loss: float):
     from ..provenance import code_commit
-    from .learned_data import data_key
+    from .learned_data import captions, data_key
 
     meta = {
         "unet": json.dumps(asdict(unet)), "train": json.dumps(identity), "steps": str(step),
         "commit": code_commit(), "final_loss": f"{loss:.6f}", "data_key": data_key(data),
+        "captions": json.dumps(captions()),
     }  # fmt: skip
     save_weights(ema, path, meta)
 
