@@ -130,7 +130,8 @@ def test_schedule_and_denoiser_match_stable_diffusion():
 
 def test_guidance_is_classifier_free():
     """eps = eps_u + s (eps_c - eps_u), eps_u with every condition dropped, eps_c with the caption,
-    the variant and the camera."""
+    the variant and the camera, each converted from the network's v."""
+    from gdbench.priors import sd_abar
     from gdbench.priors.learned import LearnedPrior
 
     prior = LearnedPrior(_random_weights(perturb=True), guidance_scale=4.0)
@@ -143,6 +144,8 @@ def test_guidance_is_classifier_free():
     with torch.no_grad():
         eu = net(x, net.embedding(t, torch.full((2,), c.captions), torch.full((2,), c.variants), None))
         ec = net(x, net.embedding(t, torch.full((2,), cond.caption_index), torch.zeros(2, dtype=torch.long), cam))
+        a = sd_abar()[t].float()[:, None, None, None]  # v -> epsilon, as the SD prior converts it
+        eu, ec = (a.sqrt() * v + (1 - a).sqrt() * x for v in (eu, ec))
     torch.testing.assert_close(prior.eps(x, t, cond, cam), eu + 4.0 * (ec - eu), rtol=1e-4, atol=1e-5)
     assert (ec - eu).abs().mean() > 1e-3
 
@@ -312,7 +315,7 @@ def test_tiny_training_lowers_the_loss_and_is_deterministic(tmp_path):
     trained.load_state_dict({k: v.float() for k, v in load_file(tmp_path / "a" / "model.safetensors").items()})
     with torch.no_grad():
         l0, l1 = float(loss_of(untrained, fixed, "cpu")), float(loss_of(trained, fixed, "cpu"))
-    assert abs(l0 - float(fixed["eps"].pow(2).mean())) < 1e-6  # the zero-initialised output
+    assert abs(l0 - float(fixed["target"].pow(2).mean())) < 1e-6  # the zero-initialised output
     assert l1 < 0.85 * l0, (l0, l1)
     _tiny_train(tmp_path / "b", 60, stop_at=25)
     assert not (tmp_path / "b" / "model.safetensors").exists()
@@ -348,3 +351,26 @@ def _random_weights(perturb: bool = False) -> Path:
         save_weights(net, path, {"unet": json.dumps(asdict(net.config)), "train": json.dumps(train)})
         _RANDOM[perturb] = path
     return _RANDOM[perturb]
+
+
+def test_v_prediction_converts_to_the_noise():
+    """For x_t = sqrt(abar) x0 + sqrt(1 - abar) eps, the true v = sqrt(abar) eps - sqrt(1 - abar) x0
+    converts back to eps exactly, and the training target is that v."""
+    from gdbench.priors import sd_abar
+    from gdbench.priors.learned import LearnedPrior
+
+    prior = LearnedPrior(_random_weights())
+    assert prior.unet.config.prediction == "v"
+    g = torch.Generator().manual_seed(3)
+    x0, eps = torch.rand(4, 3, 32, 32, generator=g) * 2 - 1, torch.randn(4, 3, 32, 32, generator=g)
+    t = torch.tensor([0, 250, 600, 999])
+    a = sd_abar()[t].float()[:, None, None, None]
+    x_t = a.sqrt() * x0 + (1 - a).sqrt() * eps
+    v = a.sqrt() * eps - (1 - a).sqrt() * x0
+    torch.testing.assert_close(prior._to_eps(v, x_t, t), eps, rtol=1e-5, atol=1e-5)
+    data = _fake_data(64)
+    images = torch.rand(64, 3, 4, 4, generator=g) * 2 - 1
+    b = Batches(PriorTrainConfig(batch=16), data, images).draw()
+    a = sd_abar()[b["t"]].float()[:, None, None, None]
+    x0_b = (b["x_t"] - (1 - a).sqrt() * (a.sqrt() * b["target"] + (1 - a).sqrt() * b["x_t"])) / a.sqrt()
+    assert max(float((x0_b[i] - images).abs().flatten(1).amax(1).min()) for i in range(16)) < 1e-3

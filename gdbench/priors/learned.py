@@ -103,6 +103,7 @@ def load_model(model: str | Path, device: torch.device | str = "cpu"):
         raise ValueError(f"learned_model: {path} has no 'unet' settings in its metadata (not written by train-prior)")
     cfg = json.loads(meta["unet"])
     cfg["widths"] = tuple(cfg["widths"])
+    cfg.setdefault("prediction", "epsilon")  # models written before v prediction
     net = UNet(UNetConfig(**cfg))
     net.load_state_dict({k: v.float() for k, v in load_file(str(path)).items()})
     return net.to(device).eval().requires_grad_(False), meta
@@ -237,7 +238,7 @@ class LearnedPrior:
         var = torch.full((B,), cond.variant_index, device=self.device)
         cam = camera.to(self.device) if camera is not None else None
         if self.guidance_scale == 1 or not guided:
-            return self.unet(x_t, self.unet.embedding(t, cap, var, cam))
+            return self._to_eps(self.unet(x_t, self.unet.embedding(t, cap, var, cam)), x_t, t)
         null_cap, null_var = torch.full_like(cap, c.captions), torch.full_like(var, c.variants)
         tt = torch.cat([t, t])
         emb = self.unet.embedding(
@@ -249,8 +250,16 @@ class LearnedPrior:
             if cam is None
             else torch.cat([torch.ones(B, dtype=torch.bool), torch.zeros(B, dtype=torch.bool)]).to(self.device),
         )
-        eu, ec = self.unet(torch.cat([x_t, x_t]), emb).chunk(2)
+        eu, ec = self._to_eps(self.unet(torch.cat([x_t, x_t]), emb), torch.cat([x_t, x_t]), tt).chunk(2)
         return eu + self.guidance_scale * (ec - eu)
+
+    def _to_eps(self, out: Tensor, x_t: Tensor, t: Tensor) -> Tensor:
+        """The network's output as epsilon (v models: eps = sqrt(abar) v + sqrt(1 - abar) x_t, as the
+        SD prior converts v-prediction models)."""
+        if self.unet.config.prediction == "epsilon":
+            return out
+        a = self.abar.to(x_t.device)[t].to(x_t.dtype)[:, None, None, None]
+        return a.sqrt() * out + (1 - a).sqrt() * x_t
 
     @torch.no_grad()
     def denoise(

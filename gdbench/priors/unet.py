@@ -1,7 +1,7 @@
-"""A small conditional UNet predicting epsilon, in plain torch: the learned prior's network.
+"""A small conditional UNet predicting v (or epsilon), in plain torch: the learned prior's network.
 
 The architecture is DDPM's (Ho et al. 2020) cut down to CPU size: residual blocks with group
-norm and SiLU, the conditioning added to every block's features, stride-2 convolutions down and
+norm and SiLU, the conditioning scaling and shifting every block's features, stride-2 convolutions down and
 nearest upsampling up, skip connections between the levels and self-attention at the coarsest
 one. The conditioning, summed into one embedding vector:
 - the DDPM timestep t (0..999) as a sinusoidal embedding through an MLP (as Stable Diffusion);
@@ -41,11 +41,18 @@ class UNetConfig:
     """Sinusoidal frequencies 1..F of azimuth and elevation (fovy: a normalised scalar and its sine)."""
     groups: int = 8
     """GroupNorm groups."""
+    prediction: str = "v"
+    """What the network predicts: 'v' (v = sqrt(abar) eps - sqrt(1 - abar) x0, Stable Diffusion 2's
+    choice) or 'epsilon'; the prior converts either to epsilon."""
 
     def __post_init__(self) -> None:
         m = self.patch * 2 ** (len(self.widths) - 1)
         if self.patch < 1 or self.size % m:
             raise ValueError(f"size: expected a multiple of patch * 2^(levels - 1) = {m}, got {self.size}")
+        if self.prediction not in ("v", "epsilon"):
+            raise ValueError(f"prediction: expected 'v' or 'epsilon', got {self.prediction!r}")
+        if self.emb % 2:
+            raise ValueError(f"emb: expected an even width (sine and cosine halves), got {self.emb}")
         if any(w % self.groups for w in self.widths):
             raise ValueError(f"widths: expected multiples of groups={self.groups}, got {self.widths}")
 
@@ -165,7 +172,8 @@ class UNet(nn.Module):
         return e + cam
 
     def forward(self, x: Tensor, emb: Tensor) -> Tensor:
-        """epsilon [B, C, H, W] for DDPM inputs x [B, C, H, W] under embeddings ``emb`` [B, E]."""
+        """The prediction (``config.prediction``) [B, C, H, W] for DDPM inputs x [B, C, H, W] under
+        embeddings ``emb`` [B, E]."""
         p = self.config.patch
         h = self.conv_in(F.pixel_unshuffle(x, p) if p > 1 else x)
         skips = []
