@@ -104,6 +104,7 @@ def load_model(model: str | Path, device: torch.device | str = "cpu"):
     cfg = json.loads(meta["unet"])
     cfg["widths"] = tuple(cfg["widths"])
     cfg.setdefault("prediction", "epsilon")  # models written before v prediction
+    cfg.setdefault("coords", False)  # ... and before coordinates
     net = UNet(UNetConfig(**cfg))
     net.load_state_dict({k: v.float() for k, v in load_file(str(path)).items()})
     return net.to(device).eval().requires_grad_(False), meta

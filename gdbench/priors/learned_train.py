@@ -9,11 +9,11 @@ the 1000 ticks of SD's scaled-linear schedule and eps ~ N(0, I),
 (or |eps_theta - eps|^2 with ``unet.prediction = 'epsilon'``). Why v: in x0's terms the epsilon
 loss weighs a noise level by its signal-to-noise ratio, so at high noise, where only the
 conditions say what the image is, it hardly rewards learning them: measured on an epsilon model
-after 5000 steps, giving the right camera, none or the opposite one changed its loss at t >= 700
+after 4500 steps, giving the right camera, none or the opposite one changed its loss at t >= 700
 by 3% and its x0 estimates at sigma 2-10 by under 0.1 dB (the model ignored the camera). The v
 loss weighs x0's error by 1 / (1 - abar): about 1 at high noise.
 
-with the conditions c (caption, variant, camera) each replaced by its null embedding at its own
+The conditions c (caption, variant, camera) are each replaced by their null embedding at their own
 rate, so one network gives the conditional and the unconditional predictions classifier-free
 guidance needs, and the caption-only prediction of "view prompting none". Views are drawn with
 probability proportional to exp(kappa cos azimuth) (``front_bias``; 0 is uniform). AdamW with a

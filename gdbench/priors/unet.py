@@ -41,6 +41,11 @@ class UNetConfig:
     """Sinusoidal frequencies 1..F of azimuth and elevation (fovy: a normalised scalar and its sine)."""
     groups: int = 8
     """GroupNorm groups."""
+    coords: bool = True
+    """Give the network where each pixel is: x, y coordinate channels at the input and a learned
+    embedding of the coarsest level's positions (without them a convolutional net knows position
+    only through its zero padding, and global conditions such as the camera, which must move the
+    object's parts around the image, were learned slowly: docs/learned_prior.md)."""
     prediction: str = "v"
     """What the network predicts: 'v' (v = sqrt(abar) eps - sqrt(1 - abar) x0, Stable Diffusion 2's
     choice) or 'epsilon'; the prior converts either to epsilon."""
@@ -126,7 +131,9 @@ class UNet(nn.Module):
         self.variant_emb = nn.Embedding(c.variants + 1, E)
         self.cam_mlp = nn.Sequential(nn.Linear(4 * c.camera_frequencies + 2, E), nn.SiLU(), nn.Linear(E, E))
         self.cam_null = nn.Parameter(torch.zeros(E))
-        self.conv_in = nn.Conv2d(c.channels * c.patch**2, W[0], 3, padding=1)
+        self.conv_in = nn.Conv2d(c.channels * c.patch**2 + (2 if c.coords else 0), W[0], 3, padding=1)
+        coarse = c.size // (c.patch * 2 ** (len(W) - 1))
+        self.pos = nn.Parameter(torch.zeros(1, W[-1], coarse, coarse)) if c.coords else None
         self.down = nn.ModuleList()
         self.downsample = nn.ModuleList()
         prev = W[0]
@@ -175,13 +182,21 @@ class UNet(nn.Module):
         """The prediction (``config.prediction``) [B, C, H, W] for DDPM inputs x [B, C, H, W] under
         embeddings ``emb`` [B, E]."""
         p = self.config.patch
-        h = self.conv_in(F.pixel_unshuffle(x, p) if p > 1 else x)
+        h = F.pixel_unshuffle(x, p) if p > 1 else x
+        if self.config.coords:
+            n = h.shape[-1]
+            r = (torch.arange(n, device=x.device, dtype=x.dtype) + 0.5) / n * 2 - 1
+            yy, xx = torch.meshgrid(r, r, indexing="ij")
+            h = torch.cat([h, torch.stack([xx, yy]).expand(h.shape[0], -1, -1, -1)], 1)
+        h = self.conv_in(h)
         skips = []
         for i, block in enumerate(self.down):
             h = block(h, emb)
             skips.append(h)
             if i < len(self.downsample):
                 h = self.downsample[i](h)
+        if self.pos is not None:
+            h = h + self.pos
         h = self.mid2(self.mid_attn(self.mid1(h, emb)), emb)
         for i, block in enumerate(self.up):
             h = block(torch.cat([h, skips.pop()], 1), emb)
