@@ -134,6 +134,16 @@ def cell_config(spec: CellSpec):
     )
 
 
+def prior_name(cfg) -> str:
+    """The prior of a config as a table names it: 'empirical', 'sd', or 'learned:<model>' (the
+    shipped model 'auto' resolves to, or the model's path)."""
+    if cfg.prior != "learned":
+        return cfg.prior
+    from .priors.learned import model_for_front_bias
+
+    return "learned:" + (model_for_front_bias(cfg.front_bias) if cfg.learned_model == "auto" else cfg.learned_model)
+
+
 def setting_overrides(setting: str, prior: str | None) -> dict:
     """The overrides of an ambiguity setting for a prior ('empirical' when None)."""
     return SETTINGS[setting] | (LEARNED_SETTINGS.get(setting, {}) if prior == "learned" else {})
@@ -180,6 +190,7 @@ def run_cell(spec: CellSpec) -> dict:
         "preset": spec.preset,
         "seed": spec.seed,
         "variants": cfg.variants,
+        "prior": prior_name(cfg),
         "iterations": r.state.step,
         "train_time_s": train_s,
         "gaussians": scores["gaussians"],

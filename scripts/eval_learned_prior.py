@@ -4,6 +4,7 @@
         --runs runs/prior-uniform runs/prior-front
 
 Writes, with the code commit in every file: loss.csv summary (where each curve flattens),
+camera.csv (the estimates' PSNR with the right camera and with its azimuth turned 90 and 180 deg),
 denoising_error.csv (the model against the exact posterior mean of its training views, per
 noise level), off_grid.csv (learned vs the runtime empirical prior between the bank's cameras),
 samples.csv (DDIM samples matched to ground-truth renders), mechanism.csv (structured vs
@@ -172,9 +173,10 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("docs/results/learned_prior"))
     p.add_argument("--figures", type=Path, default=Path("docs/figures"))
     p.add_argument("--quick", action="store_true", help="fewer queries and draws (a smoke run)")
-    p.add_argument("--only", nargs="*", default=[], help="parts to run: loss denoising off_grid samples mechanism")
+    parts_help = "parts to run: loss camera denoising off_grid samples mechanism (default: all)"
+    p.add_argument("--only", nargs="*", default=[], help=parts_help)
     a = p.parse_args(argv)
-    parts = set(a.only) or {"loss", "denoising", "off_grid", "samples", "mechanism"}
+    parts = set(a.only) or {"loss", "camera", "denoising", "off_grid", "samples", "mechanism"}
     torch.manual_seed(0)
     commit = code_commit()
     a.out.mkdir(parents=True, exist_ok=True)
@@ -192,6 +194,21 @@ def main(argv=None) -> int:
         runs = {r.name.replace("prior-", ""): r for r in a.runs}
         summary["loss"] = {k: flattening(r / "loss.csv") for k, r in runs.items()}
         plot_losses(runs, a.figures / "learned_prior_loss.png")
+
+    if "camera" in parts:
+        from gdbench.priors.learned_eval import camera_sensitivity
+
+        rows = []
+        for name, m in models.items():
+            prior = LearnedPrior(m, guidance_scale=1.0, view_mode="window")
+            rows += [{"model": name, **r} for r in camera_sensitivity(prior, list(prior.captions))]
+        write_csv(a.out / "camera.csv", rows, commit)
+        summary["camera"] = {
+            f"{m} sigma {s:g}": {f"offset {o:g}": float(np.mean([r["psnr"] for r in rows if r["model"] == m
+                                 and r["sigma"] == s and r["offset_deg"] == o])) for o in (0.0, 90.0, 180.0)}
+            for m in models for s in (2.0, 5.0, 10.0)
+        }  # fmt: skip
+        print(f"camera done ({time.perf_counter() - t0:.0f} s)")
 
     if "denoising" in parts:
         data = load_dataset()
