@@ -374,3 +374,21 @@ def test_v_prediction_converts_to_the_noise():
     a = sd_abar()[b["t"]].float()[:, None, None, None]
     x0_b = (b["x_t"] - (1 - a).sqrt() * (a.sqrt() * b["target"] + (1 - a).sqrt() * b["x_t"])) / a.sqrt()
     assert max(float((x0_b[i] - images).abs().flatten(1).amax(1).min()) for i in range(16)) < 1e-3
+
+
+# ----------------------------------------------------------------------------- the shipped models
+def test_shipped_models_load():
+    """Both shipped models load on a clean checkout with their provenance, are small, and know their
+    conditions: the same noisy input denoised as two captions gives two different images."""
+    from gdbench.priors.learned import SHIPPED, WEIGHTS, LearnedPrior
+
+    total = sum((WEIGHTS / f"{name}.safetensors").stat().st_size for name in SHIPPED)
+    assert total < 20e6
+    for name, kappa in SHIPPED.items():
+        prior = LearnedPrior(name, guidance_scale=1.0)
+        assert prior.front_bias == kappa
+        assert len(prior.meta["commit"]) >= 7 and int(prior.meta["steps"]) >= 1000
+        x = torch.zeros(1, 32, 32, 3)
+        a = prior.denoise(x, torch.tensor([5.0]), prior.encode("a yellow duck"))
+        b = prior.denoise(x, torch.tensor([5.0]), prior.encode("a lego figure"))
+        assert float((a - b).abs().mean()) > 0.05
