@@ -136,14 +136,20 @@ def plot_samples(grids: dict[str, torch.Tensor], captions, views, out: Path) -> 
 def plot_mechanism(summary: list[dict], out: Path) -> None:
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 0.35 * len(summary) + 1.2))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 0.35 * len(summary) + 1.4), sharey=True)
     y = np.arange(len(summary))
-    r = np.array([s["ratio"] for s in summary])
-    err = np.array([[s["ratio"] - s["lo"], s["hi"] - s["ratio"]] for s in summary]).T
-    ax.errorbar(r, y, xerr=err, fmt="o")
-    ax.axvline(1.0, color="grey", lw=1)
-    ax.set_yticks(y, [f"{s['prior']}, sigma {s['sigma']:g}, ratio {s['noise_ratio']:g}" for s in summary], fontsize=7)
-    ax.set_xlabel("MSE between the two views' predictions (warped): structured / independent noise (95% CI)")
+    for ax, (k, lo, hi, ref, label) in zip(axes, (
+        ("ratio", "lo", "hi", 1.0, "MSE between the views' estimates (warped):\nstructured / independent noise"),
+        ("corr_diff", "corr_lo", "corr_hi", 0.0, "correlation of the views' departures from the truth:\n"
+         "structured - independent"),
+    )):  # fmt: skip
+        v = np.array([s[k] for s in summary])
+        err = np.array([[s[k] - s[lo], s[hi] - s[k]] for s in summary]).T
+        ax.errorbar(v, y, xerr=err, fmt="o")
+        ax.axvline(ref, color="grey", lw=1)
+        ax.set_xlabel(label + " (95% CI)", fontsize=8)
+    axes[0].set_yticks(y, [f"{s['prior']}, sigma {s['sigma']:g}, ratio {s['noise_ratio']:g}" for s in summary],
+                       fontsize=7)  # fmt: skip
     fig.tight_layout()
     fig.savefig(out, dpi=120)
     plt.close(fig)

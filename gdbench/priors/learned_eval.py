@@ -219,8 +219,10 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
     noise from one cloud (mixed with iid noise as the trainer mixes it, ``noise.mix`` with the
     default ratio mode: 1 = pure structured noise; the trainer's schedule starts at 0.3), denoise
     both views, warp view B's prediction into view A with the asset's depth and take
-    the MSE to A's prediction over the pixels both views see. One row per (caption, sigma, ratio,
-    draw) with both noises' MSE (the same draw of everything else: a paired comparison)."""
+    the MSE to A's prediction over the pixels both views see, and the correlation of the two
+    predictions' departures from the truth (view B's warped likewise): whether what the noise made
+    in one view is made in the other. One row per (caption, sigma, ratio, draw) with both noises'
+    values (the same draw of everything else: a paired comparison)."""
     from ..noise import NoiseConfig, NoiseRenderer, init_colors, make_noise_cloud, mix
 
     g = torch.Generator().manual_seed(seed)
@@ -245,18 +247,31 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
                                           fovy=torch.full((2,), 55.0))  # fmt: skip
                         wb, valid = warp(D[1], z[0], cams[0], cams[1], z[1])
                         out[name] = float(((D[0] - wb) ** 2)[valid].mean())
+                        # how alike the two views' departures from the truth are (what the noise made)
+                        da, db = (D[0] - x0[0])[valid], (wb - warp(x0[1], z[0], cams[0], cams[1], z[1])[0])[valid]
+                        da, db = da - da.mean(), db - db.mean()
+                        out[f"{name}_corr"] = float((da * db).sum() / (da.norm() * db.norm()).clamp_min(1e-12))
                         out["pixels"] = int(valid.sum())
                     rows.append({"caption": caption, "sigma": s, "ratio": ratio, "draw": d, **out})
     return rows
 
 
 def paired_ratio(rows: list[dict], *, seed: int = 0, boot: int = 2000) -> dict:
-    """Mean of structured / independent MSE over the rows, with a 95% bootstrap interval."""
-    r = np.array([x["structured"] / x["independent"] for x in rows])
+    """Mean of structured / independent MSE over the rows, and the mean paired difference of the
+    departures' correlation (structured - independent), each with a 95% bootstrap interval."""
     rng = np.random.default_rng(seed)
-    means = rng.choice(r, (boot, len(r))).mean(1)
-    lo, hi = np.quantile(means, [0.025, 0.975])
-    return {"ratio": float(r.mean()), "lo": float(lo), "hi": float(hi), "n": len(r)}
+
+    def interval(v: np.ndarray) -> tuple[float, float, float]:
+        means = v[rng.integers(0, len(v), (boot, len(v)))].mean(1)
+        lo, hi = np.quantile(means, [0.025, 0.975])
+        return float(v.mean()), float(lo), float(hi)
+
+    r = interval(np.array([x["structured"] / x["independent"] for x in rows]))
+    c = interval(np.array([x["structured_corr"] - x["independent_corr"] for x in rows]))
+    mean = lambda k: float(np.mean([x[k] for x in rows]))  # noqa: E731
+    return {"ratio": r[0], "lo": r[1], "hi": r[2], "corr_independent": mean("independent_corr"),
+            "corr_structured": mean("structured_corr"), "corr_diff": c[0], "corr_lo": c[1], "corr_hi": c[2],
+            "n": len(rows)}  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- the camera
