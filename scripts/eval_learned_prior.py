@@ -148,7 +148,8 @@ def plot_mechanism(summary: list[dict], out: Path) -> None:
         ax.errorbar(v, y, xerr=err, fmt="o")
         ax.axvline(ref, color="grey", lw=1)
         ax.set_xlabel(label + " (95% CI)", fontsize=8)
-    axes[0].set_yticks(y, [f"{s['prior']}, sigma {s['sigma']:g}, ratio {s['noise_ratio']:g}" for s in summary],
+    axes[0].set_yticks(y, [f"{s['prior']}, {s['separation']:g} deg, sigma {s['sigma']:g}, ratio {s['noise_ratio']:g}"
+                           for s in summary],
                        fontsize=7)  # fmt: skip
     fig.tight_layout()
     fig.savefig(out, dpi=120)
@@ -178,6 +179,8 @@ def main(argv=None) -> int:
     p.add_argument("--runs", nargs="*", default=[], type=Path, help="train-prior run folders (their loss.csv)")
     p.add_argument("--out", type=Path, default=Path("docs/results/learned_prior"))
     p.add_argument("--figures", type=Path, default=Path("docs/figures"))
+    p.add_argument("--separations", nargs="*", type=float, default=[30.0, 5.0],
+                   help="azimuth separations (deg) of the mechanism's view pairs")  # fmt: skip
     p.add_argument("--quick", action="store_true", help="fewer queries and draws (a smoke run)")
     parts_help = "parts to run: loss camera denoising off_grid samples mechanism (default: all)"
     p.add_argument("--only", nargs="*", default=[], help=parts_help)
@@ -288,12 +291,15 @@ def main(argv=None) -> int:
         }
         rows, summ = [], []
         for name, prior in priors.items():
-            r = mechanism(prior, captions, draws=16 // q)
-            rows += [{"prior": name, **x} for x in r]
-            for s in sorted({x["sigma"] for x in r}):
-                for ratio in sorted({x["ratio"] for x in r}):
-                    sel = [x for x in r if x["sigma"] == s and x["ratio"] == ratio]
-                    summ.append({"prior": name, "sigma": s, "noise_ratio": ratio, **paired_ratio(sel)})
+            for sep in a.separations:
+                r = mechanism(prior, captions, draws=16 // q, separation=sep)
+                rows += [{"prior": name, **x} for x in r]
+                for s in sorted({x["sigma"] for x in r}):
+                    for ratio in sorted({x["ratio"] for x in r}):
+                        sel = [x for x in r if x["sigma"] == s and x["ratio"] == ratio]
+                        noise = float(np.mean([x["noise_corr"] for x in sel]))
+                        summ.append({"prior": name, "separation": sep, "sigma": s, "noise_ratio": ratio,
+                                     "noise_corr": noise, **paired_ratio(sel)})  # fmt: skip
         write_csv(a.out / "mechanism.csv", rows, commit)
         summary["mechanism"] = summ
         plot_mechanism(summ, a.figures / "learned_prior_mechanism.png")

@@ -240,7 +240,7 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
                     n_s = NoiseRenderer(cloud, cache_size=0).render(colors, cams, generator=g).noise
                     iid = torch.randn((2, *x0.shape[1:]), generator=g)
                     n_b = mix(n_s, ratio, generator=g, mode=NoiseConfig().ratio_mode)
-                    out = {}
+                    out = {"noise_corr": _warped_corr(n_b, z, cams)}
                     for name, n in (("independent", iid), ("structured", n_b)):
                         y = x0 + s * n
                         D = prior.denoise(y, torch.full((2,), s), cond, azimuth=az, elevation=torch.full((2,), 15.0),
@@ -252,8 +252,18 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
                         da, db = da - da.mean(), db - db.mean()
                         out[f"{name}_corr"] = float((da * db).sum() / (da.norm() * db.norm()).clamp_min(1e-12))
                         out["pixels"] = int(valid.sum())
-                    rows.append({"caption": caption, "sigma": s, "ratio": ratio, "draw": d, **out})
+                    rows.append({"caption": caption, "separation": separation, "sigma": s, "ratio": ratio, "draw": d,
+                                 **out})  # fmt: skip
     return rows
+
+
+def _warped_corr(n: Tensor, z: Tensor, cams) -> float:
+    """Correlation of view A's field with view B's warped into A over the pixels both see: how much
+    of the noise reaches both views at the same surface point (iid noise: 0)."""
+    wb, valid = warp(n[1], z[0], cams[0], cams[1], z[1])
+    a, b = n[0][valid], wb[valid]
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-12))
 
 
 def paired_ratio(rows: list[dict], *, seed: int = 0, boot: int = 2000) -> dict:
