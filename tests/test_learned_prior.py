@@ -418,3 +418,18 @@ def test_denoising_error_against_the_exact_posterior_mean():
     err = float(((learned - exact) ** 2).mean())
     assert spread > 0.02  # the noise level leaves the view uncertain: the comparison means something
     assert err < 0.25 * spread, (err, spread)
+
+
+def test_train_prior_command(tmp_path, capsys):
+    """`gdbench train-prior` trains, writes its run folder, and its model serves `--prior learned`."""
+    from gdbench.cli import TrainPrior, main
+    from gdbench.priors.learned import LearnedPrior
+
+    out = main(TrainPrior(out=tmp_path / "p", steps=4, batch=4, size=16, views=2, resolution=32, threads=1,
+                          progress=False))  # fmt: skip
+    assert out["steps"] == 4
+    for name in ("config.json", "checkpoint.pt", "loss.csv", "loss.png", "model.safetensors"):
+        assert (tmp_path / "p" / name).is_file(), name
+    prior = LearnedPrior(tmp_path / "p", resolution=32)
+    assert prior.size == 16 and prior.factor == 2
+    assert "trained 4 steps" in capsys.readouterr().out
