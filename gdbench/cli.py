@@ -360,7 +360,7 @@ class TrainPrior:
     front_bias: float = 0.0
     """kappa: training views drawn with probability ~ exp(kappa cos azimuth) (the shipped 'front'
     model: 2)."""
-    steps: int = 10000
+    steps: int = 8000
     batch: int = 32
     lr: float = 6e-4
     """Peak learning rate (AdamW; warm-up, then cosine decay to a tenth)."""

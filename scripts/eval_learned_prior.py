@@ -63,7 +63,7 @@ def plot_losses(runs: dict[str, Path], out: Path) -> None:
         k = max(1, len(v) // 20)
         ax.plot(s, v, lw=0.5, alpha=0.35)
         ax.plot(s[k - 1 :], np.convolve(v, np.ones(k) / k, mode="valid"), lw=1.6, label=f"{name} (running mean)")
-    ax.set(xlabel="step (batch 32)", ylabel="epsilon MSE", yscale="log", title="learned prior: training loss")
+    ax.set(xlabel="step (batch 32)", ylabel="loss (v MSE)", yscale="log", title="learned prior: training loss")
     ax.legend()
     fig.tight_layout()
     fig.savefig(out, dpi=120)

@@ -79,7 +79,10 @@ def random_cloud(n: int, *, seed: int = 0, radius: float = 0.5, dtype=torch.floa
 
 
 def environment() -> dict[str, object]:
+    from ..provenance import code_commit
+
     return {
+        "commit": code_commit(),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),

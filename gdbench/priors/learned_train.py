@@ -355,7 +355,7 @@ def plot_loss(log: list[dict], path: Path, title: str = "") -> None:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.plot(steps, loss, lw=0.6, alpha=0.5, label="loss per interval")
     ax.plot(steps[k - 1 :], smooth, lw=1.5, label=f"running mean ({k} intervals)")
-    ax.set(xlabel="step", ylabel="epsilon MSE", yscale="log", title=f"learned prior {title}".strip())
+    ax.set(xlabel="step", ylabel="loss (v MSE)", yscale="log", title=f"learned prior {title}".strip())
     ax.legend()
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
