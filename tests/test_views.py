@@ -225,3 +225,18 @@ def test_score_views_names_bad_input():
         score_views(broken, torch.ones(36, 8, 8), ref)
     with pytest.raises(ValueError, match="variants: expected at least 1"):
         reference(CAPTION, variants=0)
+
+
+def test_gt_psnr_and_ssim_closed_forms():
+    """PSNR of images a constant 0.1 apart is 20 dB; SSIM of two constant images a, b is
+    (2ab + C1) / (a^2 + b^2 + C1) with C1 = (0.01)^2 (the variance terms cancel), which tells the
+    squared constants from unsquared ones (0.6001 against 0.6098 here)."""
+    from gdbench.metrics.gt import psnr, ssim
+
+    a = torch.full((2, 24, 24, 3), 0.2)
+    b = torch.full((2, 24, 24, 3), 0.6)
+    torch.testing.assert_close(psnr(a, a + 0.1), torch.full((2,), 20.0), rtol=0, atol=1e-4)
+    c1 = 0.01**2
+    want = (2 * 0.2 * 0.6 + c1) / (0.2**2 + 0.6**2 + c1)
+    torch.testing.assert_close(ssim(a, b), torch.full((2,), want), rtol=0, atol=1e-6)
+    torch.testing.assert_close(ssim(b, b), torch.ones(2), rtol=0, atol=1e-6)
