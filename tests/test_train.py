@@ -2,6 +2,7 @@
 stiff cases. The slow-marked quality test runs the real duck."""
 
 import dataclasses
+import itertools
 import math
 
 import pytest
@@ -475,3 +476,38 @@ def test_sigma_draws_are_the_ticks_in_the_annealed_range(prior):
     ctx = make_context(tiny("gd", sigma_min=float(s[3] + s[4]) / 2, sigma_max=float(s[3] + s[4]) / 2 + 1e-9), prior)
     want = float(s[torch.argmin((s - ctx.cfg.sigma_min).abs())])
     assert sample_sigma(ctx, 0, g) == (want, 1.0)
+
+
+# -------------------------------------------------------------------- the mechanisms as wired
+@pytest.mark.parametrize("redraw", ["run", "ou", "step"])
+def test_train_step_redraws_the_noise_colours_as_configured(prior, redraw):
+    """What reaches the noise renderer, captured by wrapping it: with redraw 'run' every step
+    renders the initial draw of the colours (drawn here on its own from the seed's stream); with
+    'ou' (beta 0.2) successive steps' colours correlate sqrt(1 - beta); with 'step' they do not."""
+    from gdbench.noise import init_colors
+    from gdbench.train.streams import make_streams
+
+    cfg = tiny("gd", noise=NoiseConfig(n_gaussians=400, scale=0.05, redraw=redraw, ou_beta=0.2), steps=6)
+    ctx = make_context(cfg, prior)
+    seen = []
+    render = ctx.noise.render
+
+    def capture(colors, cams, *, generator):
+        seen.append(colors.detach().clone())
+        return render(colors, cams, generator=generator)
+
+    ctx.noise.render = capture
+    state = init_state(ctx)
+    for _ in range(5):
+        train_step(state, ctx)
+    assert len(seen) == 5
+    first = init_colors(ctx.noise.cloud, generator=make_streams(cfg.seed)["noise_colors"]).colors
+    n = first.numel()
+    corr = [float(torch.corrcoef(torch.stack([a.flatten(), b.flatten()]))[0, 1]) for a, b in itertools.pairwise(seen)]
+    if redraw == "run":
+        assert all(torch.equal(c, first) for c in seen)
+    elif redraw == "ou":
+        assert torch.equal(seen[0], first)
+        assert all(abs(r - math.sqrt(0.8)) < 5 * 0.2 / math.sqrt(n) + 0.01 for r in corr), corr
+    else:
+        assert all(abs(r) < 5 / math.sqrt(n) for r in corr), corr
