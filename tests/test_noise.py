@@ -152,17 +152,20 @@ def test_spatial_autocorrelation_length_matches_theory():
     assert abs(emp - theory) < 0.15 * theory + 0.1
 
 
+@pytest.mark.parametrize("mode", ["amplitude", "variance"])
 @pytest.mark.parametrize("ratio", [0.0, 0.05, 0.3, 0.7, 1.0])
-def test_mixing_keeps_unit_variance(ratio):
+def test_mixing_keeps_unit_variance(ratio, mode):
     K = 4000
     out = _draws(_cloud(K), _cams())
-    n = mix(out.noise, ratio, generator=torch.Generator().manual_seed(9))
+    n = mix(out.noise, ratio, generator=torch.Generator().manual_seed(9), mode=mode)
     s = n[0, 16, 16].double()
     lo, hi = stats.chi2.ppf([1e-4, 1 - 1e-4], K - 1) / (K - 1)
     assert lo < float(s.var()) < hi
-    # and the structured part is still there in the right amount: corr(n, n_s) = r
+    # and the structured part is still there in the right amount: corr(n, n_s) = r read as an
+    # amplitude, sqrt(r) read as a share of the variance (the trainer's default)
     c = float(torch.corrcoef(torch.stack([s, out.noise[0, 16, 16].double()]))[0, 1])
-    assert abs(c - ratio) < 5 / math.sqrt(K)
+    want = ratio if mode == "amplitude" else math.sqrt(ratio)
+    assert abs(c - want) < 5 / math.sqrt(K)
 
 
 @pytest.mark.parametrize(("redraw", "beta"), [("ou", 0.1), ("ou", 0.5), ("step", 0.1), ("run", 0.1)])
