@@ -66,3 +66,12 @@ def ve_sigmas_from_betas(beta_start: float = 0.00085, beta_end: float = 0.012, s
     DDPM schedule (as SJC converts them), ascending; about 0.029 to 14.6."""
     abar = sd_abar(beta_start, beta_end, steps)
     return torch.sqrt((1 - abar) / abar)
+
+
+def nearest_tick(sigmas: Tensor, sigma) -> Tensor:
+    """Index [B] (long) of the tick of ``sigmas`` nearest to each sigma, in log sigma; ValueError
+    for a sigma that is not positive and finite."""
+    s = torch.as_tensor(sigma, dtype=torch.float64).reshape(-1)
+    if bool((s <= 0).any()) or not bool(torch.isfinite(s).all()):
+        raise ValueError(f"sigma: expected positive finite noise levels, got {s.tolist()}")
+    return (s.log()[:, None] - sigmas.double().log()[None]).abs().argmin(1)

@@ -139,7 +139,6 @@ class LearnedPrior:
             )
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.unet, self.meta = load_model(model, self.device)
-        self.model = str(model)
         self.size = self.unet.config.size
         resolution = resolution or self.size
         if resolution % self.size:
@@ -213,10 +212,9 @@ class LearnedPrior:
 
     def timestep(self, sigma: Tensor) -> Tensor:
         """Index of the tick nearest to each sigma (in log sigma), [B] long."""
-        s = torch.as_tensor(sigma, dtype=torch.float64).reshape(-1)
-        if bool((s <= 0).any()) or not bool(torch.isfinite(s).all()):
-            raise ValueError(f"sigma: expected positive finite noise levels, got {s.tolist()}")
-        return (s.log()[:, None] - self.sigmas.double().log()[None]).abs().argmin(1)
+        from . import nearest_tick
+
+        return nearest_tick(self.sigmas, sigma)
 
     def camera(self, azimuth: Tensor | None, elevation: Tensor | None, fovy: Tensor | None, B: int) -> Tensor | None:
         """[B, 3] (azimuth, elevation, fovy) the model is conditioned on, or None (dropped)."""

@@ -102,9 +102,10 @@ def sharpness(img: Tensor) -> Tensor:
 
 
 def psnr(a: Tensor, b: Tensor) -> Tensor:
-    """PSNR [B] (dB) of images in [-1, 1] (peak 2)."""
-    mse = ((a - b) ** 2).flatten(1).mean(1)
-    return 10 * torch.log10(4.0 / mse.clamp_min(1e-12))
+    """PSNR [B] (dB) of images in [-1, 1] (peak 2): the GT scores' PSNR on [0, 1]."""
+    from ..metrics.gt import psnr as psnr01
+
+    return psnr01((a + 1) / 2, (b + 1) / 2)
 
 
 def off_grid(learned, empirical, captions: list[str], sigmas: list[float], *, seed: int = 0):
@@ -231,6 +232,7 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
         a0 = float(torch.rand(1, generator=g) * 360 - 180)
         az = torch.tensor([a0, a0 + separation])
         x0, z, cams = render_views(caption, az, 15.0, 55.0, depth=True)
+        clean_b = warp(x0[1], z[0], cams[0], cams[1], z[1])[0]  # view B's truth seen from A
         cond = prior.encode(caption)
         for s in sigmas:
             for ratio in ratios:
@@ -248,9 +250,7 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
                         wb, valid = warp(D[1], z[0], cams[0], cams[1], z[1])
                         out[name] = float(((D[0] - wb) ** 2)[valid].mean())
                         # how alike the two views' departures from the truth are (what the noise made)
-                        da, db = (D[0] - x0[0])[valid], (wb - warp(x0[1], z[0], cams[0], cams[1], z[1])[0])[valid]
-                        da, db = da - da.mean(), db - db.mean()
-                        out[f"{name}_corr"] = float((da * db).sum() / (da.norm() * db.norm()).clamp_min(1e-12))
+                        out[f"{name}_corr"] = _corr((D[0] - x0[0])[valid], (wb - clean_b)[valid])
                         out["pixels"] = int(valid.sum())
                     rows.append({"caption": caption, "separation": separation, "sigma": s, "ratio": ratio, "draw": d,
                                  **out})  # fmt: skip
@@ -261,7 +261,11 @@ def _warped_corr(n: Tensor, z: Tensor, cams) -> float:
     """Correlation of view A's field with view B's warped into A over the pixels both see: how much
     of the noise reaches both views at the same surface point (iid noise: 0)."""
     wb, valid = warp(n[1], z[0], cams[0], cams[1], z[1])
-    a, b = n[0][valid], wb[valid]
+    return _corr(n[0][valid], wb[valid])
+
+
+def _corr(a: Tensor, b: Tensor) -> float:
+    """Pearson correlation of two equally shaped sets of values."""
     a, b = a - a.mean(), b - b.mean()
     return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-12))
 

@@ -182,10 +182,9 @@ class StableDiffusionPrior:
     # ------------------------------------------------------------------ sigma <-> t
     def timestep(self, sigma: Tensor) -> Tensor:
         """Index of the scheduler tick nearest to each sigma (in log sigma), [B] long."""
-        s = torch.as_tensor(sigma, dtype=torch.float64).reshape(-1)
-        if bool((s <= 0).any()) or not bool(torch.isfinite(s).all()):
-            raise ValueError(f"sigma: expected positive finite noise levels, got {s.tolist()}")
-        return (s.log()[:, None] - self.sigmas.double().log()[None]).abs().argmin(1)
+        from . import nearest_tick
+
+        return nearest_tick(self.sigmas, sigma)
 
     # ------------------------------------------------------------------ the denoiser
     def _buckets(self, azimuth: Tensor | None, elevation: Tensor | None, B: int, V: int) -> Tensor:
