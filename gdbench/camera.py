@@ -241,6 +241,14 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
     return q if q[0] >= 0 else -q
 
 
+def _fold(x: Tensor, lo: float, hi: float) -> Tensor:
+    """``x`` reflected at ``lo`` and ``hi`` until it lies in [lo, hi] (a triangle wave)."""
+    if hi <= lo:
+        return torch.full_like(x, lo)
+    t = (x - lo) % (2 * (hi - lo))
+    return lo + torch.where(t > hi - lo, 2 * (hi - lo) - t, t)
+
+
 @dataclass(frozen=True)
 class SphericalPoses:
     """Cameras on spheres around the origin, described by angles (degrees) and radius."""
@@ -286,10 +294,17 @@ class SphericalPoses:
         fovy_range: tuple[float, float] = (40.0, 70.0),
         azimuth_range: tuple[float, float] = (-180.0, 180.0),
         elevation_range: tuple[float, float] = (-45.0, 45.0),
+        spread_deg: float | None = None,
     ) -> SphericalPoses:
-        """The paper's random training poses: each quantity uniform in its range."""
+        """The paper's random training poses: each quantity uniform in its range. With
+        ``spread_deg``, poses after the first keep their own radius and fov but sit within
+        +-``spread_deg`` of the first pose in azimuth and in elevation (uniform offsets, folded back
+        into the ranges): a batch of nearby views. The first pose, radii and fovs are the draws
+        ``spread_deg=None`` makes from the same generator."""
         if n < 1:
             raise ValueError(f"n: expected at least one pose, got {n}")
+        if spread_deg is not None and not 0 < spread_deg <= 180:
+            raise ValueError(f"spread_deg: expected degrees in (0, 180] or None, got {spread_deg}")
         r = (radius, radius) if isinstance(radius, (int, float)) else radius
         for name, (lo, hi) in (
             ("radius", r),
@@ -309,12 +324,20 @@ class SphericalPoses:
         def uniform(lo: float, hi: float) -> Tensor:
             return lo + (hi - lo) * torch.rand(n, generator=generator, dtype=torch.float64)
 
-        return cls(
+        poses = cls(
             azimuth=uniform(*azimuth_range),
             elevation=uniform(*elevation_range),
             radius=uniform(*r),
             fovy=uniform(*fovy_range),
         )
+        if spread_deg is None or n == 1:
+            return poses
+        off = spread_deg * (2 * torch.rand(2, n - 1, generator=generator, dtype=torch.float64) - 1)
+        lo, hi = azimuth_range
+        az = poses.azimuth[:1] + off[0]
+        az = (az - lo) % 360.0 + lo if hi - lo >= 360.0 else _fold(az, lo, hi)
+        el = _fold(poses.elevation[:1] + off[1], *elevation_range)
+        return cls(torch.cat([poses.azimuth[:1], az]), torch.cat([poses.elevation[:1], el]), poses.radius, poses.fovy)
 
     @classmethod
     def orbit(

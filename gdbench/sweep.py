@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -47,17 +48,18 @@ class CellSpec:
     colmap_views: int = 100
     overrides: dict = field(default_factory=dict)
     setting: str = "easy"
+    group: str = ""
+    """A named set of overrides the sweep crosses with everything else ('' when it has none)."""
 
     @property
     def dir(self) -> Path:
-        return Path(self.out) / "cells" / self.setting / cell_name(self.prompt) / self.preset / f"seed{self.seed}"
+        base = Path(self.out) / "cells" / self.group if self.group else Path(self.out) / "cells"
+        return base / self.setting / cell_name(self.prompt) / self.preset / f"seed{self.seed}"
 
 
 def cell_name(prompt: str) -> str:
     """A prompt as a folder name: lower-case letters, digits and '_' only, so no prompt can
     reach outside the sweep's folder ('../../a duck' -> 'a_duck')."""
-    import re
-
     name = re.sub(r"[^a-z0-9]+", "_", prompt.lower()).strip("_")
     if not name:
         raise ValueError(f"prompts: {prompt!r} has no letters or digits to name its cells by")
@@ -98,24 +100,29 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
         cell_config(spec)  # a bad override raises here, naming the setting
 
 
-def inert_overrides(specs: list[CellSpec], overrides: dict) -> list[str]:
-    """Options of the sweep that do nothing in some of its cells, one line each (naming the cells'
-    presets and settings); an option that does nothing in every cell raises ValueError."""
+def inert_overrides(specs: list[CellSpec]) -> list[str]:
+    """Options of the sweep (its overrides and its groups') that do nothing in some of the cells
+    given them, one line each (naming the cells' presets, groups and settings); an option that
+    does nothing in every cell given it raises ValueError."""
     from .train.options import inert_options
 
-    where: dict[str, list[tuple[str, str]]] = {}
+    given: dict[str, int] = {}
+    where: dict[str, list[tuple[str, str, str]]] = {}
     why: dict[str, str] = {}
     for spec in specs:
-        for line in inert_options(cell_config(spec), overrides):
-            opt = line.split()[0]
-            where.setdefault(opt, []).append((spec.preset, spec.setting))
-            why[opt] = line
+        cfg = cell_config(spec)
+        for key in spec.overrides:
+            given[key] = given.get(key, 0) + 1
+            for line in inert_options(cfg, [key]):
+                where.setdefault(key, []).append((spec.preset, spec.group, spec.setting))
+                why[key] = line
     lines = []
-    for opt, cells in where.items():
-        if len(cells) == len(specs):
-            raise ValueError(f"{why[opt]}, in every cell of the sweep: drop the option, or set the one it needs")
-        names = sorted({f"{p} ({s})" for p, s in cells})
-        lines.append(f"{opt} does nothing in {', '.join(names)}: it {why[opt].split(' ', 1)[1]}")
+    for key, cells in where.items():
+        if len(cells) == given[key]:
+            raise ValueError(f"{why[key]}, in every cell of the sweep: drop the option, or set the one it needs")
+        names = sorted({f"{p} ({f'{g} / ' if g else ''}{s})" for p, g, s in cells})
+        opt, rest = why[key].split(" ", 1)
+        lines.append(f"{opt} does nothing in {', '.join(names)}: it {rest}")
     return lines
 
 
@@ -185,12 +192,15 @@ def run_cell(spec: CellSpec) -> dict:
     views, gt = scores.get("views", {}), scores.get("gt", {})
     get = lambda block, key: num(block.get(key))  # noqa: E731  (null in a file: NaN)
     row = {
+        "group": spec.group,
         "setting": spec.setting,
         "prompt": spec.prompt,
         "preset": spec.preset,
         "seed": spec.seed,
         "variants": cfg.variants,
         "prior": prior_name(cfg),
+        "views_per_step": cfg.views_per_step,
+        "views_spread_deg": math.nan if cfg.views_spread_deg is None else cfg.views_spread_deg,
         "iterations": r.state.step,
         "train_time_s": train_s,
         "gaussians": scores["gaussians"],
@@ -200,6 +210,8 @@ def run_cell(spec: CellSpec) -> dict:
         "gt_psnr_unaligned": get(gt, "psnr_unaligned"),
         "multi_face_rate": get(views, "multi_face_rate"),
         "featureless_rate": get(views, "featureless_rate"),
+        # views with no face or a second one (disjoint: a featureless view is never multi-faced)
+        "janus_failure_rate": get(views, "featureless_rate") + get(views, "multi_face_rate"),
         "front_share": get(views, "front_share"),
         "instance_inconsistency": 1.0 - get(views, "instance_consistency"),
         "majority_variant": int(views.get("majority_variant", -1)),
@@ -253,12 +265,15 @@ def sweep(
     setting_presets: dict[str, list[str]] | None = None,
     colmap_presets: list[str] | None = None,
     colmap_settings: list[str] | None = None,
+    groups: dict[str, dict] | None = None,
 ) -> list[dict]:
-    """Train and score the grid settings x prompts x presets x seeds; returns the rows.
+    """Train and score the grid groups x settings x prompts x presets x seeds; returns the rows.
 
     ``setting_presets`` restricts the presets of a setting (default: all ``presets``);
     ``colmap_presets`` and ``colmap_settings`` restrict COLMAP scoring (default: every cell, when
-    ``colmap``)."""
+    ``colmap``). ``groups`` names sets of overrides applied on top of ``overrides`` (a factor the
+    ambiguity settings do not cover: the prior, views per step); each group's cells live in
+    ``out/cells/<group>/`` and claims pair within a group (default: one unnamed group)."""
     from .sweep_tables import tables
 
     out = Path(out)
@@ -267,6 +282,10 @@ def sweep(
     if bad or len(set(settings)) != len(settings):
         raise ValueError(f"settings: expected distinct names from {sorted(SETTINGS)}, got {settings}")
     per = {s: list((setting_presets or {}).get(s, presets)) for s in settings}
+    groups = dict(groups or {"": {}})
+    bad = [g for g in groups if not re.fullmatch(r"[a-z0-9][a-z0-9_.-]*", g)] if list(groups) != [""] else []
+    if bad or not groups:
+        raise ValueError(f"groups: expected names of lower-case letters, digits, '_', '-' and '.', got {bad}")
     for s, ps in per.items():
         if not set(ps) <= set(presets):
             raise ValueError(f"setting_presets: {s} lists presets outside --presets: {sorted(set(ps) - set(presets))}")
@@ -282,16 +301,18 @@ def sweep(
             and (colmap_presets is None or p in colmap_presets)
             and (colmap_settings is None or st in colmap_settings),
             colmap_views,
-            dict(overrides or {}),
+            dict(overrides or {}) | gov,
             st,
+            g,
         )
         for sd in seeds
+        for g, gov in groups.items()
         for st in settings
         for pr in prompts
         for p in per[st]
     ]
     validate_grid(prompts, presets, seeds, specs)
-    for line in inert_overrides(specs, overrides or {}):
+    for line in inert_overrides(specs):
         print(f"sweep: note: {line}", file=sys.stderr)
     rows: dict[int, dict] = {}
     todo = []
@@ -308,7 +329,8 @@ def sweep(
         tables([rows[k] for k in sorted(rows)], out)
         if progress:
             print(
-                f"  done {row['setting']} {row['prompt']!r} {row['preset']} seed {row['seed']}: "
+                f"  done {row['group'] + ' / ' if row['group'] else ''}{row['setting']} {row['prompt']!r} "
+                f"{row['preset']} seed {row['seed']}: "
                 f"PSNR {row['gt_psnr']:.2f}, multi-face {row['multi_face_rate']:.2f}, "
                 f"floaters {row['floaters']:.3f}, Var {row['var_theta_deg2']:.3g} ({row['cell_s']:.0f} s)"
             )

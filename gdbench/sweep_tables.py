@@ -21,6 +21,7 @@ COLUMNS = (
     ("gt_psnr", "GT PSNR dB", False),
     ("multi_face_rate", "multi-face rate", False),
     ("featureless_rate", "featureless rate", False),
+    ("janus_failure_rate", "Janus failure rate", False),
     ("instance_inconsistency", "instance inconsistency", False),
     ("floaters", "floaters", False),
     ("turned", "turned > 45 deg", False),
@@ -63,14 +64,15 @@ def _pretty(mean: float, std: float, n: int, cells: int) -> str:
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Per (setting, preset): numbers only, for a dataframe: ``<metric>_mean``, ``_std`` and
-    ``_n`` (the cells the metric could be measured on; NaN, written empty, where none), and the
-    median of the heavy-tailed ones."""
+    """Per (group, setting, preset): numbers only, for a dataframe: ``<metric>_mean``, ``_std``
+    and ``_n`` (the cells the metric could be measured on; NaN, written empty, where none), and
+    the median of the heavy-tailed ones."""
+    from .metrics.claims import where
+
     out = []
-    groups = list(dict.fromkeys((r.get("setting", "easy"), r["preset"]) for r in rows))
-    for setting, preset in groups:
-        sel = [r for r in rows if r.get("setting", "easy") == setting and r["preset"] == preset]
-        s = {"setting": setting, "preset": preset, "cells": len(sel)}
+    for (group, setting), preset in dict.fromkeys((where(r), r["preset"]) for r in rows):
+        sel = [r for r in rows if where(r) == (group, setting) and r["preset"] == preset]
+        s = {"group": group, "setting": setting, "preset": preset, "cells": len(sel)}
         for key, _, tailed in COLUMNS + (("iterations", "iterations", False),):
             vals = [r.get(key) for r in sel]
             s[f"{key}_mean"], s[f"{key}_std"], s[f"{key}_n"] = _mean_std(vals)
@@ -96,6 +98,11 @@ def commits(rows: list[dict]) -> str:
     return "; ".join(parts)
 
 
+def label(r: dict) -> str:
+    """Where a summary or verdict row belongs: its setting, after its group when it has one."""
+    return f"{r['group']} / {r['setting']}" if r.get("group") else r["setting"]
+
+
 def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None = None) -> str:
     head = ["setting", "preset", "cells"]
     for _key, name, tailed in COLUMNS:
@@ -103,7 +110,7 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
     md = [f"Cells {commits(rows)}.", ""] if rows else []
     md += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in summary:
-        cells = [s["setting"], s["preset"], str(s["cells"])]
+        cells = [label(s), s["preset"], str(s["cells"])]
         for key, _, tailed in COLUMNS:
             cells.append(_pretty(s[f"{key}_mean"], s[f"{key}_std"], s[f"{key}_n"], s["cells"]))
             if tailed:
@@ -120,7 +127,7 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
         p = f"{_fmt(v['p_value'])} ({_fmt(v['p_holm'])})"
         eq = f"{_fmt(v['p_equivalence'])} (+-{_fmt(v['margin'])})"
         md.append(
-            f"| {v['setting']} | {v['claim']} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
+            f"| {label(v)} | {v['claim']} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
             f"{_fmt(v['mean_a'])} | {_fmt(v['mean_b'])} | {ci} | {v['a_better_pairs']}/{v['pairs']} | {p} | {eq} | "
             f"{_fmt(v['pairs_for_80pct_power'])} | {v['verdict']} | "
             f"{_fmt(v['gaussians_a'])} / {_fmt(v['gaussians_b'])}{_size_note(v)} |"
@@ -129,7 +136,7 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
         md += ["", "Per prompt, the mean difference a - b (pairs):", "", "| setting | a vs b | metric | per prompt |"]
         md.append("|---|---|---|---|")
         for v in verdicts:
-            md.append(f"| {v['setting']} | {v['a']} vs {v['b']} | {v['metric']} | {v['by_prompt'] or 'n/a'} |")
+            md.append(f"| {label(v)} | {v['a']} vs {v['b']} | {v['metric']} | {v['by_prompt'] or 'n/a'} |")
     return "\n".join(md) + "\n"
 
 
@@ -154,20 +161,22 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
 
 
 def plot(rows: list[dict], path: Path) -> Path:
-    """Per setting (rows of panels) and metric (columns), every cell per preset (colour = prompt)."""
+    """Per group and setting (rows of panels) and metric (columns), every cell per preset (colour
+    = prompt)."""
+    from .metrics.claims import where
     from .plotting import pyplot, save
 
     plt = pyplot()
-    settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
+    settings = list(dict.fromkeys(where(r) for r in rows))
     prompts = list(dict.fromkeys(r["prompt"] for r in rows))
     panels = [c for c in COLUMNS if c[0] not in ("train_time_s", "gaussians")]
     fig, axes = plt.subplots(
         len(settings), len(panels), figsize=(2.6 * len(panels), 2.6 * len(settings)), squeeze=False
     )
     for si, setting in enumerate(settings):
-        sel = [r for r in rows if r.get("setting", "easy") == setting]
+        sel = [r for r in rows if where(r) == setting]
         presets = list(dict.fromkeys(r["preset"] for r in sel))
-        for ax, (key, label, log) in zip(axes[si], panels):
+        for ax, (key, name, log) in zip(axes[si], panels):
             for j, pr in enumerate(prompts):
                 pts = [
                     (i + 0.08 * (j - (len(prompts) - 1) / 2), float(r[key]))
@@ -180,7 +189,7 @@ def plot(rows: list[dict], path: Path) -> Path:
             meds = [_median([r.get(key) for r in sel if r["preset"] == p]) for p in presets]
             ax.scatter(range(len(presets)), meds, marker="_", s=300, color="k")
             ax.set_xticks(range(len(presets)), presets, rotation=35, fontsize=7)
-            ax.set_title(f"{setting}: {label}", fontsize=8)
+            ax.set_title(f"{label({'group': setting[0], 'setting': setting[1]})}: {name}", fontsize=8)
             vals = _finite([r.get(key) for r in sel])
             if not vals:
                 ax.text(0.5, 0.5, "not measured", transform=ax.transAxes, ha="center", color="0.5")
@@ -193,11 +202,13 @@ def plot(rows: list[dict], path: Path) -> Path:
 
 
 def turntable_grid(
-    out: Path, prompt: str | None, seed: int = 0, frames: int = 6, setting: str | None = None
-) -> Path | None:
+    out: Path, prompt: str | None, seed: int = 0, frames: int = 6, setting: str | None = None,
+    group: str | None = None,
+) -> Path | None:  # fmt: skip
     """One figure of turntables (``frames`` evenly spaced views from each cell's turntable.gif), a
-    row per cell of ``seed``: for ``prompt``, one per (setting, preset); with ``prompt`` None, one
-    per (prompt, preset) of ``setting``. None when no cell has one."""
+    row per cell of ``seed``: for ``prompt``, one per (group, setting, preset); with ``prompt``
+    None, one per (group, prompt, preset) of ``setting``; ``group`` keeps one group's cells. None
+    when no cell has one."""
     import imageio.v3 as iio
     import numpy as np
 
@@ -205,11 +216,20 @@ def turntable_grid(
     from .sweep import SETTINGS, cell_name
     from .train.config import PRESETS
 
-    order = lambda p: (p.parts[-4] if prompt is None else "",  # noqa: E731
-                       list(SETTINGS).index(p.parts[-5]) if p.parts[-5] in SETTINGS else 99,
-                       list(PRESETS).index(p.parts[-3]) if p.parts[-3] in PRESETS else 99)  # fmt: skip
-    pattern = f"*/{cell_name(prompt)}/*" if prompt is not None else f"{setting or '*'}/*/*"
-    cells = sorted((Path(out) / "cells").glob(f"{pattern}/seed{seed}/turntable.gif"), key=order)
+    def parts(gif: Path) -> tuple[str, str, str, str]:
+        """(group, setting, prompt folder, preset) of a cell's gif under out/cells."""
+        rel = gif.relative_to(Path(out) / "cells").parts  # [group/]setting/prompt/preset/seedK/turntable.gif
+        return ("" if len(rel) == 5 else rel[0], *rel[-5:-2])
+
+    def keep(gif: Path) -> bool:
+        g, st, pr, _ = parts(gif)
+        return ((group is None or g == group) and (prompt is None or pr == cell_name(prompt))
+                and (prompt is not None or setting is None or st == setting))  # fmt: skip
+
+    order = lambda p: (parts(p)[0], parts(p)[2] if prompt is None else "",  # noqa: E731
+                       list(SETTINGS).index(parts(p)[1]) if parts(p)[1] in SETTINGS else 99,
+                       list(PRESETS).index(parts(p)[3]) if parts(p)[3] in PRESETS else 99)  # fmt: skip
+    cells = sorted((g for g in (Path(out) / "cells").rglob(f"seed{seed}/turntable.gif") if keep(g)), key=order)
     if not cells:
         return None
     plt = pyplot()
@@ -218,13 +238,14 @@ def turntable_grid(
         video = iio.imread(gif)
         pick = np.linspace(0, len(video), frames, endpoint=False).astype(int)
         ax.imshow(np.concatenate([video[i][..., :3] for i in pick], 1))
-        setting_, preset = gif.parts[-5], gif.parts[-3]
-        label = f"{setting_}: {preset}" if prompt is not None else f"{gif.parts[-4].replace('_', ' ')}: {preset}"
-        ax.set_title(label, loc="left", fontsize=8, pad=2)
+        g, setting_, folder, preset = parts(gif)
+        text = f"{setting_}: {preset}" if prompt is not None else f"{folder.replace('_', ' ')}: {preset}"
+        ax.set_title(f"{g} / {text}" if g else text, loc="left", fontsize=8, pad=2)
         ax.set_xticks([])
         ax.set_yticks([])
+    tail = f"_{group}" if group else ""
     if prompt is not None:
         fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9)
-        return save(fig, Path(out) / f"turntables_{cell_name(prompt)}.png", dpi=90)
+        return save(fig, Path(out) / f"turntables_{cell_name(prompt)}{tail}.png", dpi=90)
     fig.suptitle(f"{setting or 'all settings'}, seed {seed}: turntables per prompt and preset", fontsize=9)
-    return save(fig, Path(out) / f"turntables_{setting or 'all'}.png", dpi=90)
+    return save(fig, Path(out) / f"turntables_{setting or 'all'}{tail}.png", dpi=90)

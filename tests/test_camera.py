@@ -102,6 +102,34 @@ def test_random_pose_sampler_ranges_uniformity_and_seed():
         SphericalPoses.sample(2, generator=g, fovy_range=(70, 40))
 
 
+def test_nearby_pose_batches_stay_within_the_spread_and_keep_uniform_marginals():
+    """spread_deg: poses after the first lie within +-spread of it in azimuth (circularly) and
+    elevation, fold back into the ranges without piling at their ends (a uniform anchor plus a
+    symmetric offset, reflected, is uniform again: KS test), and the first pose, radii and fovs
+    are the independent sampler's draws from the same seed."""
+    from scipy import stats
+
+    s, n = 20.0, 4
+    batches = [SphericalPoses.sample(n, generator=torch.Generator().manual_seed(k), spread_deg=s) for k in range(1500)]
+    free = [SphericalPoses.sample(n, generator=torch.Generator().manual_seed(k)) for k in range(3)]
+    for b, f in zip(batches, free):
+        assert float(b.azimuth[0]) == float(f.azimuth[0]) and float(b.elevation[0]) == float(f.elevation[0])
+        assert torch.equal(b.fovy, f.fovy) and torch.equal(b.radius, f.radius)
+    az = torch.stack([b.azimuth for b in batches])
+    el = torch.stack([b.elevation for b in batches])
+    daz = (az[:, 1:] - az[:, :1] + 180.0) % 360.0 - 180.0
+    assert float(daz.abs().max()) <= s + 1e-9 and float((el[:, 1:] - el[:, :1]).abs().max()) <= s + 1e-9
+    assert float(daz.abs().max()) > 0.9 * s  # the offsets fill the spread
+    assert float(az.min()) >= -180 and float(az.max()) <= 180 and float(el.abs().max()) <= 45
+    assert stats.kstest(el[:, 1:].flatten().numpy(), stats.uniform(-45, 90).cdf).pvalue > 1e-3
+    assert stats.kstest(az[:, 1:].flatten().numpy(), stats.uniform(-180, 360).cdf).pvalue > 1e-3
+    # a part-circle azimuth range folds back too
+    p = SphericalPoses.sample(6, generator=torch.Generator().manual_seed(0), azimuth_range=(-10, 10), spread_deg=90)
+    assert float(p.azimuth.abs().max()) <= 10
+    with pytest.raises(ValueError, match="spread_deg"):
+        SphericalPoses.sample(2, generator=torch.Generator(), spread_deg=0.0)
+
+
 def test_orbit_spacing():
     cams = SphericalPoses.orbit(100, radius=1.5, elevation=10.0).cameras(32, 32)
     c = cams.centers.double()

@@ -112,6 +112,39 @@ def test_sweep_rejects_bad_arguments(tmp_path):
         sweep([PROMPT], ["gd"], [0], out=tmp_path, executor="slurm", steps=1, colmap=False, progress=False)
 
 
+def test_groups_cross_the_grid_and_claims_pair_within_a_group(tiny_sweep, tmp_path, monkeypatch):
+    """groups: each named set of overrides runs every cell in its own folder with its overrides
+    (the views per step reach run.json and the row); a group whose overrides equal the plain
+    sweep's gives its cells bit for bit; claims pair cells of one group only; the Janus failure
+    rate is the featureless plus the multi-face rate (disjoint: featureless views never count a
+    second face)."""
+    from gdbench.metrics.claims import evaluate
+
+    _, plain = tiny_sweep
+    groups = {"v1": {}, "v2": {"views_per_step": 2, "views_spread_deg": 10.0}}
+    rows = sweep([PROMPT], ["gd", "gd-no-sn"], [0], steps=4, out=tmp_path, colmap=False, overrides=TINY,
+                 progress=False, groups=groups)  # fmt: skip
+    assert [(r["group"], r["preset"]) for r in rows] == [(g, p) for g in ("v1", "v2") for p in ("gd", "gd-no-sn")]
+    for r in rows:
+        spec = CellSpec(PROMPT, r["preset"], 0, 4, str(tmp_path), group=r["group"])
+        assert spec.dir.parts[-5] == r["group"] and (spec.dir / "cell.json").is_file()
+        run = json.loads((spec.dir / "run.json").read_text())
+        assert run["config"]["views_per_step"] == r["views_per_step"] == (2 if r["group"] == "v2" else 1)
+        assert r["janus_failure_rate"] == r["featureless_rate"] + r["multi_face_rate"]
+    assert rows[0]["gt_psnr"] == next(p["gt_psnr"] for p in plain if (p["preset"], p["seed"]) == ("gd", 0))
+    assert rows[2]["gt_psnr"] != rows[0]["gt_psnr"]  # two views per step: another run
+    # the verdict pairs within a group: v1's gd against v1's sjc-gs, v2's against v2's
+    verdicts = evaluate(rows)
+    assert {v["group"] for v in verdicts} == {"v1", "v2"}
+    faces = [v for v in verdicts if v["metric"] == "multi_face_rate"]  # (COLMAP's claims: not measured, 0 pairs)
+    assert len(faces) == 2 and all(v["pairs"] == 1 for v in faces)
+    assert "| v2 / easy | gd |" in (tmp_path / "summary.md").read_text()
+    with pytest.raises(ValueError, match="groups: expected names"):
+        sweep([PROMPT], ["gd"], [0], out=tmp_path, groups={"../x": {}}, colmap=False, progress=False)
+    with pytest.raises(ValueError, match="views-spread-deg acts only with --views-per-step 2 or more"):
+        sweep([PROMPT], ["gd"], [0], out=tmp_path, groups={"a": {"views_spread_deg": 5.0}}, colmap=False)
+
+
 def test_ray_executor_gives_the_local_rows(tiny_sweep, tmp_path):
     ray = pytest.importorskip("ray")
     _, rows = tiny_sweep
@@ -179,6 +212,11 @@ def test_claims_verdict_from_paired_tests():
     assert v["by_prompt"].startswith("a -0.15 (3); b -0.15 (3)")
     assert got["gd-no-vgs", "sjc-gs", "multi_face_rate"]["verdict"] == "undecided"
     assert got["gd", "gd-no-vgs", "floaters"]["verdict"] == "not measured"  # no floaters column
+    # the Janus failure (no face or a second one) is read only where view prompting is off
+    janus = [dict(r, janus_failure_rate=r["multi_face_rate"]) for r in rows]
+    assert not [v for v in evaluate([dict(r, setting="easy") for r in janus]) if v["metric"] == "janus_failure_rate"]
+    jv = [v for v in evaluate(janus) if v["metric"] == "janus_failure_rate"]
+    assert len(jv) == 1 and jv[0]["verdict"] == "holds" and jv[0]["pairs"] == 18
     flipped = [dict(r, multi_face_rate=-r["multi_face_rate"]) for r in rows]
     flipped_got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(flipped)}
     assert flipped_got["gd", "gd-no-sn", "multi_face_rate"]["verdict"] == "does not hold"
@@ -206,7 +244,7 @@ def test_claims_verdict_from_paired_tests():
     ]
     v = evaluate(ties)[0]
     assert v["nonzero_pairs"] == 3 and v["verdict"] == "too few non-tied pairs (k < 6)"
-    metrics = {"multi_face_rate", "instance_inconsistency", "floaters", "colmap_failure_rate"}
+    metrics = {"multi_face_rate", "janus_failure_rate", "instance_inconsistency", "floaters", "colmap_failure_rate"}
     assert {c.metric for c in CLAIMS} == metrics  # Var(theta): a selection of registered views, no verdict
 
 
@@ -344,15 +382,21 @@ def test_the_verdict_reports_each_arms_model_size_and_flags_a_2x_gap():
 def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():
     from gdbench.sweep import CellSpec, inert_overrides
 
-    def specs(presets):
-        return [CellSpec(PROMPT, p, 0, 10, "/tmp/never") for p in presets]
+    def specs(presets, overrides, group=""):
+        return [CellSpec(PROMPT, p, 0, 10, "/tmp/never", overrides=overrides, group=group) for p in presets]
 
-    lines = inert_overrides(specs(["gd", "sjc-gs", "sds-gs"]), {"vgs_gamma": 0.1})
+    lines = inert_overrides(specs(["gd", "sjc-gs", "sds-gs"], {"vgs_gamma": 0.1}))
     assert lines == ["--vgs-gamma does nothing in sds-gs (easy), sjc-gs (easy): it acts only with --vgs True "
                      "(this run has VGS off)"]  # fmt: skip
     with pytest.raises(ValueError, match=r"--vgs-gamma acts only with --vgs True .*in every cell of the sweep"):
-        inert_overrides(specs(["sjc-gs"]), {"vgs_gamma": 0.1})
-    assert inert_overrides(specs(["gd"]), {"vgs_gamma": 0.1}) == []
+        inert_overrides(specs(["sjc-gs"], {"vgs_gamma": 0.1}))
+    assert inert_overrides(specs(["gd"], {"vgs_gamma": 0.1})) == []
+    # a group's option is judged in the cells given it, and the note names the group
+    spread = {"views_per_step": 1, "views_spread_deg": 5.0}
+    mixed = specs(["gd"], {"views_per_step": 4, "views_spread_deg": 5.0}, "v4") + specs(["gd"], spread, "v1")
+    assert inert_overrides(mixed) == ["--views-spread-deg does nothing in gd (v1 / easy): it acts only with "
+                                      "--views-per-step 2 or more (this run: --views-per-step 1)"]  # fmt: skip
+    assert inert_overrides(specs(["gd"], {})) == []
 
 
 # ------------------------------------------------------------ provenance and strict files
@@ -627,3 +671,37 @@ def test_holm_family_holds_only_the_claims_a_test_decides():
     assert untested["verdict"] == "not testable here (neither preset fails)"
     assert untested["p_holm"] != untested["p_holm"]  # NaN: no hypothesis tested
     assert tested["p_holm"] == pytest.approx(tested["p_value"]) and tested["verdict"] == "holds"
+
+
+def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeypatch):
+    """scripts/decisive.py: two blocks in two rounds of seeds give every cell once (the second
+    round skips the first's), ``collect`` reads back exactly the cells the sweeps returned, and
+    ``report`` writes one verdict table over both blocks' groups."""
+    import argparse
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("decisive", Path(__file__).parents[1] / "scripts" / "decisive.py")
+    dec = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "decisive", dec)  # (its dataclasses look their module up)
+    spec.loader.exec_module(dec)
+    tiny = dict(TINY)
+    blocks = [
+        dec.Block("a", ["empirical-v1"], ["easy"], ["gd", "gd-no-sn"], steps=4, prompts=[PROMPT], overrides=tiny),
+        dec.Block("b", ["empirical-v4"], ["easy"], ["gd"], steps=4, prompts=[PROMPT], overrides=tiny),
+    ]
+    args = argparse.Namespace(executor="local", address="", workers=1, progress=False)
+    rows = dec.run_blocks(blocks, [0, 1], tmp_path, args, rounds=2)
+    assert [len(rows[b]) for b in ("a", "b")] == [4, 2]
+    got = dec.collect(tmp_path)
+    key = lambda r: (r["group"], r["preset"], r["seed"])  # noqa: E731
+    assert sorted(map(key, got)) == sorted(map(key, rows["a"] + rows["b"]))
+    assert {r["views_per_step"] for r in got if r["group"] == "empirical-v4"} == {4}
+    dec.report(tmp_path, tmp_path / "results")
+    verdicts = _read_csv(tmp_path / "results" / "verdict.csv")
+    assert {v["group"] for v in verdicts} == {"empirical-v1"}  # block b has one preset: no claim
+    assert len(_read_csv(tmp_path / "results" / "cells.csv")) == 6
+    assert (tmp_path / "results" / "turntables_a.png").is_file() and (
+        tmp_path / "results" / "turntables_b.png"
+    ).is_file()

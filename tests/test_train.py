@@ -513,6 +513,36 @@ def test_train_step_redraws_the_noise_colours_as_configured(prior, redraw):
         assert all(abs(r) < 5 / math.sqrt(n) for r in corr), corr
 
 
+def test_views_spread_reaches_the_noise_renderer(prior):
+    """--views-per-step 4 --views-spread-deg 10: every step hands the noise renderer four cameras
+    whose azimuth and elevation (read back from the camera centres) lie within 10 degrees of the
+    first's; without the spread the same steps' views lie far apart."""
+    widest = {}
+    for spread in (10.0, None):
+        cfg = tiny("gd", views_per_step=4, views_spread_deg=spread, steps=8)
+        ctx = make_context(cfg, prior)
+        seen = []
+        render = ctx.noise.render
+
+        def capture(colors, cams, *, generator, render=render, seen=seen):
+            seen.append(cams.centers.detach().double().clone())
+            return render(colors, cams, generator=generator)
+
+        ctx.noise.render = capture
+        state = init_state(ctx)
+        for _ in range(6):
+            train_step(state, ctx)
+        assert len(seen) == 6 and all(len(c) == 4 for c in seen)
+        off = []
+        for c in seen:
+            az = torch.rad2deg(torch.atan2(c[:, 1], c[:, 0]))
+            el = torch.rad2deg(torch.asin(c[:, 2] / c.norm(dim=-1)))
+            off.append(torch.cat([((az[1:] - az[0] + 180) % 360 - 180).abs(), (el[1:] - el[0]).abs()]))
+        widest[spread] = float(torch.cat(off).max())
+    assert widest[10.0] <= 10.0 + 1e-3, widest
+    assert widest[None] > 45, widest
+
+
 def test_train_step_hands_the_renderer_the_jittered_gaussians_and_the_paired_views(prior, monkeypatch):
     """What reaches the rasterizer, captured by wrapping it: under VGS the means and log-scales
     depart from the parameters with the standard deviations of the jitter formula, gamma s(sigma)

@@ -72,6 +72,7 @@ class Claim:
 CLAIMS = (
     Claim("structured noise reduces multi-face failures", "gd", "gd-no-sn", "multi_face_rate", 1.0),
     Claim("structured noise reduces multi-face failures", "gd-no-vgs", "sjc-gs", "multi_face_rate", 1.0),
+    Claim("structured noise reduces Janus failures (no face or a second)", "gd", "gd-no-sn", "janus_failure_rate", 1.0),
     Claim("structured noise reduces instance inconsistency", "gd", "gd-no-sn", "instance_inconsistency"),
     Claim("structured noise reduces instance inconsistency", "gd-no-vgs", "sjc-gs", "instance_inconsistency"),
     Claim("variational Gaussians reduce floaters", "gd", "gd-no-vgs", "floaters"),
@@ -97,6 +98,7 @@ ALPHA = 0.05
 
 MARGINS = {
     "multi_face_rate": (0.05, "one view in twenty of the turntable"),
+    "janus_failure_rate": (0.05, "one view in twenty of the turntable"),
     "instance_inconsistency": (0.05, "one view in twenty of the turntable"),
     "colmap_failure_rate": (0.05, "one view in twenty of COLMAP's circle"),
     "floaters": (0.01, "a tenth of the 40-floater 3D fixtures' 0.08-0.15 (every other fixture 0.000)"),
@@ -227,20 +229,30 @@ def _sizes(rows: list[dict], c: Claim, keys: list) -> dict:
 
 
 def _applies(claim: Claim, rows: list[dict], setting: str) -> bool:
-    """Instance consistency is only defined where the bank holds several variants."""
+    """Instance consistency is only defined where the bank holds several variants; the Janus
+    failure (a second face or none) only where view prompting is off (the janus setting), since
+    with a view window a featureless result is a blur, not a pose ambiguity."""
+    if claim.metric == "janus_failure_rate":
+        return setting == "janus"
     if claim.metric != "instance_inconsistency":
         return True
     return setting == "instance" or any(int(r.get("variants", 1) or 1) > 1 for r in rows)
 
 
+def where(row: dict) -> tuple[str, str]:
+    """(group, setting) of a sweep row: the cells a claim pairs within (group '' when the sweep
+    had none; setting 'easy' when a row has none)."""
+    return row.get("group") or "", row.get("setting") or "easy"
+
+
 def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
-    """One result per (setting, claim) whose two presets ran in that setting (instance claims
-    only where the prior held several variants); p-values Holm-adjusted across the claims a test
-    decides (rows not measured, not testable or with too few pairs have no adjusted p)."""
+    """One result per (group, setting, claim) whose two presets ran there (instance claims only
+    where the prior held several variants); p-values Holm-adjusted across the claims a test
+    decides in the whole table (rows not measured, not testable or with too few pairs have no
+    adjusted p)."""
     out, arms = [], []
-    settings = list(dict.fromkeys(r.get("setting", "easy") for r in rows))
-    for setting in settings:
-        sel = [r for r in rows if r.get("setting", "easy") == setting]
+    for group, setting in dict.fromkeys(where(r) for r in rows):
+        sel = [r for r in rows if where(r) == (group, setting)]
         ran = {r["preset"] for r in sel}
         for c in claims:
             if not {c.a, c.b} <= ran or not _applies(c, sel, setting):
@@ -255,6 +267,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
             margin, why = MARGINS.get(c.metric, (math.nan, "no margin stated"))
             out.append(
                 {
+                    "group": group,
                     "setting": setting,
                     "claim": c.text,
                     "a": c.a,

@@ -257,6 +257,32 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
     return rows
 
 
+def surface_coupling(captions: list[str], separations, *, ratios=(1.0, 0.3), draws: int = 8, size: int = 64,
+                     seed: int = 0) -> list[dict]:  # fmt: skip
+    """How much structured noise two training views share at the same surface point: for each
+    caption and azimuth separation (elevation 15, fovy 55, a random first azimuth), the correlation
+    of the two views' noise fields at the asset's surface points both see (view B's warped into A
+    by depth), for the default noise cloud mixed as the trainer mixes it at each ratio (1: pure
+    structured noise; the schedule starts at 0.3). iid noise would read 0."""
+    from ..noise import NoiseConfig, NoiseRenderer, init_colors, make_noise_cloud, mix
+
+    g = torch.Generator().manual_seed(seed)
+    rows = []
+    for caption in captions:
+        a0 = float(torch.rand(1, generator=g) * 360 - 180)
+        for sep in separations:
+            _, z, cams = render_views(caption, torch.tensor([a0, a0 + sep]), 15.0, 55.0, size=size, depth=True)
+            for d in range(draws):
+                cloud = make_noise_cloud(NoiseConfig(), 3, generator=g)
+                n_s = NoiseRenderer(cloud, cache_size=0).render(init_colors(cloud, generator=g).colors, cams,
+                                                                generator=g).noise  # fmt: skip
+                for r in ratios:
+                    n = mix(n_s, r, generator=g, mode=NoiseConfig().ratio_mode)
+                    rows.append({"caption": caption, "separation": float(sep), "ratio": r, "draw": d,
+                                 "noise_corr": _warped_corr(n, z, cams)})  # fmt: skip
+    return rows
+
+
 def _warped_corr(n: Tensor, z: Tensor, cams) -> float:
     """Correlation of view A's field with view B's warped into A over the pixels both see: how much
     of the noise reaches both views at the same surface point (iid noise: 0)."""

@@ -241,6 +241,11 @@ class TrainConfig:
     views_per_step: int = 1
     """Views rendered per step; they share one jitter, one sigma and one draw of the noise cloud's
     colours (so one step already couples views through the structured noise)."""
+    views_spread_deg: float | None = None
+    """Views of one step (views_per_step > 1): None draws each anywhere in the pose ranges; a
+    number keeps the others within +-this many degrees (azimuth and elevation) of the step's first
+    view, so they see the same structured noise at the same surface points (docs/noise.md, "Does
+    the noise reach two views?")."""
     # initialisation
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
     """Initial Gaussians: the paper's sphere, a point cloud (--init-ply) or the prompt's bank depth."""
@@ -356,6 +361,11 @@ class TrainConfig:
             ("steps", self.steps >= 1, "an int >= 1"),
             ("resolution", self.resolution >= 8, "at least 8 px"),
             ("views_per_step", self.views_per_step >= 1, "an int >= 1"),
+            (
+                "views_spread_deg",
+                self.views_spread_deg is None or 0 < self.views_spread_deg <= 180,
+                "degrees in (0, 180] or None",
+            ),
             ("init_points", self.init_points >= 1, "an int >= 1"),
             ("init_opacity", 0 < self.init_opacity < 1, "a value in (0, 1)"),
             ("sigma_min", 0 < self.sigma_min < self.sigma_max, "0 < sigma_min < sigma_max"),

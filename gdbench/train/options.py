@@ -159,6 +159,10 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
             f"--view-prompting window and --prior empirical (this run: --view-prompting {cfg.view_prompting}, "
             f"--prior {cfg.prior}; Stable Diffusion's view prompts are words, with no window)",
         ),
+        "views_spread_deg": (
+            cfg.views_per_step > 1,
+            f"--views-per-step 2 or more (this run: --views-per-step {cfg.views_per_step})",
+        ),
         "vgs_gamma": (cfg.vgs, "--vgs True (this run has VGS off)"),
         "vgs_unit": (cfg.vgs, "--vgs True (this run has VGS off)"),
         "sigma_min": sjc,

@@ -262,6 +262,7 @@ def sample_views(ctx: Context, state: TrainState) -> Views:
         fovy_range=cfg.fovy_range,
         azimuth_range=cfg.azimuth_range,
         elevation_range=cfg.elevation_range,
+        spread_deg=cfg.views_spread_deg,
     )
     R, r = cfg.resolution, cfg.resolution // ctx.factor
     prior_cams = poses.cameras(r, r)
