@@ -38,6 +38,9 @@ GROUPS = {
     "empirical-v4": {"prior": "empirical", "views_per_step": 4, "views_spread_deg": SPREAD},
     "learned-v1": {"prior": "learned"},
     "learned-v4": {"prior": "learned", "views_per_step": 4, "views_spread_deg": SPREAD},
+    # the control: structured noise without a shared source (new colours every step, so no two
+    # steps' views share noise; only its spatial statistics remain)
+    "learned-v1-step": {"prior": "learned", "noise.redraw": "step"},
 }
 """The prior x views-per-step factor: one group each (cells pair within a group)."""
 
@@ -65,6 +68,8 @@ PILOT = [
     Block("pilot-v4e", ["empirical-v4"], ["janus"], ["gd", "gd-no-sn"], prompts=PROMPTS[:4]),
     Block("pilot-2000", ["learned-v1"], ["janus", "instance"], ["gd", "gd-no-sn"], 2000, PROMPTS[:4]),
     Block("pilot-2000e", ["empirical-v1"], ["janus"], ["gd", "gd-no-sn"], 2000, PROMPTS[:4]),
+    # is gd's gain the shared source (the paper's mechanism) or the noise's spatial statistics?
+    Block("pilot-redraw", ["learned-v1-step"], ["janus"], ["gd"], prompts=PROMPTS[:4]),
 ]
 PILOT_SEEDS = [0, 1]
 
