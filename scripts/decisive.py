@@ -59,6 +59,14 @@ class Block:
     overrides: dict = field(default_factory=dict)
     """Overrides of every cell (under the groups')."""
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.colmap, bool) or not isinstance(self.steps, int) or self.steps < 1:
+            raise ValueError(f"Block {self.name!r}: expected colmap a bool and steps an int >= 1, "
+                             f"got {self.colmap!r} and {self.steps!r}")  # fmt: skip
+        unknown = [g for g in self.groups if g not in GROUPS]
+        if unknown:
+            raise ValueError(f"Block {self.name!r}: unknown groups {unknown}; expected names from {list(GROUPS)}")
+
 
 PILOT = [
     # views per step 1 at 1000 steps ran as plain `gdbench sweep`s (docs/decisive.md); here four
@@ -66,8 +74,8 @@ PILOT = [
     # failure to fix (the empirical prior's instance setting showed none)
     Block("pilot-v4", ["learned-v4"], ["janus", "instance"], ["gd", "gd-no-sn"], prompts=PROMPTS[:4]),
     Block("pilot-v4e", ["empirical-v4"], ["janus"], ["gd", "gd-no-sn"], prompts=PROMPTS[:4]),
-    Block("pilot-2000", ["learned-v1"], ["janus", "instance"], ["gd", "gd-no-sn"], 2000, PROMPTS[:4]),
-    Block("pilot-2000e", ["empirical-v1"], ["janus"], ["gd", "gd-no-sn"], 2000, PROMPTS[:4]),
+    Block("pilot-2000", ["learned-v1"], ["janus", "instance"], ["gd", "gd-no-sn"], steps=2000, prompts=PROMPTS[:4]),
+    Block("pilot-2000e", ["empirical-v1"], ["janus"], ["gd", "gd-no-sn"], steps=2000, prompts=PROMPTS[:4]),
     # is gd's gain the shared source (the paper's mechanism) or the noise's spatial statistics?
     Block("pilot-redraw", ["learned-v1-step"], ["janus"], ["gd"], prompts=PROMPTS[:4]),
 ]
