@@ -9,7 +9,7 @@ from typing import Literal
 
 import tyro
 
-from .train.config import PRESETS
+from .train.config import BASE_PRESETS, PRESETS
 from .train.options import method_options, train_options
 
 
@@ -245,8 +245,9 @@ class Sweep:
 
     prompts: tuple[str, ...] = ("a yellow duck", "a corgi", "a penguin")
     """Prompts (free text; matched to the embedded prior's assets)."""
-    presets: tuple[str, ...] = tuple(PRESETS)
-    """Training presets to compare (see docs/training.md)."""
+    presets: tuple[str, ...] = BASE_PRESETS
+    """Training presets to compare (see docs/training.md; gd-redraw-step, the mechanism's
+    control, on request)."""
     seeds: tuple[int, ...] = (0, 1)
     """Seeds per (setting, prompt, preset); cells with one seed and prompt are paired."""
     settings: tuple[Literal["easy", "janus", "instance"], ...] = ("easy",)

@@ -69,6 +69,12 @@ def test_presets_switch_what_the_paper_ablates():
     assert PRESETS["gd-no-vgs"].structured_noise and not PRESETS["gd-no-vgs"].vgs
     assert not PRESETS["sjc-gs"].structured_noise and not PRESETS["sjc-gs"].vgs
     assert PRESETS["sds-gs"].guidance == "sds"
+    # the mechanism's control: gd in every field but the noise colours' redraw
+    from dataclasses import replace
+
+    ctrl = PRESETS["gd-redraw-step"]
+    assert ctrl.noise.redraw == "step" and PRESETS["gd"].noise.redraw == "run"
+    assert replace(ctrl, preset="gd", noise=PRESETS["gd"].noise) == PRESETS["gd"]
     d = TrainConfig()
     assert (d.steps, d.init_points, d.init_opacity, d.camera_radius) == (2000, 4096, 0.1, 1.0)
     sched = d.densify.resolve(d.steps)

@@ -73,6 +73,13 @@ CLAIMS = (
     Claim("structured noise reduces multi-face failures", "gd", "gd-no-sn", "multi_face_rate", 1.0),
     Claim("structured noise reduces multi-face failures", "gd-no-vgs", "sjc-gs", "multi_face_rate", 1.0),
     Claim("structured noise reduces Janus failures (no face or a second)", "gd", "gd-no-sn", "janus_failure_rate", 1.0),
+    Claim(
+        "the shared source, not the noise's texture, cuts Janus failures",
+        "gd",
+        "gd-redraw-step",
+        "janus_failure_rate",
+        1.0,
+    ),
     Claim("structured noise reduces instance inconsistency", "gd", "gd-no-sn", "instance_inconsistency"),
     Claim("structured noise reduces instance inconsistency", "gd-no-vgs", "sjc-gs", "instance_inconsistency"),
     Claim("variational Gaussians reduce floaters", "gd", "gd-no-vgs", "floaters"),

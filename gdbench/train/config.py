@@ -415,8 +415,14 @@ PRESETS: dict[str, TrainConfig] = {
     "gd-no-vgs": TrainConfig(preset="gd-no-vgs", vgs=False),
     "sjc-gs": TrainConfig(preset="sjc-gs", structured_noise=False, vgs=False),
     "sds-gs": TrainConfig(preset="sds-gs", structured_noise=False, vgs=False, guidance="sds", anneal=True),
+    "gd-redraw-step": TrainConfig(preset="gd-redraw-step", noise=NoiseConfig(redraw="step")),
 }
-"""The paper's method, its two ablations and two baselines, written out by hand."""
+"""The paper's method, its two ablations and two baselines, written out by hand; and a control
+of the mechanism: gd with the noise cloud's colours redrawn every step, structured noise without
+a shared source (no two steps see the same noise, only its spatial statistics remain)."""
+
+BASE_PRESETS = ("gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs")
+"""The paper's method, ablations and baselines (a sweep's default presets)."""
 
 
 NESTED = {"noise": NoiseConfig, "optim": OptimConfig, "densify": DensifyConfig}
