@@ -110,17 +110,36 @@ def run_blocks(blocks: list[Block], seeds: list[int], out: Path, args, rounds: i
     return rows
 
 
-def collect(out: Path) -> list[dict]:
-    """Every finished cell's row under ``out/blocks`` (read from its cell.json)."""
+def collect(out: Path, plain: list[tuple[Path, str]] = ()) -> list[dict]:
+    """Every finished cell's row under ``out/blocks`` (read from its cell.json), and those of plain
+    ``gdbench sweep`` folders (no groups) given the group name they stand for. Cells of one group
+    and setting at different step counts are told apart (', 2000 steps' after the group), so they
+    never pair; the pilot's redraw control (group learned-v1-step, preset gd: ran before the
+    gd-redraw-step preset existed, the same config) is read as preset gd-redraw-step of
+    learned-v1."""
     import math
 
     from gdbench.io import read_json
 
     rows = []
-    for p in sorted((out / "blocks").glob("*/cells/**/cell.json")):
-        row = read_json(p, what="cell.json")["row"]
-        rows.append({k: math.nan if v is None else v for k, v in row.items()})
-    return rows
+    for root, group in [(out / "blocks", None), *plain]:
+        for p in sorted(Path(root).glob("**/cells/**/cell.json")):
+            row = read_json(p, what="cell.json")["row"]
+            row = {k: math.nan if v is None else v for k, v in row.items()}
+            rows.append(row if group is None else row | {"group": group})
+    for r in rows:
+        if r["group"] == "learned-v1-step" and r["preset"] == "gd":
+            r.update(group="learned-v1", preset="gd-redraw-step")
+        if "janus_failure_rate" not in r:  # rows scored before the column existed: the same sum
+            r["janus_failure_rate"] = r["featureless_rate"] + r["multi_face_rate"]
+    steps: dict[tuple, set] = {}
+    for r in rows:
+        steps.setdefault((r["group"], r["setting"]), set()).add(int(r["iterations"]))
+    for r in rows:
+        if len(steps[r["group"], r["setting"]]) > 1 and int(r["iterations"]) != 1000:
+            r["group"] = f"{r['group']}, {int(r['iterations'])} steps"
+    order = {s: i for i, s in enumerate(("easy", "janus", "instance"))}
+    return sorted(rows, key=lambda r: (r["group"], order.get(r["setting"], 9), r["prompt"], r["seed"]))
 
 
 def coupling(results: Path) -> None:
@@ -159,11 +178,12 @@ def coupling(results: Path) -> None:
     write_csv(batch, results / "batch_coupling.csv")
 
 
-def report(out: Path, results: Path) -> None:
-    """Merged tables of every block (one verdict table, Holm across all its claims) and figures."""
+def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None:
+    """Merged tables of every block (and plain sweeps: ``plain``) in one verdict table, Holm across
+    all its claims, and each block's turntable grid."""
     from gdbench.sweep_tables import tables, turntable_grid
 
-    rows = collect(out)
+    rows = collect(out, plain)
     if not rows:
         raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
     paths = tables(rows, results)
@@ -185,6 +205,8 @@ def main(argv=None) -> int:
     p.add_argument("--rounds", type=int, default=5, help="sweep: seeds run in this many rounds")
     p.add_argument("--only", nargs="*", default=[], help="run only these blocks (by name)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no line per cell")
+    p.add_argument("--plain", nargs="*", default=[], metavar="DIR=GROUP",
+                   help="report: also plain `gdbench sweep` folders, each as the group it stands for")  # fmt: skip
     a = p.parse_args(argv)
     if a.workers > 1 and "OMP_NUM_THREADS" not in os.environ:
         os.environ["OMP_NUM_THREADS"] = "1"  # before torch loads: each cell on one thread
@@ -192,7 +214,10 @@ def main(argv=None) -> int:
         coupling(a.out)
         return 0
     if a.stage == "report":
-        report(a.out, a.results)
+        plain = [(Path(x.split("=")[0]), x.split("=", 1)[1]) for x in a.plain if "=" in x]
+        if len(plain) != len(a.plain) or any(g not in GROUPS for _, g in plain):
+            p.error(f"--plain: expected DIR=GROUP with GROUP from {list(GROUPS)}, got {a.plain}")
+        report(a.out, a.results, plain)
         return 0
     blocks, seeds = (PILOT, PILOT_SEEDS) if a.stage == "pilot" else (SWEEP, SEEDS)
     unknown = set(a.only) - {b.name for b in blocks}
