@@ -49,7 +49,10 @@ def small_results(tmp_path_factory):
             "instance_inconsistency": rng.random() / 3,
             "floaters": rng.random() / 10,
             "colmap_failure_rate": rng.random() / 4,
+            "janus_failure_rate": rng.random() if st == "janus" else 0.0,
+            "group": g,
         }
+        for g in ("", "learned-v4")
         for st in ("easy", "janus")
         for pr in ("a", "b")
         for i, p in enumerate(("gd", "gd-no-vgs", "gd-no-sn", "sjc-gs", "sds-gs"))
