@@ -283,9 +283,11 @@ def sweep(
         raise ValueError(f"settings: expected distinct names from {sorted(SETTINGS)}, got {settings}")
     per = {s: list((setting_presets or {}).get(s, presets)) for s in settings}
     groups = dict(groups or {"": {}})
-    bad = [g for g in groups if not re.fullmatch(r"[a-z0-9][a-z0-9_.-]*", g)] if list(groups) != [""] else []
+    bad = [g for g in groups if not re.fullmatch(r"[a-z][a-z0-9_.-]*", g)] if list(groups) != [""] else []
     if bad or not groups:
-        raise ValueError(f"groups: expected names of lower-case letters, digits, '_', '-' and '.', got {bad}")
+        raise ValueError(
+            f"groups: expected names of a lower-case letter, then letters, digits, '_', '-' or '.', got {bad}"
+        )
     for s, ps in per.items():
         if not set(ps) <= set(presets):
             raise ValueError(f"setting_presets: {s} lists presets outside --presets: {sorted(set(ps) - set(presets))}")

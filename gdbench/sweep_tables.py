@@ -243,7 +243,7 @@ def turntable_grid(
         ax.set_title(f"{g} / {text}" if g else text, loc="left", fontsize=8, pad=2)
         ax.set_xticks([])
         ax.set_yticks([])
-    tail = f"_{group}" if group else ""
+    tail = "" if group is None else f"_{group or 'ungrouped'}"
     if prompt is not None:
         fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9)
         return save(fig, Path(out) / f"turntables_{cell_name(prompt)}{tail}.png", dpi=90)

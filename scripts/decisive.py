@@ -60,12 +60,17 @@ class Block:
     """Overrides of every cell (under the groups')."""
 
     def __post_init__(self) -> None:
+        from gdbench.sweep import SETTINGS
+        from gdbench.train.config import PRESETS
+
         if not isinstance(self.colmap, bool) or not isinstance(self.steps, int) or self.steps < 1:
             raise ValueError(f"Block {self.name!r}: expected colmap a bool and steps an int >= 1, "
                              f"got {self.colmap!r} and {self.steps!r}")  # fmt: skip
-        unknown = [g for g in self.groups if g not in GROUPS]
-        if unknown:
-            raise ValueError(f"Block {self.name!r}: unknown groups {unknown}; expected names from {list(GROUPS)}")
+        for what, items, known in (("groups", self.groups, GROUPS), ("settings", self.settings, SETTINGS),
+                                   ("presets", self.presets, PRESETS)):  # fmt: skip
+            unknown = [x for x in items if x not in known]
+            if unknown or not items or len(set(items)) != len(items):
+                raise ValueError(f"Block {self.name!r}: {what} {items}: expected distinct names from {list(known)}")
 
 
 PILOT = [
@@ -112,14 +117,14 @@ def run_blocks(blocks: list[Block], seeds: list[int], out: Path, args, rounds: i
 
 def collect(out: Path, plain: list[tuple[Path, str]] = ()) -> list[dict]:
     """Every finished cell's row under ``out/blocks`` (read from its cell.json), and those of plain
-    ``gdbench sweep`` folders (no groups) given the group name they stand for. Cells of one group
-    and setting at different step counts are told apart (', 2000 steps' after the group), so they
-    never pair; the pilot's redraw control (group learned-v1-step, preset gd: ran before the
-    gd-redraw-step preset existed, the same config) is read as preset gd-redraw-step of
-    learned-v1."""
+    ``gdbench sweep`` folders (no groups) given the group name they stand for. Cells run for other
+    than 1000 steps say so after the group (', 2000 steps'), so they never pair with 1000-step
+    cells; a cell found twice is an error. The pilot's redraw control (group learned-v1-step,
+    preset gd: run before the gd-redraw-step preset existed, the same config) is read as preset
+    gd-redraw-step of learned-v1."""
     import math
 
-    from gdbench.io import read_json
+    from gdbench.io import num, read_json
 
     rows = []
     for root, group in [(out / "blocks", None), *plain]:
@@ -131,13 +136,17 @@ def collect(out: Path, plain: list[tuple[Path, str]] = ()) -> list[dict]:
         if r["group"] == "learned-v1-step" and r["preset"] == "gd":
             r.update(group="learned-v1", preset="gd-redraw-step")
         if "janus_failure_rate" not in r:  # rows scored before the column existed: the same sum
-            r["janus_failure_rate"] = r["featureless_rate"] + r["multi_face_rate"]
-    steps: dict[tuple, set] = {}
-    for r in rows:
-        steps.setdefault((r["group"], r["setting"]), set()).add(int(r["iterations"]))
-    for r in rows:
-        if len(steps[r["group"], r["setting"]]) > 1 and int(r["iterations"]) != 1000:
+            r["janus_failure_rate"] = num(r.get("featureless_rate")) + num(r.get("multi_face_rate"))
+        if int(r["iterations"]) != 1000:
             r["group"] = f"{r['group']}, {int(r['iterations'])} steps"
+    seen: dict[tuple, int] = {}
+    for r in rows:
+        key = tuple(r[k] for k in ("group", "setting", "prompt", "preset", "seed"))
+        seen[key] = seen.get(key, 0) + 1
+    twice = [k for k, n in seen.items() if n > 1]
+    if twice:
+        raise ValueError(f"collect: {len(twice)} cells found twice (e.g. {twice[0]}): a --plain folder overlaps a "
+                         f"block, or pilot and sweep share {out}")  # fmt: skip
     order = {s: i for i, s in enumerate(("easy", "janus", "instance"))}
     return sorted(rows, key=lambda r: (r["group"], order.get(r["setting"], 9), r["prompt"], r["seed"]))
 
@@ -208,13 +217,15 @@ def main(argv=None) -> int:
     p.add_argument("--plain", nargs="*", default=[], metavar="DIR=GROUP",
                    help="report: also plain `gdbench sweep` folders, each as the group it stands for")  # fmt: skip
     a = p.parse_args(argv)
+    if a.rounds < 1 or a.workers < 1:
+        p.error(f"--rounds, --workers: expected ints >= 1, got {a.rounds} and {a.workers}")
     if a.workers > 1 and "OMP_NUM_THREADS" not in os.environ:
         os.environ["OMP_NUM_THREADS"] = "1"  # before torch loads: each cell on one thread
     if a.stage == "coupling":
         coupling(a.out)
         return 0
     if a.stage == "report":
-        plain = [(Path(x.split("=")[0]), x.split("=", 1)[1]) for x in a.plain if "=" in x]
+        plain = [(Path(x.rsplit("=", 1)[0]), x.rsplit("=", 1)[1]) for x in a.plain if "=" in x]
         if len(plain) != len(a.plain) or any(g not in GROUPS for _, g in plain):
             p.error(f"--plain: expected DIR=GROUP with GROUP from {list(GROUPS)}, got {a.plain}")
         report(a.out, a.results, plain)

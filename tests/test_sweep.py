@@ -694,13 +694,17 @@ def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeyp
     args = argparse.Namespace(executor="local", address="", workers=1, progress=False)
     rows = dec.run_blocks(blocks, [0, 1], tmp_path, args, rounds=2)
     assert [len(rows[b]) for b in ("a", "b")] == [4, 2]
-    got = dec.collect(tmp_path)
-    key = lambda r: (r["group"], r["preset"], r["seed"])  # noqa: E731
+    got = dec.collect(tmp_path)  # (groups say their step count when it is not 1000)
+    key = lambda r: (r["group"].replace(", 4 steps", ""), r["preset"], r["seed"])  # noqa: E731
     assert sorted(map(key, got)) == sorted(map(key, rows["a"] + rows["b"]))
-    assert {r["views_per_step"] for r in got if r["group"] == "empirical-v4"} == {4}
+    assert {r["views_per_step"] for r in got if r["group"] == "empirical-v4, 4 steps"} == {4}
+    with pytest.raises(ValueError, match="cells found twice"):  # a plain folder overlapping a block
+        dec.collect(tmp_path, [(tmp_path / "blocks" / "a", "empirical-v1")])
+    with pytest.raises(ValueError, match="presets"):
+        dec.Block("c", ["empirical-v1"], ["easy"], ["gd", "best"])
     dec.report(tmp_path, tmp_path / "results")
     verdicts = _read_csv(tmp_path / "results" / "verdict.csv")
-    assert {v["group"] for v in verdicts} == {"empirical-v1"}  # block b has one preset: no claim
+    assert {v["group"] for v in verdicts} == {"empirical-v1, 4 steps"}  # block b has one preset: no claim
     assert len(_read_csv(tmp_path / "results" / "cells.csv")) == 6
     assert (tmp_path / "results" / "turntables_a.png").is_file() and (
         tmp_path / "results" / "turntables_b.png"

@@ -585,3 +585,19 @@ def test_train_step_hands_the_renderer_the_jittered_gaussians_and_the_paired_vie
             assert float((log_scales - before[1]).std()) == pytest.approx(amp, rel=0.05)
     for a, b in zip(cams["gd"], cams["gd-no-vgs"]):
         assert torch.equal(a, b)
+
+
+def test_run_id_keeps_runs_made_before_a_field_was_added():
+    """A field added later (views_spread_deg) is left out of the run's id at the value that behaves
+    as the code did before it, so a finished run of the older code keeps its id (a sweep finds it
+    finished instead of refusing to overwrite it); any other value changes the id."""
+    from gdbench.io import sha256_json
+    from gdbench.train.checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
+    from gdbench.train.run import config_dict, run_id
+
+    cfg = preset("gd", steps=50)
+    before = {k: v for k, v in config_dict(cfg).items() if k not in RESUME_IGNORES and k not in ADDED_AT_DEFAULT}
+    assert run_id(cfg) == sha256_json(before)[:16]
+    assert run_id(preset("gd", steps=50, views_per_step=4, views_spread_deg=10.0)) != run_id(
+        preset("gd", steps=50, views_per_step=4)
+    )

@@ -18,6 +18,11 @@ from .streams import make_streams, set_stream_states
 RESUME_IGNORES = frozenset({"out", "progress", "checkpoint_every", "log_every", "turntable_frames"})
 """Config fields that do not change a run's result (so a run may resume under other values)."""
 
+ADDED_AT_DEFAULT = {"views_spread_deg": None}
+"""Config fields added after runs were made, with the value that behaves as the code did before
+them: left out of a run's id at that value, so finished runs keep their id (and resume, and are
+found finished) across the addition."""
+
 FORMAT = 2
 """Checkpoint layout version (2: one state per random stream, plain-data config and history)."""
 

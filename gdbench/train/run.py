@@ -89,10 +89,17 @@ class RunResult:
 
 
 def run_id(cfg: TrainConfig) -> str:
-    """A short hash of everything in the config that changes the result."""
-    from .checkpoint import RESUME_IGNORES
+    """A short hash of everything in the config that changes the result (fields added later are
+    left out at the value that behaves as before them: ``ADDED_AT_DEFAULT``)."""
+    from .checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
 
-    return sha256_json({k: v for k, v in config_dict(cfg).items() if k not in RESUME_IGNORES})[:16]
+    return sha256_json(
+        {
+            k: v
+            for k, v in config_dict(cfg).items()
+            if k not in RESUME_IGNORES and not (k in ADDED_AT_DEFAULT and v == ADDED_AT_DEFAULT[k])
+        }
+    )[:16]
 
 
 def _check_finished(out: Path, cfg: TrainConfig, overwrite: bool, resume: bool) -> None:
