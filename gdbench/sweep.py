@@ -224,6 +224,7 @@ def run_cell(spec: CellSpec) -> dict:
         "translation_dir_err_deg": get(col, "translation_dir_err_deg"),
         "cell_s": time.perf_counter() - t0,
         "run_id": run_info.get("run_id"),  # the hash of the config that changes the result
+        "threads": run_info.get("threads"),  # results depend on the thread count (reduction order)
         "train_commit": run_info.get("commit", "unknown"),
         "score_commit": code_commit(),
         "versions": "; ".join(f"{k} {v}" for k, v in run_info.get("versions", {}).items()),
@@ -341,6 +342,13 @@ def sweep(
     return ordered
 
 
+def _worker_threads(threads: int) -> None:
+    """A local worker's start: torch (and the OpenMP compositor) on ``threads`` threads."""
+    import torch
+
+    torch.set_num_threads(threads)
+
+
 def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):
     """Yield (index, row) as cells finish."""
     if executor == "local":
@@ -348,9 +356,15 @@ def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):
             for i, s in enumerate(specs):
                 yield i, run_cell(s)
             return
+        import multiprocessing
+        import os
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        # fresh interpreters (not forks of one that ran OpenMP), each on its share of the cores:
+        # two-thread workers on two cores spin-wait for each other (measured 10x slower steps)
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_threads, initargs=(threads,)) as pool:
             futs = {pool.submit(run_cell, s): i for i, s in enumerate(specs)}
             for f in as_completed(futs):
                 yield futs[f], f.result()

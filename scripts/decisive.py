@@ -19,7 +19,6 @@ figures. Every file records the commit that made it.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
 from dataclasses import dataclass, field
@@ -217,7 +216,8 @@ def main(argv=None) -> int:
     p.add_argument("--results", type=Path, default=Path("docs/results/decisive"), help="report: tables go here")
     p.add_argument("--executor", choices=["local", "ray"], default="local")
     p.add_argument("--address", default="", help="Ray cluster address (empty: a local instance)")
-    p.add_argument("--workers", type=int, default=2, help="cells at once, one thread each (default 2)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="cells at once, each on its share of the cores (default 2: one thread each here)")  # fmt: skip
     p.add_argument("--rounds", type=int, default=5, help="sweep: seeds run in this many rounds")
     p.add_argument("--only", nargs="*", default=[], help="run only these blocks (by name)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no line per cell")
@@ -226,8 +226,6 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.rounds < 1 or a.workers < 1:
         p.error(f"--rounds, --workers: expected ints >= 1, got {a.rounds} and {a.workers}")
-    if a.workers > 1 and "OMP_NUM_THREADS" not in os.environ:
-        os.environ["OMP_NUM_THREADS"] = "1"  # before torch loads: each cell on one thread
     if a.stage == "coupling":
         coupling(a.out)
         return 0

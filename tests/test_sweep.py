@@ -112,6 +112,21 @@ def test_sweep_rejects_bad_arguments(tmp_path):
         sweep([PROMPT], ["gd"], [0], out=tmp_path, executor="slurm", steps=1, colmap=False, progress=False)
 
 
+def test_local_workers_run_cells_on_their_share_of_the_cores(tiny_sweep, tmp_path):
+    """--workers 2: cells run in fresh worker processes on cpu_count // 2 threads each (the row
+    records it), with the one-worker sweep's results (same seed; up to the reduction order of
+    another thread count)."""
+    import os
+
+    _, rows = tiny_sweep
+    got = sweep([PROMPT], ["gd", "sjc-gs"], [1], steps=4, out=tmp_path, colmap=False, overrides=TINY,
+                progress=False, workers=2)  # fmt: skip
+    assert [r["threads"] for r in got] == [max(1, (os.cpu_count() or 1) // 2)] * 2
+    for r in got:
+        local = next(x for x in rows if (x["preset"], x["seed"]) == (r["preset"], 1))
+        assert r["gt_psnr"] == pytest.approx(local["gt_psnr"], abs=1e-3) and r["gaussians"] == local["gaussians"]
+
+
 def test_groups_cross_the_grid_and_claims_pair_within_a_group(tiny_sweep, tmp_path, monkeypatch):
     """groups: each named set of overrides runs every cell in its own folder with its overrides
     (the views per step reach run.json and the row); a group whose overrides equal the plain
