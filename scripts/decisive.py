@@ -202,11 +202,36 @@ def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None
     if not rows:
         raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
     paths = tables(rows, results)
+    paths["verdict_readme"] = readme_table(results / "verdict.csv", results / "verdict_readme.md")
     for b in sorted(p.parent.name for p in (out / "blocks").glob("*/cells")):
         grid = turntable_grid(out / "blocks" / b, PROMPTS[0], seed=0)  # (group, setting) x preset
         if grid is not None:
             paths[f"turntables_{b}"] = Path(shutil.copy(grid, results / f"turntables_{b}.png"))
     print(f"report: {len(rows)} cells -> {', '.join(str(p) for p in paths.values())}")
+
+
+def readme_table(verdict_csv: Path, path: Path) -> Path:
+    """The README's verdict table: per claim, group (prior, views per step) and setting, the
+    pooled effect with its BCa interval, the Holm-adjusted p, the equivalence p at the margin, the
+    pairs and the verdict; the commits under it."""
+    import csv
+
+    from gdbench.sweep_tables import label
+
+    def f(x: str) -> str:
+        return "n/a" if x in ("", None) else f"{float(x):.2g}"
+
+    rows = list(csv.DictReader(open(verdict_csv)))
+    md = ["| claim | group / setting | a vs b | metric | pairs | a - b [95% BCa] | p (Holm) | equivalence p (margin) "
+          "| verdict |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for v in rows:
+        if v["verdict"] == "not measured":
+            continue
+        md.append(f"| {v['claim']} | {label(v)} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
+                  f"{f(v['mean_diff'])} [{f(v['ci_low'])}, {f(v['ci_high'])}] | {f(v['p_holm'])} | "
+                  f"{f(v['p_equivalence'])} (+-{f(v['margin'])}) | {v['verdict']} |")  # fmt: skip
+    path.write_text("\n".join(md) + "\n")
+    return path
 
 
 def main(argv=None) -> int:
