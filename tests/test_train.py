@@ -601,3 +601,82 @@ def test_run_id_keeps_runs_made_before_a_field_was_added():
     assert run_id(preset("gd", steps=50, views_per_step=4, views_spread_deg=10.0)) != run_id(
         preset("gd", steps=50, views_per_step=4)
     )
+
+
+def _changed(cfg, name):
+    """``cfg`` with field ``name`` set to another valid value (of its type, or another choice of its
+    Literal), for the field classification test."""
+    import dataclasses
+    import typing
+    from pathlib import Path
+
+    v = getattr(cfg, name)
+    hint = typing.get_type_hints(TrainConfig)[name]
+    choices = [a for a in typing.get_args(hint) if isinstance(a, str)]
+    special = {
+        "views_spread_deg": 10.0,
+        "init_ply": Path("cloud.ply"),
+        "sd_controlnet": "controlnet",
+        "init": "bank-depth",
+    }
+    if name in special:
+        new = special[name]
+    elif isinstance(v, bool):
+        new = not v
+    elif isinstance(v, int):
+        new = v + 1
+    elif isinstance(v, float):
+        new = v * 1.5 + 0.01
+    elif choices:
+        new = next(c for c in choices if c != v)
+    elif isinstance(v, str):
+        new = v + " x" if name != "learned_model" else "front"
+    elif isinstance(v, tuple):
+        new = (v[0] + 0.5 if v[0] < v[-1] else v[0] - 0.1, *v[1:])
+    elif isinstance(v, Path):
+        new = v / "other"
+    elif dataclasses.is_dataclass(v):
+        f = next(f for f in dataclasses.fields(v) if isinstance(getattr(v, f.name), (int, float)))
+        new = dataclasses.replace(v, **{f.name: getattr(v, f.name) + 1})
+    else:
+        raise AssertionError(f"no change rule for {name} = {v!r}")
+    return dataclasses.replace(cfg, **{name: new})
+
+
+IGNORED_FIELDS = {"out", "progress", "checkpoint_every", "log_every", "turntable_frames"}
+"""The only TrainConfig fields that cannot change a run's result (where it is written, how it
+reports, how often it checkpoints; the turntable is drawn after training)."""
+RESULT_FIELDS = {
+    "prompt", "preset", "steps", "seed", "resolution", "views_per_step", "views_spread_deg", "init", "init_points",
+    "init_ply", "init_opacity", "init_color", "camera_radius", "fovy_range", "azimuth_range", "elevation_range",
+    "background", "guidance", "sigma_min", "sigma_max", "anneal", "samples_per_step", "weight", "view_prompting",
+    "view_window_deg", "front_bias", "variants", "depth_conditioning", "prior", "learned_model", "learned_guidance",
+    "sd_model", "sd_mode", "sd_guidance", "sd_controlnet", "sd_dtype", "semantic_code", "semantic_steps",
+    "structured_noise", "noise", "vgs", "vgs_gamma", "vgs_unit", "optim", "densify", "sh_degree", "max_bad_steps",
+}  # fmt: skip
+"""Fields that may change a result (or, as preset and max_bad_steps, say which run it is)."""
+
+
+def test_every_config_field_is_classified_and_result_fields_change_the_run_id():
+    """The run-folder contract over every TrainConfig field, against this test's own explicit
+    lists (not the code's): a field that may change a result changes the run id and resume names
+    it as a difference (so a checkpoint of the other value is refused); only the listed others
+    leave both alone. A field added to TrainConfig fails here until it is put in one list."""
+    import dataclasses
+
+    from gdbench.train.checkpoint import RESUME_IGNORES, config_diff
+    from gdbench.train.run import config_dict, run_id
+
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    assert not RESULT_FIELDS & IGNORED_FIELDS
+    assert names == RESULT_FIELDS | IGNORED_FIELDS, f"classify: {sorted(names - RESULT_FIELDS - IGNORED_FIELDS)}"
+    assert RESUME_IGNORES == IGNORED_FIELDS
+    base = preset("gd", steps=50)
+    for name in sorted(names):
+        other = _changed(base, name)
+        if name in RESULT_FIELDS:
+            assert run_id(other) != run_id(base), name
+            assert config_diff(config_dict(base), config_dict(other)) == [name], name
+        else:
+            assert run_id(other) == run_id(base), name
+            assert config_diff(config_dict(base), config_dict(other)) == [], name
