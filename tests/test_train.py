@@ -680,3 +680,39 @@ def test_every_config_field_is_classified_and_result_fields_change_the_run_id():
         else:
             assert run_id(other) == run_id(base), name
             assert config_diff(config_dict(base), config_dict(other)) == [], name
+
+
+def test_run_outputs_are_written_while_the_folder_lock_is_held(prior, tmp_path, monkeypatch):
+    """Every output of a run (the checkpoint, scene.ply, the turntable, the curves, run.json) is
+    written while the run holds its folder's lock: checked from inside each write, where taking
+    the lock from another file handle must fail (a run that released it first could have its
+    folder claimed by a second run halfway through)."""
+    import gdbench.train.run as run_mod
+    import gdbench.turntable as turntable
+    from gdbench.io import FolderBusy, FolderLock
+    from gdbench.scene import GaussianScene
+
+    out = tmp_path / "run"
+    held = {}
+
+    def probe(name, fn):
+        def wrapped(*args, **kw):
+            try:
+                with FolderLock(out):
+                    held[name] = False
+            except FolderBusy:
+                held[name] = True
+            return fn(*args, **kw)
+
+        return wrapped
+
+    monkeypatch.setattr(run_mod, "save_checkpoint", probe("checkpoint", run_mod.save_checkpoint))
+    monkeypatch.setattr(run_mod, "write_json", probe("run.json", run_mod.write_json))
+    monkeypatch.setattr(run_mod, "write_curves", probe("curves", run_mod.write_curves))
+    monkeypatch.setattr(turntable, "write_turntable", probe("turntable", turntable.write_turntable))
+    monkeypatch.setattr(GaussianScene, "save_ply", probe("scene.ply", GaussianScene.save_ply))
+    r = train(tiny("gd", steps=4, out=out), prior)
+    assert (out / "run.json").is_file() and r.state.step == 4
+    assert held == dict.fromkeys(("checkpoint", "scene.ply", "turntable", "curves", "run.json"), True), held
+    with FolderLock(out):  # and released at the end
+        pass
