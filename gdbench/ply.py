@@ -8,6 +8,9 @@ One ``vertex`` element of float32 properties, in this order::
 ``opacity`` is the logit, ``scale_*`` the log-scale and ``rot_*`` the wxyz quaternion;
 normals are written as zero and ignored on read. Viewers and Open3D read and write this
 layout. Values are stored as float32, so a float32 scene round-trips exactly.
+
+This module knows the file format only, as plain tensors (``FIELDS``); ``GaussianScene.load_ply``
+and ``save_ply`` (scene.py) turn them into a scene and back.
 """
 
 from __future__ import annotations
@@ -16,8 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
-from .scene import GaussianScene
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+"""What a 3DGS PLY holds, as GaussianScene names it: [N, 3], [N, 4] wxyz, [N, 3], [N], [N, K, 3]."""
 
 _REST_TO_K = {0: 1, 9: 4, 24: 9, 45: 16}
 
@@ -81,18 +86,19 @@ def _names(k: int) -> list[str]:
     )
 
 
-def write_ply(scene: GaussianScene, path: str | Path, *, comments: list[str] | None = None) -> Path:
-    """Write ``scene`` as a binary little-endian 3DGS PLY, atomically (temp file + rename);
-    ``comments`` go into the header (gdbench writes the run id there)."""
+def write_ply(fields: dict[str, Tensor], path: str | Path, *, comments: list[str] | None = None) -> Path:
+    """Write a scene's ``fields`` (``FIELDS``, any float dtype and device) as a binary little-endian
+    3DGS PLY, atomically (temp file + rename); ``comments`` go into the header (gdbench writes the
+    run id there)."""
     from plyfile import PlyData, PlyElement
 
     from .io import atomic_write
 
     path = Path(path)
-    s = scene.detach().to("cpu", torch.float32)
-    n, k = s.sh.shape[0], s.sh.shape[1]
-    rest = s.sh[:, 1:, :].transpose(1, 2).reshape(n, -1)  # channel-major
-    cols = [s.means, torch.zeros(n, 3), s.sh[:, 0, :], rest, s.opacity_logits[:, None], s.log_scales, s.quats]
+    means, quats, log_scales, opacity_logits, sh = (fields[k].detach().to("cpu", torch.float32) for k in FIELDS)
+    n, k = sh.shape[0], sh.shape[1]
+    rest = sh[:, 1:, :].transpose(1, 2).reshape(n, -1)  # channel-major
+    cols = [means, torch.zeros(n, 3), sh[:, 0, :], rest, opacity_logits[:, None], log_scales, quats]
     data = torch.cat(cols, dim=1).numpy()
     names = _names(k)
     assert data.shape[1] == len(names)
@@ -103,8 +109,9 @@ def write_ply(scene: GaussianScene, path: str | Path, *, comments: list[str] | N
     return atomic_write(path, ply.write)
 
 
-def read_ply(path: str | Path) -> GaussianScene:
-    """Read a 3DGS PLY (ours, the Inria code's, Open3D's). Errors name the file and the problem."""
+def read_ply(path: str | Path) -> dict[str, Tensor]:
+    """The ``FIELDS`` of a 3DGS PLY (ours, the Inria code's, Open3D's) as float32 tensors. Errors
+    name the file and the problem."""
     from plyfile import PlyData
 
     path = Path(path)
@@ -147,13 +154,5 @@ def read_ply(path: str | Path) -> GaussianScene:
     dc = col("f_dc_0", "f_dc_1", "f_dc_2")
     rest = col(*(f"f_rest_{i}" for i in range(n_rest))) if n_rest else torch.zeros(n, 0)
     sh = torch.cat([dc[:, None, :], rest.reshape(n, 3, k - 1).transpose(1, 2)], dim=1)
-    try:
-        return GaussianScene(
-            means,
-            col("rot_0", "rot_1", "rot_2", "rot_3"),
-            col("scale_0", "scale_1", "scale_2"),
-            col("opacity")[:, 0],
-            sh,
-        )
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") from e
+    quats, log_scales = col("rot_0", "rot_1", "rot_2", "rot_3"), col("scale_0", "scale_1", "scale_2")
+    return dict(zip(FIELDS, (means, quats, log_scales, col("opacity")[:, 0], sh)))

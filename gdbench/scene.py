@@ -19,6 +19,8 @@ from torch import Tensor
 
 from renderers.splat.sh import rgb_to_sh0, sh0_to_rgb
 
+from .ply import FIELDS, read_ply, write_ply
+
 _SH_K = {1: 0, 4: 1, 9: 2, 16: 3}
 
 
@@ -103,14 +105,17 @@ class GaussianScene:
 
     @classmethod
     def load_ply(cls, path: str | Path) -> GaussianScene:
-        from .ply import read_ply
-
-        return read_ply(path)
+        """A 3DGS PLY (ours, the Inria code's, Open3D's; ``ply.read_ply``) as a scene. Errors name
+        the file and the problem."""
+        fields = read_ply(path)
+        try:
+            return cls(**fields)
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from e
 
     def save_ply(self, path: str | Path, *, comments: list[str] | None = None) -> Path:
-        from .ply import write_ply
-
-        return write_ply(self, path, comments=comments)
+        """Write the scene as a binary 3DGS PLY, atomically (``ply.write_ply``)."""
+        return write_ply({k: getattr(self, k) for k in FIELDS}, path, comments=comments)
 
     # -------------------------------------------------------------------- accessors
     def __len__(self) -> int:

@@ -1,7 +1,7 @@
 """The sweep's tables and figure, rewritten after every cell:
 
-- ``cells.csv``: one row per (setting, prompt, preset, seed) cell;
-- ``summary.csv``: per (setting, preset), numbers only: each metric's mean, standard deviation
+- ``cells.csv``: one row per (group, setting, prompt, preset, seed) cell;
+- ``summary.csv``: per (group, setting, preset), numbers only: each metric's mean, standard deviation
   and number of cells it was measured on (``<metric>_mean``, ``_std``, ``_n``; empty where
   missing), and the median of the heavy-tailed COLMAP variance;
 - ``summary.md``: the same as mean ± std, "(k of n)" where a metric was measured on only k of n
@@ -199,53 +199,3 @@ def plot(rows: list[dict], path: Path) -> Path:
     if axes[0][0].get_legend_handles_labels()[0]:
         axes[0][0].legend(fontsize=6)
     return save(fig, path, dpi=100)
-
-
-def turntable_grid(
-    out: Path, prompt: str | None, seed: int = 0, frames: int = 6, setting: str | None = None,
-    group: str | None = None,
-) -> Path | None:  # fmt: skip
-    """One figure of turntables (``frames`` evenly spaced views from each cell's turntable.gif), a
-    row per cell of ``seed``: for ``prompt``, one per (group, setting, preset); with ``prompt``
-    None, one per (group, prompt, preset) of ``setting``; ``group`` keeps one group's cells. None
-    when no cell has one."""
-    import imageio.v3 as iio
-    import numpy as np
-
-    from .plotting import pyplot, save
-    from .sweep import SETTINGS, cell_name
-    from .train.config import PRESETS
-
-    def parts(gif: Path) -> tuple[str, str, str, str]:
-        """(group, setting, prompt folder, preset) of a cell's gif under out/cells."""
-        rel = gif.relative_to(Path(out) / "cells").parts  # [group/]setting/prompt/preset/seedK/turntable.gif
-        return ("" if len(rel) == 5 else rel[0], *rel[-5:-2])
-
-    def keep(gif: Path) -> bool:
-        g, st, pr, _ = parts(gif)
-        return ((group is None or g == group) and (prompt is None or pr == cell_name(prompt))
-                and (prompt is not None or setting is None or st == setting))  # fmt: skip
-
-    order = lambda p: (parts(p)[0], parts(p)[2] if prompt is None else "",  # noqa: E731
-                       list(SETTINGS).index(parts(p)[1]) if parts(p)[1] in SETTINGS else 99,
-                       list(PRESETS).index(parts(p)[3]) if parts(p)[3] in PRESETS else 99)  # fmt: skip
-    cells = sorted((g for g in (Path(out) / "cells").rglob(f"seed{seed}/turntable.gif") if keep(g)), key=order)
-    if not cells:
-        return None
-    plt = pyplot()
-    fig, axes = plt.subplots(len(cells), 1, figsize=(1.6 * frames, 1.7 * len(cells)), squeeze=False)
-    for ax, gif in zip(axes[:, 0], cells):
-        video = iio.imread(gif)
-        pick = np.linspace(0, len(video), frames, endpoint=False).astype(int)
-        ax.imshow(np.concatenate([video[i][..., :3] for i in pick], 1))
-        g, setting_, folder, preset = parts(gif)
-        text = f"{setting_}: {preset}" if prompt is not None else f"{folder.replace('_', ' ')}: {preset}"
-        ax.set_title(f"{g} / {text}" if g else text, loc="left", fontsize=8, pad=2)
-        ax.set_xticks([])
-        ax.set_yticks([])
-    tail = "" if group is None else f"_{group or 'ungrouped'}"
-    if prompt is not None:
-        fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9)
-        return save(fig, Path(out) / f"turntables_{cell_name(prompt)}{tail}.png", dpi=90)
-    fig.suptitle(f"{setting or 'all settings'}, seed {seed}: turntables per prompt and preset", fontsize=9)
-    return save(fig, Path(out) / f"turntables_{setting or 'all'}{tail}.png", dpi=90)

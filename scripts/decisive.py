@@ -196,7 +196,8 @@ def coupling(results: Path) -> None:
 def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None:
     """Merged tables of every block (and plain sweeps: ``plain``) in one verdict table, Holm across
     all its claims, and each block's turntable grid."""
-    from gdbench.sweep_tables import tables, turntable_grid
+    from gdbench.sweep import turntable_grid
+    from gdbench.sweep_tables import tables
 
     rows = collect(out, plain)
     if not rows:
