@@ -3,6 +3,7 @@
     python scripts/decisive.py coupling --out docs/results/decisive
     python scripts/decisive.py pilot --out runs/decisive-pilot [--executor ray]
     python scripts/decisive.py sweep --out runs/decisive [--executor ray] [--workers 2]
+    python scripts/decisive.py check --out runs/decisive-check
     python scripts/decisive.py report --out runs/decisive --results docs/results/decisive
 
 ``coupling`` measures whether the structured noise can act: how much of it two training views
@@ -98,6 +99,11 @@ SWEEP = [
 ]
 """The blocks the pilot justified (docs/decisive.md, "The pilot"); floaters (both priors' baselines
 under the 0.01 margin) and the easy setting's multi-face rate (under 0.05) are not swept."""
+CHECK = [
+    # does the verdict depend on stopping at 1000 steps? The learned janus pairs at 2000 steps
+    Block("janus-learned-v1-2000", ["learned-v1"], ["janus"], ["gd", "gd-no-sn", "gd-redraw-step"], steps=2000),
+]
+"""The steps check (docs/decisive.md, "Steps"): the claims that move, at twice the steps, same pairs."""
 SEEDS = list(range(10))
 """Ten seeds x six prompts: 60 pairs per claim (the power estimate asked for 56-58)."""
 
@@ -237,7 +243,7 @@ def readme_table(verdict_csv: Path, path: Path) -> Path:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("stage", choices=["coupling", "pilot", "sweep", "report"])
+    p.add_argument("stage", choices=["coupling", "pilot", "sweep", "check", "report"])
     p.add_argument("--out", type=Path, required=True, help="folder of the blocks' cells (coupling: of its CSVs)")
     p.add_argument("--results", type=Path, default=Path("docs/results/decisive"), help="report: tables go here")
     p.add_argument("--executor", choices=["local", "ray"], default="local")
@@ -261,12 +267,12 @@ def main(argv=None) -> int:
             p.error(f"--plain: expected DIR=GROUP with GROUP from {list(GROUPS)}, got {a.plain}")
         report(a.out, a.results, plain)
         return 0
-    blocks, seeds = (PILOT, PILOT_SEEDS) if a.stage == "pilot" else (SWEEP, SEEDS)
+    blocks, seeds = {"pilot": (PILOT, PILOT_SEEDS), "sweep": (SWEEP, SEEDS), "check": (CHECK, SEEDS)}[a.stage]
     unknown = set(a.only) - {b.name for b in blocks}
     if unknown:
         p.error(f"--only: unknown blocks {sorted(unknown)}; expected names from {[b.name for b in blocks]}")
     blocks = [b for b in blocks if not a.only or b.name in a.only]
-    run_blocks(blocks, seeds, a.out, a, 1 if a.stage == "pilot" else a.rounds)
+    run_blocks(blocks, seeds, a.out, a, 1 if a.stage == "pilot" else a.rounds)  # check: into its own --out
     return 0
 
 
