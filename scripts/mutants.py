@@ -1,5 +1,6 @@
-"""Mutation test of the renderer suite: apply one plausible renderer bug at a time to a copy of
-the project and check that the renderer tests catch it (fail).
+"""Mutation test: apply one plausible bug at a time to a copy of the project and check that the
+tests of its area catch it (fail): the renderer (the renderer suite), and the wiring of the
+paper's mechanisms into the trainer and the run folder's contract (the tests named per mutation).
 
     .venv/bin/python scripts/mutants.py [--only NAME ...] [--list]      (make mutants)
 
@@ -39,6 +40,13 @@ class Mutation:
     old: str
     new: str
     why: str
+    area: str = "renderer"
+    tests: tuple[str, ...] = tuple(TESTS)
+    """Test files or node ids that must catch it (default: the renderer suite)."""
+
+
+def _train(test: str) -> tuple[str, ...]:
+    return (f"tests/test_train.py::{test}",)
 
 
 MUTATIONS = [
@@ -84,6 +92,23 @@ MUTATIONS = [
     Mutation("pixel-centre", "renderers/splat/project.py", "means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)",
              "means2d = torch.stack([fx * x / zs + cx - 0.5, fy * y / zs + cy - 0.5], dim=-1)",
              "pixel centres at integers instead of +0.5"),
+    # the trainer's wiring of the paper's mechanisms (what reaches the renderers, captured by tests)
+    Mutation("spread-dropped", "gdbench/train/trainer.py", "spread_deg=cfg.views_spread_deg,", "spread_deg=None,",
+             "--views-spread-deg never reaches the step's cameras", "trainer wiring",
+             _train("test_views_spread_reaches_the_noise_renderer")),
+    Mutation("jitter-not-rendered", "gdbench/train/trainer.py", "        means, log_scales = jitter(",
+             "        _unused = jitter(", "the VGS jitter drawn but never reaching the render", "trainer wiring",
+             _train("test_train_step_hands_the_renderer_the_jittered_gaussians_and_the_paired_views")),
+    # the run folder's contract
+    Mutation("resume-ignores-a-result-field", "gdbench/train/checkpoint.py", 'RESUME_IGNORES = frozenset({"out",',
+             'RESUME_IGNORES = frozenset({"samples_per_step", "out",',
+             "a result-changing field ignored by resume and the run id", "run folder",
+             _train("test_every_config_field_is_classified_and_result_fields_change_the_run_id")),
+    Mutation("outputs-after-lock", "gdbench/train/run.py",
+             "        if write_outputs and state.step >= cfg.steps:\n            paths |= write_run_outputs(",
+             "    if write_outputs and state.step >= cfg.steps:\n        paths |= write_run_outputs(",
+             "the run's outputs written after its folder lock is released", "run folder",
+             _train("test_run_outputs_are_written_while_the_folder_lock_is_held")),
 ]  # fmt: skip
 
 
@@ -120,7 +145,7 @@ def run_one(m: Mutation, python: str, timeout: int) -> tuple[bool, float, str]:
             PYTHONPATH=str(root),
             GDBENCH_CACHE=os.environ.get("GDBENCH_CACHE", str(Path.home() / ".cache" / "gdbench")),
         )
-        cmd = [python, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *TESTS]
+        cmd = [python, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *m.tests]
         t0 = time.perf_counter()
         try:
             r = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=timeout)
@@ -139,14 +164,15 @@ def main(argv: list[str] | None = None) -> int:
     todo = [m for m in MUTATIONS if args.only is None or m.name in args.only]
     if args.list:
         for m in MUTATIONS:
-            print(f"{m.name:22s} {m.file}: {m.why}")
+            print(f"{m.name:30s} [{m.area}] {m.file}: {m.why}")
         return 0
     python = sys.executable
     survived = []
-    print(f"mutants: {len(todo)} mutations against {' '.join(TESTS)}")
+    print(f"mutants: {len(todo)} mutations, each against the tests of its area")
     for m in todo:
         caught, seconds, tail = run_one(m, python, args.timeout)
-        print(f"  {'caught  ' if caught else 'SURVIVED'} {m.name:22s} ({seconds:5.0f} s) {m.why}: {tail}", flush=True)
+        status = "caught  " if caught else "SURVIVED"
+        print(f"  {status} [{m.area}] {m.name:22s} ({seconds:5.0f} s) {m.why}: {tail}", flush=True)
         if not caught:
             survived.append(m.name)
     print(f"mutants: {len(todo) - len(survived)}/{len(todo)} caught" + (f"; survived: {survived}" if survived else ""))
