@@ -104,6 +104,7 @@ def inert_overrides(specs: list[CellSpec]) -> list[str]:
     """Options of the sweep (its overrides and its groups') that do nothing in some of the cells
     given them, one line each (naming the cells' presets, groups and settings); an option that
     does nothing in every cell given it raises ValueError."""
+    from .metrics.claims import label
     from .train.options import inert_options
 
     given: dict[str, int] = {}
@@ -120,7 +121,7 @@ def inert_overrides(specs: list[CellSpec]) -> list[str]:
     for key, cells in where.items():
         if len(cells) == given[key]:
             raise ValueError(f"{why[key]}, in every cell of the sweep: drop the option, or set the one it needs")
-        names = sorted({f"{p} ({f'{g} / ' if g else ''}{s})" for p, g, s in cells})
+        names = sorted({f"{p} ({label({'group': g, 'setting': s})})" for p, g, s in cells})
         opt, rest = why[key].split(" ", 1)
         lines.append(f"{opt} does nothing in {', '.join(names)}: it {rest}")
     return lines
@@ -275,6 +276,7 @@ def sweep(
     ``colmap``). ``groups`` names sets of overrides applied on top of ``overrides`` (a factor the
     ambiguity settings do not cover: the prior, views per step); each group's cells live in
     ``out/cells/<group>/`` and claims pair within a group (default: one unnamed group)."""
+    from .metrics.claims import label
     from .sweep_tables import tables
 
     out = Path(out)
@@ -332,7 +334,7 @@ def sweep(
         tables([rows[k] for k in sorted(rows)], out)
         if progress:
             print(
-                f"  done {row['group'] + ' / ' if row['group'] else ''}{row['setting']} {row['prompt']!r} "
+                f"  done {label(row)} {row['prompt']!r} "
                 f"{row['preset']} seed {row['seed']}: "
                 f"PSNR {row['gt_psnr']:.2f}, multi-face {row['multi_face_rate']:.2f}, "
                 f"floaters {row['floaters']:.3f}, Var {row['var_theta_deg2']:.3g} ({row['cell_s']:.0f} s)"

@@ -17,6 +17,8 @@ import math
 import statistics
 from pathlib import Path
 
+from .metrics.claims import label, where
+
 COLUMNS = (
     ("gt_psnr", "GT PSNR dB", False),
     ("multi_face_rate", "multi-face rate", False),
@@ -67,8 +69,6 @@ def summarise(rows: list[dict]) -> list[dict]:
     """Per (group, setting, preset): numbers only, for a dataframe: ``<metric>_mean``, ``_std``
     and ``_n`` (the cells the metric could be measured on; NaN, written empty, where none), and
     the median of the heavy-tailed ones."""
-    from .metrics.claims import where
-
     out = []
     for (group, setting), preset in dict.fromkeys((where(r), r["preset"]) for r in rows):
         sel = [r for r in rows if where(r) == (group, setting) and r["preset"] == preset]
@@ -96,11 +96,6 @@ def commits(rows: list[dict]) -> str:
     if len(versions) > 1:
         parts.append(f"MIXED package versions ({len(versions)} sets; cells.csv's versions column)")
     return "; ".join(parts)
-
-
-def label(r: dict) -> str:
-    """Where a summary or verdict row belongs: its setting, after its group when it has one."""
-    return f"{r['group']} / {r['setting']}" if r.get("group") else r["setting"]
 
 
 def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None = None) -> str:
@@ -163,7 +158,6 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
 def plot(rows: list[dict], path: Path) -> Path:
     """Per group and setting (rows of panels) and metric (columns), every cell per preset (colour
     = prompt)."""
-    from .metrics.claims import where
     from .plotting import pyplot, save
 
     plt = pyplot()

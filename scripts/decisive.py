@@ -172,8 +172,7 @@ def coupling(results: Path) -> None:
 
     from gdbench.camera import SphericalPoses
     from gdbench.io import write_csv
-    from gdbench.noise import NoiseConfig, NoiseRenderer, init_colors, make_noise_cloud
-    from gdbench.priors.learned_eval import _warped_corr, render_views, surface_coupling
+    from gdbench.priors.learned_eval import noise_source, render_views, source_noise, surface_coupling, warped_corr
     from gdbench.provenance import code_commit
 
     commit = code_commit()
@@ -186,14 +185,12 @@ def coupling(results: Path) -> None:
         for caption in captions:
             for k in range(6):
                 poses = SphericalPoses.sample(4, generator=g, spread_deg=spread)
-                cloud = make_noise_cloud(NoiseConfig(), 3, generator=g)
-                colors = init_colors(cloud, generator=g).colors
+                source = noise_source(g)
                 for i, j in itertools.combinations(range(4), 2):
                     sel = torch.tensor([i, j])
                     _, z, cams = render_views(caption, poses.azimuth[sel], poses.elevation[sel], poses.fovy[sel],
                                               size=64, depth=True)  # fmt: skip
-                    n = NoiseRenderer(cloud, cache_size=0).render(colors, cams, generator=g).noise
-                    corr = _warped_corr(n, z, cams)
+                    corr = warped_corr(source_noise(source, cams, g), z, cams)
                     batch.append({"spread_deg": spread or "independent", "caption": caption, "batch": k,
                                   "pair": f"{i}-{j}", "noise_corr": corr, "commit": commit})  # fmt: skip
     write_csv(batch, results / "batch_coupling.csv")
@@ -223,7 +220,7 @@ def readme_table(verdict_csv: Path, path: Path) -> Path:
     pairs and the verdict; the commits under it."""
     import csv
 
-    from gdbench.sweep_tables import label
+    from gdbench.metrics.claims import label
 
     def f(x: str) -> str:
         return "n/a" if x in ("", None) else f"{float(x):.2g}"

@@ -252,6 +252,12 @@ def where(row: dict) -> tuple[str, str]:
     return row.get("group") or "", row.get("setting") or "easy"
 
 
+def label(row: dict) -> str:
+    """Where a row belongs, as tables print it: its setting, after its group when it has one."""
+    group, setting = where(row)
+    return f"{group} / {setting}" if group else setting
+
+
 def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
     """One result per (group, setting, claim) whose two presets ran there (instance claims only
     where the prior held several variants); p-values Holm-adjusted across the claims a test

@@ -224,7 +224,7 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
     predictions' departures from the truth (view B's warped likewise): whether what the noise made
     in one view is made in the other. One row per (caption, sigma, ratio, draw) with both noises'
     values (the same draw of everything else: a paired comparison)."""
-    from ..noise import NoiseConfig, NoiseRenderer, init_colors, make_noise_cloud, mix
+    from ..noise import NoiseConfig, mix
 
     g = torch.Generator().manual_seed(seed)
     rows = []
@@ -237,12 +237,10 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
         for s in sigmas:
             for ratio in ratios:
                 for d in range(draws):
-                    cloud = make_noise_cloud(NoiseConfig(), 3, generator=g)
-                    colors = init_colors(cloud, generator=g).colors
-                    n_s = NoiseRenderer(cloud, cache_size=0).render(colors, cams, generator=g).noise
+                    n_s = source_noise(noise_source(g), cams, g)
                     iid = torch.randn((2, *x0.shape[1:]), generator=g)
                     n_b = mix(n_s, ratio, generator=g, mode=NoiseConfig().ratio_mode)
-                    out = {"noise_corr": _warped_corr(n_b, z, cams)}
+                    out = {"noise_corr": warped_corr(n_b, z, cams)}
                     for name, n in (("independent", iid), ("structured", n_b)):
                         y = x0 + s * n
                         D = prior.denoise(y, torch.full((2,), s), cond, azimuth=az, elevation=torch.full((2,), 15.0),
@@ -264,7 +262,7 @@ def surface_coupling(captions: list[str], separations, *, ratios=(1.0, 0.3), dra
     of the two views' noise fields at the asset's surface points both see (view B's warped into A
     by depth), for the default noise cloud mixed as the trainer mixes it at each ratio (1: pure
     structured noise; the schedule starts at 0.3). iid noise would read 0."""
-    from ..noise import NoiseConfig, NoiseRenderer, init_colors, make_noise_cloud, mix
+    from ..noise import NoiseConfig, mix
 
     g = torch.Generator().manual_seed(seed)
     rows = []
@@ -273,17 +271,31 @@ def surface_coupling(captions: list[str], separations, *, ratios=(1.0, 0.3), dra
         for sep in separations:
             _, z, cams = render_views(caption, torch.tensor([a0, a0 + sep]), 15.0, 55.0, size=size, depth=True)
             for d in range(draws):
-                cloud = make_noise_cloud(NoiseConfig(), 3, generator=g)
-                n_s = NoiseRenderer(cloud, cache_size=0).render(init_colors(cloud, generator=g).colors, cams,
-                                                                generator=g).noise  # fmt: skip
+                n_s = source_noise(noise_source(g), cams, g)
                 for r in ratios:
                     n = mix(n_s, r, generator=g, mode=NoiseConfig().ratio_mode)
                     rows.append({"caption": caption, "separation": float(sep), "ratio": r, "draw": d,
-                                 "noise_corr": _warped_corr(n, z, cams)})  # fmt: skip
+                                 "noise_corr": warped_corr(n, z, cams)})  # fmt: skip
     return rows
 
 
-def _warped_corr(n: Tensor, z: Tensor, cams) -> float:
+def noise_source(generator: torch.Generator):
+    """(cloud, colours): one draw of the trainer's default noise cloud and its RGB colours."""
+    from ..noise import NoiseConfig, init_colors, make_noise_cloud
+
+    cloud = make_noise_cloud(NoiseConfig(), 3, generator=generator)
+    return cloud, init_colors(cloud, generator=generator).colors
+
+
+def source_noise(source, cams, generator: torch.Generator) -> Tensor:
+    """The structured noise n_s [V, h, w, 3] of a ``noise_source`` seen by ``cams``."""
+    from ..noise import NoiseRenderer
+
+    cloud, colors = source
+    return NoiseRenderer(cloud, cache_size=0).render(colors, cams, generator=generator).noise
+
+
+def warped_corr(n: Tensor, z: Tensor, cams) -> float:
     """Correlation of view A's field with view B's warped into A over the pixels both see: how much
     of the noise reaches both views at the same surface point (iid noise: 0)."""
     wb, valid = warp(n[1], z[0], cams[0], cams[1], z[1])
