@@ -13,9 +13,9 @@ every 25 steps on one running state (the builds give the same bits or gradients 
 summation order, so both see the same run): from ``--params`` at ``--step``, or from the
 initial scene after K warm-up steps.
 
-``--trainer REV`` builds nothing: it times the training step of ``gdbench/train/trainer.py`` at
-REV (a) against the working tree's (b), the same way (only that file differs between the
-sides; the rest of the package is the working tree's):
+``--trainer REV`` builds nothing: it times the training step of ``gdbench/train`` at REV (a)
+against the working tree's (b), the same way (only that package differs between the sides; the
+rest of gdbench is the working tree's):
 
     .venv/bin/python scripts/ab_ext.py --trainer HEAD --params state.pt --step 1500
 
@@ -188,18 +188,24 @@ def build_steps(mods: dict) -> dict:
 
 
 def trainer_at(rev: str):
-    """``gdbench/train/trainer.py`` at git revision ``rev``, imported as a second module of the
-    package (``gdbench.train.trainer_ab``) beside the working tree's."""
+    """The training step's modules (``gdbench/train/*.py``) at git revision ``rev``, imported as a
+    second package (``gdbench.train_ab``) beside the working tree's; returns its ``trainer``."""
+    import importlib
     import importlib.util
 
-    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:gdbench/train/trainer.py"],
-                         check=True, capture_output=True, text=True).stdout  # fmt: skip
-    name = "gdbench.train.trainer_ab"
-    mod = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader=None))
-    mod.__package__ = "gdbench.train"
-    sys.modules[name] = mod  # dataclasses look their module up here
-    exec(compile(src, f"{rev}:gdbench/train/trainer.py", "exec"), mod.__dict__)
-    return mod
+    tmp = Path(tempfile.mkdtemp(prefix="trainer-ab-"))
+    files = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", rev, "gdbench/train/"],
+                           check=True, capture_output=True, text=True).stdout.split()  # fmt: skip
+    for f in files:
+        if f.endswith(".py"):
+            src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{f}"], check=True, capture_output=True)
+            (tmp / Path(f).name).write_bytes(src.stdout)
+    name = "gdbench.train_ab"
+    spec = importlib.util.spec_from_file_location(name, tmp / "__init__.py", submodule_search_locations=[str(tmp)])
+    pkg = importlib.util.module_from_spec(spec)
+    sys.modules[name] = pkg  # dataclasses look their module up here
+    spec.loader.exec_module(pkg)
+    return importlib.import_module(f"{name}.trainer")
 
 
 def main() -> int:
@@ -217,7 +223,7 @@ def main() -> int:
     ap.add_argument("--step", type=int, default=1500, help="the step count of --params for --train-step")
     ap.add_argument(
         "--trainer", default=None, metavar="REV",
-        help="instead: A/B the training step of trainer.py at REV (a) against the working tree's (b)",
+        help="instead: A/B the training step of gdbench/train at REV (a) against the working tree's (b)",
     )  # fmt: skip
     args = ap.parse_args()
     if args.trainer is not None:

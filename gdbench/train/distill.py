@@ -1,0 +1,102 @@
+"""The middle of a training step: the (jittered) scene rendered into the prior's space, the step's
+noise fields (structured + iid, or iid) and the score the prior gives (``trainer`` holds the step)."""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from ..noise import NoiseState, advance_colors, mix, ratio_schedule
+from ..rand import randn
+from ..variational import jitter
+from .densify import sh_coeffs
+
+if TYPE_CHECKING:
+    from .trainer import Context, TrainState
+    from .views import Views
+
+
+def render_for_prior(ctx: Context, state: TrainState, views: Views):
+    """(render output, x): the (jittered) scene rendered and mapped into the prior's space (in rgb
+    mode x = 2 rgb - 1 is computed outside the graph; ``apply_update`` backpropagates through rgb)."""
+    from renderers.splat import rasterize
+
+    cfg, p = ctx.cfg, state.params
+    means, log_scales = p["means"], p["log_scales"]
+    if cfg.vgs:
+        means, log_scales = jitter(
+            means,
+            log_scales,
+            views.sigma,
+            gamma=cfg.vgs_gamma,
+            scene_radius=ctx.jitter_length,
+            generator=state.streams["jitter"],
+        )
+    depth = cfg.depth_conditioning and ctx.mode == "rgb"
+    latent = ctx.mode == "sd-latent"
+    out = rasterize(
+        means,
+        p["quats"],
+        log_scales.exp(),
+        torch.sigmoid(p["opacity_logits"]),
+        p["sh"][:, 0] if latent else sh_coeffs(p),
+        views.cams.viewmats,
+        views.cams.Ks,
+        views.cams.width,
+        views.cams.height,
+        sh_degree=None if latent else cfg.sh_degree,
+        background=ctx.latent_background if latent else ctx.background,
+        outputs=("rgb", "alpha", "means2d", "visible") + (("depth",) if depth else ()),
+        check_values=False,  # the parameters are checked after every update (apply_update)
+    )
+    if ctx.strategy.collects(state.step + 1):
+        out.means2d.retain_grad()  # densification's screen-space gradients
+    if latent:
+        x = out.rgb  # the 4 latent channels themselves
+    elif ctx.mode == "sd-rgb":
+        x = ctx.prior.encode_images(out.rgb * 2 - 1)  # differentiable: the VAE encoder is in the graph
+    else:  # x = 2 rgb - 1 outside the graph: apply_update hands 2 dL/dx to rgb itself
+        with torch.no_grad():
+            x = out.rgb * 2 - 1
+    return out, x
+
+
+def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: bool) -> list[Tensor]:
+    """The K unit-variance noise fields of this step (structured + iid, or iid)."""
+    cfg = ctx.cfg
+    iid = state.streams["noise_iid"]
+    if ctx.noise is None:
+        return [randn(shape, generator=iid) for _ in range(cfg.samples_per_step)]
+    colors = state.noise_colors
+    if state.step > 0:  # step 0 uses the initial draw
+        nc = NoiseState(colors)
+        colors = advance_colors(nc, cfg.noise.redraw, beta=cfg.noise.ou_beta, generator=state.streams["noise_colors"])
+        colors = colors.colors
+    if update:
+        state.noise_colors = colors
+    n_s = ctx.noise.render(colors, views.prior_cams, generator=state.streams["noise_colors"]).noise
+    ratio = ratio_schedule(state.step, cfg.steps, cfg.noise.ratio_start, cfg.noise.ratio_end)
+    return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio_mode) for _ in range(cfg.samples_per_step)]
+
+
+def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Tensor | None, update: bool):
+    """(score g [B, h, w, C], mean squared residual |D - x|^2, seconds in the noise, seconds in
+    the prior) averaged over the K noise samples."""
+    sigma, K = views.sigma, ctx.cfg.samples_per_step
+    t0 = time.perf_counter()
+    noises = _noise_fields(ctx, state, views, xd.shape, update)
+    t_noise = time.perf_counter() - t0
+    p = views.poses
+    az, el, fovy = p.azimuth.float(), p.elevation.float(), p.fovy.float()
+    sig = torch.full((xd.shape[0],), sigma)
+    score, resid = None, 0.0
+    for n in noises:
+        D = ctx.prior.denoise(xd + sigma * n, sig, ctx.cond, azimuth=az, elevation=el, depth=depth, fovy=fovy)
+        diff = D - xd
+        part = diff / sigma if K == 1 else diff / sigma / K  # / 1 is exact: the same bits
+        score = part if score is None else score + part
+        resid += float((diff**2).mean()) / K
+    return score, resid, t_noise, time.perf_counter() - t0 - t_noise
