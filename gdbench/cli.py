@@ -3,6 +3,7 @@ only parses arguments with tyro."""
 
 from __future__ import annotations
 
+import signal
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -151,6 +152,9 @@ def run_generate(cmd: Generate) -> dict:
 
 
 def run_render(cmd: Render) -> dict:
+    import contextlib
+
+    from .io import FolderLock
     from .resources import check_render_memory
     from .scene import GaussianScene
     from .turntable import write_turntable
@@ -160,18 +164,21 @@ def run_render(cmd: Render) -> dict:
     if not ply.is_file():
         raise FileNotFoundError(f"run: no PLY at {ply} (pass a run folder or a .ply file)")
     check_render_memory(cmd.size, cmd.frames)
-    out = cmd.out or ply.parent
-    scene = GaussianScene.load_ply(ply)
-    res = write_turntable(
-        scene,
-        out,
-        frames=cmd.frames,
-        size=cmd.size,
-        radius=cmd.radius,
-        elevation=cmd.elevation,
-        fovy=cmd.fovy,
-        stem=ply.stem + "_turntable",
-    )
+    out = Path(cmd.out or ply.parent)
+    # a run folder has one writer: not while a generate (--overwrite) or score writes there
+    run_folder = (out / "run.json").is_file() or (out / FolderLock.NAME).is_file()
+    with FolderLock(out) if run_folder else contextlib.nullcontext():
+        scene = GaussianScene.load_ply(ply)
+        res = write_turntable(
+            scene,
+            out,
+            frames=cmd.frames,
+            size=cmd.size,
+            radius=cmd.radius,
+            elevation=cmd.elevation,
+            fovy=cmd.fovy,
+            stem=ply.stem + "_turntable",
+        )
     print(
         f"gdbench render: {len(scene)} Gaussians, {cmd.frames} frames at {cmd.size}px, "
         f"median {1e3 * sorted(res.seconds_per_frame)[cmd.frames // 2]:.1f} ms per frame"
@@ -416,14 +423,16 @@ def error_line(e: BaseException) -> tuple[str, int]:
     """(one-line message, exit code) for an error a user can act on; re-raises anything else.
 
     Exit code 2: bad arguments, missing or broken files, a busy or unwritable folder, a full
-    disk; 130: interrupted (after the run saved its checkpoint)."""
+    disk; 128 + the signal's number when a stop signal ended a run after it saved its checkpoint
+    (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
     from .io import FolderBusy
     from .train.run import RunInterrupted
 
     if isinstance(e, RunInterrupted):
-        return str(e), 130
+        return str(e), e.exit_code
     if isinstance(e, KeyboardInterrupt):
-        return "interrupted", 130
+        signum = getattr(e, "signum", signal.SIGINT)
+        return f"interrupted by {signal.Signals(signum).name}", 128 + signum
     if isinstance(e, (ValueError, FolderBusy, FileNotFoundError, FileExistsError, NotADirectoryError)):
         return str(e), 2
     if isinstance(e, OSError):  # read-only file system, permission, disk full, ...
@@ -432,23 +441,52 @@ def error_line(e: BaseException) -> tuple[str, int]:
     raise e
 
 
-def entrypoint() -> None:
-    """Parse the command line and run it. Bad arguments, missing or broken files and unwritable
-    folders end with a one-line error naming what to fix and exit code 2 (Ctrl-C: 130); set
-    GDBENCH_DEBUG=1 for the traceback."""
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP outside a training loop: raised like Ctrl-C's KeyboardInterrupt, so files
+    being written are removed (``io.atomic_write``) and the command ends with one line."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = int(signum)
+
+
+def _stop(signum, _frame):
+    raise Stopped(signum)
+
+
+def install_stop_handlers() -> None:
+    """SIGTERM and SIGHUP raise ``Stopped`` (as Ctrl-C raises KeyboardInterrupt); a training loop
+    defers all three to the end of its step (``train.run.defer_stop_signals``)."""
+    for s in (getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)):
+        signal.signal(s, _stop)
+
+
+def run_reporting(name: str, work) -> None:
+    """``work()`` under ``install_stop_handlers``; an error a user can act on, or a stop signal,
+    ends the process with one line (``gdbench <name>: error: ...``) and its exit code
+    (``error_line``)."""
     import os
     import sys
 
-    cmd = tyro.extras.subcommand_cli_from_dict({name: kind for name, (kind, _) in COMMANDS.items()})
-    name = next(n for n, (kind, _) in COMMANDS.items() if type(cmd) is kind)
     try:
-        main(cmd)
+        install_stop_handlers()  # inside the try: a signal from here on is reported in one line
+        work()
     except (Exception, KeyboardInterrupt) as e:
         if os.environ.get("GDBENCH_DEBUG"):
             raise
         message, code = error_line(e)
         print(f"gdbench {name}: error: {message}", file=sys.stderr)
         sys.exit(code)
+
+
+def entrypoint() -> None:
+    """Parse the command line and run it. Bad arguments, missing or broken files and unwritable
+    folders end with a one-line error naming what to fix and exit code 2. A stop signal (Ctrl-C,
+    SIGTERM, SIGHUP) ends the command with one line and exit code 128 + its number; during
+    training, after the step it lands in and a checkpoint. Set GDBENCH_DEBUG=1 for the traceback."""
+    cmd = tyro.extras.subcommand_cli_from_dict({name: kind for name, (kind, _) in COMMANDS.items()})
+    name = next(n for n, (kind, _) in COMMANDS.items() if type(cmd) is kind)
+    run_reporting(name, lambda: main(cmd))
 
 
 if __name__ == "__main__":

@@ -325,7 +325,10 @@ def _error_maps(res: Result, path: Path) -> Path:
         err = (img[0].float() - truth).abs().amax(-1, keepdim=True)
         scale = max(float(err.max()), 1e-6)
         tiles.append((err / scale).expand(*err.shape[:2], 3))  # each map normalised to its own max
-    iio.imwrite(path, (torch.cat(tiles, 1) * 255).round().byte().numpy())
+    from .io import atomic_path
+
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, (torch.cat(tiles, 1) * 255).round().byte().numpy())
     return path
 
 

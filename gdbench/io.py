@@ -4,7 +4,9 @@ numbers, content hashes, and a lock that keeps two writers out of one run folder
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
 import hashlib
 import io
 import json
@@ -14,7 +16,7 @@ import os
 import socket
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
@@ -25,10 +27,39 @@ def _umask() -> int:
     return mask
 
 
+DISK_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS})
+"""OS errors of the file being written (a full disk or quota, a file too large, an I/O error, a
+read-only file system), as opposed to errors of other files a writer reads."""
+
+
+def disk_error(e: BaseException, path: str | Path) -> OSError | None:
+    """The disk error behind ``e`` (itself, or one in its chain of causes: torch.save reports a
+    full disk as a RuntimeError whose context is the OSError, imageio as a ValueError), as an
+    OSError naming ``path``; None when there is none."""
+    seen: set[int] = set()
+    x: BaseException | None = e
+    while x is not None and id(x) not in seen:
+        if isinstance(x, OSError) and x.errno in DISK_ERRORS:
+            return OSError(x.errno, x.strerror or os.strerror(x.errno), str(path))
+        seen.add(id(x))
+        x = x.__cause__ or x.__context__
+    return None
+
+
+def _reraise(e: BaseException, path: Path):
+    """Re-raise ``e``, or the disk error behind it as an OSError naming ``path`` (so the command
+    line prints one line, not torch's or imageio's traceback)."""
+    err = disk_error(e, path) if isinstance(e, Exception) else None
+    if err is None or (isinstance(e, OSError) and e.filename):
+        raise e
+    raise err from None
+
+
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
     """Write ``path`` through ``write(f)`` into a temporary file in the same folder, then rename
     it over ``path``: readers see the old file or the new one, never a part. The file gets the
-    mode a plain ``open()`` would give it (0666 & ~umask), not mkstemp's 0600."""
+    mode a plain ``open()`` would give it (0666 & ~umask), not mkstemp's 0600. A full disk raises
+    an OSError naming ``path`` whatever the writer made of it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -39,10 +70,59 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         Path(tmp).unlink(missing_ok=True)
-        raise
+        _reraise(e, path)
     return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """For writers that take a file name (imageio, matplotlib, pyav): a temporary name beside
+    ``path`` with its suffix (writers choose the format by it). When the block ends without
+    error the file is fsynced, given the user's umask and renamed over ``path``; otherwise it is
+    removed, and a full disk raises an OSError naming ``path``. A reader sees the old file or
+    the new one, never a part."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        _drop_writer(e)
+        _reraise(e, path)
+
+
+def _drop_writer(e: BaseException) -> None:
+    """Free now what the failed writer left (imageio's half-closed plugin, whose ``__del__``
+    would retry the write at exit and print a second traceback after the error line): clear the
+    finished frames of ``e``'s traceback and collect them, quietly."""
+    import gc
+    import sys
+    import traceback
+
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda _unraisable: None  # before the frames go: their locals die with them
+    try:
+        seen: set[int] = set()
+        x: BaseException | None = e
+        while x is not None and id(x) not in seen:  # the error and those it arose from
+            traceback.clear_frames(x.__traceback__)
+            seen.add(id(x))
+            x = x.__cause__ or x.__context__
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
 
 
 def jsonable(obj):

@@ -21,7 +21,11 @@ def save(fig, path: str | Path, *, dpi: int = 110) -> Path:
     path = Path(path)
     if fig.get_layout_engine() is None:
         fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    pyplot().close(fig)
+    from .io import atomic_path
+
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=path.suffix[1:] or None)
+    finally:
+        pyplot().close(fig)
     return path

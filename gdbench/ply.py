@@ -109,6 +109,16 @@ def write_ply(fields: dict[str, Tensor], path: str | Path, *, comments: list[str
     return atomic_write(path, ply.write)
 
 
+def header_comments(path: str | Path) -> list[str]:
+    """The ``comment`` lines of a PLY header (gdbench writes ``gdbench run <run id>``), read
+    from at most its first 64 KiB without parsing the body."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    end = head.find(b"end_header")
+    lines = head[: end if end >= 0 else len(head)].decode("ascii", errors="replace").splitlines()
+    return [line[len("comment ") :].strip() for line in lines if line.startswith("comment ")]
+
+
 def read_ply(path: str | Path) -> dict[str, Tensor]:
     """The ``FIELDS`` of a 3DGS PLY (ours, the Inria code's, Open3D's) as float32 tensors. Errors
     name the file and the problem."""

@@ -87,6 +87,8 @@ def write_turntable(
     """Render ``frames`` views on a circle and write ``{stem}.gif``, ``.mp4`` and ``_sheet.png``."""
     import imageio.v3 as iio
 
+    from .io import atomic_path
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cams = SphericalPoses.orbit(frames, radius=radius, elevation=elevation, fovy=fovy).cameras(size, size)
@@ -97,12 +99,17 @@ def write_turntable(
         times.append(time.perf_counter() - t0)
     arr = to_uint8(torch.cat(imgs))
     paths = {"gif": out_dir / f"{stem}.gif", "sheet": out_dir / f"{stem}_sheet.png"}
-    iio.imwrite(paths["gif"], arr, duration=1000 / fps, loop=0)
-    iio.imwrite(paths["sheet"], contact_sheet(arr[:: max(1, frames // 12)][:12]))
+    with atomic_path(paths["gif"]) as tmp:
+        iio.imwrite(tmp, arr, duration=1000 / fps, loop=0)
+    with atomic_path(paths["sheet"]) as tmp:
+        iio.imwrite(tmp, contact_sheet(arr[:: max(1, frames // 12)][:12]))
     if mp4:
         try:
-            iio.imwrite(out_dir / f"{stem}.mp4", arr, fps=fps, codec="libx264", plugin="pyav")
+            with atomic_path(out_dir / f"{stem}.mp4") as tmp:
+                iio.imwrite(tmp, arr, fps=fps, codec="libx264", plugin="pyav")
             paths["mp4"] = out_dir / f"{stem}.mp4"
+        except OSError:  # a full disk is the run's error, not a missing codec
+            raise
         except Exception as e:  # pyav missing or without x264: the GIF is still there
             print(f"note: MP4 not written ({type(e).__name__}: {e}); install `av` for MP4 output")
     return TurntableResult(arr, times, paths)

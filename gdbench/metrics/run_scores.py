@@ -57,16 +57,47 @@ def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: i
     ``colmap`` for the COLMAP block (``views`` renders of ``size`` px). Returns the file's
     content plus ``reused``: the asked-for blocks taken from an earlier call (same scene,
     parameters and commit), and ``kept``: blocks not asked for that the file still holds."""
-    from ..provenance import made
+    from ..io import FolderLock
 
     run = Path(run)
     if not run.is_dir():
         raise FileNotFoundError(f"run: no run folder at {run}")
+    with FolderLock(run, what="run"):  # one writer: not while a generate (--overwrite) writes here
+        return _score_run(run, gt=gt, colmap=colmap, views=views, size=size)
+
+
+def one_run(run: Path) -> tuple[dict, str]:
+    """(run.json's content, scene.ply's SHA-256), checked to belong to one run: the PLY header's
+    ``gdbench run <id>`` and the scene's hash must be those run.json records (a folder whose
+    files come from two runs is refused, naming both)."""
+    from ..ply import header_comments
+
     ply = run / "scene.ply"
     if not ply.is_file():
         raise FileNotFoundError(f"run: no scene.ply in {run} (is the run finished?)")
     info = read_json(run / "run.json", what="run.json") if (run / "run.json").is_file() else {}
     scene_sha = sha256_file(ply)
+    ids = [c.split()[2] for c in header_comments(ply) if c.startswith("gdbench run ") and len(c.split()) == 3]
+    rid = info.get("run_id")
+    if rid is not None and ids and ids[0] != rid:
+        raise ValueError(
+            f"run: {ply} is from run {ids[0]} but {run / 'run.json'} describes run {rid}; the folder mixes two "
+            "runs: run `gdbench generate` again with --overwrite, or score the PLY's own folder"
+        )
+    want = info.get("scene_sha256")
+    if want is not None and want != scene_sha:
+        raise ValueError(
+            f"run: {ply} is not the scene {run / 'run.json'} records (SHA-256 {scene_sha[:12]}... against "
+            f"{str(want)[:12]}...); it was changed after the run: run `gdbench generate` again with --overwrite"
+        )
+    return info, scene_sha
+
+
+def _score_run(run: Path, *, gt: bool, colmap: bool, views: int, size: int) -> dict:
+    from ..provenance import made
+
+    ply = run / "scene.ply"
+    info, scene_sha = one_run(run)
     previous = previous_scores(run, scene_sha)  # a broken scores.json fails here, before the work
     scene = GaussianScene.load_ply(ply)
     out: dict = {

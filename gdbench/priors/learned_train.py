@@ -179,7 +179,7 @@ def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
 
 def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
     from ..io import atomic_write
-    from ..train.run import RunInterrupted, _defer_sigint
+    from ..train.run import RunInterrupted, defer_stop_signals
 
     device = _device(cfg.device)
     out = Path(cfg.out)
@@ -233,7 +233,7 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
     t0 = time.perf_counter()
     last = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
     interrupted: list = []
-    with _defer_sigint(interrupted):  # Ctrl-C ends the step it lands in: the checkpoint holds whole steps
+    with defer_stop_signals(interrupted):  # a stop signal ends the step it lands in: whole steps saved
         try:
             while step < last and not interrupted:
                 for group in opt.param_groups:
@@ -264,8 +264,7 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
                 bar.close()
     if interrupted:
         save()
-        raise RunInterrupted(f"interrupted at step {step} of {cfg.steps}; checkpoint saved to {ckpt_path}; run the "
-                             "same command again to resume")  # fmt: skip
+        raise RunInterrupted.at(interrupted[0], step, cfg.steps, ckpt_path)
     save()
     if step < cfg.steps:
         return {"out": str(out), "steps": step, "final_loss": _final_loss(log), "weights": None}
@@ -343,11 +342,9 @@ def plot_loss(log: list[dict], path: Path, title: str = "") -> None:
     """The loss curve (per logged interval, and its running mean over a tenth of the run)."""
     if not log:
         return
-    import matplotlib
+    from ..plotting import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     steps = [r["step"] for r in log]
     loss = torch.tensor([r["loss"] for r in log])
     k = max(1, len(log) // 10)
@@ -357,7 +354,4 @@ def plot_loss(log: list[dict], path: Path, title: str = "") -> None:
     ax.plot(steps[k - 1 :], smooth, lw=1.5, label=f"running mean ({k} intervals)")
     ax.set(xlabel="step", ylabel="loss (v MSE)", yscale="log", title=f"learned prior {title}".strip())
     ax.legend()
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save(fig, path, dpi=120)

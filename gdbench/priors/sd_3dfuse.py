@@ -153,7 +153,10 @@ def semantic_code(prior, prompt: str, out: str | Path, cfg: SemanticCodeConfig |
     g = torch.Generator().manual_seed(cfg.seed)
     cond = prior.encode(prompt)
     image = prior.sample(cond, cfg.size, steps=cfg.sample_steps, generator=g)
-    iio.imwrite(out / "image.png", ((image[0] + 1) * 127.5).clamp(0, 255).round().to(torch.uint8).numpy())
+    from ..io import atomic_path
+
+    with atomic_path(out / "image.png") as tmp:
+        iio.imwrite(tmp, ((image[0] + 1) * 127.5).clamp(0, 255).round().to(torch.uint8).numpy())
     with torch.no_grad():
         z0 = prior.encode_images(image.to(prior.device)).permute(0, 3, 1, 2)
     text = f"{prompt}, {cfg.token}"

@@ -5,9 +5,7 @@ and learning-rate schedules depend on it)."""
 
 from __future__ import annotations
 
-import os
 import pickle
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -32,26 +30,11 @@ class CheckpointError(ValueError):
 
 
 def save_blob(blob: dict, path: Path) -> Path:
-    """Atomic: written to a temporary file in the same folder, then renamed over ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".pt.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save({"format": FORMAT} | blob, f)
-        _umask_mode(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Atomic (``io.atomic_write``): written to a temporary file in the same folder, then renamed
+    over ``path``; a full disk raises an OSError naming ``path``."""
+    from ..io import atomic_write
 
-
-def _umask_mode(path: str) -> None:
-    """mkstemp creates files 0600; give them the mode a plain open() would (0666 & ~umask)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)
+    return atomic_write(path, lambda f: torch.save({"format": FORMAT} | blob, f))
 
 
 def load_blob(path: Path) -> dict:
@@ -119,7 +102,8 @@ def load_checkpoint(path: Path, ctx):
     """The ``TrainState`` saved at ``path``, after checking it belongs to ``ctx``'s config."""
     from .densify import DensifyState
     from .outputs import config_dict
-    from .trainer import TrainState, _optimizer
+    from .state import TrainState
+    from .trainer import _optimizer
 
     blob = load_blob(path)
     diff = config_diff(blob["config"], config_dict(ctx.cfg))

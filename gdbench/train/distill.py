@@ -15,7 +15,7 @@ from ..variational import jitter
 from .densify import sh_coeffs
 
 if TYPE_CHECKING:
-    from .trainer import Context, TrainState
+    from .state import Context, TrainState
     from .views import Views
 
 

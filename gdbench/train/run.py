@@ -34,12 +34,39 @@ RUN_OUTPUTS = (
     "turntable_sheet.png",
     "curves.png",
     "checkpoint.pt",
+    "scene_turntable.gif",
+    "scene_turntable.mp4",
+    "scene_turntable_sheet.png",
 )
-"""What a run writes into its folder (removed before an overwrite)."""
+"""What a run and the commands that write into its folder (``score``, ``render``) put there
+(removed before an overwrite)."""
+
+
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+"""What ends a run cleanly: Ctrl-C (SIGINT), ``timeout``/``kill``/Slurm (SIGTERM) and a closed
+terminal or SSH session (SIGHUP)."""
 
 
 class RunInterrupted(RuntimeError):
-    """Ctrl-C during training: the checkpoint was saved first."""
+    """A stop signal (``STOP_SIGNALS``) during training: the checkpoint was saved first.
+    ``exit_code`` is the shell's 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM,
+    129 for SIGHUP)."""
+
+    def __init__(self, message: str, signum: int = signal.SIGINT):
+        super().__init__(message)
+        self.signum = int(signum)
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+    @classmethod
+    def at(cls, signum: int, step: int, steps: int, ckpt: Path) -> RunInterrupted:
+        return cls(
+            f"interrupted by {signal.Signals(signum).name} at step {step} of {steps}; checkpoint saved to {ckpt}; "
+            "run the same command again to resume",
+            signum,
+        )
 
 
 @dataclass
@@ -158,12 +185,13 @@ def train(
 
 
 def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
-    """Steps until ``last``. Ctrl-C (SIGINT) is deferred to the end of the step it lands in, so
-    the checkpoint saved then holds a whole step, and the run resumes exactly where it stopped."""
+    """Steps until ``last``. A stop signal (Ctrl-C, SIGTERM, SIGHUP) is deferred to the end of the
+    step it lands in, so the checkpoint saved then holds a whole step, and the run resumes exactly
+    where it stopped."""
     cfg = ctx.cfg
     bar = _progress(cfg, state.step, last)
     interrupted = []
-    with _defer_sigint(interrupted):
+    with defer_stop_signals(interrupted):
         try:
             while state.step < last and not interrupted:
                 m = train_step(state, ctx)
@@ -178,23 +206,22 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
                 bar.close()
     if interrupted:
         save_checkpoint(state, ctx, ckpt)
-        raise RunInterrupted(
-            f"interrupted at step {state.step} of {cfg.steps}; checkpoint saved to {ckpt}; "
-            "run the same command again to resume"
-        )
+        raise RunInterrupted.at(interrupted[0], state.step, cfg.steps, ckpt)
 
 
 @contextlib.contextmanager
-def _defer_sigint(flag: list):
-    """While active, SIGINT appends to ``flag`` instead of raising (main thread only)."""
+def defer_stop_signals(flag: list):
+    """While active, each of ``STOP_SIGNALS`` appends its number to ``flag`` instead of stopping
+    the process (main thread only; elsewhere signals cannot be caught and nothing changes)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, lambda *_: flag.append(True))
+    previous = {s: signal.signal(s, lambda signum, _frame: flag.append(signum)) for s in STOP_SIGNALS}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _progress(cfg: TrainConfig, start: int, last: int):

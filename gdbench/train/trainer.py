@@ -21,22 +21,19 @@ paired.
 
 from __future__ import annotations
 
-import functools
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Literal
 
 import torch
 from torch import Tensor
 
 from ..noise import NoiseRenderer, init_colors, make_noise_cloud
-from ..scene import GaussianScene
 from .config import TrainConfig
-from .densify import PARAM_NAMES, SCENE_NAMES, DensifyState, DensifyStrategy, sh_coeffs
+from .densify import PARAM_NAMES, SCENE_NAMES, DensifyStrategy
 from .distill import distill, render_for_prior
 from .init import initial_scene, scene_extent
-from .streams import make_streams, set_stream_states, stream_states
+from .state import Context, Mode, TrainState
+from .streams import make_streams
 from .update import TrainingDiverged, apply_update
 from .views import Views, sample_views
 
@@ -53,70 +50,6 @@ __all__ = [
     "sample_views",
     "train_step",
 ]
-
-Mode = Literal["rgb", "sd-rgb", "sd-latent"]
-
-
-@dataclass
-class Context:
-    """What a run needs besides its state: fixed for the run, never checkpointed."""
-
-    cfg: TrainConfig
-    prior: object
-    cond: object
-    strategy: DensifyStrategy
-    noise: NoiseRenderer | None
-    background: Tensor
-    sigmas: Tensor
-    """All of the prior's ticks, ascending."""
-    mode: Mode = "rgb"
-    """rgb: pixel prior; sd-rgb: render RGB and encode it with the VAE (GaussianDiffusion);
-    sd-latent: render the 4 latent channels directly at 1/8 resolution (SJC)."""
-    factor: int = 1
-    """The prior's input is the render downsampled by this (8 for SD latents)."""
-    depth_points: Tensor | None = None
-    """Stable Diffusion with depth conditioning: the initial point cloud whose projected depth
-    conditions the ControlNet (3DFuse)."""
-    latent_background: Tensor | None = None
-    """sd-latent: the latent of the background colour."""
-    jitter_length: float = 0.5
-    """World length of one VGS unit for the means (``vgs_unit``)."""
-    extent: float = 0.5
-    """The scene's radius (``init.scene_extent``): world-size settings are fractions of it."""
-
-    @functools.cached_property
-    def sigma_values(self) -> list[float]:
-        """``sigmas`` as Python floats (the per-step draw bisects them)."""
-        return self.sigmas.tolist()
-
-
-@dataclass
-class TrainState:
-    step: int
-    params: dict[str, Tensor]
-    optimizer: torch.optim.Adam
-    densify: DensifyState
-    noise_colors: Tensor | None
-    streams: dict[str, torch.Generator]
-    history: list[dict] = field(default_factory=list)
-    bad_steps: int = 0
-
-    def scene(self) -> GaussianScene:
-        p = {k: self.params[k].detach() for k in PARAM_NAMES}
-        sh = sh_coeffs(p)
-        if sh.shape[-1] == 4:  # latent-mode features: colours by the linear latent preview
-            from renderers.splat.sh import C0
-
-            from ..priors.stable_diffusion import latent_to_rgb
-
-            sh = ((latent_to_rgb(sh[:, 0]) - 0.5) / C0)[:, None]
-        return GaussianScene(*(p[k] for k in SCENE_NAMES), sh)
-
-    def rng_state(self) -> dict[str, Tensor]:
-        return stream_states(self.streams)
-
-    def set_rng_state(self, states: dict[str, Tensor]) -> None:
-        set_stream_states(self.streams, states)
 
 
 def make_context(cfg: TrainConfig, prior=None) -> Context:

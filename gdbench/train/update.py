@@ -14,7 +14,7 @@ from .densify import PARAM_NAMES
 from .init import SPHERE_RADIUS
 
 if TYPE_CHECKING:
-    from .trainer import Context, TrainState
+    from .state import Context, TrainState
     from .views import Views
 
 

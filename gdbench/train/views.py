@@ -13,7 +13,7 @@ import torch
 from ..camera import Cameras, SphericalPoses
 
 if TYPE_CHECKING:
-    from .trainer import Context, TrainState
+    from .state import Context, TrainState
 
 
 @dataclass(frozen=True)
