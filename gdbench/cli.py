@@ -6,10 +6,11 @@ from __future__ import annotations
 import signal
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
+from .constraints import AtLeast, Between, Positive, check_fields
 from .train.config import BASE_PRESETS, PRESETS
 from .train.options import method_options, train_options
 
@@ -20,18 +21,21 @@ class Demo:
 
     out: Path = Path("runs/demo")
     """Output folder."""
-    frames: int = 36
+    frames: Annotated[int, AtLeast(1)] = 36
     """Views on the orbit (360/frames degrees apart)."""
-    size: int = 256
+    size: Annotated[int, AtLeast(8, "px")] = 256
     """Image width and height in pixels."""
-    gaussians: int = 3000
+    gaussians: Annotated[int, AtLeast(1)] = 3000
     """Number of Gaussians in the built-in scene."""
     seed: int = 0
     """Seed of the built-in scene."""
 
 
 def run_demo(cmd: Demo) -> dict:
+    from .resources import check_render_memory
     from .turntable import demo
+
+    check_render_memory(cmd.size, cmd.frames)
 
     return demo(cmd.out, frames=cmd.frames, size=cmd.size, gaussians=cmd.gaussians, seed=cmd.seed)
 
@@ -46,18 +50,19 @@ class Noise:
     out: Path = Path("runs/noise_preview.png")
     """Where the preview goes: a .png file, or a folder (existing, or a path without a suffix)
     that receives noise_preview.png."""
-    res: int = 128
+    res: Annotated[int, AtLeast(8, "px")] = 128
     """Resolution of the views."""
     seed: int = 0
-    n_gaussians: int = 3072
+    n_gaussians: Annotated[int, AtLeast(1)] = 3072
     """Noise Gaussians in the cloud."""
-    scale: float = 0.02
+    scale: Annotated[float, Positive()] = 0.02
     """Their isotropic scale."""
 
 
 def run_noise(cmd: Noise) -> dict:
     from .noise import NoiseConfig
     from .noise_preview import preview
+    from .resources import check_noise_memory
 
     if not cmd.preview:
         raise ValueError("preview: nothing to do; pass --preview to write the preview figure")
@@ -66,6 +71,7 @@ def run_noise(cmd: Noise) -> dict:
         out = out / "noise_preview.png"
     elif out.suffix.lower() != ".png":
         raise ValueError(f"out: expected a .png file or a folder, got {cmd.out}")
+    check_noise_memory(cmd.res, cmd.n_gaussians)
     stats = preview(out, NoiseConfig(n_gaussians=cmd.n_gaussians, scale=cmd.scale), res=cmd.res, seed=cmd.seed)
     print(
         f"wrote {stats['path']}: coverage {stats['coverage']:.2f}, per-pixel mean {stats['mean']:+.3f}, "
@@ -122,11 +128,11 @@ class Render:
     """A run folder (its scene.ply is used) or a .ply file."""
     out: Path | None = None
     """Output folder (default: the run folder, or the PLY's folder)."""
-    frames: int = 36
-    size: int = 256
-    radius: float = 1.3
-    elevation: float = 15.0
-    fovy: float = 45.0
+    frames: Annotated[int, AtLeast(1)] = 36
+    size: Annotated[int, AtLeast(8, "px")] = 256
+    radius: Annotated[float, Positive()] = 1.3
+    elevation: Annotated[float, Between(-90, 90, unit="degrees")] = 15.0
+    fovy: Annotated[float, Between(0, 180, open=True, unit="degrees")] = 45.0
 
 
 def run_generate(cmd: Generate) -> dict:
@@ -221,17 +227,20 @@ class Score:
     """Score against the procedural asset (empirical-prior runs)."""
     colmap: bool = True
     """Run the COLMAP consistency metric (about 30 s on 2 cores)."""
-    views: int = 100
+    views: Annotated[int, AtLeast(2)] = 100
     """COLMAP's: the number of turntable views rendered and registered."""
-    size: int = 256
+    size: Annotated[int, AtLeast(16, "px")] = 256
     """COLMAP's: the side of each rendered view, in pixels."""
 
 
 def run_score(cmd: Score) -> dict:
     from .metrics.run_scores import report, score_run
+    from .resources import check_score_memory
 
     if not Path(cmd.run).is_dir():
         raise FileNotFoundError(f"run: expected a run folder, got {cmd.run}")
+    if cmd.colmap:
+        check_score_memory(cmd.size, cmd.views)
     s = score_run(cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size)
     print(report(s))
     return s
@@ -268,7 +277,7 @@ class Sweep:
     """Score only these presets with COLMAP (default: all, when --colmap)."""
     colmap_settings: tuple[str, ...] = ()
     """Score with COLMAP only in these settings (default: all, when --colmap)."""
-    steps: int = 2000
+    steps: Annotated[int, AtLeast(1)] = 2000
     """Training steps per cell."""
     out: Path = Path("runs/sweep")
     """Folder for the cells (one run folder each) and the tables."""
@@ -276,11 +285,11 @@ class Sweep:
     """Where cells run: a local process pool or a Ray cluster."""
     address: str = ""
     """Ray cluster address (ray executor); empty starts a local Ray instance."""
-    workers: int = 1
+    workers: Annotated[int, AtLeast(1)] = 1
     """Cells run at once (one training already uses both cores of a small machine)."""
     colmap: bool = True
     """Score cells with COLMAP consistency (the slow part: ~1 min per cell)."""
-    colmap_views: int = 100
+    colmap_views: Annotated[int, AtLeast(2)] = 100
     """Views on the circle rendered for COLMAP."""
     train: tyro.conf.OmitArgPrefixes[SweepTrain] = field(default_factory=SweepTrain)
     """Overrides applied to every cell (after its setting's)."""
@@ -365,21 +374,21 @@ class TrainPrior:
 
     out: Path = Path("runs/prior")
     """The run folder (reused with the same settings: the run resumes)."""
-    front_bias: float = 0.0
+    front_bias: Annotated[float, AtLeast(0)] = 0.0
     """kappa: training views drawn with probability ~ exp(kappa cos azimuth) (the shipped 'front'
     model: 2)."""
-    steps: int = 8000
-    batch: int = 32
-    lr: float = 6e-4
+    steps: Annotated[int, AtLeast(1)] = 8000
+    batch: Annotated[int, AtLeast(1)] = 32
+    lr: Annotated[float, Positive()] = 6e-4
     """Peak learning rate (AdamW; warm-up, then cosine decay to a tenth)."""
     seed: int = 0
-    size: int = 32
+    size: Annotated[int, AtLeast(8, "px")] = 32
     """The model's resolution (a divisor of --resolution; the 64 px renders are box-filtered to it)."""
-    views: int = 1024
+    views: Annotated[int, AtLeast(1)] = 1024
     """Rendered cameras per (asset, variant)."""
-    resolution: int = 64
+    resolution: Annotated[int, AtLeast(8, "px")] = 64
     """Resolution the data is rendered at."""
-    threads: int = 0
+    threads: Annotated[int, AtLeast(0)] = 0
     """torch CPU threads (0: torch's default); a result reproduces for one thread count."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     progress: bool = True
@@ -413,8 +422,11 @@ COMMANDS = {
 
 
 def main(cmd) -> dict:
+    """Validate the whole command line against its declared ranges (``gdbench.constraints``),
+    then run it: nothing is built, rendered or trained for a command that cannot run."""
     for _, (kind, run) in COMMANDS.items():
         if type(cmd) is kind:
+            check_fields(cmd, nested=False)  # option groups (train, method) hold plain flags
             return run(cmd)
     raise TypeError(f"cmd: unknown command {type(cmd).__name__}")
 
@@ -427,9 +439,12 @@ def error_line(e: BaseException) -> tuple[str, int]:
     (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
     from .io import FolderBusy
     from .train.run import RunInterrupted
+    from .train.update import TrainingDiverged
 
     if isinstance(e, RunInterrupted):
         return str(e), e.exit_code
+    if isinstance(e, TrainingDiverged):  # its message says what to try
+        return str(e), 2
     if isinstance(e, KeyboardInterrupt):
         signum = getattr(e, "signum", signal.SIGINT)
         return f"interrupted by {signal.Signals(signum).name}", 128 + signum

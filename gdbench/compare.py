@@ -388,6 +388,9 @@ def run(
     unknown = [b for b in backends or [] if b not in BACKENDS]
     if unknown:
         raise ValueError(f"backends: unknown {unknown}; known: {sorted(BACKENDS)}")
+    from .io import writable_folder
+
+    writable_folder(out)  # a read-only --out fails now, not after the rendering
     old = earlier_report(Path(out))  # a broken table is named before any rendering
     results = {}
     for n in names:

@@ -241,6 +241,31 @@ def sha256_json(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def check_folder(folder: str | Path, what: str = "out") -> Path:
+    """``folder`` as a place to write: a folder or a path that does not exist yet. A file, or a
+    symbolic link that leads nowhere (dangling, or a loop), is a ValueError naming ``what``."""
+    folder = Path(folder)
+    if folder.is_symlink() and not folder.exists():
+        raise ValueError(
+            f"{what}: {folder} is a symbolic link to {os.readlink(folder)!r}, which does not exist or loops; "
+            "expected a folder"
+        )
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{what}: {folder} is a file; expected a folder (or a path that does not exist)")
+    return folder
+
+
+def writable_folder(folder: str | Path, what: str = "out") -> Path:
+    """``check_folder``, then make it and write and remove a probe file there: a read-only or
+    full place fails now, naming the folder, not after minutes of work."""
+    folder = check_folder(folder, what)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, probe = tempfile.mkstemp(dir=folder, prefix=".gdbench-probe.")
+    os.close(fd)
+    os.unlink(probe)
+    return folder
+
+
 class FolderBusy(RuntimeError):
     """Another process holds the folder's lock."""
 
@@ -260,8 +285,7 @@ class FolderLock:
     def __enter__(self) -> FolderLock:
         import fcntl
 
-        if self.folder.exists() and not self.folder.is_dir():
-            raise ValueError(f"{self.what}: {self.folder} is a file; expected a folder (or a path that does not exist)")
+        check_folder(self.folder, self.what)
         self.folder.mkdir(parents=True, exist_ok=True)
         path = self.folder / self.NAME
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)

@@ -31,12 +31,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
 from torch import Tensor
 
 from .camera import Cameras
+from .constraints import AtLeast, Between, Positive, Range, check_fields
 from .rand import randn
 
 Redraw = Literal["step", "run", "ou"]
@@ -47,52 +48,39 @@ RatioMode = Literal["amplitude", "variance"]
 class NoiseConfig:
     """Settings of the noise cloud and of its use during a run."""
 
-    n_gaussians: int = 3072
+    n_gaussians: Annotated[int, AtLeast(1)] = 3072
     """M, the number of noise Gaussians (3072 keeps the noise under 30% of a 4k-Gaussian
     training step at 128 px on 2 CPU cores; see docs/noise.md)."""
-    radius: float = 0.5
+    radius: Annotated[float, Positive()] = 0.5
     """Largest distance of a noise Gaussian from the origin."""
-    scale: float = 0.02
+    scale: Annotated[float, Positive()] = 0.02
     """Isotropic standard deviation of each noise Gaussian (world units); sets the noise's
     correlation length (about 10 px at 128 px, camera radius 1, see docs/noise.md)."""
-    opacity: float = 0.6
+    opacity: Annotated[float, Range(0, 1, lo_open=True)] = 0.6
     """Opacity of each noise Gaussian."""
-    azimuth_range: tuple[float, float] = (-180.0, 180.0)
-    elevation_range: tuple[float, float] = (-45.0, 45.0)
+    azimuth_range: Annotated[tuple[float, float], Between(-360, 360, unit="degrees")] = (-180.0, 180.0)
+    elevation_range: Annotated[tuple[float, float], Between(-90, 90, unit="degrees")] = (-45.0, 45.0)
     redraw: Redraw = "run"
     """When colours are redrawn: once per run (the paper: one fixed source seen from every view),
     every step (an ablation: no two steps share a source), or an Ornstein-Uhlenbeck drift."""
-    ou_beta: float = 0.1
+    ou_beta: Annotated[float, Range(0, 1, lo_open=True)] = 0.1
     """b of the OU drift (0 < b <= 1; 1 is the same as 'step')."""
-    ratio_start: float = 0.3
+    ratio_start: Annotated[float, Between(0, 1)] = 0.3
     """r_t at the first step."""
-    ratio_end: float = 0.05
+    ratio_end: Annotated[float, Between(0, 1)] = 0.05
     """r_t at the last step."""
     ratio_mode: RatioMode = "variance"
     """How r_t mixes: 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid) or 'variance'
     (n = sqrt(r) n_s + sqrt(1 - r) n_iid)."""
-    v_min: float = 1e-6
+    v_min: Annotated[float, AtLeast(0)] = 1e-6
     """Pixels with sum_i w_i^2 below this get iid noise."""
 
     def __post_init__(self) -> None:
-        if self.n_gaussians < 1:
-            raise ValueError(f"n_gaussians: expected at least one noise Gaussian, got {self.n_gaussians}")
-        for name in ("radius", "scale"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name}: expected a positive value, got {getattr(self, name)}")
-        if not 0 < self.opacity <= 1:
-            raise ValueError(f"opacity: expected a value in (0, 1], got {self.opacity}")
+        check_fields(self, "noise.")  # every field against its declared type and range
         if self.redraw not in ("step", "run", "ou"):
             raise ValueError(f"redraw: expected 'step', 'run' or 'ou', got {self.redraw!r}")
-        if not 0 < self.ou_beta <= 1:
-            raise ValueError(f"ou_beta: expected a value in (0, 1], got {self.ou_beta}")
-        for name in ("ratio_start", "ratio_end"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"{name}: expected a value in [0, 1], got {getattr(self, name)}")
         if self.ratio_mode not in ("amplitude", "variance"):
             raise ValueError(f"ratio_mode: expected 'amplitude' or 'variance', got {self.ratio_mode!r}")
-        if not self.v_min >= 0:
-            raise ValueError(f"v_min: expected a non-negative threshold, got {self.v_min}")
 
 
 @dataclass(frozen=True)

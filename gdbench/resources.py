@@ -26,19 +26,28 @@ def available_bytes() -> int:
         return 1 << 62
 
 
-def _refuse(arg: str, value, need: float, what: str) -> None:
+def _refuse(terms: list[tuple[str, object, float, str]]) -> None:
+    """``terms``: (field, value, bytes, what) of each big buffer. When their sum exceeds what is
+    available, a ValueError names the field (and its flag) of the largest and every part."""
+    from .constraints import flag
+
+    need = sum(b for _, _, b, _ in terms)
     have = available_bytes()
     if need > have:
+        name, value, _, _ = max(terms, key=lambda x: x[2])
+        what = ", ".join(f"{w} {b / GIB:.2f} GiB" for _, _, b, w in terms)
         raise ValueError(
-            f"{arg}: {value} needs about {need / GIB:.1f} GiB ({what}); this machine has {have / GIB:.1f} GiB available"
+            f"{name} ({flag(name)}): {value} needs about {need / GIB:.1f} GiB ({what}); "
+            f"this machine has {have / GIB:.1f} GiB available"
         )
 
 
-def generate_bytes(cfg) -> tuple[float, str]:
-    """(bytes, what) of a training run's big buffers: the prior's bank and zoomed copies, the
-    renders of one step, and the Gaussians at their cap."""
-    R, V = cfg.resolution, cfg.views_per_step
-    need, parts = 0.0, []
+def generate_terms(cfg) -> list[tuple[str, object, float, str]]:
+    """The big buffers of a training run, each with the option that sizes it: the prior's bank
+    and its zoomed copies (resolution), one step's renders and noise fields (views per step,
+    samples per step) and the Gaussians (initial points, the densification cap)."""
+    R, V, K = cfg.resolution, cfg.views_per_step, cfg.samples_per_step
+    terms: list[tuple[str, object, float, str]] = []
     if cfg.prior == "empirical":
         from .assets.bank import BankConfig
 
@@ -48,23 +57,39 @@ def generate_bytes(cfg) -> tuple[float, str]:
         views = BankConfig().azimuths * len(BankConfig().elevations)
         bank = views * b * b * 4 * 12  # rgb, depth, alpha as float32, rendered and held twice
         levels = min(64, round((hi - lo) / 0.5) + 1) * views * R * R * 3 * 4
-        need += bank + levels
-        parts.append(f"image bank {bank / GIB:.1f} GiB and its zoomed copies {levels / GIB:.1f} GiB")
-    render = V * R * R * 4 * 64  # rgb, alpha, depth, noise, score and their gradients
-    gaussians = cfg.densify.max_gaussians * 4 * 200
-    need += render + gaussians
-    parts.append(f"renders {render / GIB:.2f} GiB")
-    return need, ", ".join(parts)
+        terms.append(("resolution", R, bank + levels, "image bank and its zoomed copies"))
+    terms.append(("views_per_step", V, V * R * R * 4 * 64, "renders of one step and their gradients"))
+    terms.append(("samples_per_step", K, K * V * R * R * 4 * 8, "noise fields and the prior's estimates"))
+    n = max(cfg.init_points, cfg.densify.max_gaussians)
+    terms.append(("init_points", cfg.init_points, n * 4 * 200, "Gaussians, their gradients and Adam state"))
+    return terms
+
+
+def generate_bytes(cfg) -> tuple[float, str]:
+    """(bytes, what) of a training run's big buffers (``generate_terms``)."""
+    terms = generate_terms(cfg)
+    return sum(b for _, _, b, _ in terms), ", ".join(f"{w} {b / GIB:.2f} GiB" for _, _, b, w in terms)
 
 
 def check_generate_memory(cfg) -> None:
-    need, what = generate_bytes(cfg)
-    _refuse("resolution", cfg.resolution, need, what)
+    _refuse(generate_terms(cfg))
 
 
 def check_render_memory(size: int, frames: int) -> None:
     """A turntable holds its frames (uint8 RGB) and one float render with its tile buffers."""
     if size < 8:
         raise ValueError(f"size: expected at least 8 px, got {size}")
-    need = frames * size * size * 3 + size * size * 4 * 48
-    _refuse("size", size, need, f"{frames} frames of {size}x{size} px and the render's buffers")
+    _refuse([("frames", frames, frames * size * size * 3, f"{frames} frames of {size}x{size} px"),
+             ("size", size, size * size * 4 * 48, "the render's buffers")])  # fmt: skip
+
+
+def check_noise_memory(res: int, n_gaussians: int) -> None:
+    """The noise preview: four views of the noise cloud and their per-pixel statistics."""
+    _refuse([("res", res, 4 * res * res * 4 * 64, f"four {res}x{res} views and their buffers"),
+             ("n_gaussians", n_gaussians, n_gaussians * 4 * 200, "the noise Gaussians")])  # fmt: skip
+
+
+def check_score_memory(size: int, views: int) -> None:
+    """Scoring: COLMAP's views (uint8, written to disk one by one) and one float render."""
+    _refuse([("views", views, views * size * size * 3, f"{views} COLMAP views of {size}x{size} px"),
+             ("size", size, size * size * 4 * 48, "the render's buffers")])  # fmt: skip

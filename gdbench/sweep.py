@@ -63,6 +63,10 @@ def cell_name(prompt: str) -> str:
     name = re.sub(r"[^a-z0-9]+", "_", prompt.lower()).strip("_")
     if not name:
         raise ValueError(f"prompts: {prompt!r} has no letters or digits to name its cells by")
+    if len(name) > 200:  # a folder name has at most 255 bytes on common file systems
+        raise ValueError(
+            f"prompts: {prompt[:40]!r}... names a cell folder of {len(name)} characters; expected at most 200"
+        )
     return name
 
 
@@ -180,7 +184,7 @@ def run_cell(spec: CellSpec) -> dict:
     cfg = cell_config(spec)
     try:
         r = train(cfg)
-    except CheckpointError as e:
+    except (CheckpointError, FileExistsError) as e:  # the sweep has no --overwrite: say what to delete
         raise CheckpointError(
             f"{str(e).split(';')[0]}; delete {spec.dir} to retrain this cell, or sweep into another --out"
         ) from None
@@ -244,9 +248,12 @@ def _done(spec: CellSpec) -> dict | None:
     if not p.is_file():
         return None
     blob = read_json(p, what="cell.json")
-    if blob.get("spec") != json.loads(json.dumps(asdict(spec))) or not same_code(blob["row"].get("score_commit")):
+    row = blob.get("row")
+    if not isinstance(row, dict):
+        raise ValueError(f"cell.json: {p} holds no 'row' object; delete it to score the cell again")
+    if blob.get("spec") != json.loads(json.dumps(asdict(spec))) or not same_code(row.get("score_commit")):
         return None
-    return {k: math.nan if v is None else v for k, v in blob["row"].items()}  # null: a missing number
+    return {k: math.nan if v is None else v for k, v in row.items()}  # null: a missing number
 
 
 def sweep(

@@ -9,6 +9,8 @@ import sys
 
 import pytest
 import torch
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
 
 from gdbench.io import FolderBusy, FolderLock
 from gdbench.priors.empirical import EmpiricalPrior
@@ -408,12 +410,12 @@ def test_an_unwritable_bank_cache_costs_the_cache_not_the_run(tmp_path, monkeypa
     [
         (("generate", "a yellow duck", "--out", "/sys/gdbench-out", "--steps", "1"), r"/sys/gdbench-out"),
         (("generate", "a yellow duck", "--out", "FILE", "--steps", "1"), r"out: .*FILE is a file; expected a folder"),
-        (("generate", "a yellow duck", "--resolution", "100000"), r"resolution: 100000 needs about \d+"),
+        (("generate", "a yellow duck", "--resolution", "100000"), r"\(--resolution\): 100000 needs about \d+"),
         (("generate", "a blue duck", "--steps", "1"), r"prompt: 'a blue duck' matched 'a yellow duck'.*asks for blue"),
         (("generate", "not a duck", "--steps", "1"), r"prompt: 'not a duck' matched .*negates"),
         (("score", "MISSING"), r"run: expected a run folder, got .*MISSING"),
         (("render", "MISSING"), r"run: no PLY at .*MISSING"),
-        (("render", "PLY", "--size", "40000"), r"size: 40000 needs about \d+"),
+        (("render", "PLY", "--size", "40000"), r"size \(--size\): 40000 needs about \d+"),
         (
             ("compare", "--scene", "isotropic", "--out", "/sys/gdbench-compare", "--backends", "splat"),
             "/sys/gdbench-compare",
@@ -421,6 +423,23 @@ def test_an_unwritable_bank_cache_costs_the_cache_not_the_run(tmp_path, monkeypa
         (("noise", "--preview", "--out", "x.jpg"), r"out: expected a .png file or a folder"),
         (("sweep", "--prompts", "a yellow duck", "a spaceship", "--presets", "gd", "--no-colmap"), "a spaceship"),
         (("sweep", "--prompts", "a yellow duck", "A yellow duck!", "--presets", "gd"), "share the cell folder"),
+        # declared ranges (gdbench.constraints), refused before anything is built: the flag typed
+        (("generate", "a yellow duck", "--out", "R", "--log-every", "0"), r"\(--log-every\): expected an int >= 1"),
+        (("generate", "a yellow duck", "--out", "R", "--densify-every", "0"), r"\(--densify-every\): expected"),
+        (("generate", "a yellow duck", "--out", "R", "--densify-reset-every", "0"), r"\(--densify-reset-every\)"),
+        (("generate", "a yellow duck", "--out", "R", "--camera-radius", "inf"), r"\(--camera-radius\): expected a f"),
+        (("generate", "a yellow duck", "--out", "R", "--turntable-frames", "0"), r"\(--turntable-frames\)"),
+        (("generate", "a yellow duck", "--out", "R", "--fovy-range", "70", "40"), r"\(--fovy-range\): expected low"),
+        (("sweep", "--colmap-views", "0", "--out", "R"), r"\(--colmap-views\): expected an int >= 2"),
+        (("render", "PLY", "--frames", "0"), r"\(--frames\): expected an int >= 1"),
+        (("noise", "--preview", "--res", "0"), r"\(--res\): expected an int >= 8 px"),
+        (("score", "MISSING", "--views", "1"), r"\(--views\): expected an int >= 2"),
+        # memory, estimated before anything is allocated: the flag of the largest buffer
+        (("noise", "--preview", "--res", "400000"), r"res \(--res\): 400000 needs about \d+"),
+        (("demo", "--size", "300000", "--out", "R"), r"size \(--size\): 300000 needs about \d+"),
+        (("render", "PLY", "--frames", "10000000", "--size", "64"), r"frames \(--frames\): 10000000 needs about"),
+        (("generate", "a yellow duck", "--out", "R", "--samples-per-step", "10000000"), r"\(--samples-per-step\)"),
+        (("generate", "a yellow duck", "--out", "R", "--init-points", "1000000000"), r"\(--init-points\): 1000"),
     ],
 )
 def test_bad_input_is_one_line_with_exit_code_2(monkeypatch, capsys, tmp_path, args, match):
@@ -436,6 +455,7 @@ def test_bad_input_is_one_line_with_exit_code_2(monkeypatch, capsys, tmp_path, a
 
     assert re.search(match, line), line
     assert not (tmp_path / "runs").exists() or args[0] == "generate"  # nothing trained for a bad grid
+    assert not (tmp_path / "R").exists()  # a bad option: nothing built, no folder made
 
 
 def test_broken_checkpoints_are_one_line_errors(monkeypatch, capsys, tmp_path):
@@ -445,6 +465,78 @@ def test_broken_checkpoints_are_one_line_errors(monkeypatch, capsys, tmp_path):
         (out / "checkpoint.pt").write_bytes(content)
         code, _, err = cli(monkeypatch, capsys, "generate", "a yellow duck", "--out", out, "--steps", "1")
         assert code == 2 and "checkpoint.pt is unreadable" in one_line(err)
+
+
+def test_well_formed_but_foreign_files_are_named_not_crashed_on(prior, tmp_path):
+    """Files of the right format with the wrong content: a checkpoint of format 2 with no config
+    or with parameters of wrong shapes, a run.json with a field of the wrong type, a cell.json
+    without its row. Each is a ValueError naming the file, not a KeyError or AttributeError."""
+    from gdbench.metrics.run_scores import score_run
+    from gdbench.sweep import CellSpec, _done
+    from gdbench.train.checkpoint import FORMAT, CheckpointError
+
+    out = tmp_path / "run"
+    train(tiny("gd", out, steps=4), prior, stop_at=2, write_outputs=False)
+    ckpt = out / "checkpoint.pt"
+    blob = torch.load(ckpt, weights_only=True)
+    torch.save({"format": FORMAT}, ckpt)
+    with pytest.raises(CheckpointError, match=r"checkpoint: .*checkpoint.pt is a gdbench checkpoint but its config"):
+        train(tiny("gd", out, steps=4), prior, write_outputs=False)
+    blob["params"]["quats"] = blob["params"]["quats"][:-1]
+    torch.save(blob, ckpt)
+    with pytest.raises(CheckpointError, match=r"training state is broken \(ValueError: params\['quats'\]: expected"):
+        train(tiny("gd", out, steps=4), prior, write_outputs=False)
+    run = tmp_path / "done"
+    train(tiny("gd", run, steps=2), prior)
+    info = json.loads((run / "run.json").read_text())
+    for field_, bad in (("config", [1, 2]), ("caption", 3)):
+        (run / "run.json").write_text(json.dumps(info | {field_: bad}))
+        with pytest.raises(ValueError, match=rf"run.json: .*run.json: '{field_}' should be a"):
+            score_run(run, gt=False, colmap=False)
+    (run / "run.json").write_text(json.dumps(info | {"config": info["config"] | {"background": "white"}}))
+    with pytest.raises(ValueError, match=r"config.background should be 3 numbers"):
+        score_run(run, gt=False, colmap=False)
+    spec = CellSpec(CAPTION, "gd", 0, 2, str(tmp_path / "sweep"), colmap=False)
+    spec.dir.mkdir(parents=True)
+    for content, match in (("[]", "holds a JSON list"), ('{"spec": {}}', "holds no 'row' object")):
+        (spec.dir / "cell.json").write_text(content)
+        with pytest.raises(ValueError, match=rf"cell.json: .*cell.json {match}"):
+            _done(spec)
+
+
+def test_a_diverged_run_and_a_dangling_out_are_one_line(prior, monkeypatch, capsys, tmp_path):
+    from gdbench.priors import factory
+
+    monkeypatch.setattr(factory, "make_prior", lambda cfg: prior)
+    monkeypatch.setattr(prior, "denoise", lambda x, *a, **k: x * float("nan"))
+    args = ["generate", CAPTION, "--steps", "30", "--resolution", "16", "--init-points", "150", "--no-progress",
+            "--max-bad-steps", "2"]  # fmt: skip
+    code, _, err = cli(monkeypatch, capsys, *args, "--out", tmp_path / "d")
+    assert code == 2 and "consecutive steps had non-finite gradients" in one_line(err) and "lower the" in err
+    for name, target in (("dangling", tmp_path / "nowhere"), ("loop", tmp_path / "loop")):
+        (tmp_path / name).symlink_to(target)
+        code, _, err = cli(monkeypatch, capsys, *args, "--out", tmp_path / name)
+        assert code == 2 and f"out: {tmp_path / name} is a symbolic link to" in one_line(err), err
+    assert not (tmp_path / "nowhere").exists()
+
+
+def test_the_sweeps_advice_names_what_it_has(prior, tmp_path, monkeypatch):
+    """A cell folder holding a finished run of another config: the sweep (which has no
+    --overwrite) says to delete that cell's folder. A prompt too long for a folder name is
+    refused when the grid is checked."""
+    from gdbench.priors import factory
+    from gdbench.sweep import CellSpec, cell_name, run_cell
+
+    monkeypatch.setattr(factory, "make_prior", lambda cfg: prior)
+    over = {"resolution": 16, "init_points": 150, "turntable_frames": 2}
+    spec = CellSpec(CAPTION, "gd", 0, 2, str(tmp_path), colmap=False, overrides=over)
+    train(tiny("gd", spec.dir, steps=2, seed=5), prior)  # another seed's run in the cell's folder
+    (spec.dir / "checkpoint.pt").unlink()
+    with pytest.raises(ValueError, match=rf"holds a finished run .*; delete {spec.dir} to retrain this cell") as e:
+        run_cell(spec)
+    assert "--overwrite" not in str(e.value)
+    with pytest.raises(ValueError, match=r"names a cell folder of 299 characters; expected at most 200"):
+        cell_name("a " * 150)
 
 
 def test_noise_preview_into_a_folder(monkeypatch, capsys, tmp_path):
@@ -521,3 +613,125 @@ def test_every_listed_mutation_applies_to_the_current_code():
         text = (root / m.file).read_text()
         assert text.count(m.old) == 1, f"{m.name}: snippet found {text.count(m.old)} times in {m.file}"
         assert m.new != m.old
+
+
+# ------------------------------------------------------------------ 6. declared option ranges
+_VALUES = st.one_of(
+    st.sampled_from(
+        [0, -1, 1, 2, 3, 0.5, -0.5, 1e-30, 1e30, 179.9, 180, 360, float("nan"), float("inf"), -float("inf")]
+    ),
+    st.integers(-5, 48),
+    st.floats(-1e3, 1e3, allow_nan=False),
+)
+"""Option values of the right kind (the parser's own errors are tyro's): small ints, so what is
+valid stays cheap to run, and floats of every edge."""
+
+
+def _value(v, integer: bool):
+    return (
+        None
+        if integer and not (isinstance(v, int) or (isinstance(v, float) and v.is_integer()))
+        else (int(v) if integer else v)
+    )
+
+
+def _numeric_flags(cls, exclude=()) -> dict[str, bool]:
+    """flag -> whether it takes an int, for every numeric field of ``cls`` (from its declarations)."""
+    from gdbench.constraints import _declared, flag
+
+    return {flag(k): base is int for k, (base, _) in _declared(cls).items() if base is not None and k not in exclude}
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_render_options_work_or_end_in_one_line_naming_the_flag(tmp_path_factory, data):
+    """Any value of any numeric option of `render`: the command writes its turntable (exit 0) or
+    ends with one line naming the flag (exit 2), before rendering anything."""
+    from gdbench.cli import Render, entrypoint
+    from gdbench.scene import sphere_init
+
+    tmp = tmp_path_factory.mktemp("render")
+    sphere_init(200, opacity=0.5, generator=torch.Generator().manual_seed(0)).save_ply(tmp / "s.ply")
+    flags = _numeric_flags(Render)
+    opt = data.draw(st.sampled_from(sorted(flags)))
+    v = _value(data.draw(_VALUES), flags[opt])
+    assume(v is not None)
+    code, err = _run_cli(entrypoint, ["render", tmp / "s.ply", "--frames", "2", "--size", "24", opt, v])
+    if code == 0:
+        assert (tmp / "s_turntable.gif").is_file()
+    else:
+        assert code == 2 and one_line(err).startswith("gdbench render: error: ") and opt in err, (opt, v, err)
+        assert not (tmp / "s_turntable.gif").exists()
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_training_options_work_or_end_in_one_line_naming_the_flag(prior, tmp_path_factory, data, request):
+    """Any value of any numeric training option of `generate` (on the test prior, 2 steps): the
+    run finishes (exit 0) or ends with one line naming the flag or the file (exit 2)."""
+    from gdbench.cli import entrypoint
+    from gdbench.priors import factory
+    from gdbench.train.config import TrainConfig
+
+    flags = _numeric_flags(TrainConfig, exclude=("steps", "resolution", "seed", "semantic_steps", "sd_guidance"))
+    opt = data.draw(st.sampled_from(sorted(flags)))
+    v = _value(data.draw(_VALUES), flags[opt])
+    assume(v is not None)
+    out = tmp_path_factory.mktemp("gen") / "run"
+    base = ["generate", CAPTION, "--out", out, "--steps", "2", "--resolution", "16", "--init-points", "150",
+            "--turntable-frames", "2", "--no-score", "--no-progress"]  # fmt: skip
+    if opt in ("--fovy-range", "--azimuth-range", "--elevation-range"):
+        args = [opt, v, v]
+    elif opt == "--background":
+        args = [opt, v, v, v]
+    else:
+        args = [opt, v]
+    mp = pytest.MonkeyPatch()
+    mp.setattr(factory, "make_prior", lambda cfg: prior)
+    try:
+        code, err = _run_cli(entrypoint, [*base, *args])
+    finally:
+        mp.undo()
+    if code == 0:
+        assert (out / "scene.ply").is_file(), err
+    else:
+        line = one_line(err)
+        assert code == 2 and line.startswith("gdbench generate: error: "), (opt, v, err)
+        assert opt in line or "camera" in line or "/" in line, (opt, v, line)  # the flag, or a file
+
+
+def _run_cli(entrypoint, argv) -> tuple[int, str]:
+    """``gdbench *argv`` in-process: (exit code, stderr)."""
+    import contextlib
+    import io
+
+    err = io.StringIO()
+    old = sys.argv
+    sys.argv = ["gdbench", *map(str, argv)]
+    code = 0
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            entrypoint()
+    except SystemExit as e:
+        code = e.code
+    finally:
+        sys.argv = old
+    return code, err.getvalue()
+
+
+def test_every_numeric_option_declares_its_range():
+    """A numeric field of a config or a command without a declared range must be listed here as
+    free (any finite value is meaningful): a new field fails until someone decides."""
+    from gdbench import cli
+    from gdbench.constraints import _declared
+    from gdbench.noise import NoiseConfig
+    from gdbench.train.config import DensifyConfig, TrainConfig
+
+    free = {("TrainConfig", "seed"), ("Demo", "seed"), ("Noise", "seed"), ("TrainPrior", "seed"), ("Sweep", "seeds")}
+    missing = []
+    for cls in (TrainConfig, DensifyConfig, NoiseConfig, cli.Demo, cli.Noise, cli.Render, cli.Score, cli.Sweep,
+                cli.TrainPrior):  # fmt: skip
+        for name, (base, rng) in _declared(cls).items():
+            if base is not None and rng is None and (cls.__name__, name) not in free:
+                missing.append(f"{cls.__name__}.{name}")
+    assert missing == [], missing

@@ -130,7 +130,7 @@ def test_resume_refuses_a_different_config(prior, tmp_path):
 @pytest.mark.parametrize(
     ("kw", "error", "match"),
     [
-        (dict(steps=0), ValueError, "steps: expected an int >= 1"),
+        (dict(steps=0), ValueError, r"steps \(--steps\): expected an int >= 1, got 0"),
         (dict(sigma_min=2.0, sigma_max=1.0), ValueError, "sigma_min"),
         (dict(init="ply"), ValueError, "init_ply: init='ply' needs a PLY path"),
         (dict(guidance="dds"), ValueError, "guidance"),

@@ -76,6 +76,7 @@ def one_run(run: Path) -> tuple[dict, str]:
     if not ply.is_file():
         raise FileNotFoundError(f"run: no scene.ply in {run} (is the run finished?)")
     info = read_json(run / "run.json", what="run.json") if (run / "run.json").is_file() else {}
+    _check_run_json(info, run / "run.json")
     scene_sha = sha256_file(ply)
     ids = [c.split()[2] for c in header_comments(ply) if c.startswith("gdbench run ") and len(c.split()) == 3]
     rid = info.get("run_id")
@@ -91,6 +92,26 @@ def one_run(run: Path) -> tuple[dict, str]:
             f"{str(want)[:12]}...); it was changed after the run: run `gdbench generate` again with --overwrite"
         )
     return info, scene_sha
+
+
+def _check_run_json(info: dict, path: Path) -> None:
+    """The fields of run.json that scoring reads, by type: a hand-edited or foreign file is named,
+    not met by an AttributeError halfway."""
+    want = {"run_id": str, "scene_sha256": str, "caption": str, "config": dict}
+    for key, kind in want.items():
+        if info.get(key) is not None and not isinstance(info[key], kind):
+            raise ValueError(
+                f"run.json: {path}: '{key}' should be a {kind.__name__}, got {info[key]!r}; fix or delete it"
+            )
+    config = info.get("config") or {}
+    bg = config.get("background", (1.0, 1.0, 1.0))
+    ok_bg = isinstance(bg, (list, tuple)) and len(bg) == 3 and all(isinstance(c, (int, float)) for c in bg)
+    variants = config.get("variants", 1)
+    if not ok_bg or not isinstance(variants, int) or isinstance(variants, bool) or variants < 1:
+        raise ValueError(
+            f"run.json: {path}: config.background should be 3 numbers and config.variants an int >= 1, got "
+            f"{bg!r} and {variants!r}; fix or delete it"
+        )
 
 
 def _score_run(run: Path, *, gt: bool, colmap: bool, views: int, size: int) -> dict:

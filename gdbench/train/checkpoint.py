@@ -106,7 +106,10 @@ def load_checkpoint(path: Path, ctx):
     from .trainer import _optimizer
 
     blob = load_blob(path)
-    diff = config_diff(blob["config"], config_dict(ctx.cfg))
+    saved = blob.get("config")
+    if not isinstance(saved, dict):
+        raise _broken(path, "its config", "not a dict")
+    diff = config_diff(saved, config_dict(ctx.cfg))
     if diff:
         why = " (the sigma, noise and learning-rate schedules depend on steps)" if "steps" in diff else ""
         raise CheckpointError(
@@ -119,12 +122,40 @@ def load_checkpoint(path: Path, ctx):
             f"out: {path.parent} holds a run whose densification schedule {blob['densify_schedule']} differs from "
             f"the one this code resolves from the same config ({schedule}); use another --out, or --no-resume"
         )
-    params = {k: v.clone().requires_grad_(True) for k, v in blob["params"].items()}
-    opt = _optimizer(params, ctx.cfg)
-    opt.load_state_dict(blob["optimizer"])
-    streams = make_streams(ctx.cfg.seed)
-    set_stream_states(streams, blob["streams"])
-    dens = DensifyState(blob["densify"]["grad2d"], blob["densify"]["count"])
-    return TrainState(
-        blob["step"], params, opt, dens, blob["noise_colors"], streams, blob["history"], blob["bad_steps"]
+    try:  # a well-formed file of format 2 can still lack or mangle a part: name it, do not crash on it
+        _check_params(blob["params"])
+        params = {k: v.clone().requires_grad_(True) for k, v in blob["params"].items()}
+        opt = _optimizer(params, ctx.cfg)
+        opt.load_state_dict(blob["optimizer"])
+        streams = make_streams(ctx.cfg.seed)
+        set_stream_states(streams, blob["streams"])
+        dens = DensifyState(blob["densify"]["grad2d"], blob["densify"]["count"])
+        step, history, bad = int(blob["step"]), list(blob["history"]), int(blob["bad_steps"])
+        noise_colors = blob["noise_colors"]
+    except (KeyError, TypeError, AttributeError, ValueError, RuntimeError, IndexError) as e:
+        raise _broken(path, "its training state", f"{type(e).__name__}: {e}") from None
+    return TrainState(step, params, opt, dens, noise_colors, streams, history, bad)
+
+
+def _broken(path: Path, part: str, why: str) -> CheckpointError:
+    return CheckpointError(
+        f"checkpoint: {path} is a gdbench checkpoint but {part} is broken ({why}); "
+        "delete it or start over with --no-resume"
     )
+
+
+def _check_params(params) -> None:
+    """The saved parameters: tensors of one Gaussian count with the trainer's shapes."""
+    from .densify import PARAM_NAMES
+
+    if not isinstance(params, dict) or set(params) != set(PARAM_NAMES):
+        found = sorted(params) if isinstance(params, dict) else type(params).__name__
+        raise ValueError(f"params: expected {sorted(PARAM_NAMES)}, got {found}")
+    n = params["means"].shape[0]
+    want = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,)}
+    for k, shape in want.items():
+        if tuple(params[k].shape) != shape:
+            raise ValueError(f"params[{k!r}]: expected shape {list(shape)}, got {list(params[k].shape)}")
+    for k in ("sh", "sh_rest"):
+        if params[k].dim() != 3 or params[k].shape[0] != n:
+            raise ValueError(f"params[{k!r}]: expected shape [{n}, K, C], got {list(params[k].shape)}")

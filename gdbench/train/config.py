@@ -13,8 +13,9 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
+from ..constraints import AtLeast, Between, Positive, Range, check_fields
 from ..noise import NoiseConfig
 
 
@@ -72,72 +73,56 @@ class DensifyConfig:
     last ``recover_steps`` steps of the run (docs/training.md, "The densification schedule")."""
 
     enabled: bool = True
-    start: int | None = None
+    start: Annotated[int | None, AtLeast(0)] = None
     """First step after which densification may run (unset: ``start_frac`` of the run)."""
-    stop: int | None = None
+    stop: Annotated[int | None, AtLeast(0)] = None
     """Last step that may densify (unset: ``stop_frac`` of the run)."""
-    every: int | None = None
+    every: Annotated[int | None, AtLeast(1)] = None
     """Densify every this many steps (unset: ``every_frac`` of the run, at least 1)."""
-    reset_every: int | None = None
+    reset_every: Annotated[int | None, AtLeast(1)] = None
     """Opacity reset interval (unset: ``reset_frac`` of the run, at least 1); resets fall on its
     multiples up to ``stop``."""
-    start_frac: float = 0.15
+    start_frac: Annotated[float, Between(0, 1)] = 0.15
     """Default ``start`` as a fraction of the run (the paper: 300 of 2000 steps)."""
-    stop_frac: float = 0.75
+    stop_frac: Annotated[float, Between(0, 1)] = 0.75
     """Default ``stop`` as a fraction of the run (1500 of 2000 steps)."""
-    every_frac: float = 0.025
+    every_frac: Annotated[float, Between(0, 1)] = 0.025
     """Default ``every`` as a fraction of the run (the paper: 50 of 2000 steps)."""
-    reset_frac: float = 0.2
+    reset_frac: Annotated[float, Between(0, 1)] = 0.2
     """Default ``reset_every`` as a fraction of the run (the paper: 400 of 2000 steps)."""
-    recover_steps: int = 100
+    recover_steps: Annotated[int, AtLeast(0)] = 100
     """No opacity reset in the last this many steps of the run: opacities need them to recover from
     the reset value (measured on the duck: 25-50 steps; docs/training.md). Resets of the default
     interval that would fall there are dropped; an explicit ``reset_every`` that puts one there is
     refused."""
-    grad_threshold: float = 2e-4
+    grad_threshold: Annotated[float, AtLeast(0)] = 2e-4
     """Mean screen-space gradient norm per view (per unit of half the image size, losses averaged
     over pixels) above which a Gaussian grows; 3DGS's default. About 5% of Gaussians exceed it
     mid-run (measured)."""
-    grad_quantile: float | None = None
+    grad_quantile: Annotated[float | None, Range(0, 1, hi_open=True)] = None
     """Instead of ``grad_threshold``: grow the Gaussians whose statistic is above this quantile of
     the statistic over the Gaussians seen since the last densification (0.95: the top 5%). Growth
     then does not depend on the score's scale, which differs between guidance rules (sds-gs's
     weight 1 - abar): a way to hold paired presets' model sizes comparable (docs/training.md)."""
-    percent_dense: float = 0.01
+    percent_dense: Annotated[float, Positive()] = 0.01
     """Scale (fraction of the scene extent) separating clone (below) from split (above)."""
-    prune_opacity: float = 0.01
+    prune_opacity: Annotated[float, Between(0, 1)] = 0.01
     """Gaussians below this opacity are pruned."""
-    prune_scale: float = 0.5
+    prune_scale: Annotated[float, Positive()] = 0.5
     """Gaussians larger than this fraction of the scene extent are pruned."""
     prune_scale_from: Literal["start", "reset"] = "start"
     """When the world-size prune (``prune_scale``) starts: with the first densification, or after
     the first opacity reset (3DGS and gsplat; never, in a run without one)."""
-    reset_value: float = 0.05
+    reset_value: Annotated[float, Between(0, 1, open=True)] = 0.05
     """Opacities are capped at this value by a reset."""
-    max_gaussians: int = 30000
+    max_gaussians: Annotated[int, AtLeast(1)] = 30000
 
     def __post_init__(self) -> None:
-        for name, least in (("start", 0), ("stop", 0), ("every", 1), ("reset_every", 1)):
-            v = getattr(self, name)
-            if v is not None and (not _is_int(v) or v < least):
-                raise ValueError(f"densify.{name}: expected an int >= {least} (or unset), got {v!r}")
-        for name in ("start_frac", "stop_frac", "every_frac", "reset_frac"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"densify.{name}: expected a fraction in [0, 1], got {getattr(self, name)!r}")
+        check_fields(self, "densify.")  # every field against its declared type and range
         if self.start_frac > self.stop_frac:
             raise ValueError(f"densify.start_frac: {self.start_frac} is after stop_frac {self.stop_frac}")
-        if not _is_int(self.recover_steps) or self.recover_steps < 0:
-            raise ValueError(f"densify.recover_steps: expected an int >= 0, got {self.recover_steps!r}")
-        if self.grad_quantile is not None and not 0 <= self.grad_quantile < 1:
-            raise ValueError(
-                f"densify.grad_quantile: expected a quantile in [0, 1) or unset, got {self.grad_quantile!r}"
-            )
         if self.prune_scale_from not in ("start", "reset"):
             raise ValueError(f"densify.prune_scale_from: expected 'start' or 'reset', got {self.prune_scale_from!r}")
-        if not 0 < self.reset_value < 1:
-            raise ValueError(f"densify.reset_value: expected an opacity in (0, 1), got {self.reset_value!r}")
-        if self.max_gaussians < 1:
-            raise ValueError(f"densify.max_gaussians: expected an int >= 1, got {self.max_gaussians!r}")
 
     def resolve(self, steps: int) -> DensifySchedule:
         """The schedule of a ``steps``-step run. An explicit setting that would densify on the last
@@ -231,17 +216,17 @@ class TrainConfig:
     """What to generate (the empirical prior matches it to one of its assets' captions)."""
     preset: str = "gd"
     """Name of the preset this config came from (recorded in run.json)."""
-    steps: int = 2000
+    steps: Annotated[int, AtLeast(1)] = 2000
     """Training steps (the paper: 2000). The densification schedule, the sigma annealing, the noise
     ratio and the means' learning-rate decay are fractions of it."""
     seed: int = 0
     """Seed of every random stream of the run (train/streams.py): presets with one seed are paired."""
-    resolution: int = 64
+    resolution: Annotated[int, AtLeast(8, "px")] = 64
     """Training render size (CPU-sized; the paper uses 512 with Stable Diffusion)."""
-    views_per_step: int = 1
+    views_per_step: Annotated[int, AtLeast(1)] = 1
     """Views rendered per step; they share one jitter, one sigma and one draw of the noise cloud's
     colours (so one step already couples views through the structured noise)."""
-    views_spread_deg: float | None = None
+    views_spread_deg: Annotated[float | None, Range(0, 180, lo_open=True, unit="degrees")] = None
     """Views of one step (views_per_step > 1): None draws each anywhere in the pose ranges; a
     number keeps the others within +-this many degrees (azimuth and elevation) of the step's first
     view, so they see the same structured noise at the same surface points (docs/noise.md, "Does
@@ -249,51 +234,51 @@ class TrainConfig:
     # initialisation
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
     """Initial Gaussians: the paper's sphere, a point cloud (--init-ply) or the prompt's bank depth."""
-    init_points: int = 4096
+    init_points: Annotated[int, AtLeast(1)] = 4096
     """Initial Gaussians (the paper: 4096)."""
     init_ply: Path | None = None
     """init='ply': any point cloud Open3D reads."""
-    init_opacity: float = 0.1
+    init_opacity: Annotated[float, Between(0, 1, open=True)] = 0.1
     """Opacity of every initial Gaussian (the paper: 0.1)."""
-    init_color: float = 0.5
+    init_color: Annotated[float, Between(0, 1)] = 0.5
     """Grey level of the initial sphere's Gaussians (init='sphere'; point clouds bring their colours)."""
     # cameras (paper)
-    camera_radius: float = 1.0
+    camera_radius: Annotated[float, Positive()] = 1.0
     """Distance of the training cameras from the origin (the paper: 1)."""
-    fovy_range: tuple[float, float] = (40.0, 70.0)
+    fovy_range: Annotated[tuple[float, float], Range(0, 180, lo_open=True, hi_open=True, unit="degrees")] = (40.0, 70.0)
     """Vertical field of view of the training views, degrees, drawn uniformly (the paper: 40-70)."""
-    azimuth_range: tuple[float, float] = (-180.0, 180.0)
+    azimuth_range: Annotated[tuple[float, float], Between(-360, 360, unit="degrees")] = (-180.0, 180.0)
     """Azimuth of the training views, degrees (the paper: all around)."""
-    elevation_range: tuple[float, float] = (-45.0, 45.0)
+    elevation_range: Annotated[tuple[float, float], Between(-90, 90, unit="degrees")] = (-45.0, 45.0)
     """Elevation of the training views, degrees (the paper: -45 to 45)."""
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    background: Annotated[tuple[float, float, float], Between(0, 1)] = (1.0, 1.0, 1.0)
     """Background colour of the renders and of the prior's bank (the paper: white)."""
     # score distillation
     guidance: Literal["sjc", "sds"] = "sjc"
     """sjc: g = (D(x + sigma n) - x) / sigma with sigma uniform over the prior's ticks;
     sds: the same residual with DreamGaussian's annealed timestep and weight 1 - abar."""
-    sigma_min: float = 0.03
+    sigma_min: Annotated[float, Positive()] = 0.03
     """Smallest noise level drawn (VE sigma; guidance 'sjc' only: 'sds' anneals its timestep)."""
-    sigma_max: float = 10.0
+    sigma_max: Annotated[float, Positive()] = 10.0
     """Largest noise level drawn at the start of the run (VE sigma; guidance 'sjc' only)."""
     anneal: bool = True
     """Anneal sigma (guidance 'sjc'): the upper end of its range decays linearly to ``sigma_min``
     over the run; off, sigma stays uniform over [sigma_min, sigma_max] (measured: docs/training.md,
     "Options measured")."""
-    samples_per_step: int = 1
+    samples_per_step: Annotated[int, AtLeast(1)] = 1
     """K, perturb-and-average: noise samples averaged per step."""
-    weight: float = 1.0
+    weight: Annotated[float, Positive()] = 1.0
     """Global scale of the score (the 'guidance' multiplier)."""
     view_prompting: Literal["none", "buckets", "window"] = "window"
     """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
     of +-``view_window_deg`` around the camera azimuth, or none (docs/training.md)."""
-    view_window_deg: float = 45.0
+    view_window_deg: Annotated[float, Range(0, 180, lo_open=True, unit="degrees")] = 45.0
     """Half-width of the view window (view_prompting='window'), degrees."""
-    front_bias: float = 0.0
+    front_bias: Annotated[float, AtLeast(0)] = 0.0
     """Empirical prior: kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform;
     the Janus setting of the ablation uses it with view prompting off). Learned prior: picks the
     shipped model trained at that kappa (0 or 2) when --learned-model is 'auto'."""
-    variants: int = 1
+    variants: Annotated[int, AtLeast(1)] = 1
     """Empirical prior: procedural variants of the caption in the bank (1..3; the instance setting
     of the ablation uses 3). Learned prior: 1 (variant 0) or 3 (the variant dropped: all three)."""
     depth_conditioning: bool = False
@@ -307,7 +292,7 @@ class TrainConfig:
     """learned: 'uniform', 'front' (the shipped models, trained on views uniform in azimuth or drawn
     with probability ~ exp(2 cos azimuth)), a model.safetensors or run folder of `gdbench
     train-prior`, or 'auto' (the shipped model of --front-bias)."""
-    learned_guidance: float = 3.0
+    learned_guidance: Annotated[float, AtLeast(1)] = 3.0
     """learned: classifier-free guidance scale (1: none, one network evaluation per view)."""
     sd_model: str = "tiny"
     """sd: a local diffusers folder or a repo id in the Hugging Face cache (offline), or 'tiny'
@@ -315,7 +300,7 @@ class TrainConfig:
     sd_mode: Literal["rgb", "latent"] = "rgb"
     """rgb: render RGB and encode it with the VAE (GaussianDiffusion); latent: render the 4 latent
     channels directly at 1/8 resolution (SJC)."""
-    sd_guidance: float = 100.0
+    sd_guidance: Annotated[float, AtLeast(1)] = 100.0
     """Classifier-free guidance scale (SJC and DreamFusion use 100 with score distillation)."""
     sd_controlnet: str | None = None
     """sd with depth_conditioning: a depth ControlNet folder ('tiny' with the tiny model)."""
@@ -324,7 +309,7 @@ class TrainConfig:
     semantic_code: bool = False
     """sd: 3DFuse's semantic code sampling (image, textual inversion, LoRA) before training;
     saved in <out>/semantic and reloaded on resume."""
-    semantic_steps: int = 100
+    semantic_steps: Annotated[int, AtLeast(1)] = 100
     """Textual-inversion and LoRA steps of the semantic code."""
     # the paper's additions
     structured_noise: bool = True
@@ -332,7 +317,7 @@ class TrainConfig:
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     vgs: bool = True
     """Use the paper's variational Gaussians (section 3.3)."""
-    vgs_gamma: float = 0.05
+    vgs_gamma: Annotated[float, AtLeast(0)] = 0.05
     """gamma of the jitter theta' = theta + gamma s(sigma) eps (means in ``vgs_unit``s, log-scales as is)."""
     vgs_unit: Literal["scene", "pixel"] = "scene"
     """Length unit of the means' jitter: the scene radius (0.5) or the training pixel's footprint at
@@ -340,47 +325,30 @@ class TrainConfig:
     # optimisation
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
-    sh_degree: int = 0
+    sh_degree: Annotated[int, Between(0, 3)] = 0
     """Spherical-harmonics degree of the Gaussians' colours (0: plain colour)."""
     # run management
     out: Path = Path("runs/duck")
     """The run folder."""
-    checkpoint_every: int = 200
+    checkpoint_every: Annotated[int, AtLeast(1)] = 200
     """Steps between checkpoints (a run also checkpoints on Ctrl-C)."""
-    log_every: int = 10
+    log_every: Annotated[int, AtLeast(1)] = 10
     """Steps between progress-bar updates."""
-    turntable_frames: int = 36
+    turntable_frames: Annotated[int, AtLeast(1)] = 36
     """Frames of the output turntable (GIF, MP4 and contact sheet), evenly spaced around the object."""
     progress: bool = True
     """Show a progress bar."""
-    max_bad_steps: int = 20
+    max_bad_steps: Annotated[int, AtLeast(0)] = 20
     """Stop with an error after this many consecutive steps with non-finite gradients."""
 
     def __post_init__(self) -> None:
-        checks = [
-            ("steps", self.steps >= 1, "an int >= 1"),
-            ("resolution", self.resolution >= 8, "at least 8 px"),
-            ("views_per_step", self.views_per_step >= 1, "an int >= 1"),
-            (
-                "views_spread_deg",
-                self.views_spread_deg is None or 0 < self.views_spread_deg <= 180,
-                "degrees in (0, 180] or None",
-            ),
-            ("init_points", self.init_points >= 1, "an int >= 1"),
-            ("init_opacity", 0 < self.init_opacity < 1, "a value in (0, 1)"),
-            ("sigma_min", 0 < self.sigma_min < self.sigma_max, "0 < sigma_min < sigma_max"),
-            ("samples_per_step", self.samples_per_step >= 1, "an int >= 1"),
-            ("weight", self.weight > 0, "a positive value"),
-            ("vgs_gamma", self.vgs_gamma >= 0, "a non-negative value"),
-            ("checkpoint_every", self.checkpoint_every >= 1, "an int >= 1"),
-            ("camera_radius", self.camera_radius > 0, "a positive distance"),
-            ("sh_degree", self.sh_degree in (0, 1, 2, 3), "0..3"),
-            ("vgs_unit", self.vgs_unit in ("scene", "pixel"), "'scene' or 'pixel'"),
-            ("front_bias", self.front_bias >= 0, "kappa >= 0"),
-        ]
-        for name, ok, want in checks:
-            if not ok:
-                raise ValueError(f"{name}: expected {want}, got {getattr(self, name)!r}")
+        check_fields(self)  # every field against its declared type and range (gdbench.constraints)
+        if not self.sigma_min < self.sigma_max:
+            raise ValueError(f"sigma_min (--sigma-min): expected < sigma_max ({self.sigma_max}), got {self.sigma_min}")
+        for name in ("fovy_range", "azimuth_range", "elevation_range"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"{name} (--{name.replace('_', '-')}): expected low <= high, got {(lo, hi)}")
         if self.init == "bank-depth" and self.prior != "empirical":
             raise ValueError(
                 f"init: 'bank-depth' needs the empirical prior's image bank; --prior {self.prior} has none"

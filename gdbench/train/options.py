@@ -132,10 +132,9 @@ def method_options():
 
 def flag(key: str) -> str:
     """The command-line option of an override key ('noise.ou_beta' -> '--noise-ou-beta')."""
-    special = {"noise.ratio_mode": "--noise-ratio"}
-    if key in special:
-        return special[key]
-    return "--" + key.replace(".", "-").replace("_", "-")
+    from ..constraints import flag as _flag
+
+    return _flag(key)
 
 
 def _acts(cfg) -> dict[str, tuple[bool, str]]:

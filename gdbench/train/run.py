@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from ..io import FolderLock, read_json, sha256_file, sha256_json, write_json
+from ..io import FolderLock, check_folder, read_json, sha256_file, sha256_json, write_json
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .outputs import config_dict, package_versions, write_curves
@@ -164,9 +164,7 @@ def train(
     resumed run gives the same result as an uninterrupted one.
     """
     t_start = time.perf_counter()
-    out = Path(cfg.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out: {out} is a file; expected a folder (or a path that does not exist)")
+    out = check_folder(cfg.out)  # before the bank is built: a file or a dangling link is refused
     ctx = make_context(cfg, prior)  # bad prompts fail here, before anything is written
     with FolderLock(out):
         _check_finished(out, cfg, overwrite, resume)
