@@ -33,31 +33,62 @@ and above ~43 float32 Gaussians vanish (alpha 0 where the twin gives 0.7). Below
 far under a pixel at any distance and only its 2D dilation is left."""
 
 
-def _check_extent(path: Path, ply) -> None:
-    """The header's vertex count must cover the file exactly: no rows beyond it, no trailing bytes."""
-    if len(ply.elements) != 1:
-        return  # other elements (faces, ...) follow the vertices: their sizes vary, nothing to check
-    el = ply.elements[0]
-    size = path.stat().st_size
+MAX_HEADER = 16 << 20
+"""A header longer than this (16 MiB) is refused rather than searched further."""
+
+
+def _body_offset(path: Path) -> int:
+    """Where the body starts: after the ``end_header`` line, however long the header is."""
+    buf = b""
     with open(path, "rb") as f:
-        head = f.read(min(size, 1 << 16))
-    end = head.find(b"end_header")
-    if end < 0:
-        return
-    body = end + len(b"end_header") + (2 if head[end + 10 : end + 12] == b"\r\n" else 1)
+        while True:
+            chunk = f.read(1 << 16)
+            buf += chunk
+            end = buf.find(b"end_header")
+            if end >= 0 and (len(buf) >= end + 12 or not chunk):
+                return end + len(b"end_header") + (2 if buf[end + 10 : end + 12] == b"\r\n" else 1)
+            if not chunk:
+                raise ValueError(f"{path}: the PLY header has no end_header line")
+            if len(buf) > MAX_HEADER:
+                raise ValueError(f"{path}: the PLY header is longer than {MAX_HEADER >> 20} MiB; refusing to read on")
+
+
+def _element_bytes(el) -> int:
+    """Bytes of a binary element's rows: fixed-size properties by their dtype, list properties by
+    the lengths the file gave each row."""
+    from plyfile import PlyListProperty
+
+    size = 0
+    for prop in el.properties:
+        if isinstance(prop, PlyListProperty):
+            len_dtype, val_dtype = (np.dtype(d) for d in prop.list_dtype())
+            lengths = sum(len(row) for row in el.data[prop.name])
+            size += el.count * len_dtype.itemsize + lengths * val_dtype.itemsize
+        else:
+            size += el.count * np.dtype(prop.dtype()).itemsize
+    return size
+
+
+def _check_extent(path: Path, ply) -> None:
+    """The header's counts must cover the file exactly, for every element layout (vertices alone,
+    or followed by faces or others): no rows beyond them, no trailing bytes, no missing rows."""
+    body = _body_offset(path)
+    counts = ", ".join(f"{el.count} {el.name}" for el in ply.elements)
     if ply.text:
         with open(path, "rb") as f:
             f.seek(body)
             rows = sum(1 for line in f if line.strip())
-        if rows != el.count:
-            raise ValueError(f"{path}: the header declares {el.count} vertices but the file has {rows} rows")
+        want = sum(el.count for el in ply.elements)
+        if rows != want:
+            raise ValueError(f"{path}: the header declares {want} rows ({counts}) but the file has {rows} rows")
         return
-    extra = size - body - el.count * el.data.dtype.itemsize
+    extra = path.stat().st_size - body - sum(_element_bytes(el) for el in ply.elements)
     if extra > 0:
-        rows = extra / el.data.dtype.itemsize
+        v = ply["vertex"]
+        rows = extra / v.data.dtype.itemsize
         raise ValueError(
-            f"{path}: {extra} bytes follow the {el.count} vertices the header declares "
-            f"({rows:g} more rows: the header's count is too small, or the file has trailing data)"
+            f"{path}: {extra} bytes follow the {counts} rows the header declares "
+            f"({rows:g} vertex rows' worth: a count is too small, or the file has trailing data)"
         )
 
 

@@ -324,6 +324,8 @@ def sweep(
         for p in per[st]
     ]
     validate_grid(prompts, presets, seeds, specs)
+    if executor == "ray" and address:
+        check_ray_address(address)
     for line in inert_overrides(specs):
         print(f"sweep: note: {line}", file=sys.stderr)
     rows: dict[int, dict] = {}
@@ -356,6 +358,30 @@ def _worker_threads(threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
+
+
+RAY_CONNECT_TIMEOUT = 10.0
+"""Seconds a Ray cluster's address may take to accept a connection before the sweep gives up."""
+
+
+def check_ray_address(address: str, timeout: float = RAY_CONNECT_TIMEOUT) -> None:
+    """A cluster address (``host:port`` or ``ray://host:port``; ``auto`` finds a local one) must
+    accept a TCP connection within ``timeout`` seconds: ``ray.init`` itself waits for minutes on an
+    address nobody answers."""
+    import socket
+
+    if address in ("auto", "local"):
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"address: expected HOST:PORT or ray://HOST:PORT (or 'auto'), got {address!r}")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise ValueError(
+            f"address: nothing answers at {host}:{port} within {timeout:g} s ({e.strerror or e}); start the cluster "
+            "(ray start --head) or leave --address empty for a local Ray instance"
+        ) from None
 
 
 def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):

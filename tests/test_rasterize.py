@@ -296,6 +296,10 @@ def _good():
         (lambda a: a.update(viewmats=a["viewmats"][:0], Ks=a["Ks"][:0]), ValueError, "viewmats: expected at least one"),
         (lambda a: a["Ks"].__setitem__((1, 0, 0), 0.0), ValueError, "Ks: expected positive focal lengths"),
         (lambda a: a["Ks"].__setitem__((0, 1, 1), -5.0), ValueError, "Ks: expected positive focal lengths"),
+        (lambda a: a["Ks"].__setitem__((0, 0, 1), 3.0), ValueError, r"Ks: expected pinhole intrinsics .*no skew"),
+        (lambda a: a["Ks"].__setitem__((1, 2, 2), 2.0), ValueError, r"Ks: expected pinhole intrinsics"),
+        (lambda a: a["Ks"][0, 2].zero_(), ValueError, r"Ks: expected pinhole intrinsics .*third row"),
+        (lambda a: a.__setitem__("colors", a["colors"][..., :0]), ValueError, r"colors: expected at least one channel"),
         (lambda a: a["viewmats"][0, :3, :3].mul_(2.0), ValueError, "viewmats: expected world-to-camera rigid"),
         (lambda a: a["viewmats"][1, 0, :3].neg_(), ValueError, r"det R in \[-1"),  # a reflection
         (lambda a: a["viewmats"].__setitem__((0, 3, 0), 0.5), ValueError, r"last row \[0, 0, 0, 1\]"),

@@ -539,6 +539,31 @@ def test_the_sweeps_advice_names_what_it_has(prior, tmp_path, monkeypatch):
         cell_name("a " * 150)
 
 
+def test_an_unreachable_ray_address_fails_within_its_timeout():
+    """ray.init waits for minutes on an address nobody answers; the sweep probes it first. A
+    closed local port answers at once (refused); a non-routable address (TEST-NET-1) times out."""
+    import socket
+    import time
+
+    from gdbench.sweep import check_ray_address
+
+    with socket.socket() as s:  # a port that was free a moment ago: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(ValueError, match=rf"address: nothing answers at 127.0.0.1:{port} within 10 s"):
+        check_ray_address(f"127.0.0.1:{port}")
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match=r"address: nothing answers at 192.0.2.1:6379 within 0.5 s"):
+        check_ray_address("ray://192.0.2.1:6379", timeout=0.5)
+    assert time.perf_counter() - t0 < 5
+    with pytest.raises(ValueError, match="expected HOST:PORT"):
+        check_ray_address("my-cluster")
+    with socket.socket() as s:  # something listening: accepted
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        check_ray_address(f"127.0.0.1:{s.getsockname()[1]}")
+
+
 def test_noise_preview_into_a_folder(monkeypatch, capsys, tmp_path):
     (tmp_path / "dir").mkdir()
     for target, want in ((tmp_path / "dir", tmp_path / "dir" / "noise_preview.png"),

@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from gdbench.scene import GaussianScene, sphere_init
 from renderers.splat.sh import C0
@@ -145,10 +147,10 @@ def test_header_count_and_trailing_bytes_are_checked(tmp_path):
     path = _scene(30, degree=1).save_ply(tmp_path / "s.ply")
     data = path.read_bytes()
     (tmp_path / "short.ply").write_bytes(data.replace(b"element vertex 30", b"element vertex 29"))
-    with pytest.raises(ValueError, match=r"short.ply: \d+ bytes follow the 29 vertices the header declares \(1 more"):
+    with pytest.raises(ValueError, match=r"short.ply: \d+ bytes follow the 29 vertex rows the header declares \(1 v"):
         GaussianScene.load_ply(tmp_path / "short.ply")
     (tmp_path / "tail.ply").write_bytes(data + b"junk")
-    with pytest.raises(ValueError, match=r"tail.ply: 4 bytes follow the 30 vertices"):
+    with pytest.raises(ValueError, match=r"tail.ply: 4 bytes follow the 30 vertex rows"):
         GaussianScene.load_ply(tmp_path / "tail.ply")
     from plyfile import PlyData
 
@@ -158,8 +160,61 @@ def test_header_count_and_trailing_bytes_are_checked(tmp_path):
     assert len(GaussianScene.load_ply(tmp_path / "text.ply")) == 30  # ASCII: rows counted too
     lines = (tmp_path / "text.ply").read_bytes().replace(b"element vertex 30", b"element vertex 28")
     (tmp_path / "text_short.ply").write_bytes(lines)
-    with pytest.raises(ValueError, match="declares 28 vertices but the file has 30 rows"):
+    with pytest.raises(ValueError, match=r"declares 28 rows \(28 vertex\) but the file has 30 rows"):
         GaussianScene.load_ply(tmp_path / "text_short.ply")
+
+
+def _ply_bytes(scene, tmp, *, faces: int, comment_bytes: int, text: bool) -> bytes:
+    """A 3DGS PLY of ``scene``, optionally with a face element after the vertices and a header
+    padded with comments (the vertex rows ours, the file written by plyfile)."""
+    import io
+
+    from plyfile import PlyData, PlyElement
+
+    vertices = PlyData.read(str(scene.save_ply(tmp / "base.ply")))["vertex"].data
+    els = [PlyElement.describe(vertices, "vertex")]
+    if faces:
+        f = np.empty(faces, dtype=[("vertex_indices", "O")])
+        f["vertex_indices"] = [np.arange(k % 3 + 3, dtype=np.int32) for k in range(faces)]
+        els.append(PlyElement.describe(f, "face"))
+    comments = ["x" * 1000] * (comment_bytes // 1000)
+    buf = io.BytesIO()
+    PlyData(els, text=text, comments=comments).write(buf)
+    return buf.getvalue()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    n=st.integers(1, 12),
+    faces=st.sampled_from([0, 0, 3]),
+    comment_bytes=st.sampled_from([0, 70_000]),
+    text=st.booleans(),
+    delta=st.integers(-2, 2),
+    tail=st.sampled_from([b"", b"\x00", b"junk", b"\x00" * 59]),
+    cut=st.sampled_from([0, 0, 1, 7]),
+)
+def test_any_ply_loads_exactly_or_is_refused_naming_the_file(tmp_path, n, faces, comment_bytes, text, delta, tail, cut):
+    """PLY headers and bodies by property: vertices alone or followed by faces, headers over
+    64 KiB, binary or ASCII, a vertex count off by delta, trailing bytes, a truncated end. The
+    file either loads to exactly the scene written (only when nothing was changed) or raises one
+    ValueError naming the file; never another exception, never a different scene."""
+    scene = _scene(n, degree=0)
+    data = _ply_bytes(scene, tmp_path, faces=faces, comment_bytes=comment_bytes, text=text)
+    if delta:
+        data = data.replace(f"element vertex {n}\n".encode(), f"element vertex {n + delta}\n".encode(), 1)
+    data = data[: len(data) - cut] + tail
+    path = tmp_path / f"p{n}_{faces}_{comment_bytes}_{int(text)}_{delta}_{len(tail)}_{cut}.ply"
+    path.write_bytes(data)
+    changed = delta != 0 or cut > 0 or (tail.strip() if text else tail) != b""
+    try:
+        loaded = GaussianScene.load_ply(path)
+    except ValueError as e:
+        assert str(path) in str(e), e
+        assert changed, f"an unchanged file was refused: {e}"
+        return
+    assert not changed, f"a changed file loaded (delta {delta}, tail {tail!r}, cut {cut})"
+    for k in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert torch.equal(getattr(loaded, k), getattr(scene, k)), k
 
 
 @pytest.mark.parametrize(("value", "ok"), [(12.0, True), (-30.0, True), (12.5, False), (100.0, False), (-31.0, False)])

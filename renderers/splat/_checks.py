@@ -160,6 +160,14 @@ def check_cameras(viewmats: Tensor, Ks: Tensor, tol: float = 1e-3) -> None:
     f = np.stack([Ks[..., 0, 0], Ks[..., 1, 1]], -1)
     if bool((f <= 0).any()):
         raise ValueError(f"Ks: expected positive focal lengths fx, fy (pixels), got minimum {float(f.min()):g}")
+    # a pinhole: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]; skew or another third row would be
+    # rendered as if it were one
+    off = np.stack([Ks[..., 0, 1], Ks[..., 1, 0], Ks[..., 2, 0], Ks[..., 2, 1], Ks[..., 2, 2] - 1], -1)
+    if not np.isfinite(Ks).all() or float(np.abs(off).max()) > 1e-6:
+        raise ValueError(
+            "Ks: expected pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew, third row "
+            f"[0, 0, 1]); got max deviation {float(np.nan_to_num(np.abs(off), nan=np.inf).max()):.3g}"
+        )
     R = viewmats[..., :3, :3]
     ortho = float(np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max())
     a, b = [1, 2, 0], [2, 0, 1]  # the triple product R0 . (R1 x R2) (np.cross costs 30 us)
@@ -196,6 +204,8 @@ def check_colors(colors, background, batch, N, C, sh_degree) -> tuple[int, bool]
     else:
         check_shape("colors", colors, (N, "D"), lead)
     D = colors.shape[-1]
+    if D < 1:
+        raise ValueError(f"colors: expected at least one channel (D >= 1), got shape {list(colors.shape)}")
     if background is not None and background.shape != (D,):
         check_shape("background", background, (C, D), batch)
     return D, per_camera
