@@ -74,8 +74,9 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
     """Everything a sweep could fail on, checked before the first cell trains: presets, repeated
     entries, cell folders two prompts would share, prompts no asset matches (or that contradict
     it), and each cell's config."""
-    from .assets.library import ASSETS, COLOURS
-    from .priors.text import CaptionMatcher, contradiction, normalise
+    from .assets.library import ASSETS
+    from .priors.prompt_check import contradiction
+    from .priors.text import CaptionMatcher
     from .train.config import PRESETS
 
     bad = [p for p in presets if p not in PRESETS]
@@ -97,7 +98,7 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
     matcher = CaptionMatcher(sorted(ASSETS))
     for pr in prompts:
         caption, sim = matcher.match_scored(pr)
-        why = contradiction(pr, caption, COLOURS.get(caption, frozenset()) | set(normalise(caption).split()))
+        why = contradiction(pr, caption, matcher)
         if why is not None:
             raise ValueError(f"prompts: {pr!r} matched {caption!r} (cosine {sim:.2f}): {why}")
     for spec in specs:

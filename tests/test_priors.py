@@ -3,6 +3,7 @@ depth conditioning, and prompt matching."""
 
 import dataclasses
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -417,3 +418,55 @@ def test_the_prior_on_every_path_against_a_brute_force_posterior(view_mode, kapp
         want = _brute_posterior(bank, x, 4.0, az, el, fovy, depth, view_mode=view_mode, window=50.0, kappa=kappa,
                                 depth_weight=50.0)  # fmt: skip
         torch.testing.assert_close(got.double(), want, atol=2e-4, rtol=0)
+
+
+def _prompt_set(name: str) -> list[tuple[str, str]]:
+    path = Path(__file__).resolve().parents[1] / "fixtures" / "prompts" / name
+    rows = [line.rstrip("\n").split("\t") for line in path.read_text().splitlines() if not line.startswith("#")]
+    return [(p, w) for p, w in rows]
+
+
+def test_prompts_that_contradict_their_asset_are_refused_on_the_committed_sets():
+    """fixtures/prompts: 58 paraphrases that must be accepted and matched to their caption, and
+    56 prompts naming another colour (crimson, azure, lavender ... judged against the asset's
+    own surface colours), a second object or a negation, which must be refused. The rates are
+    the ones docs/reliability.md reports: 1 false refusal ('a tan and white corgi': XKCD's tan is
+    a pale yellow-brown, the corgi's coat an orange one) and no false acceptance."""
+    from gdbench.assets.library import ASSETS
+    from gdbench.priors.prompt_check import contradiction
+    from gdbench.priors.text import CaptionMatcher
+
+    m = CaptionMatcher(sorted(ASSETS))
+
+    def verdict(prompt):
+        try:
+            caption, _ = m.match_scored(prompt)
+        except ValueError:
+            return None, "no match"
+        return caption, contradiction(prompt, caption, m)
+
+    match, contradict = _prompt_set("match.tsv"), _prompt_set("contradict.tsv")
+    assert len(match) >= 50 and len(contradict) >= 50
+    assert {w for _, w in contradict} == {"colour", "object", "negation"}
+    false_refusals = [p for p, want in match if verdict(p) != (want, None)]
+    false_accepts = [p for p, _ in contradict if verdict(p)[1] is None]
+    assert false_refusals == ["a tan and white corgi"], false_refusals
+    assert false_accepts == [], false_accepts
+
+
+def test_colour_categories_of_the_basic_terms_and_of_known_names():
+    """Each of the eleven basic colour terms' own centroid falls in its category, and named colours
+    outside them fall where a dictionary puts them."""
+    import numpy as np
+
+    from gdbench.priors import prompt_check as pc
+
+    lex = pc.colour_lexicon()
+
+    def cat(name):
+        return pc.BASIC[int(pc.category(pc._lab(np.array(lex[tuple(name.split())]))))]
+
+    assert [cat(b) for b in pc.BASIC] == list(pc.BASIC)
+    known = {"crimson": "red", "scarlet": "red", "azure": "blue", "navy blue": "blue", "lavender": "purple"}
+    known |= {"lime green": "green", "chocolate": "brown", "charcoal": "black", "magenta": "pink"}
+    assert {k: cat(k) for k in known} == known

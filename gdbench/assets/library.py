@@ -146,17 +146,6 @@ ASSETS: dict[str, Callable] = {
 """Captions (the paper's prompts) to mesh builders, written out by hand."""
 
 
-COLOURS: dict[str, frozenset[str]] = {
-    "a corgi": frozenset({"tan", "orange", "brown", "white", "black", "pink", "ginger"}),
-    "a yellow duck": frozenset({"yellow", "orange", "black"}),
-    "a hamburger": frozenset({"brown", "red", "green", "yellow", "white"}),
-    "a lego figure": frozenset({"yellow", "red", "blue", "black", "white", "green", "grey", "gray"}),
-    "a penguin": frozenset({"black", "white", "orange"}),
-    "a sofa": frozenset({"blue", "red", "yellow", "orange", "brown", "white", "pink"}),
-}
-"""Colour words each asset can honestly answer to (a prompt naming another colour is refused)."""
-
-
 VARIANTS = 3
 """Procedural variants per caption (instance ambiguity, docs/training.md 'The embedded prior'): 0 the asset as
 written above; 1 longer front to back and squat, in a warmer, darker shade; 2 compact and tall,

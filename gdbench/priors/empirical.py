@@ -38,10 +38,11 @@ import torch
 from torch import Tensor
 
 from ..assets.bank import Bank, BankConfig, load_bank
-from ..assets.library import ASSETS, COLOURS
+from ..assets.library import ASSETS
 from ..assets.zoom import zoom_images
 from . import ve_sigmas_from_betas
-from .text import CaptionMatcher, contradiction, normalise
+from .prompt_check import contradiction
+from .text import CaptionMatcher
 
 ViewMode = Literal["none", "buckets", "window"]
 
@@ -136,7 +137,7 @@ class EmpiricalPrior:
         """The condition of the caption nearest to ``prompt``; a prompt that contradicts that
         asset (a negation, or a colour the asset lacks) raises ValueError saying why."""
         caption, similarity = self.matcher.match_scored(prompt)
-        why = contradiction(prompt, caption, COLOURS.get(caption, frozenset()) | set(normalise(caption).split()))
+        why = contradiction(prompt, caption, self.matcher)
         if why is not None:
             raise ValueError(f"prompt: {prompt!r} matched {caption!r} (cosine {similarity:.2f}): {why}")
         bank = self._banks.get(caption) or load_bank(caption, self.bank_config)

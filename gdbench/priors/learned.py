@@ -196,11 +196,10 @@ class LearnedPrior:
         return x.permute(0, 2, 3, 1)
 
     def encode(self, prompt: str) -> LearnedCond:
-        from ..assets.library import COLOURS
-        from .text import contradiction, normalise
+        from .prompt_check import contradiction
 
         caption, similarity = self.matcher.match_scored(prompt)
-        why = contradiction(prompt, caption, COLOURS.get(caption, frozenset()) | set(normalise(caption).split()))
+        why = contradiction(prompt, caption, self.matcher)
         if why is not None:
             raise ValueError(f"prompt: {prompt!r} matched {caption!r} (cosine {similarity:.2f}): {why}")
         variant = 0 if self.variants == 1 else self.unet.config.variants

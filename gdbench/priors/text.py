@@ -16,31 +16,6 @@ def normalise(text: str) -> str:
     return re.sub(r"^(a|an|the) ", "", t)
 
 
-COLOUR_WORDS = frozenset(
-    "red orange yellow green blue purple violet pink brown black white grey gray gold golden silver tan "
-    "beige cyan magenta teal turquoise ginger".split()
-)
-NEGATIONS = frozenset({"not", "no", "without", "non", "never", "nothing"})
-
-
-def contradiction(prompt: str, caption: str, colours: frozenset[str]) -> str | None:
-    """Why ``prompt`` asks for something the asset behind ``caption`` is not, or None.
-
-    Two cases are caught: a negation ("not a duck": the matcher would still return the duck)
-    and a colour the asset does not have ("a blue duck" against the yellow duck)."""
-    words = set(normalise(prompt).split())
-    neg = sorted(words & NEGATIONS)
-    if neg:
-        return f"it negates ({neg[0]!r}), and the embedded prior can only generate its assets"
-    wrong = sorted((words & COLOUR_WORDS) - colours)
-    if wrong:
-        return (
-            f"it asks for {', '.join(wrong)}, but that asset is "
-            f"{', '.join(sorted(colours & COLOUR_WORDS - {'gray'}))}; the embedded prior has one appearance per asset"
-        )
-    return None
-
-
 class CaptionMatcher:
     """Maps a free-text prompt to the closest known caption, or raises with the known list."""
 
