@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from .constraints import AtLeast, Between, Positive, check_fields
+from .constraints import AtLeast, Between, Positive, Seed, check_fields
 from .train.config import BASE_PRESETS, PRESETS
 from .train.options import method_options, train_options
 
@@ -25,9 +25,9 @@ class Demo:
     """Views on the orbit (360/frames degrees apart)."""
     size: Annotated[int, AtLeast(8, "px")] = 256
     """Image width and height in pixels."""
-    gaussians: Annotated[int, AtLeast(1)] = 3000
+    gaussians: Annotated[int, AtLeast(10)] = 3000
     """Number of Gaussians in the built-in scene."""
-    seed: int = 0
+    seed: Annotated[int, Seed()] = 0
     """Seed of the built-in scene."""
 
 
@@ -35,7 +35,7 @@ def run_demo(cmd: Demo) -> dict:
     from .resources import check_render_memory
     from .turntable import demo
 
-    check_render_memory(cmd.size, cmd.frames)
+    check_render_memory(cmd.size, cmd.frames, gaussians=cmd.gaussians)
 
     return demo(cmd.out, frames=cmd.frames, size=cmd.size, gaussians=cmd.gaussians, seed=cmd.seed)
 
@@ -52,7 +52,7 @@ class Noise:
     that receives noise_preview.png."""
     res: Annotated[int, AtLeast(8, "px")] = 128
     """Resolution of the views."""
-    seed: int = 0
+    seed: Annotated[int, Seed()] = 0
     n_gaussians: Annotated[int, AtLeast(1)] = 3072
     """Noise Gaussians in the cloud."""
     scale: Annotated[float, Positive()] = 0.02
@@ -132,7 +132,7 @@ class Render:
     size: Annotated[int, AtLeast(8, "px")] = 256
     radius: Annotated[float, Positive()] = 1.3
     elevation: Annotated[float, Between(-90, 90, unit="degrees")] = 15.0
-    fovy: Annotated[float, Between(0, 180, open=True, unit="degrees")] = 45.0
+    fovy: Annotated[float, Between(1, 179, unit="degrees")] = 45.0
 
 
 def run_generate(cmd: Generate) -> dict:
@@ -264,7 +264,7 @@ class Sweep:
     presets: tuple[str, ...] = BASE_PRESETS
     """Training presets to compare (see docs/training.md; gd-redraw-step, the mechanism's
     control, on request)."""
-    seeds: tuple[int, ...] = (0, 1)
+    seeds: Annotated[tuple[int, ...], Seed()] = (0, 1)
     """Seeds per (setting, prompt, preset); cells with one seed and prompt are paired."""
     settings: tuple[Literal["easy", "janus", "instance"], ...] = ("easy",)
     """Ambiguity settings: easy (the presets' view window, one variant), janus (no view prompting,
@@ -381,7 +381,7 @@ class TrainPrior:
     batch: Annotated[int, AtLeast(1)] = 32
     lr: Annotated[float, Positive()] = 6e-4
     """Peak learning rate (AdamW; warm-up, then cosine decay to a tenth)."""
-    seed: int = 0
+    seed: Annotated[int, Seed()] = 0
     size: Annotated[int, AtLeast(8, "px")] = 32
     """The model's resolution (a divisor of --resolution; the 64 px renders are box-filtered to it)."""
     views: Annotated[int, AtLeast(1)] = 1024

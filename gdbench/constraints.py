@@ -36,14 +36,19 @@ class Range:
     def describe(self, integer: bool) -> str:
         what = "an int" if integer else "a finite number"
         unit = f" {self.unit}" if self.unit else ""
+        lo, hi = _number(self.lo), _number(self.hi)
         if self.lo is not None and self.hi is not None:
             left, right = "(" if self.lo_open else "[", ")" if self.hi_open else "]"
-            return f"{what} in {left}{self.lo:g}, {self.hi:g}{right}{unit}"
+            return f"{what} in {left}{lo}, {hi}{right}{unit}"
         if self.lo is not None:
-            return f"{what} {'>' if self.lo_open else '>='} {self.lo:g}{unit}"
+            return f"{what} {'>' if self.lo_open else '>='} {lo}{unit}"
         if self.hi is not None:
-            return f"{what} {'<' if self.hi_open else '<='} {self.hi:g}{unit}"
+            return f"{what} {'<' if self.hi_open else '<='} {hi}{unit}"
         return what + unit
+
+
+def _number(x) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}" if x is not None else ""
 
 
 def AtLeast(lo: float, unit: str = "") -> Range:
@@ -57,6 +62,11 @@ def Positive(unit: str = "") -> Range:
 def Between(lo: float, hi: float, *, open: bool = False, unit: str = "") -> Range:
     """``[lo, hi]``, or ``(lo, hi)`` with ``open``."""
     return Range(lo=lo, hi=hi, lo_open=open, hi_open=open, unit=unit)
+
+
+def Seed() -> Range:
+    """A random seed: what torch.Generator.manual_seed takes on every platform, [0, 2^63 - 1]."""
+    return Range(lo=0, hi=2**63 - 1)
 
 
 def flag(key: str) -> str:
@@ -102,10 +112,14 @@ def check_fields(obj, prefix: str = "", *, nested: bool = True) -> None:
             _check_value(key, v, base, rng)
 
 
+INT64 = Range(lo=-(2**63), hi=2**63 - 1)
+"""Every int must fit the int64 torch and numpy hold it in."""
+
+
 def _check_value(key: str, v, base: type, rng: Range | None) -> None:
     integer = base is int
-    want = (rng or Range()).describe(integer)
+    want = (rng or (INT64 if integer else Range())).describe(integer)
     bad = isinstance(v, bool) or not isinstance(v, (int, float))
-    bad = bad or (integer and not isinstance(v, int)) or not math.isfinite(v)
+    bad = bad or (integer and not (isinstance(v, int) and INT64.holds(v))) or not math.isfinite(v)
     if bad or (rng is not None and not rng.holds(v)):
         raise ValueError(f"{key} ({flag(key)}): expected {want}, got {v!r}")

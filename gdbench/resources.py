@@ -75,12 +75,14 @@ def check_generate_memory(cfg) -> None:
     _refuse(generate_terms(cfg))
 
 
-def check_render_memory(size: int, frames: int) -> None:
-    """A turntable holds its frames (uint8 RGB) and one float render with its tile buffers."""
+def check_render_memory(size: int, frames: int, gaussians: int = 0) -> None:
+    """A turntable holds its frames (uint8 RGB) and one float render with its tile buffers (and,
+    for ``demo``, the Gaussians it builds)."""
     if size < 8:
         raise ValueError(f"size: expected at least 8 px, got {size}")
     _refuse([("frames", frames, frames * size * size * 3, f"{frames} frames of {size}x{size} px"),
-             ("size", size, size * size * 4 * 48, "the render's buffers")])  # fmt: skip
+             ("size", size, size * size * 4 * 48, "the render's buffers"),
+             ("gaussians", gaussians, gaussians * 4 * 200, "the Gaussians and their projections")])  # fmt: skip
 
 
 def check_noise_memory(res: int, n_gaussians: int) -> None:

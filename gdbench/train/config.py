@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
-from ..constraints import AtLeast, Between, Positive, Range, check_fields
+from ..constraints import AtLeast, Between, Positive, Range, Seed, check_fields
 from ..noise import NoiseConfig
 
 
@@ -219,7 +219,7 @@ class TrainConfig:
     steps: Annotated[int, AtLeast(1)] = 2000
     """Training steps (the paper: 2000). The densification schedule, the sigma annealing, the noise
     ratio and the means' learning-rate decay are fractions of it."""
-    seed: int = 0
+    seed: Annotated[int, Seed()] = 0
     """Seed of every random stream of the run (train/streams.py): presets with one seed are paired."""
     resolution: Annotated[int, AtLeast(8, "px")] = 64
     """Training render size (CPU-sized; the paper uses 512 with Stable Diffusion)."""
@@ -245,7 +245,7 @@ class TrainConfig:
     # cameras (paper)
     camera_radius: Annotated[float, Positive()] = 1.0
     """Distance of the training cameras from the origin (the paper: 1)."""
-    fovy_range: Annotated[tuple[float, float], Range(0, 180, lo_open=True, hi_open=True, unit="degrees")] = (40.0, 70.0)
+    fovy_range: Annotated[tuple[float, float], Between(1, 179, unit="degrees")] = (40.0, 70.0)
     """Vertical field of view of the training views, degrees, drawn uniformly (the paper: 40-70)."""
     azimuth_range: Annotated[tuple[float, float], Between(-360, 360, unit="degrees")] = (-180.0, 180.0)
     """Azimuth of the training views, degrees (the paper: all around)."""
