@@ -473,7 +473,8 @@ def install_stop_handlers() -> None:
     """SIGTERM and SIGHUP raise ``Stopped`` (as Ctrl-C raises KeyboardInterrupt); a training loop
     defers all three to the end of its step (``train.run.defer_stop_signals``)."""
     for s in (getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)):
-        signal.signal(s, _stop)
+        if signal.getsignal(s) is not signal.SIG_IGN:  # nohup's ignored SIGHUP stays ignored
+            signal.signal(s, _stop)
 
 
 def run_reporting(name: str, work) -> None:
@@ -487,6 +488,9 @@ def run_reporting(name: str, work) -> None:
         install_stop_handlers()  # inside the try: a signal from here on is reported in one line
         work()
     except (Exception, KeyboardInterrupt) as e:
+        for sig in ("SIGINT", "SIGTERM", "SIGHUP"):  # a second signal must not cut the one line short
+            if hasattr(signal, sig):
+                signal.signal(getattr(signal, sig), signal.SIG_IGN)
         if os.environ.get("GDBENCH_DEBUG"):
             raise
         message, code = error_line(e)

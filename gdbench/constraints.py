@@ -76,6 +76,21 @@ def flag(key: str) -> str:
 
 
 @functools.cache
+def _choices(cls) -> dict[str, tuple]:
+    """field name -> the values of its ``Literal`` type (``X | None`` allows None too)."""
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for name, ann in hints.items():
+        if typing.get_origin(ann) is tuple:  # tuple[Literal[...], ...]: each element
+            ann = typing.get_args(ann)[0]
+        args = typing.get_args(ann) if typing.get_origin(ann) is not typing.Literal else (ann,)
+        lits = [a for a in (args or (ann,)) if typing.get_origin(a) is typing.Literal]
+        if lits:
+            out[name] = tuple(v for lit in lits for v in typing.get_args(lit)) + ((None,) if type(None) in args else ())
+    return out
+
+
+@functools.cache
 def _declared(cls) -> dict[str, tuple[type | None, Range | None]]:
     """field name -> (its plain numeric type or None, its declared Range or None)."""
     hints = typing.get_type_hints(cls, include_extras=True)
@@ -106,7 +121,14 @@ def check_fields(obj, prefix: str = "", *, nested: bool = True) -> None:
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             check_fields(value, key + "." if nested else prefix, nested=nested)
             continue
-        if value is None or base is None or isinstance(value, bool):
+        choices = _choices(type(obj)).get(name)
+        bad = [v for v in (value if isinstance(value, tuple) else (value,)) if choices is not None and v not in choices]
+        if bad:
+            value = bad[0]
+            raise ValueError(
+                f"{key} ({flag(key)}): expected one of {[c for c in choices if c is not None]}, got {value!r}"
+            )
+        if value is None or base is None:
             continue
         for v in value if isinstance(value, (tuple, list)) else (value,):
             _check_value(key, v, base, rng)
@@ -120,6 +142,13 @@ def _check_value(key: str, v, base: type, rng: Range | None) -> None:
     integer = base is int
     want = (rng or (INT64 if integer else Range())).describe(integer)
     bad = isinstance(v, bool) or not isinstance(v, (int, float))
-    bad = bad or (integer and not (isinstance(v, int) and INT64.holds(v))) or not math.isfinite(v)
+    bad = bad or (integer and not (isinstance(v, int) and INT64.holds(v))) or not _finite(v)
     if bad or (rng is not None and not rng.holds(v)):
         raise ValueError(f"{key} ({flag(key)}): expected {want}, got {v!r}")
+
+
+def _finite(v) -> bool:
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an int too large for a float
+        return False

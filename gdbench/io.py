@@ -50,9 +50,9 @@ def _reraise(e: BaseException, path: Path):
     """Re-raise ``e``, or the disk error behind it as an OSError naming ``path`` (so the command
     line prints one line, not torch's or imageio's traceback)."""
     err = disk_error(e, path) if isinstance(e, Exception) else None
-    if err is None or (isinstance(e, OSError) and e.filename):
+    if err is None:
         raise e
-    raise err from None
+    raise err from None  # the file the user asked for, not a writer's temporary name
 
 
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
@@ -62,7 +62,10 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
     an OSError naming ``path`` whatever the writer made of it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as e:
+        _reraise(e, path)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -85,7 +88,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     the new one, never a part."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    try:
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    except OSError as e:
+        _reraise(e, path)
     os.close(fd)
     tmp = Path(name)
     try:

@@ -15,6 +15,7 @@ and ``save_ply`` (scene.py) turn them into a scene and back.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +38,9 @@ MAX_HEADER = 16 << 20
 """A header longer than this (16 MiB) is refused rather than searched further."""
 
 
+_END_HEADER = re.compile(rb"(?:^|\n)end_header\r?\n")
+
+
 def _body_offset(path: Path) -> int:
     """Where the body starts: after the ``end_header`` line, however long the header is."""
     buf = b""
@@ -44,10 +48,12 @@ def _body_offset(path: Path) -> int:
         while True:
             chunk = f.read(1 << 16)
             buf += chunk
-            end = buf.find(b"end_header")
-            if end >= 0 and (len(buf) >= end + 12 or not chunk):
-                return end + len(b"end_header") + (2 if buf[end + 10 : end + 12] == b"\r\n" else 1)
+            m = _END_HEADER.search(buf)  # a line of its own: "end_header" in a comment is not the end
+            if m is not None:
+                return m.end()
             if not chunk:
+                if buf.endswith(b"\nend_header"):  # a header with no body and no last newline
+                    return len(buf)
                 raise ValueError(f"{path}: the PLY header has no end_header line")
             if len(buf) > MAX_HEADER:
                 raise ValueError(f"{path}: the PLY header is longer than {MAX_HEADER >> 20} MiB; refusing to read on")
@@ -145,8 +151,8 @@ def header_comments(path: str | Path) -> list[str]:
     from at most its first 64 KiB without parsing the body."""
     with open(path, "rb") as f:
         head = f.read(1 << 16)
-    end = head.find(b"end_header")
-    lines = head[: end if end >= 0 else len(head)].decode("ascii", errors="replace").splitlines()
+    m = _END_HEADER.search(head)
+    lines = head[: m.start() if m else len(head)].decode("ascii", errors="replace").splitlines()
     return [line[len("comment ") :].strip() for line in lines if line.startswith("comment ")]
 
 

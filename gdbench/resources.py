@@ -58,7 +58,8 @@ def generate_terms(cfg) -> list[tuple[str, object, float, str]]:
         bank = views * b * b * 4 * 12  # rgb, depth, alpha as float32, rendered and held twice
         levels = min(64, round((hi - lo) / 0.5) + 1) * views * R * R * 3 * 4
         terms.append(("resolution", R, bank + levels, "image bank and its zoomed copies"))
-    terms.append(("views_per_step", V, V * R * R * 4 * 64, "renders of one step and their gradients"))
+    name, value = ("views_per_step", V) if V > 1 else ("resolution", R)  # what scales this one most
+    terms.append((name, value, V * R * R * 4 * 64, "renders of one step and their gradients"))
     terms.append(("samples_per_step", K, K * V * R * R * 4 * 8, "noise fields and the prior's estimates"))
     n = max(cfg.init_points, cfg.densify.max_gaussians)
     terms.append(("init_points", cfg.init_points, n * 4 * 200, "Gaussians, their gradients and Adam state"))

@@ -374,7 +374,7 @@ def check_ray_address(address: str, timeout: float = RAY_CONNECT_TIMEOUT) -> Non
     if address in ("auto", "local"):
         return
     host, _, port = address.removeprefix("ray://").rpartition(":")
-    if not host or not port.isdigit():
+    if not host or not (port.isascii() and port.isdigit() and 0 < int(port) < 65536):
         raise ValueError(f"address: expected HOST:PORT or ray://HOST:PORT (or 'auto'), got {address!r}")
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
@@ -400,10 +400,13 @@ def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):
         # two-thread workers on two cores spin-wait for each other (measured 10x slower steps)
         threads = max(1, (os.cpu_count() or 1) // workers)
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_threads, initargs=(threads,)) as pool:
+        pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_threads, initargs=(threads,))
+        try:
             futs = {pool.submit(run_cell, s): i for i, s in enumerate(specs)}
             for f in as_completed(futs):
                 yield futs[f], f.result()
+        finally:  # a stop signal or an error: queued cells are cancelled, not run to the end
+            pool.shutdown(wait=True, cancel_futures=True)
         return
     if executor == "ray":
         try:

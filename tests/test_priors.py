@@ -427,7 +427,7 @@ def _prompt_set(name: str) -> list[tuple[str, str]]:
 
 
 def test_prompts_that_contradict_their_asset_are_refused_on_the_committed_sets():
-    """fixtures/prompts: 58 paraphrases that must be accepted and matched to their caption, and
+    """fixtures/prompts: 62 paraphrases that must be accepted and matched to their caption, and
     56 prompts naming another colour (crimson, azure, lavender ... judged against the asset's
     own surface colours), a second object or a negation, which must be refused. The rates are
     the ones docs/reliability.md reports: 1 false refusal ('a tan and white corgi': XKCD's tan is

@@ -154,6 +154,18 @@ def test_a_stop_signal_saves_a_checkpoint_and_resumes_exactly(prior, tmp_path, m
         train(tiny("gd", tmp_path / "a", steps=9, checkpoint_every=100), prior, write_outputs=False)
     assert error_line(e.value) == (str(e.value), 128 + signum)
     assert signal.getsignal(signum) == before  # the loop gives the handler back
+    if sig == "SIGHUP":  # under nohup SIGHUP is ignored, and stays so: the run goes on
+        from gdbench.train.run import defer_stop_signals
+
+        flag: list = []
+        old = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+        try:
+            with defer_stop_signals(flag):
+                assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+                os.kill(os.getpid(), signal.SIGHUP)
+            assert flag == []
+        finally:
+            signal.signal(signal.SIGHUP, old)
     monkeypatch.setattr(run_mod, "train_step", real)
     resumed = train(tiny("gd", tmp_path / "a", steps=9, checkpoint_every=100), prior, write_outputs=False)
     assert resumed.resumed_from == 4
@@ -482,6 +494,12 @@ def test_well_formed_but_foreign_files_are_named_not_crashed_on(prior, tmp_path)
     torch.save({"format": FORMAT}, ckpt)
     with pytest.raises(CheckpointError, match=r"checkpoint: .*checkpoint.pt is a gdbench checkpoint but its config"):
         train(tiny("gd", out, steps=4), prior, write_outputs=False)
+    moments = blob["optimizer"]["state"][0]["exp_avg"]
+    blob["optimizer"]["state"][0]["exp_avg"] = moments[:2]  # the fused Adam kernel would crash on it
+    torch.save(blob, ckpt)
+    with pytest.raises(CheckpointError, match=r"training state is broken \(ValueError: optimizer\['means'\].exp_avg"):
+        train(tiny("gd", out, steps=4), prior, write_outputs=False)
+    blob["optimizer"]["state"][0]["exp_avg"] = moments
     blob["params"]["quats"] = blob["params"]["quats"][:-1]
     torch.save(blob, ckpt)
     with pytest.raises(CheckpointError, match=r"training state is broken \(ValueError: params\['quats'\]: expected"):
@@ -520,6 +538,20 @@ def test_a_diverged_run_and_a_dangling_out_are_one_line(prior, monkeypatch, caps
     assert not (tmp_path / "nowhere").exists()
 
 
+def test_the_memory_estimate_names_the_flag_that_sizes_the_largest_buffer():
+    """Without the empirical prior's bank, a huge resolution still names --resolution (its
+    renders), and many views per step name --views-per-step."""
+    from gdbench.resources import generate_terms
+    from gdbench.train.config import TrainConfig
+
+    def largest(**kw):
+        return max(generate_terms(TrainConfig(**kw)), key=lambda x: x[2])[0]
+
+    assert largest(prior="learned", resolution=40000) == "resolution"
+    assert largest(prior="learned", views_per_step=100000) == "views_per_step"
+    assert largest(resolution=40000) == "resolution"
+
+
 def test_the_sweeps_advice_names_what_it_has(prior, tmp_path, monkeypatch):
     """A cell folder holding a finished run of another config: the sweep (which has no
     --overwrite) says to delete that cell's folder. A prompt too long for a folder name is
@@ -556,8 +588,9 @@ def test_an_unreachable_ray_address_fails_within_its_timeout():
     with pytest.raises(ValueError, match=r"address: nothing answers at 192.0.2.1:6379 within 0.5 s"):
         check_ray_address("ray://192.0.2.1:6379", timeout=0.5)
     assert time.perf_counter() - t0 < 5
-    with pytest.raises(ValueError, match="expected HOST:PORT"):
-        check_ray_address("my-cluster")
+    for bad in ("my-cluster", "127.0.0.1:70000", "127.0.0.1:²"):
+        with pytest.raises(ValueError, match="expected HOST:PORT"):
+            check_ray_address(bad)
     with socket.socket() as s:  # something listening: accepted
         s.bind(("127.0.0.1", 0))
         s.listen()

@@ -149,6 +149,8 @@ def test_header_count_and_trailing_bytes_are_checked(tmp_path):
     (tmp_path / "short.ply").write_bytes(data.replace(b"element vertex 30", b"element vertex 29"))
     with pytest.raises(ValueError, match=r"short.ply: \d+ bytes follow the 29 vertex rows the header declares \(1 v"):
         GaussianScene.load_ply(tmp_path / "short.ply")
+    commented = _scene(30, degree=1).save_ply(tmp_path / "c.ply", comments=["see end_header below"])
+    assert len(GaussianScene.load_ply(commented)) == 30  # end_header is a line of its own, not a word
     (tmp_path / "tail.ply").write_bytes(data + b"junk")
     with pytest.raises(ValueError, match=r"tail.ply: 4 bytes follow the 30 vertex rows"):
         GaussianScene.load_ply(tmp_path / "tail.ply")

@@ -135,6 +135,9 @@ def test_resume_refuses_a_different_config(prior, tmp_path):
         (dict(init="ply"), ValueError, "init_ply: init='ply' needs a PLY path"),
         (dict(guidance="dds"), ValueError, "guidance"),
         (dict(init_opacity=1.5), ValueError, "init_opacity"),
+        (dict(elevation_range=(-90.0, 45.0)), ValueError, r"elevation_range \(--elevation-range\): .* in \(-90, 90\)"),
+        (dict(vgs_unit="pixels"), ValueError, r"vgs_unit \(--vgs-unit\): expected one of \['scene', 'pixel'\]"),
+        (dict(seed=True), ValueError, r"seed \(--seed\): expected an int"),
     ],
 )
 def test_bad_configs(kw, error, match):

@@ -11,11 +11,12 @@ The decision generalises instead of listing words:
   a colour in a clause about a part ("a penguin with an orange beak") at least ``PART``. So any
   colour name is judged by what the asset looks like, not by a per-asset word list.
 - **A second object**: the prompt is split at coordinations ("and", "&", "plus", "next to",
-  "beside", ","); every part that names something (what is left after articles and colour names)
+  "beside"; not at commas, which list adjectives and quality tags); every part that names
+  something (what is left after articles and colour names)
   must itself match the caption (the sentence model's best caption, above the matcher's
   threshold), unless it describes a depiction ("3d render", "a photo"). "A duck and a corgi" and
-  "a duck next to a car" are refused; "a tan and white corgi" is not.
-- **Negation** is a closed grammatical class (not, no, never, without, none, neither, nor and the
+  "a duck next to a car" are refused; "a black and white penguin" is not.
+- **Negation** is a closed grammatical class (not, no, never, without, none, nothing, neither, nor and the
   contraction n't, normalised before the words are split), so it is the one place a list is
   complete.
 
@@ -37,17 +38,17 @@ DOMINANT = 0.15
 PART = 0.004
 """Share a colour in a part clause ("with an orange beak") must cover."""
 
-NEGATION = frozenset({"not", "no", "never", "without", "none", "neither", "nor", "non"})
+NEGATION = frozenset({"not", "no", "never", "without", "none", "nothing", "neither", "nor", "non"})
 """Negation markers, a closed class of English (after n't -> not)."""
-_SPLIT = re.compile(r"\b(?:and|plus|next to|beside|besides|alongside|together with|as well as)\b|[&,;+]")
+_SPLIT = re.compile(r"\b(?:and|plus|next to|beside|besides|alongside|together with|as well as)\b|[&+]")
 _PART = re.compile(r"\b(?:with|having|wearing|that has|which has)\b")
 _ARTICLES = frozenset({"a", "an", "the", "of", "some", "one", "two"})
 _DEPICTION = ("a 3d render", "a photo", "a drawing", "a painting", "high quality", "a 3d model", "cartoon style")
 
 
 def _words(prompt: str) -> str:
-    t = prompt.lower().replace("n't", " not").replace("n’t", " not")
-    return re.sub(r"\s+", " ", re.sub(r"[^a-z0-9&,;+ ]+", " ", t)).strip()
+    t = prompt.lower().replace("n't", " not").replace("n’t", " not").replace("'", "").replace("’", "")
+    return re.sub(r"\s+", " ", re.sub(r"[^a-z0-9&+ ]+", " ", t)).strip()
 
 
 @functools.cache

@@ -132,6 +132,7 @@ def load_checkpoint(path: Path, ctx):
         dens = DensifyState(blob["densify"]["grad2d"], blob["densify"]["count"])
         step, history, bad = int(blob["step"]), list(blob["history"]), int(blob["bad_steps"])
         noise_colors = blob["noise_colors"]
+        _check_state(params, opt, dens, noise_colors, ctx)
     except (KeyError, TypeError, AttributeError, ValueError, RuntimeError, IndexError) as e:
         raise _broken(path, "its training state", f"{type(e).__name__}: {e}") from None
     return TrainState(step, params, opt, dens, noise_colors, streams, history, bad)
@@ -142,6 +143,29 @@ def _broken(path: Path, part: str, why: str) -> CheckpointError:
         f"checkpoint: {path} is a gdbench checkpoint but {part} is broken ({why}); "
         "delete it or start over with --no-resume"
     )
+
+
+def _check_state(params, opt, dens, noise_colors, ctx) -> None:
+    """What the fused Adam kernel and the densification index without checking: the optimizer's
+    moments shaped like their parameters (a mismatch crashes the kernel or trains on wrong state),
+    the densification statistics one per Gaussian, the noise colours one row per noise Gaussian."""
+    for g in opt.param_groups:
+        p = g["params"][0]
+        st = opt.state.get(p, {})
+        for k in ("exp_avg", "exp_avg_sq"):
+            if k in st and tuple(st[k].shape) != tuple(p.shape):
+                raise ValueError(
+                    f"optimizer[{g['name']!r}].{k}: expected shape {list(p.shape)}, got {list(st[k].shape)}"
+                )
+    n = params["means"].shape[0]
+    for k in ("grad2d", "count"):
+        v = getattr(dens, k)
+        if v is not None and hasattr(v, "shape") and v.dim() and v.shape[0] != n:
+            raise ValueError(f"densify.{k}: expected {n} entries (one per Gaussian), got {v.shape[0]}")
+    want = None if ctx.noise is None else (len(ctx.noise.cloud), ctx.noise.cloud.channels)
+    got = None if noise_colors is None else tuple(noise_colors.shape)
+    if got != want:
+        raise ValueError(f"noise_colors: expected shape {want}, got {got}")
 
 
 def _check_params(params) -> None:

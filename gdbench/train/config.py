@@ -249,7 +249,7 @@ class TrainConfig:
     """Vertical field of view of the training views, degrees, drawn uniformly (the paper: 40-70)."""
     azimuth_range: Annotated[tuple[float, float], Between(-360, 360, unit="degrees")] = (-180.0, 180.0)
     """Azimuth of the training views, degrees (the paper: all around)."""
-    elevation_range: Annotated[tuple[float, float], Between(-90, 90, unit="degrees")] = (-45.0, 45.0)
+    elevation_range: Annotated[tuple[float, float], Between(-90, 90, open=True, unit="degrees")] = (-45.0, 45.0)
     """Elevation of the training views, degrees (the paper: -45 to 45)."""
     background: Annotated[tuple[float, float, float], Between(0, 1)] = (1.0, 1.0, 1.0)
     """Background colour of the renders and of the prior's bank (the paper: white)."""

@@ -214,7 +214,10 @@ def defer_stop_signals(flag: list):
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {s: signal.signal(s, lambda signum, _frame: flag.append(signum)) for s in STOP_SIGNALS}
+    previous = {}
+    for s in STOP_SIGNALS:
+        if signal.getsignal(s) is not signal.SIG_IGN:  # nohup's ignored SIGHUP stays ignored
+            previous[s] = signal.signal(s, lambda signum, _frame: flag.append(signum))
     try:
         yield
     finally:
