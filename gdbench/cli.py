@@ -480,22 +480,28 @@ def install_stop_handlers() -> None:
 def run_reporting(name: str, work) -> None:
     """``work()`` under ``install_stop_handlers``; an error a user can act on, or a stop signal,
     ends the process with one line (``gdbench <name>: error: ...``) and its exit code
-    (``error_line``)."""
+    (``error_line``). The signal handlers it found are given back when it ends (a caller that
+    catches the SystemExit, such as a test, keeps its own)."""
     import os
     import sys
 
+    stops = [getattr(signal, s) for s in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, s)]
+    saved = {s: signal.getsignal(s) for s in stops}
     try:
-        install_stop_handlers()  # inside the try: a signal from here on is reported in one line
-        work()
-    except (Exception, KeyboardInterrupt) as e:
-        for sig in ("SIGINT", "SIGTERM", "SIGHUP"):  # a second signal must not cut the one line short
-            if hasattr(signal, sig):
-                signal.signal(getattr(signal, sig), signal.SIG_IGN)
-        if os.environ.get("GDBENCH_DEBUG"):
-            raise
-        message, code = error_line(e)
-        print(f"gdbench {name}: error: {message}", file=sys.stderr)
-        sys.exit(code)
+        try:
+            install_stop_handlers()  # inside the try: a signal from here on is reported in one line
+            work()
+        except (Exception, KeyboardInterrupt) as e:
+            for s in stops:  # a second signal must not cut the one line short
+                signal.signal(s, signal.SIG_IGN)
+            if os.environ.get("GDBENCH_DEBUG"):
+                raise
+            message, code = error_line(e)
+            print(f"gdbench {name}: error: {message}", file=sys.stderr)
+            sys.exit(code)
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)
 
 
 def entrypoint() -> None:

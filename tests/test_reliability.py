@@ -460,7 +460,9 @@ def test_bad_input_is_one_line_with_exit_code_2(monkeypatch, capsys, tmp_path, a
     from gdbench.builtin import demo_scene
 
     demo_scene(20).save_ply(tmp_path / "PLY")
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     code, _, err = cli(monkeypatch, capsys, *args)
+    assert {s: signal.getsignal(s) for s in handlers} == handlers  # given back after the error line
     line = one_line(err)
     assert code == 2 and line.startswith(f"gdbench {args[0]}: error: "), err
     import re
