@@ -119,3 +119,21 @@ def require_cpp():
     if ext is None:
         pytest.skip(f"C++ extension unavailable: {extension_status()}")
     return ext
+
+
+PACED_RUN = """
+import sys, time
+from tests.test_train import tiny, CAPTION
+from tests._util import tiny_bank
+from gdbench.priors.empirical import EmpiricalPrior
+import gdbench.train.run as run
+save = run.save_checkpoint
+def slow_save(*a, **k):  # paced, so that a signal or a kill lands mid-run on a machine of any speed
+    out = save(*a, **k)
+    time.sleep(0.25)
+    return out
+run.save_checkpoint = slow_save
+prior = EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
+"""
+"""The start of a script for a separate process: the test prior, and checkpoints paced so that a
+signal sent from the test lands mid-run; the script then trains (``run.train``)."""

@@ -14,7 +14,7 @@ from gdbench.train.config import PRESETS, DensifyConfig, OptimConfig, TrainConfi
 from gdbench.train.densify import PARAM_NAMES
 from gdbench.train.run import train
 from gdbench.train.trainer import TrainingDiverged, init_state, make_context, train_step
-from tests._util import tiny_bank
+from tests._util import PACED_RUN, tiny_bank
 
 CAPTION = "a test blob"
 
@@ -348,23 +348,12 @@ def test_the_higher_sh_bands_train_at_their_own_rate(prior):
         torch.testing.assert_close(moved.max(), torch.tensor(lr[k]), rtol=1e-3, atol=0)
 
 
-_KILL_SCRIPT = """
-import sys
-from tests.test_train import tiny, CAPTION
-from tests._util import tiny_bank
-from gdbench.priors.empirical import EmpiricalPrior
-import time
-import gdbench.train.run as run
-from gdbench.train.run import train
-save = run.save_checkpoint
-def slow_save(*a, **k):  # paced, so that the kill lands mid-run on a machine of any speed
-    out = save(*a, **k)
-    time.sleep(0.25)
-    return out
-run.save_checkpoint = slow_save
-prior = EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
-train(tiny("gd", sys.argv[1], steps=int(sys.argv[2]), checkpoint_every=3), prior, write_outputs=False)
+_KILL_SCRIPT = (
+    PACED_RUN
+    + """
+run.train(tiny("gd", sys.argv[1], steps=int(sys.argv[2]), checkpoint_every=3), prior, write_outputs=False)
 """
+)
 
 
 def test_sigkilled_run_resumes_to_the_uninterrupted_result(prior, tmp_path):
