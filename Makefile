@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 PYTEST := $(PY) -m pytest
 
-.PHONY: setup demo test test-slow test-all bench lint mutants
+.PHONY: setup demo test test-slow test-all bench lint mutants notebooks
 
 setup:
 	@scripts/setup.sh
@@ -16,9 +16,11 @@ test: setup
 	$(PYTEST) -q -m "not slow" tests
 
 test-slow: setup
+	@GDBENCH_BROWSER=1 scripts/setup.sh
 	$(PYTEST) -q -m "slow" tests
 
 test-all: setup
+	@GDBENCH_BROWSER=1 scripts/setup.sh
 	$(PYTEST) -q tests
 
 bench: setup
@@ -30,3 +32,20 @@ lint: setup
 
 mutants: setup
 	$(PY) scripts/mutants.py
+
+# Executes the four notebooks on the results in GDBENCH_RESULTS (default: the shipped snapshots in
+# docs/results; the ablation notebook reads its ablation/ sweep) into runs/notebooks/<name>.ipynb,
+# outputs included; the stored notebooks stay without outputs. Every notebook runs; the target
+# fails at the end, naming them, if any raised. E.g. make notebooks GDBENCH_RESULTS=bench_results
+GDBENCH_RESULTS ?= docs/results
+NOTEBOOKS := render_speed error_vs_runtime stability ablation
+NOTEBOOKS_OUT := runs/notebooks
+
+notebooks: setup
+	@mkdir -p $(NOTEBOOKS_OUT)
+	@failed=""; for nb in $(NOTEBOOKS); do \
+		echo "notebooks: $$nb.ipynb on $(GDBENCH_RESULTS) -> $(NOTEBOOKS_OUT)/$$nb.ipynb"; \
+		GDBENCH_RESULTS="$(abspath $(GDBENCH_RESULTS))" .venv/bin/jupyter execute --timeout=600 \
+			--output="$(abspath $(NOTEBOOKS_OUT))/{notebook_name}" notebooks/$$nb.ipynb || failed="$$failed $$nb"; \
+	done; \
+	if [ -n "$$failed" ]; then echo "notebooks: failed:$$failed"; exit 1; fi

@@ -4,86 +4,34 @@ only parses arguments with tyro."""
 from __future__ import annotations
 
 import signal
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
 
+from .commands import (
+    Bench,
+    Cache,
+    Compare,
+    Demo,
+    Export,
+    Noise,
+    TrainPrior,
+    View,
+    run_bench,
+    run_cache,
+    run_compare,
+    run_demo,
+    run_export,
+    run_noise,
+    run_train_prior,
+    run_view,
+)
 from .constraints import AtLeast, Between, Positive, Seed, check_fields
+from .io import prompt_slug
 from .train.config import BASE_PRESETS, PRESETS
 from .train.options import method_options, train_options
-
-
-@dataclass
-class Demo:
-    """Render the built-in scene as a turntable (GIF, MP4, contact sheet) and print timings."""
-
-    out: Path = Path("runs/demo")
-    """Output folder."""
-    frames: Annotated[int, AtLeast(1)] = 36
-    """Views on the orbit (360/frames degrees apart)."""
-    size: Annotated[int, AtLeast(8, "px")] = 256
-    """Image width and height in pixels."""
-    gaussians: Annotated[int, AtLeast(10)] = 3000
-    """Number of Gaussians in the built-in scene."""
-    seed: Annotated[int, Seed()] = 0
-    """Seed of the built-in scene."""
-
-
-def run_demo(cmd: Demo) -> dict:
-    from .resources import check_render_memory
-    from .turntable import demo
-
-    check_render_memory(cmd.size, cmd.frames, gaussians=cmd.gaussians)
-
-    return demo(cmd.out, frames=cmd.frames, size=cmd.size, gaussians=cmd.gaussians, seed=cmd.seed)
-
-
-@dataclass
-class Noise:
-    """Structured noise tools: ``--preview`` writes 4 views of one noise source and the
-    per-pixel histogram against N(0, 1)."""
-
-    preview: bool = False
-    """Write the preview figure."""
-    out: Path = Path("runs/noise_preview.png")
-    """Where the preview goes: a .png file, or a folder (existing, or a path without a suffix)
-    that receives noise_preview.png."""
-    res: Annotated[int, AtLeast(8, "px")] = 128
-    """Resolution of the views."""
-    seed: Annotated[int, Seed()] = 0
-    n_gaussians: Annotated[int, AtLeast(1)] = 3072
-    """Noise Gaussians in the cloud."""
-    scale: Annotated[float, Positive()] = 0.02
-    """Their isotropic scale."""
-
-
-def run_noise(cmd: Noise) -> dict:
-    from .noise import NoiseConfig
-    from .noise_preview import preview
-    from .resources import check_noise_memory
-
-    if not cmd.preview:
-        raise ValueError("preview: nothing to do; pass --preview to write the preview figure")
-    out = Path(cmd.out)
-    if out.is_dir() or not out.suffix:
-        out = out / "noise_preview.png"
-    elif out.suffix.lower() != ".png":
-        raise ValueError(f"out: expected a .png file or a folder, got {cmd.out}")
-    check_noise_memory(cmd.res, cmd.n_gaussians)
-    stats = preview(out, NoiseConfig(n_gaussians=cmd.n_gaussians, scale=cmd.scale), res=cmd.res, seed=cmd.seed)
-    print(
-        f"wrote {stats['path']}: coverage {stats['coverage']:.2f}, per-pixel mean {stats['mean']:+.3f}, "
-        f"variance {stats['var']:.3f}, KS distance to N(0,1) {stats['ks_statistic']:.4f}, "
-        f"correlation length {stats['correlation_length_px']:.1f} px"
-    )
-    print(
-        "  noise shared with the view at azimuth 0 (mean best-pixel correlation): "
-        + ", ".join(f"{v:.2f} at {a} deg" for a, v in stats["view_coupling"].items() if a != "0")
-    )
-    return stats
-
 
 MethodOptions = method_options()
 """The nested settings' overrides (the noise's redraw and mixing, the densification schedule)."""
@@ -102,12 +50,20 @@ class Generate:
     checkpoint to --out; an interrupted run resumes from its checkpoint. Every training setting
     is an option; unset ones keep the preset's value (docs/training.md)."""
 
-    prompt: tyro.conf.Positional[str]
-    """What to generate: one of the built-in assets' captions or a paraphrase of one."""
-    preset: PresetName = "gd"
+    prompt: Annotated[tyro.conf.Positional[str | None], tyro.conf.DisallowNone, tyro.conf.arg(metavar="PROMPT")] = None
+    """What to generate: one of the built-in assets' captions or a paraphrase of one (required
+    unless --config gives it)."""
+    preset: Annotated[PresetName | None, tyro.conf.DisallowNone, tyro.conf.arg(help_behavior_hint="(default: gd)")] = (
+        None
+    )
     """gd: structured noise + VGS (the paper); the others are its ablations and baselines."""
-    out: Path = Path("runs/duck")
-    """The run folder."""
+    config: Path | None = None
+    """A run.json (reproduces that run: same settings, same result on CPU) or a JSON/YAML file of
+    settings (TrainConfig's field names; nested groups as mappings). Options given on the command
+    line override it; the file's run folder is used when --out is not given (default: none)."""
+    out: Path | None = None
+    """The run folder (default: runs/<the prompt, lower-case, '_' for other characters>, such as
+    runs/a_yellow_duck)."""
     resume: bool = True
     """Continue from --out's checkpoint if there is one."""
     overwrite: bool = False
@@ -115,7 +71,7 @@ class Generate:
     score: bool = True
     """Score the result against the asset (PSNR/SSIM and view metrics) into scores.json."""
     progress: bool = True
-    """Show a progress bar."""
+    """Report progress: a bar on a terminal, a plain line every few seconds in a log."""
     train: tyro.conf.OmitArgPrefixes[GenerateTrain] = field(default_factory=GenerateTrain)
     method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
 
@@ -125,92 +81,159 @@ class Render:
     """Turntable (GIF, MP4, contact sheet) of a run folder or of any 3DGS PLY file."""
 
     run: tyro.conf.Positional[Path]
-    """A run folder (its scene.ply is used) or a .ply file."""
+    """A run folder (its scene.ply is used), a .ply file (Inria 3DGS, or the compressed PLY) or a
+    .splat file."""
     out: Path | None = None
     """Output folder (default: the run folder, or the PLY's folder)."""
-    frames: Annotated[int, AtLeast(1)] = 36
-    size: Annotated[int, AtLeast(8, "px")] = 256
-    radius: Annotated[float, Positive()] = 1.3
+    frames: Annotated[int | None, AtLeast(1)] = None
+    """Views on the orbit, 360/frames degrees apart (default: a run's turntable frames, else 36)."""
+    size: Annotated[int | None, AtLeast(8, "px")] = None
+    """Side of each frame in pixels (default: a run's turntable size, else 256)."""
+    radius: Annotated[float | None, Positive()] = None
+    """Orbit radius in scene units (default: a run's turntable radius, 1.3; a PLY from elsewhere:
+    framed from its bounds, centred on them)."""
     elevation: Annotated[float, Between(-90, 90, unit="degrees")] = 15.0
+    """Camera elevation above the scene's horizontal plane (+Z up), degrees."""
     fovy: Annotated[float, Between(1, 179, unit="degrees")] = 45.0
+    """Vertical field of view, degrees."""
+    up: Literal["+z", "-y", "+y"] = "+z"
+    """The up axis of the scene file: +z for gdbench's runs, -y for Inria/COLMAP captures and
+    `gdbench export`'s default, +y."""
 
 
 def run_generate(cmd: Generate) -> dict:
     from .resources import check_generate_memory
-    from .train.config import preset
+    from .train.config import apply_overrides, preset
     from .train.options import inert_options
     from .train.run import train
 
     overrides = cmd.train.overrides() | cmd.method.overrides()
-    cfg = preset(cmd.preset, prompt=cmd.prompt, out=cmd.out, progress=cmd.progress, **overrides)
+    base, file_out = _config_file(cmd.config, cmd.preset) if cmd.config is not None else (None, None)
+    prompt = cmd.prompt if cmd.prompt is not None else (base.prompt if base is not None else None)
+    if not prompt:
+        raise ValueError("prompt: expected a prompt (such as 'a yellow duck'), or --config with one")
+    if cmd.out is not None:
+        out = Path(cmd.out)
+    elif file_out is not None:
+        out = file_out
+    else:
+        try:
+            out = Path("runs") / prompt_slug(prompt)
+        except ValueError as e:
+            raise ValueError(f"{e}; pass --out") from None
+    given = {"prompt": prompt, "out": out, "progress": cmd.progress, **overrides}
+    cfg = apply_overrides(base, given) if base is not None else preset(cmd.preset or "gd", **given)
     inert = inert_options(cfg, overrides)
     if inert:
         raise ValueError("; ".join(inert) + ": drop the option, or set the one it needs")
     check_generate_memory(cfg)
-    r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite)
+    if cfg.log_dir is not None:  # before the bank is built, not after
+        from .train.tblog import require_tensorboard
+
+        require_tensorboard()
+
+    def started(ctx) -> None:  # the matched asset before the steps, not after them
+        caption, sim = getattr(ctx.cond, "caption", None), getattr(ctx.cond, "similarity", None)
+        match = f" -> asset {caption!r} (cosine {sim:.2f})" if caption is not None else ""
+        print(f"gdbench generate: prompt {cfg.prompt!r}{match}; {cfg.steps} steps into {out}", flush=True)
+
+    r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite, on_start=started)
     summary = r.summary()
     if cmd.score and r.caption is not None and r.state.step >= cfg.steps:
         from .metrics.run_scores import score_run
 
-        summary["gt"] = score_run(cmd.out, gt=True, colmap=False)["gt"]
-    print(r.report(summary))
+        summary["gt"] = score_run(out, gt=True, colmap=False, progress=cmd.progress)["gt"]
+    print(r.report(summary, matched=False))
     return summary
+
+
+def _config_file(path: Path, preset_name: str | None):
+    """(the TrainConfig, the run folder the file names or None) of a run.json (its "config") or a
+    JSON/YAML file of settings. ``preset_name`` (given on the command line) is the base of a file
+    that names no preset; a file that names one keeps it (a preset is a set of settings, not a
+    label to put on another's)."""
+    from .train.config import PRESETS, config_from_dict
+
+    d = load_mapping(path)
+    settings = d["config"] if "run_id" in d and isinstance(d.get("config"), dict) else d  # a run.json
+    if preset_name and "preset" in settings and settings["preset"] != preset_name:
+        raise ValueError(
+            f"preset: {path} holds the settings of preset {settings['preset']!r}; drop --preset {preset_name}, "
+            "or drop 'preset' from the file to apply its settings to another preset"
+        )
+    base = PRESETS[preset_name] if preset_name and "preset" not in settings else None
+    cfg = config_from_dict(settings, base=base, what=f"config ({path})")
+    return cfg, (cfg.out if "out" in settings else None)
 
 
 def run_render(cmd: Render) -> dict:
     import contextlib
 
+    from .export import load_scene
     from .io import FolderLock
     from .resources import check_render_memory
-    from .scene import GaussianScene
     from .turntable import write_turntable
 
     src = Path(cmd.run)
     ply = src / "scene.ply" if src.is_dir() else src
     if not ply.is_file():
         raise FileNotFoundError(f"run: no PLY at {ply} (pass a run folder or a .ply file)")
-    check_render_memory(cmd.size, cmd.frames)
+    run = _run_turntable(ply)
+    frames = cmd.frames or run.get("frames", 36)
+    size = cmd.size or run.get("size", 256)
+    check_render_memory(size, frames)
     out = Path(cmd.out or ply.parent)
     # a run folder has one writer: not while a generate (--overwrite) or score writes there
     run_folder = (out / "run.json").is_file() or (out / FolderLock.NAME).is_file()
     with FolderLock(out) if run_folder else contextlib.nullcontext():
-        scene = GaussianScene.load_ply(ply)
+        scene = load_scene(ply, up=cmd.up)  # a 3DGS or compressed PLY, or a .splat; +Z up
+        radius = cmd.radius or run.get("radius")
+        framing = ""
+        if radius is None:  # not a run's scene: centred on its bounds and framed whole
+            from .framing import frame
+
+            scene, radius = frame(scene, cmd.fovy)
+            framing = f", framed from its bounds at radius {radius:.3g}"
         res = write_turntable(
             scene,
             out,
-            frames=cmd.frames,
-            size=cmd.size,
-            radius=cmd.radius,
+            frames=frames,
+            size=size,
+            radius=radius,
             elevation=cmd.elevation,
             fovy=cmd.fovy,
+            background=run.get("background", (1.0, 1.0, 1.0)),
             stem=ply.stem + "_turntable",
         )
     print(
-        f"gdbench render: {len(scene)} Gaussians, {cmd.frames} frames at {cmd.size}px, "
-        f"median {1e3 * sorted(res.seconds_per_frame)[cmd.frames // 2]:.1f} ms per frame"
+        f"gdbench render: {len(scene)} Gaussians, {frames} frames at {size}px{framing}, "
+        f"median {1e3 * sorted(res.seconds_per_frame)[frames // 2]:.1f} ms per frame"
     )
     for k, v in res.paths.items():
         print(f"  {k:5s} -> {v}")
     return {k: str(v) for k, v in res.paths.items()}
 
 
-@dataclass
-class Compare:
-    """Run every applicable renderer on fixture scenes; write error-against-time rows (CSV/JSON),
-    error maps and a Pareto plot per scene, and print the table."""
+def _run_turntable(ply: Path) -> dict:
+    """The turntable settings of the run whose scene ``ply`` is (its folder's run.json names the
+    same scene), so ``render`` shows it from ``generate``'s cameras; {} for any other PLY."""
+    from .io import read_json, sha256_file
+    from .train.run import turntable_size
+    from .turntable import RUN_TURNTABLE
 
-    scene: str = "all"
-    """A fixture name (fixtures/scenes/*.json) or 'all'."""
-    out: Path = Path("runs/compare")
-    backends: tuple[str, ...] = ()
-    """Only these renderers (default: all); the float64 reference always runs."""
-
-
-def run_compare(cmd: Compare) -> dict:
-    from .compare import run
-
-    results = run(cmd.scene, backends=list(cmd.backends) or None, out=cmd.out)
-    return {k: {"rows": len(v.rows), "skipped": len(v.skipped)} for k, v in results.items()}
+    run_json = ply.parent / "run.json"
+    if ply.name != "scene.ply" or not run_json.is_file():
+        return {}
+    info = read_json(run_json, what="run.json")
+    if info.get("scene_sha256") != sha256_file(ply):
+        return {}  # a run.json of another scene: framed as any PLY
+    config = info.get("config") or {}
+    return {
+        "frames": int(config.get("turntable_frames", 36)),
+        "size": turntable_size(config.get("resolution", 128)),
+        "background": tuple(float(c) for c in config.get("background", (1.0, 1.0, 1.0))),
+        "radius": RUN_TURNTABLE["radius"],
+    }
 
 
 @dataclass
@@ -241,12 +264,12 @@ def run_score(cmd: Score) -> dict:
         raise FileNotFoundError(f"run: expected a run folder, got {cmd.run}")
     if cmd.colmap:
         check_score_memory(cmd.size, cmd.views)
-    s = score_run(cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size)
+    s = score_run(cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size, progress=True)
     print(report(s))
     return s
 
 
-SweepTrain = train_options(("prompt", "preset", "out", "progress", "seed", "steps", "log_every"))
+SweepTrain = train_options(("prompt", "preset", "out", "progress", "seed", "steps", "log_every", "log_dir"))
 """Every other TrainConfig field as an override of every cell (cells run without a progress bar,
 so --log-every has no place here)."""
 
@@ -259,6 +282,11 @@ class Sweep:
     ablation.png. Resumable: finished cells (scored by the same code) are skipped, an
     interrupted cell resumes from its checkpoint. The grid is validated before the first cell."""
 
+    config: Path | None = None
+    """A YAML or JSON file of this command's options (their names with '_' or '-', lists for
+    the tuples) and 'overrides', a mapping of training options applied to every cell; options on
+    the command line override it. Each sweep writes the options it ran with to <out>/sweep.yaml,
+    which this reads back (default: none)."""
     prompts: tuple[str, ...] = ("a yellow duck", "a corgi", "a penguin")
     """Prompts (free text; matched to the embedded prior's assets)."""
     presets: tuple[str, ...] = BASE_PRESETS
@@ -296,8 +324,107 @@ class Sweep:
     method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
 
 
+def sweep_from_mapping(d: dict, what: str = "config") -> Sweep:
+    """The ``Sweep`` a grid file describes (see ``Sweep.config``): each value checked against its
+    option's type (``train.config.from_json``); ``overrides`` takes the training options by their
+    option names (views-per-step, noise-redraw) or run.json's (noise.redraw, or nested mappings)."""
+    import typing
+
+    from .train.config import from_json
+    from .train.options import MethodSpec
+
+    if d is None:
+        d = {}  # an empty file: every default
+    if not isinstance(d, dict):
+        raise ValueError(f"{what}: expected a mapping of sweep options, got {type(d).__name__}")
+    hints = typing.get_type_hints(Sweep, include_extras=True)
+    names = {f.name for f in fields(Sweep)} - {"config", "train", "method"}
+    train_hints = typing.get_type_hints(SweepTrain, include_extras=True)
+    method_hints = typing.get_type_hints(MethodSpec, include_extras=True)
+    dotted = {"noise.redraw": "noise_redraw", "noise.ou_beta": "noise_ou_beta", "noise.ratio_mode": "noise_ratio"}
+    dotted |= {f"densify.{k}": f"densify_{k}" for k in ("start", "stop", "every", "reset_every", "grad_quantile")}
+    dotted["densify.enabled"] = "densify"
+    top, train, method = {}, {}, {}
+    for key, value in d.items():
+        k = str(key).replace("-", "_")
+        if k == "overrides":
+            if not isinstance(value, dict):
+                raise ValueError(f"{what}: overrides: expected a mapping of training options, got {value!r}")
+            flat = {}
+            for ok, ov in value.items():
+                if ok in ("noise", "densify") and isinstance(ov, dict):  # run.json's nested form
+                    flat |= {f"{ok}.{k2}": v2 for k2, v2 in ov.items()}
+                else:
+                    flat[str(ok)] = ov
+            for ok, ov in flat.items():
+                o = dotted.get(ok, ok.replace("-", "_"))
+                if o in train_hints:
+                    train[o] = from_json(train_hints[o], ov, f"overrides: {ok}", what)
+                elif o in method_hints:
+                    method[o] = from_json(method_hints[o], ov, f"overrides: {ok}", what)
+                else:
+                    raise ValueError(f"{what}: overrides: unknown training option {ok!r}")
+        elif k in names:
+            if isinstance(value, (str, int, float)) and typing.get_origin(typing.get_args(hints[k])[0]) is tuple:
+                value = [value]  # one prompt or seed written without a list
+            top[k] = from_json(hints[k], value, k, what)
+        else:
+            raise ValueError(f"{what}: unknown sweep option {key!r}; expected some of {sorted(names | {'overrides'})}")
+    return Sweep(**top, train=SweepTrain(**train), method=MethodOptions(**method))
+
+
+def load_mapping(path: Path, what: str = "config") -> dict:
+    """A YAML (.yaml, .yml) or JSON file's top-level mapping; errors name ``what`` and the file."""
+    from .io import read_json
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what}: no file at {path}")
+    if path.suffix.lower() in (".yaml", ".yml"):
+        import yaml
+
+        try:
+            d = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as e:
+            raise ValueError(f"{what}: {path} is not valid YAML ({str(e).splitlines()[0]})") from None
+    else:
+        d = read_json(path, what=what)
+    if not isinstance(d, dict):
+        raise ValueError(f"{what}: {path}: expected a mapping, got {type(d).__name__}")
+    return d
+
+
+def sweep_mapping(cmd: Sweep) -> dict:
+    """``cmd`` as the mapping ``sweep_from_mapping`` reads (what <out>/sweep.yaml holds)."""
+    d = {}
+    for f in fields(Sweep):
+        if f.name in ("config", "train", "method"):
+            continue
+        v = getattr(cmd, f.name)
+        d[f.name] = list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
+
+    def plain(v):
+        return list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
+
+    over = {k: plain(v) for k, v in cmd.train.overrides().items()}
+    over |= {f.name: getattr(cmd.method, f.name) for f in fields(cmd.method) if getattr(cmd.method, f.name) is not None}
+    if over:
+        d["overrides"] = over
+    return d
+
+
 def run_sweep(cmd: Sweep) -> dict:
+    import yaml
+
+    from .io import atomic_write, check_folder
     from .sweep import sweep
+
+    check_folder(cmd.out)
+    text = yaml.safe_dump(sweep_mapping(cmd), sort_keys=False).encode()
+
+    def record() -> None:  # once the grid is valid: a refused grid leaves nothing behind
+        Path(cmd.out).mkdir(parents=True, exist_ok=True)
+        atomic_write(Path(cmd.out) / "sweep.yaml", lambda f: f.write(text))
 
     per = {"janus": cmd.janus_presets, "instance": cmd.instance_presets}
     rows = sweep(
@@ -316,95 +443,10 @@ def run_sweep(cmd: Sweep) -> dict:
         setting_presets={k: list(v) for k, v in per.items() if v},
         colmap_presets=list(cmd.colmap_presets) or None,
         colmap_settings=list(cmd.colmap_settings) or None,
+        on_valid=record,
     )
     print((Path(cmd.out) / "summary.md").read_text())
     return {"cells": len(rows), "out": str(cmd.out)}
-
-
-BENCHES = {
-    "render": ("gdbench.bench.bm_render", "render.csv", []),
-    "peers": ("gdbench.bench.bm_render", "peers.csv", ["--peers"]),
-    "error": ("gdbench.bench.bm_error", "error_vs_runtime.csv", []),
-    "stability": ("gdbench.bench.bm_stability", "stability.csv", []),
-    "noise": ("gdbench.bench.bm_noise", "noise.csv", []),
-    "train": ("gdbench.bench.bm_train", "train.csv", []),
-    "scale": ("gdbench.bench.bm_scale", "scale.csv", []),
-}
-"""Benchmark name -> (module, CSV name, extra arguments)."""
-
-
-@dataclass
-class Bench:
-    """Benchmarks; each writes a CSV with a JSON summary (and a plot or table) to --out.
-
-    render: splat vs the dense all-pairs path over N and resolution (speed, memory);
-    peers: splat vs gsplat_torch vs Mitsuba ellipsoids (target: splat forward >= 10x gsplat at
-    10k Gaussians, 256 px, same run); error: error against run time over all fixtures (Pareto);
-    stability: stiff and extreme cases on every renderer; noise: structured-noise share of a
-    training step; train: denoiser, full-run and per-step timings; scale: 1M Gaussians with SH
-    degree 3 at 1920x1080 (time and peak memory)."""
-
-    which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train", "scale"]]
-    out: Path = Path("bench_results")
-    """Folder for the CSV/JSON/plots."""
-    quick: bool = False
-    """Small grid (render and peers only; render's cases all in this process, so its peak memory
-    is not per case): a smoke run, not numbers to publish."""
-
-
-def run_bench(cmd: Bench) -> dict:
-    import importlib
-
-    module, csv_name, extra = BENCHES[cmd.which]
-    argv = ["--out", str(Path(cmd.out) / csv_name), *extra]
-    if cmd.quick:
-        if cmd.which not in ("render", "peers"):
-            raise ValueError(f"quick: only render and peers have a quick grid, not {cmd.which!r}")
-        argv += ["--quick"] + (["--inprocess"] if cmd.which == "render" else [])
-    code = importlib.import_module(module).main(argv)
-    return {"bench": cmd.which, "csv": str(Path(cmd.out) / csv_name), "exit": code}
-
-
-@dataclass
-class TrainPrior:
-    """Train the learned prior: a small conditional diffusion model of the built-in assets
-    (docs/learned_prior.md). Renders its data on first use (cached), checkpoints and resumes in
-    --out, and writes model.safetensors (use it with generate --prior learned --learned-model OUT),
-    loss.csv and loss.png."""
-
-    out: Path = Path("runs/prior")
-    """The run folder (reused with the same settings: the run resumes)."""
-    front_bias: Annotated[float, AtLeast(0)] = 0.0
-    """kappa: training views drawn with probability ~ exp(kappa cos azimuth) (the shipped 'front'
-    model: 2)."""
-    steps: Annotated[int, AtLeast(1)] = 8000
-    batch: Annotated[int, AtLeast(1)] = 32
-    lr: Annotated[float, Positive()] = 6e-4
-    """Peak learning rate (AdamW; warm-up, then cosine decay to a tenth)."""
-    seed: Annotated[int, Seed()] = 0
-    size: Annotated[int, AtLeast(8, "px")] = 32
-    """The model's resolution (a divisor of --resolution; the 64 px renders are box-filtered to it)."""
-    views: Annotated[int, AtLeast(1)] = 1024
-    """Rendered cameras per (asset, variant)."""
-    resolution: Annotated[int, AtLeast(8, "px")] = 64
-    """Resolution the data is rendered at."""
-    threads: Annotated[int, AtLeast(0)] = 0
-    """torch CPU threads (0: torch's default); a result reproduces for one thread count."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    progress: bool = True
-
-
-def run_train_prior(cmd: TrainPrior) -> dict:
-    from .priors.learned_data import DataConfig
-    from .priors.learned_train import PriorTrainConfig, train_prior
-    from .priors.unet import UNetConfig
-
-    cfg = PriorTrainConfig(
-        out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
-        threads=cmd.threads, device=cmd.device, progress=cmd.progress, unet=UNetConfig(size=cmd.size),
-        data=DataConfig(views=cmd.views, resolution=cmd.resolution),
-    )  # fmt: skip
-    return train_prior(cfg)
 
 
 COMMANDS = {
@@ -417,8 +459,41 @@ COMMANDS = {
     "sweep": (Sweep, run_sweep),
     "bench": (Bench, run_bench),
     "train-prior": (TrainPrior, run_train_prior),
+    "view": (View, run_view),
+    "export": (Export, run_export),
+    "cache": (Cache, run_cache),
 }
 """Subcommand name -> (its options, the function that runs them)."""
+
+
+def one_paragraph_help(cls) -> type:
+    """Each field's docstring as one paragraph of help (tyro keeps the line breaks of an indented
+    docstring) with the default said once: by the docstring where it says it, else by tyro. An
+    optional field's None is its default, not a value to type (``--out PATH``, not
+    ``--out {None}|PATH``). The class's own annotations are kept."""
+    import types
+    import typing
+
+    from .train.options import _field_docs
+
+    docs = _field_docs(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
+    new = {}
+    for name, hint in hints.items():
+        marks = []
+        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is Annotated else hint
+        if typing.get_origin(inner) in (typing.Union, types.UnionType) and type(None) in typing.get_args(inner):
+            marks.append(tyro.conf.DisallowNone)
+        if name in docs:
+            said = "(default" in docs[name] or "(required" in docs[name]
+            marks.append(tyro.conf.arg(help=docs[name], **({"help_behavior_hint": ""} if said else {})))
+        new[name] = Annotated[(hint, *marks)] if marks else hint
+    cls.__annotations__ = new
+    return cls
+
+
+for _kind, _ in COMMANDS.values():
+    one_paragraph_help(_kind)
 
 
 def main(cmd) -> dict:
@@ -435,8 +510,9 @@ def error_line(e: BaseException) -> tuple[str, int]:
     """(one-line message, exit code) for an error a user can act on; re-raises anything else.
 
     Exit code 2: bad arguments, missing or broken files, a busy or unwritable folder, a full
-    disk; 128 + the signal's number when a stop signal ended a run after it saved its checkpoint
-    (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
+    disk, an optional dependency not installed (its message says what to install); 128 + the
+    signal's number when a stop signal ended a run after it saved its checkpoint (130 Ctrl-C,
+    143 SIGTERM, 129 SIGHUP)."""
     from .io import FolderBusy
     from .train.run import RunInterrupted
     from .train.update import TrainingDiverged
@@ -449,6 +525,8 @@ def error_line(e: BaseException) -> tuple[str, int]:
         signum = getattr(e, "signum", signal.SIGINT)
         return f"interrupted by {signal.Signals(signum).name}", 128 + signum
     if isinstance(e, (ValueError, FolderBusy, FileNotFoundError, FileExistsError, NotADirectoryError)):
+        return str(e), 2
+    if isinstance(e, ImportError) and "pip install" in str(e):  # an optional part, and what installs it
         return str(e), 2
     if isinstance(e, OSError):  # read-only file system, permission, disk full, ...
         where = f"{e.filename}: " if e.filename else ""
@@ -504,11 +582,49 @@ def run_reporting(name: str, work) -> None:
             signal.signal(s, handler)
 
 
+def _config_arg(argv: list[str]) -> tuple[Path, list[str]] | None:
+    """(--config's path, the other arguments after the subcommand) when ``argv`` has --config;
+    given twice, a ValueError."""
+    rest = argv[1:]
+    found = [i for i, a in enumerate(rest) if a == "--config" or a.startswith("--config=")]
+    if len(found) > 1:
+        raise ValueError("config: given more than once; expected one grid file")
+    if not found:
+        return None
+    i = found[0]
+    if rest[i].startswith("--config="):
+        return Path(rest[i].split("=", 1)[1]), rest[:i] + rest[i + 1 :]
+    if i + 1 < len(rest):
+        return Path(rest[i + 1]), rest[:i] + rest[i + 2 :]
+    return None  # tyro names the missing value
+
+
 def entrypoint() -> None:
     """Parse the command line and run it. Bad arguments, missing or broken files and unwritable
     folders end with a one-line error naming what to fix and exit code 2. A stop signal (Ctrl-C,
     SIGTERM, SIGHUP) ends the command with one line and exit code 128 + its number; during
     training, after the step it lands in and a checkpoint. Set GDBENCH_DEBUG=1 for the traceback."""
+    import sys
+
+    argv = sys.argv[1:]
+    if hasattr(sys.stdout, "reconfigure"):  # piped to a file: each line as it is printed
+        sys.stdout.reconfigure(line_buffering=True)
+    try:
+        config = _config_arg(argv) if argv[:1] == ["sweep"] else None
+    except ValueError as e:
+        print(f"gdbench sweep: error: {e}", file=sys.stderr)
+        sys.exit(2)
+    if config is not None:  # the file's options become the defaults the command line overrides
+
+        def with_config() -> None:  # read under run_reporting: a bad file is one line, as any error
+            path, rest = config
+            default = sweep_from_mapping(load_mapping(path), what=f"config ({path})")
+            cmd = tyro.cli(Sweep, default=default, args=rest, prog="gdbench sweep")
+            cmd.config = path
+            main(cmd)
+
+        run_reporting("sweep", with_config)
+        return
     cmd = tyro.extras.subcommand_cli_from_dict({name: kind for name, (kind, _) in COMMANDS.items()})
     name = next(n for n, (kind, _) in COMMANDS.items() if type(cmd) is kind)
     run_reporting(name, lambda: main(cmd))

@@ -266,10 +266,15 @@ def available(name: str) -> tuple[bool, str]:
     return get(name).available()
 
 
-def compare_scene(fx: Fixture, backends: list[str] | None = None) -> Result:
+def compare_scene(fx: Fixture, backends: list[str] | None = None, bar=None) -> Result:
+    """Every backend of ``backends`` on ``fx`` against its float64 reference (``bar``: a progress
+    report, advanced once per backend)."""
     res = Result()
     truth = run_reference(fx, res)
     for name in backends or list(BACKENDS):
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(scene=fx.name, renderer=name)
         reason = fx.skip_reason(scene_key(name))
         if reason is None:
             ok, why = available(name)
@@ -392,9 +397,16 @@ def run(
 
     writable_folder(out)  # a read-only --out fails now, not after the rendering
     old = earlier_report(Path(out))  # a broken table is named before any rendering
+    from .progress import progress
+
     results = {}
-    for n in names:
-        results[n] = compare_scene(load_fixture(n), backends)
+    bar = progress(len(names) * len(backends or BACKENDS), "compare", "renderer", disable=not verbose)
+    try:
+        for n in names:
+            results[n] = compare_scene(load_fixture(n), backends, bar)
+    finally:
+        if bar is not None:
+            bar.close()
     paths = write_report(results, Path(out), old)
     if verbose:
         print_table(results)

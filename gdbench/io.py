@@ -13,6 +13,7 @@ import json
 import math
 import numbers
 import os
+import re
 import socket
 import tempfile
 import time
@@ -314,3 +315,45 @@ class FolderLock:
         if self._fd is not None:
             os.close(self._fd)  # closing releases the flock
             self._fd = None
+
+
+@contextlib.contextmanager
+def captured_output(log: str | Path | None):
+    """Send everything written to file descriptors 1 and 2 while the block runs to ``log``
+    (appended; None: discarded): native code's lines (COLMAP's glog warnings) and Python's own
+    prints alike, so the block should hold the native calls only. Python's streams are flushed
+    before and after, so nothing printed earlier lands in the log."""
+    import sys
+
+    for s in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            s.flush()
+    target = os.open(os.fspath(log) if log is not None else os.devnull, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    saved = []
+    try:
+        for fd in (1, 2):
+            try:
+                saved.append((fd, os.dup(fd)))
+            except OSError:  # no such descriptor (a daemon): nothing to capture there
+                continue
+            os.dup2(target, fd)
+        yield
+    finally:
+        for s in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                s.flush()
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(target)
+
+
+def prompt_slug(prompt: str, what: str = "prompt") -> str:
+    """A prompt as a folder name: lower-case letters, digits and '_' only, so no prompt can
+    reach outside its parent folder ('../../a duck' -> 'a_duck')."""
+    name = re.sub(r"[^a-z0-9]+", "_", prompt.lower()).strip("_")
+    if not name:
+        raise ValueError(f"{what}: {prompt!r} has no letters or digits to name a folder by")
+    if len(name) > 200:  # a folder name has at most 255 bytes on common file systems
+        raise ValueError(f"{what}: {prompt[:40]!r}... names a folder of {len(name)} characters; expected at most 200")
+    return name

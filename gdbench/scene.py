@@ -105,8 +105,9 @@ class GaussianScene:
 
     @classmethod
     def load_ply(cls, path: str | Path) -> GaussianScene:
-        """A 3DGS PLY (ours, the Inria code's, Open3D's; ``ply.read_ply``) as a scene. Errors name
-        the file and the problem."""
+        """A 3DGS PLY (ours, the Inria code's, Open3D's, or a SuperSplat compressed PLY;
+        ``ply.read_ply``) as a scene. Errors name the file and the problem. ``export.load_scene``
+        also reads ``.splat`` files."""
         fields = read_ply(path)
         try:
             return cls(**fields)

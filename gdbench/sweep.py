@@ -58,16 +58,10 @@ class CellSpec:
 
 
 def cell_name(prompt: str) -> str:
-    """A prompt as a folder name: lower-case letters, digits and '_' only, so no prompt can
-    reach outside the sweep's folder ('../../a duck' -> 'a_duck')."""
-    name = re.sub(r"[^a-z0-9]+", "_", prompt.lower()).strip("_")
-    if not name:
-        raise ValueError(f"prompts: {prompt!r} has no letters or digits to name its cells by")
-    if len(name) > 200:  # a folder name has at most 255 bytes on common file systems
-        raise ValueError(
-            f"prompts: {prompt[:40]!r}... names a cell folder of {len(name)} characters; expected at most 200"
-        )
-    return name
+    """A prompt as a cell's folder name (``io.prompt_slug``)."""
+    from .io import prompt_slug
+
+    return prompt_slug(prompt, "prompts")
 
 
 def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], specs: list[CellSpec]) -> None:
@@ -276,6 +270,7 @@ def sweep(
     colmap_presets: list[str] | None = None,
     colmap_settings: list[str] | None = None,
     groups: dict[str, dict] | None = None,
+    on_valid=None,
 ) -> list[dict]:
     """Train and score the grid groups x settings x prompts x presets x seeds; returns the rows.
 
@@ -283,7 +278,8 @@ def sweep(
     ``colmap_presets`` and ``colmap_settings`` restrict COLMAP scoring (default: every cell, when
     ``colmap``). ``groups`` names sets of overrides applied on top of ``overrides`` (a factor the
     ambiguity settings do not cover: the prior, views per step); each group's cells live in
-    ``out/cells/<group>/`` and claims pair within a group (default: one unnamed group)."""
+    ``out/cells/<group>/`` and claims pair within a group (default: one unnamed group).
+    ``on_valid()``, if given, is called once the grid is validated, before any cell runs."""
     from .metrics.claims import label
     from .sweep_tables import tables
 
@@ -329,6 +325,8 @@ def sweep(
         check_ray_address(address)
     for line in inert_overrides(specs):
         print(f"sweep: note: {line}", file=sys.stderr)
+    if on_valid is not None:
+        on_valid()
     rows: dict[int, dict] = {}
     todo = []
     for i, spec in enumerate(specs):
@@ -339,16 +337,24 @@ def sweep(
             todo.append(i)
     if progress:
         print(f"sweep: {len(specs)} cells, {len(rows)} already finished, {len(todo)} to run ({executor})")
-    for i, row in _execute([specs[i] for i in todo], executor, address, workers):
-        rows[todo[i]] = row
-        tables([rows[k] for k in sorted(rows)], out)
-        if progress:
-            print(
-                f"  done {label(row)} {row['prompt']!r} "
-                f"{row['preset']} seed {row['seed']}: "
-                f"PSNR {row['gt_psnr']:.2f}, multi-face {row['multi_face_rate']:.2f}, "
-                f"floaters {row['floaters']:.3f}, Var {row['var_theta_deg2']:.3g} ({row['cell_s']:.0f} s)"
-            )
+    from .progress import progress as progress_bar
+
+    bar = progress_bar(len(todo), "sweep", "cell", disable=not progress or not todo)
+    try:
+        for i, row in _execute([specs[i] for i in todo], executor, address, workers):
+            rows[todo[i]] = row
+            tables([rows[k] for k in sorted(rows)], out)
+            if bar is not None:
+                bar.write(
+                    f"  done {label(row)} {row['prompt']!r} "
+                    f"{row['preset']} seed {row['seed']}: "
+                    f"PSNR {row['gt_psnr']:.2f}, multi-face {row['multi_face_rate']:.2f}, "
+                    f"floaters {row['floaters']:.3f}, Var {row['var_theta_deg2']:.3g} ({row['cell_s']:.0f} s)"
+                )
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
     ordered = [rows[k] for k in sorted(rows)]
     tables(ordered, out)
     return ordered

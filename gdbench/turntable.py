@@ -12,6 +12,10 @@ import torch
 from .camera import Cameras, SphericalPoses
 from .scene import GaussianScene
 
+RUN_TURNTABLE = {"radius": 1.3, "elevation": 15.0, "fovy": 45.0}
+"""The orbit of a training run's turntable (``train.run``; ``cfg.turntable_frames`` frames) and of
+the browser viewer's turntable views (``gdbench.viewer``)."""
+
 
 @dataclass
 class TurntableResult:

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # One-stop set-up, idempotent and quick when nothing is missing:
-#   1. Debian packages the reference stack needs (installed when run as root, else listed);
+#   1. Debian packages the reference stack needs (installed when run as root, else listed); with
+#      GDBENCH_BROWSER=1 (make test-slow, test-all) also Chromium, the headless browser of the
+#      viewer's slow test (the same way; a failure only warns: that test then skips);
 #   2. a virtual environment in .venv;
 #   3. torch==2.13.0 first (the CPU build on these machines), then gdbench with test extras;
 #   4. the C++ CPU compositor, compiled once into torch's extension cache.
@@ -24,6 +26,24 @@ if [ ${#missing[@]} -gt 0 ]; then
   else
     echo "setup: warning: missing Debian packages (the reference renderers need them): ${missing[*]}"
     echo "       install them with: sudo apt-get install ${missing[*]}"
+  fi
+fi
+
+# The browser of tests/test_viewer.py's slow test (gdbench view itself needs none: any browser
+# opens it). A failure here only warns: the slow test then skips with its reason.
+BROWSER_DEBS="chromium chromium-driver"
+if [ -n "${GDBENCH_BROWSER:-}" ] && command -v dpkg >/dev/null 2>&1; then
+  missing=()
+  for p in $BROWSER_DEBS; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+  if [ ${#missing[@]} -gt 0 ]; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+      echo "setup: installing Debian packages (the viewer's slow test): ${missing[*]}"
+      { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+          "${missing[@]}" >/dev/null; } || echo "setup: warning: could not install ${missing[*]}; the browser test will skip"
+    else
+      echo "setup: note: missing Debian packages (the viewer's slow browser test skips without them): ${missing[*]}"
+      echo "       install them with: sudo apt-get install ${missing[*]}"
+    fi
   fi
 fi
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
+import pytest
 import torch
 
 from gdbench.builtin import demo_scene
@@ -128,7 +129,6 @@ def test_generate_then_render(tmp_path):
 
 
 def test_render_bad_path(tmp_path):
-    import pytest
 
     from gdbench.cli import Render
 
@@ -149,10 +149,11 @@ def _option_helps(command: str) -> dict[str, str]:
     name = None
     for line in text.splitlines():
         body = line.strip().strip("│").rstrip()
-        m = re.match(r"\s*(--[a-z0-9-]+)", body)
-        if m:
+        m = re.match(r"\s?(--[a-z0-9-]+)", body)  # an option starts the line; help lines are indented
+        if m:  # the help starts on this line after two spaces, or on the next ones
             name = m.group(1)
-            helps[name] = ""
+            parts = re.split(r"\s{2,}", body.strip(), maxsplit=1)
+            helps[name] = parts[1] if len(parts) > 1 else ""
         elif name and body.startswith("      "):
             helps[name] += " " + body.strip()
         else:
@@ -180,15 +181,15 @@ def test_every_option_says_what_it_does():
 def test_options_that_would_do_nothing_are_refused_naming_both(tmp_path):
     """An option that acts only under another setting is refused when that setting is off, with
     the option it needs named; nothing is written."""
-    import pytest
 
     from gdbench.cli import Generate, GenerateTrain, MethodOptions
 
     cases = [
         (dict(method=MethodOptions(noise_ou_beta=0.2)), r"--noise-ou-beta acts only with --noise-redraw ou "
          r"\(this run: --noise-redraw run\)"),
-        (dict(train=GenerateTrain(log_every=5), progress=False), r"--log-every acts only with the progress bar"),
-        (dict(train=GenerateTrain(vgs_gamma=0.1), preset="sjc-gs"), r"--vgs-gamma acts only with --vgs True"),
+        (dict(train=GenerateTrain(log_every=5), progress=False), r"--log-every acts only with the progress report "
+         r"or --log-dir"),
+        (dict(train=GenerateTrain(vgs_gamma=0.1), preset="sjc-gs"), r"--vgs-gamma acts only with --vgs"),
         (dict(train=GenerateTrain(view_window_deg=30.0, view_prompting="none")), r"--view-window-deg acts only "
          r"with --view-prompting window"),
         (dict(method=MethodOptions(noise_redraw="step"), preset="gd-no-sn"), r"--noise-redraw acts only with "
@@ -204,3 +205,292 @@ def test_options_that_would_do_nothing_are_refused_naming_both(tmp_path):
 
     cfg = preset("gd", **{"noise.redraw": "ou", "noise.ou_beta": 0.2})
     assert inert_options(cfg, {"noise.redraw": "ou", "noise.ou_beta": 0.2}) == []
+
+
+def test_plain_progress_lines_in_a_log():
+    """Piped to a file, progress is a line per tenth of the work or per ``every_s`` seconds, and
+    one at the end, each with the count, the rate and the time left (a fake clock: one step per
+    second)."""
+    import io
+
+    from gdbench.progress import PlainProgress
+
+    t = [0.0]
+    buf = io.StringIO()
+    bar = PlainProgress(100, "gd 'a duck'", "step", every_s=1e9, file=buf, clock=lambda: t[0])
+    for _ in range(100):
+        t[0] += 1.0
+        bar.update(1)
+    bar.close()
+    lines = buf.getvalue().splitlines()
+    assert len(lines) == 10  # 10, 20, ..., 90 and the end
+    assert lines[0] == "gd 'a duck': 10/100 step (10%), 10s elapsed, 1.00 step/s, 1m30s left"
+    assert lines[-1] == "gd 'a duck': 100/100 step (100%), 1m40s elapsed, 1.00 step/s"
+    buf2 = io.StringIO()  # by time: one line every 5 s of a 1000-step run
+    bar = PlainProgress(1000, "x", every_s=5.0, file=buf2, clock=lambda: t[0])
+    for _ in range(20):
+        t[0] += 1.0
+        bar.update(1)
+    assert len(buf2.getvalue().splitlines()) == 4
+
+
+def test_stage_lines_count_only_the_stages_that_run(capsys, monkeypatch):
+    """A score's stages in a log: one line per stage that runs, numbered out of those that run
+    (a reused block drops its stages from the count), and one at the end."""
+    from gdbench.progress import Phases
+
+    monkeypatch.setenv("GDBENCH_PROGRESS", "plain")
+    t = [0.0]
+    with Phases(5, "score", clock=lambda: t[0]) as ph:
+        ph.total -= 1  # the ground-truth block was reused
+        for name in ("COLMAP views", "COLMAP features", "COLMAP matching", "COLMAP mapping"):
+            ph.start(name)
+            t[0] += 30.0
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        "score: COLMAP views (1/4), 0s elapsed",
+        "score: COLMAP features (2/4), 30s elapsed",
+        "score: COLMAP matching (3/4), 1m00s elapsed",
+        "score: COLMAP mapping (4/4), 1m30s elapsed",
+        "score: done in 2m00s",
+    ]
+
+
+def test_help_reads_once_per_option():
+    """Every command's options: a help text, the default said once, no None to type, booleans
+    as --x/--no-x."""
+    import os
+    import re
+
+    from gdbench.cli import COMMANDS
+
+    env = dict(os.environ, COLUMNS="100")
+    for command in COMMANDS:
+        text = subprocess.run(
+            [sys.executable, "-m", "gdbench.cli", command, "--help"], capture_output=True, text=True, env=env
+        ).stdout
+        assert "{None" not in text and "{True,False}" not in text and "DESIGN.md" not in text, command
+        flat = " ".join(text.split())
+        assert len(re.findall(r"\(default[^)]*\)\s*\(default", flat)) == 0, command
+        helps = _option_helps(command)
+        assert helps, command
+        for name, body in helps.items():
+            assert name == "--help" or len(body.split()) >= 2, (command, name, body)
+
+
+def test_generate_defaults_to_a_folder_named_after_the_prompt(tmp_path, monkeypatch, capsys):
+    """No --out: runs/<prompt slug>. A finished run of another config there is refused before the
+    bank is built; a fresh run does not say it resumed; the matched asset is printed before the
+    steps."""
+
+    import gdbench.train.run as run_mod
+    from gdbench.cli import Generate, GenerateTrain
+
+    monkeypatch.chdir(tmp_path)
+    small = GenerateTrain(steps=2, resolution=16)
+    s = main(Generate("A Yellow Duck!", score=False, progress=False, train=small))
+    assert Path(s["out"]) == Path("runs/a_yellow_duck") and (tmp_path / "runs/a_yellow_duck/scene.ply").is_file()
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].startswith("gdbench generate: prompt 'A Yellow Duck!' -> asset 'a yellow duck'")
+    assert s["resumed_from"] is None and not any("resumed" in line for line in printed)
+    run_json = json.loads((tmp_path / "runs/a_yellow_duck/run.json").read_text())
+    assert run_json["resumed_from_step"] is None
+
+    def no_bank(*a, **k):
+        raise AssertionError("the prior was built before the folder was checked")
+
+    monkeypatch.setattr(run_mod, "make_context", no_bank)
+    with pytest.raises(FileExistsError, match="holds a finished run of 'A Yellow Duck!'"):
+        main(Generate("a yellow duck!", score=False, progress=False, train=GenerateTrain(steps=3, resolution=16)))
+
+
+def test_generate_config_reproduces_a_run(tmp_path):
+    """--config run.json trains the same config again: same run id, bit-identical scene.ply on
+    CPU; an option on the command line overrides the file; a YAML file of a few settings is
+    applied to the preset."""
+    from gdbench.cli import Generate, GenerateTrain
+
+    a = tmp_path / "a"
+    main(Generate("a corgi", preset="gd-no-vgs", out=a, score=False, progress=False,
+                  train=GenerateTrain(steps=4, resolution=16, seed=3, fovy_range=(30.0, 50.0))))  # fmt: skip
+    b = tmp_path / "b"
+    main(Generate(config=a / "run.json", out=b, score=False, progress=False))
+    ra, rb = (json.loads((p / "run.json").read_text()) for p in (a, b))
+    assert ra["run_id"] == rb["run_id"] and rb["preset"] == "gd-no-vgs" and rb["prompt"] == "a corgi"
+    assert (a / "scene.ply").read_bytes() == (b / "scene.ply").read_bytes()
+    c = tmp_path / "c"
+    main(Generate(config=a / "run.json", out=c, score=False, progress=False, train=GenerateTrain(steps=5)))
+    rc = json.loads((c / "run.json").read_text())
+    assert rc["steps"] == 5 and rc["config"]["fovy_range"] == [30.0, 50.0] and rc["run_id"] != ra["run_id"]
+    (tmp_path / "few.yaml").write_text("prompt: a penguin\nsteps: 2\nresolution: 16\nnoise:\n  redraw: ou\n")
+    d = main(Generate(config=tmp_path / "few.yaml", out=tmp_path / "d", score=False, progress=False))
+    rd = json.loads((tmp_path / "d" / "run.json").read_text())
+    assert d["steps"] == 2 and rd["config"]["noise"]["redraw"] == "ou" and rd["preset"] == "gd"
+    (tmp_path / "bad.yaml").write_text("steps: 2\nnoise:\n  redraws: ou\n")
+
+    with pytest.raises(ValueError, match=r"unknown setting 'noise.redraws'"):
+        main(Generate("a penguin", config=tmp_path / "bad.yaml", out=tmp_path / "e", progress=False))
+
+
+def test_sweep_config_file_gives_the_defaults(tmp_path, monkeypatch):
+    """sweep --config grid.yaml: the file's options are the defaults, the command line overrides
+    them, and the mapping a sweep writes (<out>/sweep.yaml) reads back to the same command."""
+    import gdbench.cli as cli
+    from gdbench.cli import sweep_from_mapping, sweep_mapping
+
+    grid = tmp_path / "grid.yaml"
+    grid.write_text(
+        "prompts: [a corgi]\npresets: [gd, gd-no-sn]\nseeds: [0, 1, 2]\nsettings: [janus]\nsteps: 300\n"
+        f"out: {tmp_path / 'sw'}\ncolmap: false\noverrides:\n  views-per-step: 2\n  noise_redraw: ou\n"
+    )
+    seen = []
+    monkeypatch.setattr(cli, "main", lambda cmd: seen.append(cmd) or {})
+    monkeypatch.setattr(sys, "argv", ["gdbench", "sweep", "--config", str(grid), "--steps", "50"])
+    cli.entrypoint()
+    cmd = seen[0]
+    assert cmd.prompts == ("a corgi",) and cmd.seeds == (0, 1, 2) and cmd.settings == ("janus",)
+    assert cmd.steps == 50 and cmd.colmap is False and cmd.config == grid
+    assert cmd.train.overrides() == {"views_per_step": 2} and cmd.method.overrides() == {"noise.redraw": "ou"}
+    again = sweep_from_mapping(sweep_mapping(cmd))
+    assert sweep_mapping(again) == sweep_mapping(cmd)
+
+    with pytest.raises(ValueError, match="unknown sweep option 'prompt'"):
+        sweep_from_mapping({"prompt": "a duck"})
+
+
+def test_cache_list_and_clear(tmp_path, monkeypatch, capsys):
+    """The cache's listing adds up the files on disk; clear removes gdbench's parts only."""
+    from gdbench import cache
+    from gdbench.cli import Cache
+
+    monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
+    (tmp_path / "c" / "banks").mkdir(parents=True)
+    (tmp_path / "c" / "banks" / "a.npz").write_bytes(b"x" * 1500)
+    (tmp_path / "c" / "banks" / "b.npz").write_bytes(b"x" * 2500)
+    (tmp_path / "c" / "fixtures").mkdir()
+    (tmp_path / "c" / "fixtures" / "f.pt").write_bytes(b"y" * 10)
+    (tmp_path / "c" / "mine").mkdir()
+    (tmp_path / "c" / "mine" / "keep.txt").write_bytes(b"z" * 7)
+    listed = main(Cache("list"))
+    assert listed["entries"] == {"banks": 4000, "fixtures": 10, "mine": 7}
+    assert "4.0 KB" in capsys.readouterr().out
+    main(Cache("clear", kinds=("banks",)))
+    assert not (tmp_path / "c" / "banks").exists() and (tmp_path / "c" / "fixtures" / "f.pt").is_file()
+    main(Cache("clear"))
+    assert cache.entries()[0].kind == "mine" and len(cache.entries()) == 1
+
+
+def test_render_uses_the_runs_cameras_and_frames_any_ply(tmp_path):
+    """render of a run folder draws generate's turntable frames again (same cameras, size and
+    background: identical pixels); a PLY from elsewhere is framed from its bounds, so the same
+    scene scaled by 7 and moved renders the same frames (a camera's image is invariant under a
+    similarity applied to scene and orbit)."""
+    import dataclasses
+
+    from gdbench.cli import Generate, GenerateTrain, Render
+
+    out = tmp_path / "run"
+    small = GenerateTrain(steps=3, resolution=16, turntable_frames=4, background=(0.2, 0.3, 0.4))
+    main(Generate("a yellow duck", out=out, score=False, progress=False, train=small))
+    main(Render(out))
+    a, b = iio.imread(out / "turntable.gif"), iio.imread(out / "scene_turntable.gif")
+    assert a.shape == b.shape == (4, 128, 128, 3) and np.array_equal(a, b)
+    scene = demo_scene(300, seed=1)
+    moved = dataclasses.replace(
+        scene, means=scene.means * 7 + torch.tensor([3.0, -2.0, 5.0]), log_scales=scene.log_scales + np.log(7)
+    )
+    scene.save_ply(tmp_path / "s.ply")
+    moved.save_ply(tmp_path / "m.ply")
+    main(Render(tmp_path / "s.ply", frames=3, size=64))
+    main(Render(tmp_path / "m.ply", frames=3, size=64))
+    fs, fm = (iio.imread(tmp_path / f"{n}_turntable_sheet.png").astype(int) for n in ("s", "m"))
+    assert fs.std() > 10 and (fs != 255).any(axis=-1).mean() > 0.1  # a framed object, not a speck
+    assert np.abs(fs - fm).mean() < 1.0 and np.abs(fs - fm).max() <= 40
+
+
+def test_log_dir_writes_tensorboard_scalars(tmp_path):
+    """--log-dir: TensorBoard's own reader finds the step metrics at every log_every steps, equal
+    to the run's history, and the PSNR against the asset at checkpoints and the end, equal to the
+    PSNR of the written scene.ply's renders."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from gdbench.metrics.gt import asset_views, heldout_poses, psnr
+    from gdbench.scene import GaussianScene
+    from gdbench.train.config import preset
+    from gdbench.train.run import train
+    from gdbench.turntable import render_views
+
+    cfg = preset("gd", prompt="a yellow duck", out=tmp_path / "run", steps=6, resolution=16, progress=False,
+                 log_every=2, checkpoint_every=3, log_dir=tmp_path / "tb")  # fmt: skip
+    r = train(cfg)
+    (run_dir,) = (tmp_path / "tb").iterdir()
+    ev = EventAccumulator(str(run_dir))
+    ev.Reload()
+    res = {e.step: e.value for e in ev.Scalars("train/residual")}
+    assert sorted(res) == [2, 4, 6]
+    for h in r.state.history:
+        if h["step"] in res:
+            assert res[h["step"]] == pytest.approx(h["residual"], rel=1e-6)
+    gt = {e.step: e.value for e in ev.Scalars("gt/psnr_vs_asset")}
+    assert sorted(gt) == [3, 6]
+    scene = GaussianScene.load_ply(tmp_path / "run" / "scene.ply")
+    poses = heldout_poses()
+    ref = asset_views("a yellow duck", poses, 64, cfg.background, 0)
+    want = float(psnr(render_views(scene, poses.cameras(64, 64), background=cfg.background), ref).mean())
+    assert gt[6] == pytest.approx(want, abs=1e-3) and 5 < want < 40
+
+
+def test_settings_files_are_typed_and_numbers_are_numbers(tmp_path, monkeypatch):
+    """A settings file's values are checked by type ("false" is not a bool, 5 not a path), a
+    number is the same setting written as 1 or 1.0 (same run id), --preset cannot relabel a
+    file's preset, and a file's run folder is used when --out is not given."""
+    import yaml
+
+    from gdbench.cli import Generate, Sweep, SweepTrain, _config_file, sweep_mapping
+    from gdbench.train.config import config_from_dict, preset
+    from gdbench.train.run import run_id
+
+    a = config_from_dict({"fovy_range": [30, 60], "camera_radius": 1, "sigma_min": "3e-2"})
+    assert run_id(a) == run_id(preset("gd", fovy_range=(30.0, 60.0)))
+    cases = [({"vgs": "false"}, "vgs: expected bool"), ({"init_ply": 3}, "init_ply: expected Path"),
+           ({"steps": 2.5}, "steps: expected int"), ({"fovy_range": [1, 2, 3]}, "expected 2 values")]  # fmt: skip
+    for bad, match in cases:
+        with pytest.raises(ValueError, match=match):
+            config_from_dict(bad)
+    f = tmp_path / "gd.yaml"
+    f.write_text(f"preset: gd\nprompt: a corgi\nout: {tmp_path / 'from_file'}\n")
+    with pytest.raises(ValueError, match=r"preset: .* holds the settings of preset 'gd'; drop --preset sjc-gs"):
+        main(Generate(config=f, preset="sjc-gs", progress=False))
+    cfg, out = _config_file(f, None)
+    assert out == tmp_path / "from_file" and cfg.prompt == "a corgi"
+    sw = Sweep(train=SweepTrain(init="ply", init_ply=Path("pts.ply")))  # a path override writes as text
+    assert yaml.safe_load(yaml.safe_dump(sweep_mapping(sw)))["overrides"]["init_ply"] == "pts.ply"
+
+
+def test_sweep_grid_files_and_optional_parts_fail_in_one_line(tmp_path, monkeypatch, capsys):
+    """sweep --config: dotted and nested training names as run.json writes them, an empty file
+    (every default), two --config, a missing file and an option of the wrong type each end in
+    one line; a missing optional dependency's advice is one line too; clear refuses a cache
+    folder that is the current one (GDBENCH_CACHE="" means unset)."""
+    import gdbench.cli as cli
+    from gdbench import cache
+    from gdbench.cli import error_line, sweep_from_mapping
+
+    s = sweep_from_mapping({"overrides": {"noise": {"redraw": "ou"}, "densify.enabled": False}})
+    assert s.method.overrides() == {"noise.redraw": "ou", "densify.enabled": False}
+    assert sweep_from_mapping(None).prompts == cli.Sweep().prompts
+    (tmp_path / "g.yaml").write_text("workers: null\n")
+    for argv, match in ((["--config", "a.yaml", "--config=b.yaml"], "given more than once"),
+                        (["--config", str(tmp_path / "none.yaml")], "no file at"),
+                        (["--config", str(tmp_path / "g.yaml")], "workers: expected a value")):  # fmt: skip
+        monkeypatch.setattr(sys, "argv", ["gdbench", "sweep", *argv])
+        with pytest.raises(SystemExit) as e:
+            cli.entrypoint()
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and len(err.splitlines()) == 1 and match in err, err
+    assert error_line(ImportError("viewer: pip install -e '.[view]'")) == ("viewer: pip install -e '.[view]'", 2)
+    monkeypatch.setenv("GDBENCH_CACHE", "")
+    assert cache.root() == Path.home() / ".cache" / "gdbench"
+    monkeypatch.setenv("GDBENCH_CACHE", ".")
+    with pytest.raises(ValueError, match="relative or the current folder"):
+        cache.clear(["fixtures"])

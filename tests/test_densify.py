@@ -71,7 +71,7 @@ def test_no_schedule_puts_an_event_on_the_last_step_or_a_reset_in_the_final_stre
         if "--densify-stop)" in msg:
             assert stop is not None and raw_grows and raw_grows[-1] == n and f"at most {n - 1}" in msg
         elif "no step of a" in msg:
-            assert explicit_growth and not raw_grows and "--densify False" in msg
+            assert explicit_growth and not raw_grows and "--no-densify" in msg
         else:
             assert "--densify-reset-every" in msg and reset_every is not None
             _, resets = _events(0, stop_, reset_every, reset_every, n)
@@ -307,7 +307,7 @@ def test_the_world_size_prune_starts_when_configured(when, step, pruned):
 
 
 def test_densify_false_on_the_command_line_trains_without_densification(tmp_path):
-    """--densify False reaches the config: run.json records a schedule with no step, and a
+    """--no-densify reaches the config: run.json records a schedule with no step, and a
     densification flag beside it is refused as doing nothing."""
     import json
 
@@ -319,5 +319,5 @@ def test_densify_false_on_the_command_line_trains_without_densification(tmp_path
     run = json.loads((out / "run.json").read_text())
     assert run["densify_schedule"]["enabled"] is False and run["densify_schedule"]["grow_steps"] == []
     assert run["gaussians"] == 4096  # nothing cloned, split or pruned
-    with pytest.raises(ValueError, match=r"--densify-every acts only with densification \(this run: --densify False\)"):
+    with pytest.raises(ValueError, match=r"--densify-every acts only with densification \(this run: --no-densify\)"):
         main(Generate("a yellow duck", out=tmp_path / "x", method=MethodOptions(densify=False, densify_every=5)))

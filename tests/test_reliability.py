@@ -558,7 +558,7 @@ def test_the_sweeps_advice_names_what_it_has(prior, tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=rf"holds a finished run .*; delete {spec.dir} to retrain this cell") as e:
         run_cell(spec)
     assert "--overwrite" not in str(e.value)
-    with pytest.raises(ValueError, match=r"names a cell folder of 299 characters; expected at most 200"):
+    with pytest.raises(ValueError, match=r"names a folder of 299 characters; expected at most 200"):
         cell_name("a " * 150)
 
 

@@ -401,9 +401,9 @@ def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():
         return [CellSpec(PROMPT, p, 0, 10, "/tmp/never", overrides=overrides, group=group) for p in presets]
 
     lines = inert_overrides(specs(["gd", "sjc-gs", "sds-gs"], {"vgs_gamma": 0.1}))
-    assert lines == ["--vgs-gamma does nothing in sds-gs (easy), sjc-gs (easy): it acts only with --vgs True "
+    assert lines == ["--vgs-gamma does nothing in sds-gs (easy), sjc-gs (easy): it acts only with --vgs "
                      "(this run has VGS off)"]  # fmt: skip
-    with pytest.raises(ValueError, match=r"--vgs-gamma acts only with --vgs True .*in every cell of the sweep"):
+    with pytest.raises(ValueError, match=r"--vgs-gamma acts only with --vgs .*in every cell of the sweep"):
         inert_overrides(specs(["sjc-gs"], {"vgs_gamma": 0.1}))
     assert inert_overrides(specs(["gd"], {"vgs_gamma": 0.1})) == []
     # a group's option is judged in the cells given it, and the note names the group
@@ -429,7 +429,7 @@ def _stub_colmap(monkeypatch, calls, registered=0):
     NaN variance, failure rate 1)."""
     from gdbench.metrics import colmap_consistency as cc
 
-    def fake(scene, *, views, size, background):
+    def fake(scene, *, views, size, background, log=None, phase=None):
         calls.append((views, size))
         nan = float("nan")
         var = nan if registered < 3 else 0.5

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 import warnings
 from dataclasses import asdict, dataclass
@@ -96,7 +95,9 @@ class Bank:
 
 
 def cache_dir() -> Path:
-    return Path(os.environ.get("GDBENCH_CACHE", Path.home() / ".cache" / "gdbench")) / "banks"
+    from ..cache import root
+
+    return root() / "banks"
 
 
 def bank_key(caption: str, config: BankConfig, variant: int = 0) -> str:

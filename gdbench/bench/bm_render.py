@@ -351,12 +351,9 @@ def sweep(
     cases = list(itertools.product(paths, grid["n"], grid["res"], MODES))
     cases = ([FIXED] if "splat" in paths and not quick else []) + cases
     rows: list[dict] = []
-    try:
-        from tqdm import tqdm
+    from ..progress import track
 
-        it = tqdm(cases, desc="bm_render", unit="case")
-    except ImportError:  # pragma: no cover
-        it = cases
+    it = track(cases, desc="bm_render", unit="case")
     for path, n, res, mode in it:
         reason = _skip_reason(path, n, res, mode)
         if reason:

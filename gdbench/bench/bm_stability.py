@@ -233,12 +233,9 @@ def run(out: Path, renderers=RENDERERS, only: list[str] | None = None, progress:
         raise ValueError(f"cases: unknown {unknown}; known: {list(cases())}")
     rows = []
     todo = [(c, r) for c in names for r in renderers]
-    try:
-        from tqdm import tqdm
+    from ..progress import track
 
-        it = tqdm(todo, desc="bm_stability", unit="run", disable=not progress)
-    except ImportError:  # pragma: no cover
-        it = todo
+    it = track(todo, desc="bm_stability", unit="run", disable=not progress)
     from ..backends import get
 
     for case, r in it:

@@ -91,21 +91,33 @@ def _angle_deg(R: np.ndarray) -> float:
 
 
 def score_images(
-    images: np.ndarray, cams: Cameras, workdir: str | Path | None = None, *, seed: int = 0, max_image_size: int = 512
+    images: np.ndarray,
+    cams: Cameras,
+    workdir: str | Path | None = None,
+    *,
+    seed: int = 0,
+    max_image_size: int = 512,
+    log: str | Path | None = None,
+    phase=None,
 ) -> ColmapScore:
-    """Run COLMAP on uint8 images [K, H, W, 3] taken (in order around the circle) by ``cams``."""
+    """Run COLMAP on uint8 images [K, H, W, 3] taken (in order around the circle) by ``cams``.
+    COLMAP's own output goes to ``log`` (appended; None: discarded), not the console; ``phase``
+    (optional) is called with the name of each stage as it starts."""
     t0 = time.perf_counter()
-    est, points = _reconstruct(images, cams, workdir, seed=seed, max_image_size=max_image_size)
+    est, points = _reconstruct(images, cams, workdir, seed=seed, max_image_size=max_image_size, log=log, phase=phase)
     return _score(est, points, cams, time.perf_counter() - t0)
 
 
-def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: int) -> tuple[dict, int]:
+def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: int, log=None, phase=None):
     """COLMAP's estimate of each registered view: {index: (rotation, camera centre)}, and the
     number of 3D points, from SIFT, exhaustive matching and incremental mapping with the known
     PINHOLE intrinsics held fixed (the largest model)."""
     import imageio.v3 as iio
 
+    from ..io import captured_output
+
     pycolmap = _import_pycolmap()
+    phase = phase or (lambda name: None)
     K = len(cams)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(workdir) if workdir is not None else Path(tmp)
@@ -125,23 +137,29 @@ def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: i
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = max_image_size
         extraction.num_threads = 2
-        pycolmap.extract_features(
-            db,
-            img_dir,
-            image_names=names,
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )
-        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
         opts = pycolmap.IncrementalPipelineOptions()
         opts.ba_refine_focal_length = False
         opts.ba_refine_principal_point = False
         opts.ba_refine_extra_params = False
         opts.num_threads = 2
         opts.random_seed = seed
-        models = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
+        phase("COLMAP features")
+        with captured_output(log):
+            pycolmap.extract_features(
+                db,
+                img_dir,
+                image_names=names,
+                camera_mode=pycolmap.CameraMode.SINGLE,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+            )
+        phase("COLMAP matching")
+        with captured_output(log):
+            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+        phase("COLMAP mapping")
+        with captured_output(log):
+            models = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
     if not models:
         return {}, 0
     rec = max(models.values(), key=lambda r: r.num_reg_images())
@@ -196,13 +214,26 @@ def _score(est: dict, points: int, cams: Cameras, seconds: float) -> ColmapScore
 
 
 def score_scene(
-    scene, *, views: int = 100, size: int = 256, workdir=None, seed: int = 0, background=(1.0, 1.0, 1.0), **pose_kw
+    scene,
+    *,
+    views: int = 100,
+    size: int = 256,
+    workdir=None,
+    seed: int = 0,
+    background=(1.0, 1.0, 1.0),
+    log=None,
+    phase=None,
+    **pose_kw,
 ) -> ColmapScore:
-    """Render a GaussianScene on the circle (on ``background``, a run's own) and score it."""
+    """Render a GaussianScene on the circle (on ``background``, a run's own) and score it
+    (``log``, ``phase``: as ``score_images``)."""
     from ..turntable import render_views, to_uint8
 
     cams = circle_poses(views, **pose_kw).cameras(size, size)
-    return score_images(to_uint8(render_views(scene, cams, background=background)), cams, workdir, seed=seed)
+    if phase is not None:
+        phase("COLMAP views")
+    images = to_uint8(render_views(scene, cams, background=background))
+    return score_images(images, cams, workdir, seed=seed, log=log, phase=phase)
 
 
 def asset_circle_images(

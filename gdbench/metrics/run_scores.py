@@ -51,19 +51,22 @@ def _reusable(previous: dict, name: str, params: dict) -> bool:
     return name in previous and _made(previous[name]).get("params") == jsonable(params)
 
 
-def score_run(run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256) -> dict:
+def score_run(
+    run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256, progress: bool = False
+) -> dict:
     """Scores of a finished run folder into its scores.json; ``gt`` asks for the ground-truth
     blocks (PSNR/SSIM, and the view metrics: multi-face rate, instance consistency, floaters),
     ``colmap`` for the COLMAP block (``views`` renders of ``size`` px). Returns the file's
     content plus ``reused``: the asked-for blocks taken from an earlier call (same scene,
-    parameters and commit), and ``kept``: blocks not asked for that the file still holds."""
+    parameters and commit), and ``kept``: blocks not asked for that the file still holds.
+    COLMAP's own output goes to the run folder's colmap.log; ``progress`` reports each stage."""
     from ..io import FolderLock
 
     run = Path(run)
     if not run.is_dir():
         raise FileNotFoundError(f"run: no run folder at {run}")
     with FolderLock(run, what="run"):  # one writer: not while a generate (--overwrite) writes here
-        return _score_run(run, gt=gt, colmap=colmap, views=views, size=size)
+        return _score_run(run, gt=gt, colmap=colmap, views=views, size=size, progress=progress)
 
 
 def one_run(run: Path) -> tuple[dict, str]:
@@ -114,8 +117,8 @@ def _check_run_json(info: dict, path: Path) -> None:
         )
 
 
-def _score_run(run: Path, *, gt: bool, colmap: bool, views: int, size: int) -> dict:
-    from ..provenance import made
+def _score_run(run: Path, *, gt: bool, colmap: bool, views: int, size: int, progress: bool = False) -> dict:
+    from ..progress import Phases
 
     ply = run / "scene.ply"
     info, scene_sha = one_run(run)
@@ -133,16 +136,33 @@ def _score_run(run: Path, *, gt: bool, colmap: bool, views: int, size: int) -> d
     bg = tuple(float(c) for c in config.get("background", (1.0, 1.0, 1.0)))  # the run's own background
     blocks: dict = {}
     reused: list[str] = []
-    if gt and info.get("caption"):
+    want_gt = bool(gt and info.get("caption"))
+    with Phases(int(want_gt) + 4 * int(colmap), "score", disable=not progress) as phases:
+        _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size, bg, run, phases)
+    kept = {k: v for k, v in previous.items() if k not in blocks}
+    out |= kept | blocks
+    out["seconds"] = time.perf_counter() - t_call  # this call's, reuse included
+    write_json(out, run / "scores.json")
+    return out | {"reused": reused, "kept": sorted(kept)}
+
+
+def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size, bg, run, phases) -> None:
+    """The asked-for score blocks into ``blocks``: reused from ``previous`` where they match."""
+    from ..provenance import made
+
+    config = info.get("config", {})
+    if want_gt:
         variants = int(config.get("variants", 1))
         params = {"caption": info["caption"], "variants": variants, "background": list(bg)}
         if _reusable(previous, "gt", params) and _reusable(previous, "views", params):
             blocks |= {"gt": previous["gt"], "views": previous["views"]}
             reused += ["gt", "views"]
+            phases.total -= 1  # nothing to report there
         else:
             from .gt import score_against_asset
             from .views import score_scene as view_scores
 
+            phases.start("ground truth and view metrics")
             t0 = time.perf_counter()
             v = view_scores(scene, info["caption"], variants=variants, background=bg).as_dict()
             # the instance the run converged to is its ground truth
@@ -162,17 +182,14 @@ def _score_run(run: Path, *, gt: bool, colmap: bool, views: int, size: int) -> d
         if _reusable(previous, "colmap", params):
             blocks["colmap"] = previous["colmap"]
             reused.append("colmap")
+            phases.total -= 4
         else:
             from .colmap_consistency import score_scene
 
             t0 = time.perf_counter()
-            c = score_scene(scene, views=views, size=size, background=bg).as_dict()
+            log = run / "colmap.log"  # COLMAP's own lines, not the console's
+            c = score_scene(scene, views=views, size=size, background=bg, log=log, phase=phases.start).as_dict()
             blocks["colmap"] = c | {"made": made(params, time.perf_counter() - t0)}
-    kept = {k: v for k, v in previous.items() if k not in blocks}
-    out |= kept | blocks
-    out["seconds"] = time.perf_counter() - t_call  # this call's, reuse included
-    write_json(out, run / "scores.json")
-    return out | {"reused": reused, "kept": sorted(kept)}
 
 
 def _mark(s: dict, name: str) -> str:

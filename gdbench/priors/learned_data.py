@@ -92,11 +92,10 @@ def render_dataset(config: DataConfig, *, progress: bool = True) -> Dataset:
     from ..assets.library import VARIANTS
 
     caps = captions()
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    from ..progress import progress as progress_bar
 
-        bar = tqdm(total=len(caps) * VARIANTS * config.views, desc="rendering the learned prior's data", unit="view")
+    total = len(caps) * VARIANTS * config.views
+    bar = progress_bar(total, "rendering the learned prior's data", "view", disable=not progress)
     parts = [render_subset(config, c, v, bar=bar) for c in caps for v in range(VARIANTS)]
     if bar is not None:
         bar.close()

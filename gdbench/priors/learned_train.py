@@ -225,11 +225,9 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
         atomic_write(ckpt_path, lambda f: torch.save(state, f))
         write_log(out / "loss.csv", log)
 
-    bar = None
-    if cfg.progress:
-        from tqdm import tqdm
+    from ..progress import progress
 
-        bar = tqdm(total=cfg.steps, initial=step, desc=f"train-prior kappa={cfg.front_bias:g}", unit="step")
+    bar = progress(cfg.steps, f"train-prior kappa={cfg.front_bias:g}", "step", initial=step, disable=not cfg.progress)
     t0 = time.perf_counter()
     last = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
     interrupted: list = []

@@ -13,7 +13,7 @@ import torch
 
 from .streams import make_streams, set_stream_states
 
-RESUME_IGNORES = frozenset({"out", "progress", "checkpoint_every", "log_every", "turntable_frames"})
+RESUME_IGNORES = frozenset({"out", "progress", "checkpoint_every", "log_every", "turntable_frames", "log_dir"})
 """Config fields that do not change a run's result (so a run may resume under other values)."""
 
 ADDED_AT_DEFAULT = {"views_spread_deg": None}

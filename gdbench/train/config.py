@@ -150,7 +150,7 @@ class DensifyConfig:
         if self.enabled and explicit and (start // every + 1) * every > min(stop, n):
             raise ValueError(
                 f"densify ({', '.join(explicit)}): no step of a {n}-step run densifies (every {every} steps after "
-                f"step {start}, up to step {min(stop, n)}); to train without densification pass --densify False"
+                f"step {start}, up to step {min(stop, n)}); to train without densification pass --no-densify"
             )
         reset_until = max(0, min(stop, n - self.recover_steps))
         last_reset = (min(stop, n) // reset_every) * reset_every
@@ -227,8 +227,8 @@ class TrainConfig:
     """Views rendered per step; they share one jitter, one sigma and one draw of the noise cloud's
     colours (so one step already couples views through the structured noise)."""
     views_spread_deg: Annotated[float | None, Range(0, 180, lo_open=True, unit="degrees")] = None
-    """Views of one step (views_per_step > 1): None draws each anywhere in the pose ranges; a
-    number keeps the others within +-this many degrees (azimuth and elevation) of the step's first
+    """Views of one step (views_per_step > 1): unset (the default) draws each anywhere in the pose
+    ranges; a number keeps the others within +-this many degrees (azimuth and elevation) of the step's first
     view, so they see the same structured noise at the same surface points (docs/noise.md, "Does
     the noise reach two views?")."""
     # initialisation
@@ -333,11 +333,15 @@ class TrainConfig:
     checkpoint_every: Annotated[int, AtLeast(1)] = 200
     """Steps between checkpoints (a run also checkpoints on Ctrl-C)."""
     log_every: Annotated[int, AtLeast(1)] = 10
-    """Steps between progress-bar updates."""
+    """Steps between updates of the progress report's figures and between --log-dir's scalars."""
     turntable_frames: Annotated[int, AtLeast(1)] = 36
     """Frames of the output turntable (GIF, MP4 and contact sheet), evenly spaced around the object."""
     progress: bool = True
-    """Show a progress bar."""
+    """Report progress: a bar on a terminal, a plain line every few seconds in a log."""
+    log_dir: Path | None = None
+    """Write TensorBoard scalars (residual, sigma, Gaussians, step times; PSNR against the asset
+    where the prompt matched one) under this folder, one sub-folder per run (needs tensorboard:
+    pip install -e '.[log]')."""
     max_bad_steps: Annotated[int, AtLeast(0)] = 20
     """Stop with an error after this many consecutive steps with non-finite gradients."""
 
@@ -423,3 +427,88 @@ def preset(name: str, **overrides) -> TrainConfig:
     if name not in PRESETS:
         raise ValueError(f"preset: unknown {name!r}; expected one of {sorted(PRESETS)}")
     return apply_overrides(PRESETS[name], overrides)
+
+
+def from_json(typ, value, key: str, what: str = "config"):
+    """``value`` as a JSON or YAML file holds it, checked and converted to a field of type ``typ``:
+    lists as tuples (each element by its type), strings as paths, ints and numeric strings ('1e-3',
+    which YAML leaves a string) as floats where a float is wanted. A value of the wrong kind is a
+    ValueError naming ``key`` (so "false" is not taken for a true bool, nor 5 for a path)."""
+    import types
+    import typing
+
+    origin, args = typing.get_origin(typ), typing.get_args(typ)
+    if origin is Annotated:
+        return from_json(args[0], value, key, what)
+    bad = ValueError(f"{what}: {key}: expected {getattr(typ, '__name__', typ)}, got {value!r}")
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return from_json(inner[0], value, key, what) if len(inner) == 1 else value
+    if value is None:
+        raise ValueError(f"{what}: {key}: expected a value, got null")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{what}: {key}: expected a list, got {value!r}")
+        each = [args[0]] * len(value) if len(args) == 2 and args[1] is Ellipsis else list(args)
+        if len(each) != len(value):
+            raise ValueError(f"{what}: {key}: expected {len(each)} values, got {len(value)}")
+        return tuple(from_json(t, v, f"{key}[{i}]", what) for i, (t, v) in enumerate(zip(each, value)))
+    if origin is Literal:
+        return value  # the declared check names the choices
+    if typ is Path:
+        if not isinstance(value, (str, Path)):
+            raise bad
+        return Path(value)
+    if typ is bool:
+        if not isinstance(value, bool):
+            raise bad
+        return value
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad
+        return value
+    if typ is float:
+        if isinstance(value, str):
+            try:
+                return float(value)
+            except ValueError:
+                raise bad from None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad
+        return float(value)
+    if typ is str and not isinstance(value, str):
+        raise bad
+    return value
+
+
+def config_from_dict(d: Mapping[str, object], *, base: TrainConfig | None = None, what: str = "config") -> TrainConfig:
+    """The ``TrainConfig`` a JSON dict describes (the inverse of ``outputs.config_dict``, as run.json
+    stores it): nested groups as dicts, tuples as lists, paths as strings. Keys it lacks keep
+    ``base``'s values (default: the dict's own preset); unknown keys raise a ValueError naming them."""
+    import typing
+
+    if not isinstance(d, Mapping):
+        raise ValueError(f"{what}: expected a mapping of settings, got {type(d).__name__}")
+    name = d.get("preset", base.preset if base is not None else "gd")
+    if base is None:
+        if name not in PRESETS:
+            raise ValueError(f"{what}: preset: unknown {name!r}; expected one of {sorted(PRESETS)}")
+        base = PRESETS[name]
+    hints = typing.get_type_hints(TrainConfig, include_extras=True)
+    flat: dict[str, object] = {}
+    for key, value in d.items():
+        if key in NESTED:
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{what}: {key}: expected a mapping, got {value!r}")
+            sub = typing.get_type_hints(NESTED[key], include_extras=True)
+            for k, v in value.items():
+                if k not in sub:
+                    raise ValueError(f"{what}: unknown setting '{key}.{k}'")
+                flat[f"{key}.{k}"] = from_json(sub[k], v, f"{key}.{k}", what)
+        elif key not in hints:
+            raise ValueError(f"{what}: unknown setting {key!r}")
+        else:
+            flat[key] = from_json(hints[key], value, key, what)
+    return apply_overrides(base, flat)

@@ -55,7 +55,13 @@ def train_options(exclude: tuple[str, ...] = ()):
         differs = sorted(p for p, c in PRESETS.items() if getattr(c, f.name) != default)
         note = f"(default: {default!r}" + (f"; the presets {differs} differ" if differs else "") + ")"
         helptext = docs.get(f.name, f.name.replace("_", " "))
-        typ = Annotated[Optional[hints[f.name]], tyro.conf.arg(help=helptext, help_behavior_hint=note)]  # noqa: UP045
+        # DisallowNone: unset is the preset's value, so None is no value to type ("--steps INT", and
+        # booleans as --anneal/--no-anneal like the command's own flags)
+        typ = Annotated[
+            Optional[hints[f.name]],  # noqa: UP045
+            tyro.conf.DisallowNone,
+            tyro.conf.arg(help=helptext, help_behavior_hint=note),
+        ]
         specs.append((f.name, typ, field(default=None)))
 
     def overrides(self) -> dict[str, object]:
@@ -94,7 +100,7 @@ class MethodSpec:
     of the run, where opacities could not recover."""
 
     densify: bool | None = None
-    """Densify at all (clone, split, prune, reset opacities; default: on). --densify False trains the
+    """Densify at all (clone, split, prune, reset opacities; default: on). --no-densify trains the
     initial Gaussians as they are."""
     densify_grad_quantile: float | None = None
     """Grow the Gaussians above this quantile of the densification statistic (0.95: the top 5%)
@@ -122,7 +128,11 @@ def method_options():
     hints = typing.get_type_hints(MethodSpec)
     docs = _field_docs(MethodSpec)
     specs = [
-        (f.name, Annotated[hints[f.name], tyro.conf.arg(help=docs[f.name], help_behavior_hint="")], field(default=None))
+        (
+            f.name,
+            Annotated[hints[f.name], tyro.conf.DisallowNone, tyro.conf.arg(help=docs[f.name], help_behavior_hint="")],
+            field(default=None),
+        )
         for f in fields(MethodSpec)
     ]
     return make_dataclass(
@@ -140,7 +150,7 @@ def flag(key: str) -> str:
 def _acts(cfg) -> dict[str, tuple[bool, str]]:
     """For each option that acts only under another setting: (whether it acts in ``cfg``, what it
     needs, named by its option)."""
-    sn = (cfg.structured_noise, "structured noise (--structured-noise True; this run has it off)")
+    sn = (cfg.structured_noise, "structured noise (--structured-noise; this run has it off)")
     sd = (cfg.prior == "sd", f"--prior sd (this run: --prior {cfg.prior})")
     sjc = (cfg.guidance == "sjc", f"--guidance sjc (this run: --guidance {cfg.guidance}, which anneals its timestep)")
     lp = (cfg.prior == "learned", f"--prior learned (this run: --prior {cfg.prior})")
@@ -152,7 +162,10 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
         ),
         "noise.redraw": sn,
         "noise.ratio_mode": sn,
-        "log_every": (cfg.progress, "the progress bar (this run: --no-progress)"),
+        "log_every": (
+            cfg.progress or cfg.log_dir is not None,
+            "the progress report or --log-dir (this run: --no-progress, no --log-dir)",
+        ),
         "view_window_deg": (
             cfg.view_prompting == "window" and cfg.prior == "empirical",
             f"--view-prompting window and --prior empirical (this run: --view-prompting {cfg.view_prompting}, "
@@ -162,8 +175,8 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
             cfg.views_per_step > 1,
             f"--views-per-step 2 or more (this run: --views-per-step {cfg.views_per_step})",
         ),
-        "vgs_gamma": (cfg.vgs, "--vgs True (this run has VGS off)"),
-        "vgs_unit": (cfg.vgs, "--vgs True (this run has VGS off)"),
+        "vgs_gamma": (cfg.vgs, "--vgs (this run has VGS off)"),
+        "vgs_unit": (cfg.vgs, "--vgs (this run has VGS off)"),
         "sigma_min": sjc,
         "sigma_max": sjc,
         "anneal": sjc,
@@ -180,13 +193,13 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
         "sd_guidance": sd,
         "sd_dtype": sd,
         "semantic_code": sd,
-        "semantic_steps": (cfg.prior == "sd" and cfg.semantic_code, "--prior sd with --semantic-code True"),
+        "semantic_steps": (cfg.prior == "sd" and cfg.semantic_code, "--prior sd with --semantic-code"),
         "sd_controlnet": (
             cfg.prior == "sd" and cfg.depth_conditioning and cfg.sd_model != "tiny",
-            "--prior sd with --depth-conditioning True and a real --sd-model (the tiny model builds its own)",
+            "--prior sd with --depth-conditioning and a real --sd-model (the tiny model builds its own)",
         ),
         **{
-            f"densify.{k}": (cfg.densify.enabled, "densification (this run: --densify False)")
+            f"densify.{k}": (cfg.densify.enabled, "densification (this run: --no-densify)")
             for k in ("start", "stop", "every", "reset_every", "grad_quantile")
         },
         "init_ply": (cfg.init == "ply", f"--init ply (this run: --init {cfg.init})"),

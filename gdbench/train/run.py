@@ -37,6 +37,7 @@ RUN_OUTPUTS = (
     "scene_turntable.gif",
     "scene_turntable.mp4",
     "scene_turntable_sheet.png",
+    "colmap.log",
 )
 """What a run and the commands that write into its folder (``score``, ``render``) put there
 (removed before an overwrite)."""
@@ -75,7 +76,8 @@ class RunResult:
     out: Path
     paths: dict[str, Path]
     seconds: float
-    resumed_from: int
+    resumed_from: int | None
+    """The step the checkpoint read held; None for a run started afresh."""
     caption: str | None = None
     """The bank caption the prompt matched (empirical prior), else None."""
     similarity: float | None = None
@@ -93,17 +95,19 @@ class RunResult:
             "resumed_from": self.resumed_from,
         }
 
-    def report(self, summary: dict | None = None) -> str:
-        """The lines ``gdbench generate`` prints."""
+    def report(self, summary: dict | None = None, matched: bool = True) -> str:
+        """The lines ``gdbench generate`` prints at the end (``matched``: with the prompt's matched
+        asset, which the command prints before training)."""
         s = summary or self.summary()
         lines = []
-        if self.caption is not None:
+        if self.caption is not None and matched:
             lines.append(
                 f"gdbench generate: prompt {self.prompt!r} -> asset {self.caption!r} (cosine {self.similarity:.2f})"
             )
+        resumed = "" if s["resumed_from"] is None else f" (resumed from step {s['resumed_from']})"
         lines.append(
-            f"gdbench generate: {s['steps']} steps, {s['gaussians']} Gaussians, {s['seconds']:.1f} s "
-            f"(resumed from step {s['resumed_from']}) -> {s['out']}"
+            f"gdbench generate: {s['steps']} steps, {s['gaussians']} Gaussians, {s['seconds']:.1f} s{resumed} "
+            f"-> {s['out']}"
         )
         if "gt" in s:
             g = s["gt"]
@@ -156,8 +160,12 @@ def train(
     stop_at: int | None = None,
     write_outputs: bool = True,
     overwrite: bool = False,
+    on_start=None,
 ) -> RunResult:
     """Train (or resume) the run in ``cfg.out``.
+
+    ``on_start(ctx)``, if given, is called once the prompt is matched and the prior built, before
+    the first step (``gdbench generate`` prints the matched asset there).
 
     ``stop_at`` ends the call after that many total steps with a checkpoint, as if the run had
     been killed there (for tests and time-sliced sweeps); calling again resumes it. On CPU a
@@ -165,12 +173,17 @@ def train(
     """
     t_start = time.perf_counter()
     out = check_folder(cfg.out)  # before the bank is built: a file or a dangling link is refused
-    ctx = make_context(cfg, prior)  # bad prompts fail here, before anything is written
-    with FolderLock(out):
+    if not overwrite:  # a finished run of another config is refused before the bank is built
         _check_finished(out, cfg, overwrite, resume)
+    ctx = make_context(cfg, prior)  # bad prompts fail here, before anything is written
+    if on_start is not None:
+        on_start(ctx)
+    with FolderLock(out):
+        _check_finished(out, cfg, overwrite, resume)  # again under the lock: the folder may have changed
         ckpt = checkpoint_path(cfg)
-        state = load_checkpoint(ckpt, ctx) if resume and ckpt.is_file() else init_state(ctx)
-        resumed_from = state.step
+        read = resume and ckpt.is_file()
+        state = load_checkpoint(ckpt, ctx) if read else init_state(ctx)
+        resumed_from = state.step if read else None
         last = min(cfg.steps, stop_at) if stop_at is not None else cfg.steps
         _loop(state, ctx, ckpt, last)
         save_checkpoint(state, ctx, ckpt)
@@ -187,6 +200,11 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
     step it lands in, so the checkpoint saved then holds a whole step, and the run resumes exactly
     where it stopped."""
     cfg = ctx.cfg
+    scalars = None
+    if cfg.log_dir is not None:
+        from .tblog import ScalarLog
+
+        scalars = ScalarLog(cfg, ctx, run_id(cfg))
     bar = _progress(cfg, state.step, last)
     interrupted = []
     with defer_stop_signals(interrupted):
@@ -194,14 +212,18 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
             while state.step < last and not interrupted:
                 m = train_step(state, ctx)
                 if bar is not None:
-                    bar.update(1)
-                    if state.step % cfg.log_every == 0 or state.step == last:
+                    if state.step % cfg.log_every == 0 or state.step == last:  # before the line it goes on
                         bar.set_postfix(resid=f"{m['residual']:.3g}", sigma=f"{m['sigma']:.3g}", N=m["n"])
+                    bar.update(1)
+                if scalars is not None:
+                    scalars.step(state, m, last)
                 if state.step % cfg.checkpoint_every == 0 and not interrupted:
                     save_checkpoint(state, ctx, ckpt)
         finally:
             if bar is not None:
                 bar.close()
+            if scalars is not None:
+                scalars.close()
     if interrupted:
         save_checkpoint(state, ctx, ckpt)
         raise RunInterrupted.at(interrupted[0], state.step, cfg.steps, ckpt)
@@ -228,14 +250,21 @@ def defer_stop_signals(flag: list):
 def _progress(cfg: TrainConfig, start: int, last: int):
     if not cfg.progress:
         return None
-    from tqdm import tqdm
+    from ..progress import progress
 
-    return tqdm(total=last, initial=start, desc=f"{cfg.preset} '{cfg.prompt}'", unit="step", dynamic_ncols=True)
+    return progress(last, f"{cfg.preset} '{cfg.prompt}'", "step", initial=start)
 
 
-def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float, resumed_from: int) -> dict[str, Path]:
+def turntable_size(resolution: int) -> int:
+    """The side of a run's turntable frames, in pixels: its training resolution, at least 128."""
+    return max(128, int(resolution))
+
+
+def write_run_outputs(
+    state: TrainState, ctx: Context, out: Path, seconds: float, resumed_from: int | None
+) -> dict[str, Path]:
     from ..provenance import code_commit, utc_now
-    from ..turntable import write_turntable
+    from ..turntable import RUN_TURNTABLE, write_turntable
 
     cfg = ctx.cfg
     rid = run_id(cfg)
@@ -246,11 +275,9 @@ def write_run_outputs(state: TrainState, ctx: Context, out: Path, seconds: float
         scene,
         out,
         frames=cfg.turntable_frames,
-        size=max(128, cfg.resolution),
-        radius=1.3,
-        elevation=15.0,
-        fovy=45.0,
+        size=turntable_size(cfg.resolution),
         background=cfg.background,
+        **RUN_TURNTABLE,
     )
     paths |= {f"turntable_{k}": v for k, v in tt.paths.items()}
     paths["curves"] = write_curves(state.history, out / "curves.png", ctx.strategy.schedule)

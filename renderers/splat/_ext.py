@@ -83,7 +83,7 @@ def _cpu_tag() -> str:
 def build_dir() -> Path:
     import torch
 
-    root = Path(os.environ.get("GDBENCH_CACHE", Path.home() / ".cache" / "gdbench")) / "ext"
+    root = Path(os.environ.get("GDBENCH_CACHE") or Path.home() / ".cache" / "gdbench") / "ext"  # as gdbench.cache
     py = f"py{sys.version_info.major}{sys.version_info.minor}"
     return root / f"torch{torch.__version__.split('+')[0]}-{py}-{_cpu_tag()}"
 
