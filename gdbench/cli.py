@@ -78,7 +78,7 @@ class Generate:
 
 @dataclass
 class Render:
-    """Turntable (GIF, MP4, contact sheet) of a run folder or of any 3DGS PLY file."""
+    """Turntable (GIF, MP4, contact sheet) of a run folder, a 3DGS or compressed PLY, or a .splat."""
 
     run: tyro.conf.Positional[Path]
     """A run folder (its scene.ply is used), a .ply file (Inria 3DGS, or the compressed PLY) or a
@@ -238,8 +238,8 @@ def _run_turntable(ply: Path) -> dict:
 
 @dataclass
 class Score:
-    """Score a finished run folder: GT PSNR/SSIM against the asset and COLMAP consistency
-    (registration rate, Var(theta), translation-direction error), written to its scores.json.
+    """Score a finished run folder: GT PSNR/SSIM against the asset and COLMAP consistency: the
+    registration rate, Var(theta) and translation-direction error, written to its scores.json.
     Each block records its parameters, commit and time; a block is reused (and marked so) only
     when the scene, its parameters and the code (commit and uncommitted edits) match, and
     dropped when they do not."""

@@ -40,7 +40,7 @@ def run_demo(cmd: Demo) -> dict:
 
 @dataclass
 class Noise:
-    """Structured noise tools: ``--preview`` writes 4 views of one noise source and the
+    """Structured noise tools: --preview writes 4 views of one noise source and the
     per-pixel histogram against N(0, 1)."""
 
     preview: bool = False
