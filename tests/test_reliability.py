@@ -132,7 +132,7 @@ def test_a_broken_json_is_named_before_any_scoring(prior, tmp_path, monkeypatch,
 
 
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM", "SIGHUP"])
-def test_a_stop_signal_saves_a_checkpoint_and_resumes_exactly(prior, tmp_path, monkeypatch, sig):
+def test_a_stop_signal_saves_a_checkpoint_and_resumes_exactly(prior, tmp_path, monkeypatch, sig, request):
     """Ctrl-C, SIGTERM (timeout, kill, Slurm) and SIGHUP (a closed SSH session) landing mid-step:
     the step ends, a checkpoint is saved, RunInterrupted names the signal with exit code 128 + its
     number, and the same command resumes bit-identically."""
@@ -140,6 +140,9 @@ def test_a_stop_signal_saves_a_checkpoint_and_resumes_exactly(prior, tmp_path, m
     from gdbench.train import run as run_mod
 
     signum = getattr(signal, sig)
+    if signal.getsignal(signum) is signal.SIG_IGN:  # the suite run under nohup: test the handled case
+        signal.signal(signum, signal.SIG_DFL)
+        request.addfinalizer(lambda: signal.signal(signum, signal.SIG_IGN))
     real, before = run_mod.train_step, signal.getsignal(signum)
 
     def step(state, ctx, **kw):

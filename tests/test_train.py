@@ -623,6 +623,7 @@ def _changed(cfg, name):
     special = {
         "views_spread_deg": 10.0,
         "init_ply": Path("cloud.ply"),
+        "log_dir": Path("tb"),
         "sd_controlnet": "controlnet",
         "init": "bank-depth",
     }
@@ -650,9 +651,10 @@ def _changed(cfg, name):
     return dataclasses.replace(cfg, **{name: new})
 
 
-IGNORED_FIELDS = {"out", "progress", "checkpoint_every", "log_every", "turntable_frames"}
+IGNORED_FIELDS = {"out", "progress", "checkpoint_every", "log_every", "turntable_frames", "log_dir"}
 """The only TrainConfig fields that cannot change a run's result (where it is written, how it
-reports, how often it checkpoints; the turntable is drawn after training)."""
+reports, how often it checkpoints, where its TensorBoard scalars go; the turntable is drawn after
+training)."""
 RESULT_FIELDS = {
     "prompt", "preset", "steps", "seed", "resolution", "views_per_step", "views_spread_deg", "init", "init_points",
     "init_ply", "init_opacity", "init_color", "camera_radius", "fovy_range", "azimuth_range", "elevation_range",
