@@ -241,6 +241,21 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
     return q if q[0] >= 0 else -q
 
 
+def quat_mul(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product a b of wxyz quaternions [..., 4] (the rotation of a after b)."""
+    w1, x1, y1, z1 = a.unbind(-1)
+    w2, x2, y2, z2 = b.unbind(-1)
+    return torch.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        dim=-1,
+    )
+
+
 def _fold(x: Tensor, lo: float, hi: float) -> Tensor:
     """``x`` reflected at ``lo`` and ``hi`` until it lies in [lo, hi] (a triangle wave)."""
     if hi <= lo:

@@ -217,17 +217,14 @@ def run_render(cmd: Render) -> dict:
 def _run_turntable(ply: Path) -> dict:
     """The turntable settings of the run whose scene ``ply`` is (its folder's run.json names the
     same scene), so ``render`` shows it from ``generate``'s cameras; {} for any other PLY."""
-    from .io import read_json, sha256_file
+    from .io import run_json_of
     from .train.run import turntable_size
     from .turntable import RUN_TURNTABLE
 
-    run_json = ply.parent / "run.json"
-    if ply.name != "scene.ply" or not run_json.is_file():
+    found = run_json_of(ply)
+    if found is None:  # not a run's scene, or a run.json of another scene: framed as any PLY
         return {}
-    info = read_json(run_json, what="run.json")
-    if info.get("scene_sha256") != sha256_file(ply):
-        return {}  # a run.json of another scene: framed as any PLY
-    config = info.get("config") or {}
+    config = found[1].get("config") or {}
     return {
         "frames": int(config.get("turntable_frames", 36)),
         "size": turntable_size(config.get("resolution", 128)),
@@ -331,7 +328,7 @@ def sweep_from_mapping(d: dict, what: str = "config") -> Sweep:
     import typing
 
     from .train.config import from_json
-    from .train.options import MethodSpec
+    from .train.options import METHOD_KEYS, MethodSpec
 
     if d is None:
         d = {}  # an empty file: every default
@@ -341,9 +338,7 @@ def sweep_from_mapping(d: dict, what: str = "config") -> Sweep:
     names = {f.name for f in fields(Sweep)} - {"config", "train", "method"}
     train_hints = typing.get_type_hints(SweepTrain, include_extras=True)
     method_hints = typing.get_type_hints(MethodSpec, include_extras=True)
-    dotted = {"noise.redraw": "noise_redraw", "noise.ou_beta": "noise_ou_beta", "noise.ratio_mode": "noise_ratio"}
-    dotted |= {f"densify.{k}": f"densify_{k}" for k in ("start", "stop", "every", "reset_every", "grad_quantile")}
-    dotted["densify.enabled"] = "densify"
+    dotted = {key: option for option, key in METHOD_KEYS.items()}  # run.json's names -> the options
     top, train, method = {}, {}, {}
     for key, value in d.items():
         k = str(key).replace("-", "_")

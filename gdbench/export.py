@@ -45,6 +45,7 @@ from torch import Tensor
 
 from renderers.splat.sh import C0, sh_basis
 
+from .camera import quat_mul, rotmat_to_quat
 from .io import atomic_write, check_folder
 from .ply import CHUNK_SIZE, LOG_SCALE_RANGE, opacity_logit
 from .scene import GaussianScene
@@ -79,40 +80,6 @@ def up_rotation(up: Literal["+z", "-y", "+y"]) -> Tensor:
         "+y": [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
     }[up]
     return torch.tensor(rows, dtype=torch.float64)
-
-
-def _matrix_to_quat(r: Tensor) -> Tensor:
-    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method, float64)."""
-    m = r.tolist()
-    tr = m[0][0] + m[1][1] + m[2][2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q = [s / 4, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
-    elif m[0][0] > m[1][1] and m[0][0] > m[2][2]:
-        s = 2.0 * math.sqrt(1.0 + m[0][0] - m[1][1] - m[2][2])
-        q = [(m[2][1] - m[1][2]) / s, s / 4, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
-    elif m[1][1] > m[2][2]:
-        s = 2.0 * math.sqrt(1.0 + m[1][1] - m[0][0] - m[2][2])
-        q = [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, s / 4, (m[1][2] + m[2][1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2][2] - m[0][0] - m[1][1])
-        q = [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, s / 4]
-    return torch.tensor(q, dtype=torch.float64)
-
-
-def _quat_mul(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product a b of wxyz quaternions (the rotation of a after b)."""
-    w1, x1, y1, z1 = a.unbind(-1)
-    w2, x2, y2, z2 = b.unbind(-1)
-    return torch.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        dim=-1,
-    )
 
 
 def _fibonacci_dirs(n: int) -> Tensor:
@@ -163,7 +130,7 @@ def rotate_scene(scene: GaussianScene, rotation: Tensor) -> GaussianScene:
     dtype, device = scene.means.dtype, scene.means.device
     f64 = scene.to("cpu", torch.float64)
     means = f64.means @ rotation.T
-    quats = _quat_mul(_matrix_to_quat(rotation), _canonical_quats(f64.quats))
+    quats = quat_mul(rotmat_to_quat(rotation), _canonical_quats(f64.quats))
     sh = f64.sh.clone()
     for l, d in enumerate(sh_rotation(rotation, scene.sh_degree), start=1):
         sh[:, l * l : (l + 1) ** 2] = torch.einsum("ij,njc->nic", d, f64.sh[:, l * l : (l + 1) ** 2])

@@ -244,6 +244,17 @@ def sha256_file(path: str | Path) -> str:
     return h.hexdigest()
 
 
+def run_json_of(ply: str | Path) -> tuple[Path, dict] | None:
+    """(path, content) of the run.json beside ``ply`` when ``ply`` is that run's scene.ply (its
+    ``scene_sha256`` names this file); None for any other scene file, or one edited since."""
+    ply = Path(ply)
+    beside = ply.parent / "run.json"
+    if ply.name != "scene.ply" or not beside.is_file():
+        return None
+    info = read_json(beside, what="run.json")
+    return (beside, info) if info.get("scene_sha256") == sha256_file(ply) else None
+
+
 def sha256_json(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 

@@ -253,8 +253,9 @@ def resolve_inputs(scene_or_path, run_json: str | Path | None) -> tuple[Gaussian
     ``run_json`` is given, a ``scene.ply`` (a run folder's, or named directly) brings the
     ``run.json`` beside it when that names the same scene (its ``scene_sha256``, as ``gdbench
     render`` decides); any other PLY has none."""
-    from .io import read_json, sha256_file
+    from .io import read_json, run_json_of
 
+    run = read_json(run_json, what="run.json") if run_json is not None else None
     if isinstance(scene_or_path, GaussianScene):
         scene, name = scene_or_path, f"{len(scene_or_path)} Gaussians"
     else:
@@ -266,12 +267,9 @@ def resolve_inputs(scene_or_path, run_json: str | Path | None) -> tuple[Gaussian
         from .export import load_scene
 
         scene, name = load_scene(path), str(path)  # 3DGS or compressed PLY, or .splat
-        beside = path.parent / "run.json"
-        if run_json is None and path.name == "scene.ply" and beside.is_file():
-            info = read_json(beside, what="run.json")
-            if info.get("scene_sha256") == sha256_file(path):
-                run_json = beside
-    run = read_json(run_json, what="run.json") if run_json is not None else None
+        found = run_json_of(path) if run_json is None else None
+        if found is not None:
+            run_json, run = found
     if run is not None and not isinstance(run.get("config"), dict):
         raise ValueError(f"run.json: {run_json} has no 'config' object; expected a run folder's run.json")
     return scene, name, run

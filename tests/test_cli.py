@@ -293,8 +293,12 @@ def test_help_reads_once_per_option():
     assert "--steps INT" in real and "{None" not in real and "--anneal, --no-anneal" in real
     for command in COMMANDS:
         text = _help_text(command)
-        assert "{None" not in text and "{True,False}" not in text and "DESIGN.md" not in text, command
+        assert "{None" not in text and "{True,False}" not in text, command
         flat = " ".join(text.split())
+        root = Path(__file__).resolve().parents[1]
+        assert "../" not in flat, command  # nothing outside the project
+        for doc in re.findall(r"[\w.-]+(?:/[\w.-]+)+\.md\b", flat):  # every document a help names is here
+            assert (root / doc).is_file(), (command, doc)
         assert len(re.findall(r"\(default[^)]*\)\s*\(default", flat)) == 0, command
         helps = _option_helps(command)
         assert helps, command

@@ -36,6 +36,7 @@ import math
 import torch
 from torch import Tensor
 
+from ..camera import quat_mul
 from ..scene import GaussianScene
 
 KINDS = (
@@ -225,20 +226,6 @@ def _fit(scene: GaussianScene, bank, seed: int) -> GaussianScene:
     return GaussianScene(**{k: v.detach() for k, v in params.items()})
 
 
-def _quat_mul(a: Tensor, b: Tensor) -> Tensor:
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
-
-
 def _turned(scene: GaussianScene, deg: float | Tensor) -> GaussianScene:
     """``scene`` turned about +Z by ``deg`` (one angle, or one per Gaussian): means, orientations
     and view-dependent colour (computed on the CPU, returned on the scene's device)."""
@@ -250,7 +237,7 @@ def _turned(scene: GaussianScene, deg: float | Tensor) -> GaussianScene:
     means = scene.means.double() @ R.T if R.dim() == 2 else torch.einsum("nij,nj->ni", R, scene.means.double())
     return GaussianScene(
         means.float(),
-        _quat_mul(qz.expand_as(q), q).float(),
+        quat_mul(qz.expand_as(q), q).float(),
         scene.log_scales,
         scene.opacity_logits,
         _turn_sh(scene.sh.double(), R).float(),

@@ -112,11 +112,18 @@ class MethodSpec:
         return _method_overrides(self)
 
 
+METHOD_KEYS = {
+    "noise_redraw": "noise.redraw",
+    "noise_ou_beta": "noise.ou_beta",
+    "noise_ratio": "noise.ratio_mode",
+    **{f"densify_{k}": f"densify.{k}" for k in ("start", "stop", "every", "reset_every", "grad_quantile")},
+    "densify": "densify.enabled",
+}
+"""``MethodSpec``'s option -> its TrainConfig override key (a nested group's dotted name)."""
+
+
 def _method_overrides(self) -> dict[str, object]:
-    key = {"noise_redraw": "noise.redraw", "noise_ou_beta": "noise.ou_beta", "noise_ratio": "noise.ratio_mode"}
-    key |= {f"densify_{k}": f"densify.{k}" for k in ("start", "stop", "every", "reset_every", "grad_quantile")}
-    key["densify"] = "densify.enabled"
-    return {key[f.name]: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+    return {METHOD_KEYS[f.name]: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
 
 @functools.cache

@@ -48,17 +48,15 @@ class ScalarLog:
             self.writer.add_scalar("gt/psnr_vs_asset", self.psnr(state), step)
 
     def psnr(self, state) -> float:
-        """PSNR (dB) of the current scene against the asset at the held-out views, aligned."""
-        from ..metrics.gt import asset_views, heldout_poses, psnr
-        from ..turntable import render_views
+        """PSNR (dB) of the current scene against the asset at the held-out views, aligned (the
+        asset's views rendered once per run)."""
+        from ..metrics.gt import asset_views, heldout_poses, score_against_asset
 
-        poses = heldout_poses()
         bg = self.cfg.background
         if self._ref is None:
-            self._ref = asset_views(self.caption, poses, 64, bg, 0)
-        with torch.no_grad():
-            img = render_views(state.scene(), poses.cameras(64, 64), background=bg)
-        return float(psnr(img, self._ref).mean())
+            self._ref = asset_views(self.caption, heldout_poses(), 64, bg, 0)
+        at0 = torch.zeros(1, dtype=torch.float64)  # no azimuth search
+        return score_against_asset(state.scene(), self.caption, offsets=at0, background=bg, reference=self._ref).psnr
 
     def close(self) -> None:
         self.writer.flush()
