@@ -209,7 +209,7 @@ def test_claims_verdict_from_paired_tests():
     own, too few pairs or a metric that cannot fail (or always fails) gives no verdict."""
     import numpy as np
 
-    from gdbench.metrics.claims import CLAIMS, evaluate
+    from gdbench.metrics.claims import CLAIMS, evaluate, signed_rank_p
 
     keys = [(p, s) for p in "abcdef" for s in (0, 1, 2)]
     rng = np.random.default_rng(0)
@@ -251,6 +251,15 @@ def test_claims_verdict_from_paired_tests():
     assert evaluate(never_fails)[0]["verdict"] == "not testable here (neither preset fails)"
     always_fails = [dict(r, multi_face_rate=1.0) for r in rows]  # the metric cannot see a difference
     assert evaluate(always_fails)[0]["verdict"] == "not testable here (both always fail)"
+    # skewed pairs as a table: 40 ties, 10 pairs where gd fails 0.5 more, 10 where 0.1 less: a
+    # mean difference of 0.067, outside +-0.05, not significant; signed-rank TOST called it "no effect"
+    gd_minus = [0.0] * 40 + [0.5] * 10 + [-0.1] * 10
+    skew = [_row("gd-no-sn", f"q{i}", 0, 0.2) for i in range(60)]
+    skew += [_row("gd", f"q{i}", 0, 0.2 + x) for i, x in enumerate(gd_minus)]
+    dd = np.array(gd_minus)
+    assert max(signed_rank_p(dd + 0.05, "greater"), signed_rank_p(dd - 0.05, "less")) < 0.01
+    v = evaluate(skew)[0]
+    assert v["mean_diff"] == pytest.approx(4 / 60) and v["p_value"] > 0.05 and v["verdict"] == "undecided"
     few = [r for r in rows if r["prompt"] in "abcde" and r["seed"] == 0]
     assert evaluate(few)[0]["pairs"] == 5 and evaluate(few)[0]["verdict"] == "too few pairs (n < 6)"
     # ten pairs, three of them differ (by more than the margin): the test cannot reach 5%
@@ -298,6 +307,16 @@ def test_the_statistics_against_independent_oracles():
     assert np.mean(hits) == pytest.approx(0.8, abs=0.04)
     assert equivalence_p(rng.normal(0.0, 0.01, 30), 0.05) < 0.05  # within the margin: said so
     assert equivalence_p(rng.normal(0.1, 0.01, 30), 0.05) > 0.5  # an effect twice the margin: not
+    # TOST against scipy's one-sided one-sample t-tests of d + m > 0 and d - m < 0
+    d = rng.normal(0.02, 0.1, 40)
+    want = max(stats.ttest_1samp(d + 0.05, 0, alternative="greater").pvalue,
+               stats.ttest_1samp(d - 0.05, 0, alternative="less").pvalue)  # fmt: skip
+    assert equivalence_p(d, 0.05) == pytest.approx(want, rel=1e-9)
+    # the mean decides, not the ranks: 50 ties and 10 pairs 0.43 apart have a mean difference of
+    # 0.072, outside +-0.05 (two one-sided signed-rank tests passed this: both p < 0.01)
+    skewed = np.r_[np.zeros(50), np.full(10, 0.43)]
+    assert max(signed_rank_p(skewed + 0.05, "greater"), signed_rank_p(skewed - 0.05, "less")) < 0.01
+    assert equivalence_p(skewed, 0.05) > 0.5
 
 
 def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):

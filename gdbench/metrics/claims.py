@@ -13,9 +13,11 @@ d = metric(a) - metric(b) give:
   not testable because neither arm fails or both always fail, or with too few pairs, is no
   hypothesis tested and stays out of the family; a row whose failures are rarer than the
   margin stays in it, since its test can still decide);
-- an **equivalence** test against the claim's margin m (``MARGINS``: the smallest effect that
-  would matter, with its reason): two one-sided Wilcoxon tests of d + m > 0 and d - m < 0
-  (TOST), p = the larger of the two;
+- an **equivalence** test of the mean against the claim's margin m (``MARGINS``: the smallest
+  effect that would matter, with its reason): two one-sided paired t-tests of mean(d) > -m and
+  mean(d) < m (TOST), p = the larger of the two. Not signed-rank tests: those test a location
+  shift, and on rates that are 0 in most pairs they passed pairs whose mean difference was
+  outside the margin (0.072 against +-0.05 in the decisive sweep's first read);
 - the **pairs needed** for 80% power at a two-sided 5% level, from the observed mean and
   standard deviation of d (normal approximation, divided by the Wilcoxon test's asymptotic
   relative efficiency 3/pi);
@@ -32,15 +34,18 @@ The verdict words, checked in this order:
   metric cannot see a difference, which is no evidence either way;
 - **too few pairs (n < 6)**: fewer than ``MIN_PAIRS`` pairs: below six, even pairs that all
   agree are not significant (the exact two-sided signed-rank p is 2^(1-n) >= 0.0625);
-- **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 and the mean
-  difference is negative (the claim holds) or positive (the opposite holds);
+- **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 and the BCa interval
+  of the mean difference lies below 0 (the claim holds) or above 0 (the opposite holds); a
+  significant rank test whose mean interval covers 0 (a skewed sample: the median moves one
+  way, the mean not) decides nothing and reads undecided;
 - **not testable here (baseline fails < m)**: not significant, and both arms' means are under
   the margin m: every metric here is a failure measure of at least 0, so no reduction could
   reach m and the equivalence test says nothing about the mechanism (a setting where the
   failure is too rare to test the claim). A treated arm that fails more than m is not hidden
   here: the equivalence test can then fail, and the row reads undecided or does not hold;
-- **no effect beyond +-m**: the equivalence test's p is below 0.05: a null result with the
-  power to say so (a tie in every pair counts here: the presets do the same);
+- **no effect beyond +-m**: the equivalence test's p is below 0.05 and the BCa 95% interval
+  lies within +-m (so a reader checks it in the table): a null result with the power to say so
+  (a tie in every pair counts here: the presets do the same);
 - **too few non-tied pairs (k < 6)**: the pairs are enough but fewer than six differ, so the
   signed-rank test cannot reach 5%;
 - **undecided**: none of the above: more pairs are needed (see the power column).
@@ -146,12 +151,19 @@ def signed_rank_p(d: np.ndarray, alternative: str = "two-sided") -> float:
 
 
 def equivalence_p(d: np.ndarray, margin: float) -> float:
-    """TOST with two one-sided signed-rank tests: H0 |mean effect| >= margin; small p says the
-    effect lies within +-margin."""
+    """TOST with two one-sided paired t-tests: H0 |mean effect| >= margin; small p says the mean
+    effect lies within +-margin. Differences without spread: 0 inside the margin, 1 outside;
+    NaN under two pairs."""
+    from scipy import stats
+
     d = np.asarray(d, dtype=np.float64)
-    if d.size == 0:
+    if d.size < 2:
         return math.nan
-    return max(signed_rank_p(d + margin, "greater"), signed_rank_p(d - margin, "less"))
+    mean, se = float(d.mean()), float(d.std(ddof=1)) / math.sqrt(d.size)
+    if se == 0:
+        return 0.0 if abs(mean) < margin else 1.0
+    t = stats.t(d.size - 1)
+    return float(max(t.sf((mean + margin) / se), t.cdf((mean - margin) / se)))
 
 
 def holm(p: list[float]) -> list[float]:
@@ -200,11 +212,13 @@ def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: f
     why = untested(baseline, treated, fails_at)
     if why is not None:
         return why
-    if row["p_holm"] < ALPHA and row["mean_diff"] != 0:
-        return "holds" if row["mean_diff"] < 0 else "does not hold"
+    if row["p_holm"] < ALPHA and (row["ci_high"] < 0 or row["ci_low"] > 0):
+        return "holds" if row["ci_high"] < 0 else "does not hold"
+    if row["p_holm"] < ALPHA:  # the ranks moved, the mean's interval covers 0
+        return "undecided"
     if baseline.mean() < row["margin"] and treated.mean() < row["margin"]:  # no reduction could reach it
         return f"not testable here (baseline fails < {row['margin']:g})"
-    if row["p_equivalence"] < ALPHA:
+    if row["p_equivalence"] < ALPHA and -row["margin"] < row["ci_low"] <= row["ci_high"] < row["margin"]:
         return f"no effect beyond +-{row['margin']:g}"
     if row["nonzero_pairs"] < MIN_PAIRS:
         return f"too few non-tied pairs (k < {MIN_PAIRS})"
