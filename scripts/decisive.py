@@ -207,10 +207,15 @@ def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None
         raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
     paths = tables(rows, results)
     paths["verdict_readme"] = readme_table(results / "verdict.csv", results / "verdict_readme.md")
-    for b in sorted(p.parent.name for p in (out / "blocks").glob("*/cells")):
+    blocks = sorted(p.parent.name for p in (out / "blocks").glob("*/cells"))
+    for b in blocks:
         grid = turntable_grid(out / "blocks" / b, PROMPTS[0], seed=0)  # (group, setting) x preset
         if grid is not None:
             paths[f"turntables_{b}"] = Path(shutil.copy(grid, results / f"turntables_{b}.png"))
+    # one figure: every block's (prior and views per step, setting) x preset for the first prompt
+    grid = turntable_grid([out / "blocks" / b for b in blocks], PROMPTS[0], seed=0, path=results / "turntables.png")
+    if grid is not None:
+        paths["turntables"] = grid
     print(f"report: {len(rows)} cells -> {', '.join(str(p) for p in paths.values())}")
 
 

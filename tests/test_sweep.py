@@ -743,3 +743,10 @@ def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeyp
     assert (tmp_path / "results" / "turntables_a.png").is_file() and (
         tmp_path / "results" / "turntables_b.png"
     ).is_file()
+    # one figure over both blocks: a row per seed-0 cell of each (a: gd, gd-no-sn; b: gd), 1.7 in
+    # each at 90 dpi under a half-inch title
+    from PIL import Image
+
+    heights = {n: Image.open(tmp_path / "results" / f"turntables{n}.png").height for n in ("", "_a", "_b")}
+    rows_of = {n: round((h / 90 - 0.5) / 1.7) for n, h in heights.items()}
+    assert rows_of == {"": 3, "_a": 2, "_b": 1}
