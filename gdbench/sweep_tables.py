@@ -113,8 +113,9 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
         md.append("| " + " | ".join(cells) + " |")
     md += ["", "(k of n): the metric could be measured on k of the n cells; n/a: on none.", ""]
     md += ["| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% BCa CI] | a better | "
-           "p (Holm) | equivalence p (margin) | pairs for 80% power | verdict | Gaussians a / b |"]  # fmt: skip
-    md.append("|---" * 14 + "|")
+           "p (Holm) | equivalence p (margin) | pairs for 80% power | verdict on these prompts | prompts | "
+           "across prompts: a - b [95% t CI] | p (Holm) | verdict across prompts | Gaussians a / b |"]  # fmt: skip
+    md.append("|---" * 18 + "|")
     if not verdicts:
         md[-2:] = ["No claim is decidable here: each needs both of its presets in one setting."]
     for v in verdicts:
@@ -124,7 +125,9 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
         md.append(
             f"| {label(v)} | {v['claim']} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
             f"{_fmt(v['mean_a'])} | {_fmt(v['mean_b'])} | {ci} | {v['a_better_pairs']}/{v['pairs']} | {p} | {eq} | "
-            f"{_fmt(v['pairs_for_80pct_power'])} | {v['verdict']} | "
+            f"{_fmt(v['pairs_for_80pct_power'])} | {v['verdict']} | {v['prompts']} | "
+            f"{_fmt(v['prompt_mean_diff'])} [{_fmt(v['prompt_ci_low'])}, {_fmt(v['prompt_ci_high'])}] | "
+            f"{_fmt(v['p_prompts'])} ({_fmt(v['p_prompts_holm'])}) | {v['verdict_prompts']} | "
             f"{_fmt(v['gaussians_a'])} / {_fmt(v['gaussians_b'])}{_size_note(v)} |"
         )
     if verdicts:

@@ -222,7 +222,8 @@ def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None
 def readme_table(verdict_csv: Path, path: Path) -> Path:
     """The README's verdict table: per claim, group (prior, views per step) and setting, the
     pooled effect with its BCa interval, the Holm-adjusted p, the equivalence p at the margin, the
-    pairs and the verdict; the commits under it."""
+    pairs and the verdict on these prompts; then the same across prompts (the prompt as the unit:
+    ``claims.across_prompts``)."""
     import csv
 
     from gdbench.metrics.claims import label
@@ -232,13 +233,16 @@ def readme_table(verdict_csv: Path, path: Path) -> Path:
 
     rows = list(csv.DictReader(open(verdict_csv)))
     md = ["| claim | group / setting | a vs b | metric | pairs | a - b [95% BCa] | p (Holm) | equivalence p (margin) "
-          "| verdict |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+          "| on these prompts | prompts: a - b [95% t] | p (Holm) | across prompts |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for v in rows:
         if v["verdict"] == "not measured":
             continue
         md.append(f"| {v['claim']} | {label(v)} | {v['a']} vs {v['b']} | {v['metric']} | {v['pairs']} | "
                   f"{f(v['mean_diff'])} [{f(v['ci_low'])}, {f(v['ci_high'])}] | {f(v['p_holm'])} | "
-                  f"{f(v['p_equivalence'])} (+-{f(v['margin'])}) | {v['verdict']} |")  # fmt: skip
+                  f"{f(v['p_equivalence'])} (+-{f(v['margin'])}) | **{v['verdict']}** | {v['prompts']}: "
+                  f"{f(v['prompt_mean_diff'])} [{f(v['prompt_ci_low'])}, {f(v['prompt_ci_high'])}] | "
+                  f"{f(v['p_prompts_holm'])} | **{v['verdict_prompts']}** |")  # fmt: skip
     path.write_text("\n".join(md) + "\n")
     return path
 

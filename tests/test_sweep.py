@@ -260,6 +260,21 @@ def test_claims_verdict_from_paired_tests():
     assert max(signed_rank_p(dd + 0.05, "greater"), signed_rank_p(dd - 0.05, "less")) < 0.01
     v = evaluate(skew)[0]
     assert v["mean_diff"] == pytest.approx(4 / 60) and v["p_value"] > 0.05 and v["verdict"] == "undecided"
+    # a baseline whose mean is under the margin but not surely (one cell in six fails 0.2: mean
+    # 0.033, 95% upper bound 0.06): a reduction beyond the margin was possible, so the test decides
+    unsure = [
+        _row(p, f"q{i}", 0, 0.2 if p == "gd-no-sn" and i % 6 == 0 else 0.0)
+        for i in range(36)
+        for p in ("gd", "gd-no-sn")
+    ]
+    assert evaluate(unsure)[0]["verdict"] == "holds"  # 6 of 36 pairs, all one way: exact p 2^-5
+    # five pairs that agree among ties are not a result, whatever the family
+    five = [
+        _row(p, f"q{i}", 0, 0.1 if p == "gd-no-sn" and i < 5 else 0.3 * (i >= 5))
+        for i in range(60)
+        for p in ("gd", "gd-no-sn")
+    ]
+    assert evaluate(five)[0]["p_value"] == pytest.approx(1 / 16) and evaluate(five)[0]["verdict"] != "holds"
     few = [r for r in rows if r["prompt"] in "abcde" and r["seed"] == 0]
     assert evaluate(few)[0]["pairs"] == 5 and evaluate(few)[0]["verdict"] == "too few pairs (n < 6)"
     # ten pairs, three of them differ (by more than the margin): the test cannot reach 5%
@@ -307,6 +322,19 @@ def test_the_statistics_against_independent_oracles():
     assert np.mean(hits) == pytest.approx(0.8, abs=0.04)
     assert equivalence_p(rng.normal(0.0, 0.01, 30), 0.05) < 0.05  # within the margin: said so
     assert equivalence_p(rng.normal(0.1, 0.01, 30), 0.05) > 0.5  # an effect twice the margin: not
+    # with zeros and ties the p is exact too (scipy's normal approximation gave five agreeing pairs
+    # among 55 ties p = 0.043): every sign pattern of the mid-ranks, enumerated here by hand
+    x = np.array([0.3, -0.1, 0.3, 0.7, -0.1, 0.4, 0.0, 0.3, 0.0])
+    nz = x[x != 0]
+    ranks = stats.rankdata(np.abs(nz))
+    w = ranks[nz > 0].sum()
+    flips = [sum(r for r, s in zip(ranks, signs) if s) for signs in itertools.product((0, 1), repeat=nz.size)]
+    exact = np.mean([abs(f - ranks.sum() / 2) >= abs(w - ranks.sum() / 2) - 1e-12 for f in flips])
+    assert signed_rank_p(x) == pytest.approx(exact, rel=1e-9)
+    assert signed_rank_p(x, "greater") == pytest.approx(np.mean([f >= w - 1e-12 for f in flips]), rel=1e-9)
+    assert signed_rank_p(np.r_[np.zeros(55), np.full(5, -0.1)]) == pytest.approx(2 / 2**5)
+    big = rng.normal(0.3, 1.0, 40)  # past the enumeration: scipy's
+    assert signed_rank_p(big) == pytest.approx(stats.wilcoxon(big).pvalue, rel=1e-9)
     # TOST against scipy's one-sided one-sample t-tests of d + m > 0 and d - m < 0
     d = rng.normal(0.02, 0.1, 40)
     want = max(stats.ttest_1samp(d + 0.05, 0, alternative="greater").pvalue,
@@ -317,6 +345,42 @@ def test_the_statistics_against_independent_oracles():
     skewed = np.r_[np.zeros(50), np.full(10, 0.43)]
     assert max(signed_rank_p(skewed + 0.05, "greater"), signed_rank_p(skewed - 0.05, "less")) < 0.01
     assert equivalence_p(skewed, 0.05) > 0.5
+
+
+def test_claims_across_prompts_take_the_prompt_as_the_unit():
+    """The reading across prompts: the per-prompt mean differences against scipy's one-sample t
+    test, and an effect carried by seeds of a few prompts holds on these prompts (the pairs' test)
+    but not across prompts, where an effect every prompt shares holds on both readings."""
+    import numpy as np
+    from scipy import stats
+
+    from gdbench.metrics.claims import evaluate
+
+    rng = np.random.default_rng(3)
+    prompts = [f"p{i}" for i in range(6)]
+    shift = {"p0": -0.5, "p1": -0.5, "p2": 0.0, "p3": 0.0, "p4": 0.0, "p5": 0.0}  # two prompts carry it
+    rows = []
+    for pr in prompts:
+        for seed in range(10):
+            b = rng.uniform(0.4, 0.6)
+            rows += [_row("gd-no-sn", pr, seed, b), _row("gd", pr, seed, b + shift[pr] + rng.normal(0, 0.02))]
+    v = evaluate(rows)[0]
+    per = {}
+    for r in rows:
+        per.setdefault(r["prompt"], {}).setdefault(r["seed"], {})[r["preset"]] = r["multi_face_rate"]
+    pm = np.array([np.mean([c["gd"] - c["gd-no-sn"] for c in per[p].values()]) for p in prompts])
+    t = stats.ttest_1samp(pm, 0.0)
+    assert v["prompts"] == 6 and v["prompt_mean_diff"] == pytest.approx(pm.mean())
+    assert v["p_prompts"] == pytest.approx(t.pvalue, rel=1e-9)
+    ci = t.confidence_interval(0.95)
+    assert (v["prompt_ci_low"], v["prompt_ci_high"]) == pytest.approx((ci.low, ci.high), rel=1e-9)
+    assert v["p_value"] < 1e-3 and v["verdict"] == "holds"  # on these prompts: 20 large pairs vs 40 small
+    assert v["verdict_prompts"] == "undecided"  # across prompts: 2 of 6 move
+    shared = [dict(r, multi_face_rate=r["multi_face_rate"] - 0.3 * (r["preset"] == "gd")) for r in rows]
+    v = evaluate(shared)[0]  # every prompt moves by at least -0.2
+    assert v["verdict"] == "holds" and v["verdict_prompts"] == "holds" and v["p_prompts_holm"] < 0.05
+    two = [r for r in rows if r["prompt"] in ("p0", "p1")]
+    assert evaluate(two)[0]["verdict_prompts"] == "too few prompts (G < 3)"
 
 
 def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
@@ -565,8 +629,18 @@ def _oracle_verdict(a: list, b: list, fails_at) -> str:
         return "holds"  # exact p = 2 / 2^n < 0.05
     if all(x > y for x, y in pairs):
         return "does not hold"
-    if sum(y for _, y in pairs) / len(pairs) < 0.05 and sum(x for x, _ in pairs) / len(pairs) < 0.05:
-        return "not testable here (baseline fails < 0.05)"  # both arms under the margin: nothing to reduce
+
+    def upper(v: list) -> float:  # one-sided 95% t bound of the mean
+        import statistics
+
+        from scipy import stats
+
+        if len(set(v)) == 1:
+            return v[0]
+        return statistics.fmean(v) + stats.t.ppf(0.95, len(v) - 1) * statistics.stdev(v) / len(v) ** 0.5
+
+    if upper([y for _, y in pairs]) < 0.05 and upper([x for x, _ in pairs]) < 0.05:
+        return "not testable here (baseline fails < 0.05)"  # both arms surely under the margin: nothing to reduce
     if all(x == y for x, y in pairs):
         return "no effect beyond +-0.05"  # every one-sided test of d -+ m has p <= 2^-n
     return "tests"

@@ -8,7 +8,8 @@ d = metric(a) - metric(b) give:
   of the pairs, a fixed seed; the percentile interval where BCa is undefined, e.g. all
   differences equal);
 - a **Wilcoxon signed-rank** two-sided p-value (zero differences dropped: ``zero_method
-  "wilcox"``; exact for small samples without ties), and the same p-value **Holm**-adjusted
+  "wilcox"``; exact, ties at mid-ranks, up to 16 non-zero differences, scipy's normal
+  approximation beyond), and the same p-value **Holm**-adjusted
   across the claims of the table that a test decides (``evaluate``'s rows; a row not measured,
   not testable because neither arm fails or both always fail, or with too few pairs, is no
   hypothesis tested and stays out of the family; a row whose failures are rarer than the
@@ -22,7 +23,13 @@ d = metric(a) - metric(b) give:
   standard deviation of d (normal approximation, divided by the Wilcoxon test's asymptotic
   relative efficiency 3/pi);
 - the mean difference **per prompt** (``by_prompt``), so that one prompt cannot carry a pooled
-  verdict unseen.
+  verdict unseen;
+- the same claim **across prompts** (``across_prompts``): the per-prompt mean differences as G
+  observations, their mean with a t interval, a two-sided t p-value Holm-adjusted over the same
+  family, and ``verdict_prompts`` in the same words. The pairs' verdict is about the prompts that
+  ran (seeds are the random unit; pairs of one prompt are independent given it); this one is
+  about prompts beyond them, where the pairs of one prompt are correlated and G, not the pair
+  count, is the sample size (6 prompts: an effect must be large and shared to pass Holm).
 
 The verdict words, checked in this order:
 
@@ -34,15 +41,16 @@ The verdict words, checked in this order:
   metric cannot see a difference, which is no evidence either way;
 - **too few pairs (n < 6)**: fewer than ``MIN_PAIRS`` pairs: below six, even pairs that all
   agree are not significant (the exact two-sided signed-rank p is 2^(1-n) >= 0.0625);
-- **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 and the BCa interval
-  of the mean difference lies below 0 (the claim holds) or above 0 (the opposite holds); a
-  significant rank test whose mean interval covers 0 (a skewed sample: the median moves one
-  way, the mean not) decides nothing and reads undecided;
-- **not testable here (baseline fails < m)**: not significant, and both arms' means are under
-  the margin m: every metric here is a failure measure of at least 0, so no reduction could
-  reach m and the equivalence test says nothing about the mechanism (a setting where the
-  failure is too rare to test the claim). A treated arm that fails more than m is not hidden
-  here: the equivalence test can then fail, and the row reads undecided or does not hold;
+- **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 (with at least six
+  non-tied pairs) and the BCa interval of the mean difference lies below 0 (the claim holds) or
+  above 0 (the opposite holds); a significant rank test whose mean interval covers 0 (a skewed
+  sample: the median moves one way, the mean not) decides nothing and reads undecided;
+- **not testable here (baseline fails < m)**: not significant, and both arms' means are surely
+  under the margin m (their one-sided 95% t upper bounds over the pairs): every metric here is
+  a failure measure of at least 0, so no reduction could reach m and the equivalence test says
+  nothing about the mechanism (a setting where the failure is too rare to test the claim). A
+  treated arm that fails more than m is not hidden here: the equivalence test can then fail,
+  and the row reads undecided or does not hold;
 - **no effect beyond +-m**: the equivalence test's p is below 0.05 and the BCa 95% interval
   lies within +-m (so a reader checks it in the table): a null result with the power to say so
   (a tie in every pair counts here: the presets do the same);
@@ -140,14 +148,32 @@ def bca_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, seed: int = 0
     return math.nan, math.nan
 
 
+EXACT_UP_TO = 16
+"""Non-zero differences up to which the signed-rank p is exact (every sign pattern enumerated, ties
+at their mid-ranks): scipy falls back to the normal approximation wherever zeros or ties occur,
+which gave five agreeing pairs p = 0.043 (exact: 0.0625)."""
+
+
 def signed_rank_p(d: np.ndarray, alternative: str = "two-sided") -> float:
-    """Wilcoxon signed-rank p-value of ``d`` (zeros dropped); 1 when nothing differs."""
+    """Wilcoxon signed-rank p-value of ``d`` (zeros dropped; exact up to ``EXACT_UP_TO`` non-zero
+    differences, scipy's otherwise); 1 when nothing differs."""
     from scipy import stats
 
     d = np.asarray(d, dtype=np.float64)
-    if not np.any(d != 0):
+    d = d[d != 0]
+    if d.size == 0:
         return 1.0
-    return float(stats.wilcoxon(d, zero_method="wilcox", alternative=alternative).pvalue)
+    if d.size > EXACT_UP_TO:
+        return float(stats.wilcoxon(d, zero_method="wilcox", alternative=alternative).pvalue)
+    ranks = stats.rankdata(np.abs(d))
+    signs = (np.arange(2**d.size)[:, None] >> np.arange(d.size)) & 1  # every sign pattern
+    w = signs @ ranks  # W+ of each pattern (the observed one among them)
+    obs, centre, eps = float(ranks[d > 0].sum()), float(ranks.sum()) / 2, 1e-9
+    if alternative == "greater":
+        return float(np.mean(w >= obs - eps))
+    if alternative == "less":
+        return float(np.mean(w <= obs + eps))
+    return float(np.mean(np.abs(w - centre) >= abs(obs - centre) - eps))
 
 
 def equivalence_p(d: np.ndarray, margin: float) -> float:
@@ -207,16 +233,27 @@ def untested(baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) 
     return None
 
 
+def upper_bound(x: np.ndarray, level: float = 0.95) -> float:
+    """One-sided upper confidence bound of the mean of ``x`` (t, over the pairs); the mean itself
+    for fewer than two values or no spread."""
+    from scipy import stats
+
+    x = np.asarray(x, dtype=np.float64)
+    if x.size < 2 or not np.any(x != x[0]):
+        return float(x.mean()) if x.size else math.nan
+    return float(x.mean() + stats.t(x.size - 1).ppf(level) * x.std(ddof=1) / math.sqrt(x.size))
+
+
 def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str:
     """The verdict words of one claim's row (module docstring: the words and their order)."""
     why = untested(baseline, treated, fails_at)
     if why is not None:
         return why
-    if row["p_holm"] < ALPHA and (row["ci_high"] < 0 or row["ci_low"] > 0):
-        return "holds" if row["ci_high"] < 0 else "does not hold"
-    if row["p_holm"] < ALPHA:  # the ranks moved, the mean's interval covers 0
-        return "undecided"
-    if baseline.mean() < row["margin"] and treated.mean() < row["margin"]:  # no reduction could reach it
+    if row["p_holm"] < ALPHA and row["nonzero_pairs"] >= MIN_PAIRS:  # (exact p: k < 6 cannot get here)
+        if row["ci_high"] < 0 or row["ci_low"] > 0:
+            return "holds" if row["ci_high"] < 0 else "does not hold"
+        return "undecided"  # the ranks moved, the mean's interval covers 0
+    if upper_bound(baseline) < row["margin"] and upper_bound(treated) < row["margin"]:  # no reduction could reach it
         return f"not testable here (baseline fails < {row['margin']:g})"
     if row["p_equivalence"] < ALPHA and -row["margin"] < row["ci_low"] <= row["ci_high"] < row["margin"]:
         return f"no effect beyond +-{row['margin']:g}"
@@ -314,6 +351,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "margin_reason": why,
                     "p_equivalence": equivalence_p(d, margin) if keys and margin == margin else math.nan,
                     "pairs_for_80pct_power": pairs_for_power(d),
+                    **across_prompts(keys, d, margin),
                     "by_prompt": by_prompt(keys, d),
                     **_sizes(sel, c, keys),
                 }
@@ -322,9 +360,61 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
     family = [r["p_value"] if untested(b, a, f) is None else math.nan for r, (b, a, f) in zip(out, arms)]
     for row, p in zip(out, holm(family)):
         row["p_holm"] = p
+    family = [r["p_prompts"] if f == f else math.nan for r, f in zip(out, family)]
+    for row, p in zip(out, holm(family)):
+        row["p_prompts_holm"] = p
     for row, (b, a, fails_at) in zip(out, arms):
         row["verdict"] = verdict(row, baseline=b, treated=a, fails_at=fails_at)
+        row["verdict_prompts"] = verdict_prompts(row)
     return out
+
+
+MIN_PROMPTS = 3
+"""Fewest prompts a difference across prompts is read from."""
+
+
+def across_prompts(keys: list[tuple], d: np.ndarray, margin: float) -> dict:
+    """The claim with the prompt as the unit: the mean of the per-prompt mean differences, its
+    t interval and two-sided t p-value over the G prompts (G - 1 degrees of freedom), and the
+    t-TOST p against the margin. Pairs of one prompt share its asset and caption, so across
+    prompts they are not independent; this is the reading for prompts beyond the ones run."""
+    from scipy import stats
+
+    per: dict[str, list[float]] = {}
+    for (prompt, _seed), x in zip(keys, d):
+        per.setdefault(prompt, []).append(float(x))
+    pm = np.array([np.mean(v) for v in per.values()], dtype=np.float64)
+    nan = {"prompts": len(pm), "prompt_mean_diff": math.nan, "prompt_ci_low": math.nan, "prompt_ci_high": math.nan,
+           "p_prompts": math.nan, "p_prompts_holm": math.nan, "p_prompts_equivalence": math.nan}  # fmt: skip
+    if len(pm) < 2:
+        return nan | ({"prompt_mean_diff": float(pm.mean())} if len(pm) else {})
+    mean, se = float(pm.mean()), float(pm.std(ddof=1)) / math.sqrt(len(pm))
+    t = stats.t(len(pm) - 1)
+    if se == 0:  # every prompt moved alike: the exact sign-flip p over the prompts
+        p, lo, hi = (1.0 if mean == 0 else 2.0 / 2 ** len(pm)), mean, mean
+    else:
+        p = float(2 * t.sf(abs(mean) / se))
+        lo, hi = mean - t.ppf(0.975) * se, mean + t.ppf(0.975) * se
+    return nan | {"prompt_mean_diff": mean, "prompt_ci_low": float(lo), "prompt_ci_high": float(hi), "p_prompts": p,
+                  "p_prompts_equivalence": equivalence_p(pm, margin) if margin == margin else math.nan}  # fmt: skip
+
+
+def verdict_prompts(row: dict) -> str:
+    """The verdict words with the prompt as the unit (``across_prompts``; Holm over the same
+    family): the pairs' words where they admit no test or the failure is too rare; otherwise
+    holds / does not hold, no effect beyond +-m (t-TOST and the interval inside the margin),
+    too few prompts, or undecided."""
+    words = row["verdict"]
+    if words.startswith(("not measured", "not testable", "too few pairs")):
+        return words
+    if row["prompts"] < MIN_PROMPTS:
+        return f"too few prompts (G < {MIN_PROMPTS})"
+    if row["p_prompts_holm"] < ALPHA:
+        return "holds" if row["prompt_mean_diff"] < 0 else "does not hold"
+    m = row["margin"]
+    if row["p_prompts_equivalence"] < ALPHA and -m < row["prompt_ci_low"] <= row["prompt_ci_high"] < m:
+        return f"no effect beyond +-{m:g}"
+    return "undecided"
 
 
 def by_prompt(keys: list[tuple], d: np.ndarray) -> str:
