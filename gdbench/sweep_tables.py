@@ -102,7 +102,12 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
     head = ["setting", "preset", "cells"]
     for _key, name, tailed in COLUMNS:
         head += [name] + ([f"median {name}"] if tailed else [])
-    md = [f"Cells {commits(rows)}.", ""] if rows else []
+    tables = {v.get("tables_commit") for v in verdicts} - {None}
+    md = (
+        [f"Cells {commits(rows)}" + (f"; tables by {', '.join(sorted(tables))}." if tables else "."), ""]
+        if rows
+        else []
+    )
     md += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in summary:
         cells = [label(s), s["preset"], str(s["cells"])]
@@ -150,7 +155,10 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
     paths = {"cells_csv": write_csv(rows, out / "cells.csv")}
     summary = summarise(rows)
     paths["summary_csv"] = write_csv(summary, out / "summary.csv")
-    verdicts = evaluate(rows)
+    from .provenance import code_commit
+
+    tables_commit = code_commit()  # the statistics' code: the cells say which code made them
+    verdicts = [v | {"tables_commit": tables_commit} for v in evaluate(rows)]
     paths["verdict_csv"] = write_csv(verdicts, out / "verdict.csv")
     (out / "summary.md").write_text(markdown(summary, verdicts, rows))
     paths["summary_md"] = out / "summary.md"
