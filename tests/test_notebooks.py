@@ -181,8 +181,11 @@ def test_notebook_runs_on_the_shipped_results(name, monkeypatch, tmp_path):
         forest = json.loads(re.search(r"^FOREST_CHECK (.*)$", text, re.M).group(1))
         rows = read_csv(Path(forest["sweep"]) / "verdict.csv")
         with_ci = [r for r in rows if all(math.isfinite(num(r[k])) for k in ("mean_diff", "ci_low", "ci_high"))]
-        assert rows and forest["rows"] == len(rows) == forest["forest"]["rows"]
-        assert forest["errorbars"] == len(with_ci) == forest["forest"]["intervals"]
+        across = [r for r in with_ci if all(math.isfinite(num(r.get(k))) for k in ("prompt_ci_low", "prompt_ci_high"))]
+        assert rows and forest["forest"]["rows"] == len(rows)
+        assert forest["rows"] == len(with_ci) == forest["forest"]["intervals"]  # a row per interval, no empty rows
+        assert forest["forest"]["prompt_intervals"] == len(across) > 0  # the shipped sweep reads both ways
+        assert forest["errorbars"] == len(with_ci) + len(across)
         assert len(forest["forest"]["without_interval"]) == len(rows) - len(with_ci)
 
 
