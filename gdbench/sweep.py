@@ -448,8 +448,8 @@ def turntable_grid(
     """One figure of turntables (``frames`` evenly spaced views from each cell's turntable.gif), a
     row per cell of ``seed``: for ``prompt``, one per (group, setting, preset); with ``prompt``
     None, one per (group, prompt, preset) of ``setting``; ``group`` keeps one group's cells.
-    ``out`` may be several sweep folders (their cells in one figure, in the given order), saved
-    at ``path`` (default: the first folder). None when no cell has one."""
+    ``out`` may be several sweep folders (their cells in one figure, by setting, group, prompt and
+    preset), saved at ``path`` (default: the first folder). None when no cell has one."""
     import imageio.v3 as iio
     import numpy as np
 
@@ -481,8 +481,8 @@ def turntable_grid(
             key=lambda g, r=root: order(g, r),
         )
     ]
-    if len(roots) > 1:  # several sweeps: by setting, then group and preset
-        cells.sort(key=lambda c: (order(c[1], c[0])[2], order(c[1], c[0])[0], order(c[1], c[0])[3]))
+    if len(roots) > 1:  # several sweeps: by setting, then group, prompt and preset
+        cells.sort(key=lambda c: (lambda g, pr, st, ps: (st, g, pr, ps))(*order(c[1], c[0])))
     if not cells:
         return None
     plt = pyplot()

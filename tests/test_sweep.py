@@ -333,6 +333,10 @@ def test_the_statistics_against_independent_oracles():
     assert signed_rank_p(x) == pytest.approx(exact, rel=1e-9)
     assert signed_rank_p(x, "greater") == pytest.approx(np.mean([f >= w - 1e-12 for f in flips]), rel=1e-9)
     assert signed_rank_p(np.r_[np.zeros(55), np.full(5, -0.1)]) == pytest.approx(2 / 2**5)
+    assert signed_rank_p(np.array([0.3 - 0.2, 0.1, 0.1, -0.1, 0.2, 0.1])) == pytest.approx(
+        signed_rank_p(np.array([0.1, 0.1, 0.1, -0.1, 0.2, 0.1]))
+    )  # float noise neither breaks a tie nor makes a zero count: 0.3 - 0.2 ties 0.1
+    assert signed_rank_p(np.r_[np.full(6, 1e-17), [0.1]]) == 1.0  # one real difference: p 1
     big = rng.normal(0.3, 1.0, 40)  # past the enumeration: scipy's
     assert signed_rank_p(big) == pytest.approx(stats.wilcoxon(big).pvalue, rel=1e-9)
     # TOST against scipy's one-sided one-sample t-tests of d + m > 0 and d - m < 0
@@ -381,6 +385,17 @@ def test_claims_across_prompts_take_the_prompt_as_the_unit():
     assert v["verdict"] == "holds" and v["verdict_prompts"] == "holds" and v["p_prompts_holm"] < 0.05
     two = [r for r in rows if r["prompt"] in ("p0", "p1")]
     assert evaluate(two)[0]["verdict_prompts"] == "too few prompts (G < 3)"
+    # prompts that all moved alike (one pair each, d = 0.05: their std is float noise, not 0): the
+    # exact sign-flip p over six prompts, 2 / 2^6
+    alike = [_row(p, f"q{i}", 0, 0.1 if p == "gd" else 0.05) for i in range(6) for p in ("gd", "gd-no-sn")]
+    v = evaluate(alike)[0]
+    assert v["p_prompts"] == pytest.approx(2 / 2**6) and v["prompt_ci_low"] == pytest.approx(0.05)
+    # five non-tied pairs among 60 (prompt means -0.01 x 5 and 0): the pairs' words across prompts
+    # too, not a t test over almost equal prompt means (its p: 0.004)
+    few = [_row(p, f"q{i}", s, 0.2 if p == "gd" and s == 0 and i < 5 else 0.3) for i in range(6) for s in range(10)
+           for p in ("gd", "gd-no-sn")]  # fmt: skip
+    v = evaluate(few)[0]
+    assert v["nonzero_pairs"] == 5 and v["p_prompts"] < 0.01 and v["verdict_prompts"] == v["verdict"] != "holds"
 
 
 def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):

@@ -44,7 +44,7 @@ The verdict words, checked in this order:
 - **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 (with at least six
   non-tied pairs) and the BCa interval of the mean difference lies below 0 (the claim holds) or
   above 0 (the opposite holds); a significant rank test whose mean interval covers 0 (a skewed
-  sample: the median moves one way, the mean not) decides nothing and reads undecided;
+  sample: the median moves one way, the mean not) decides nothing and goes on to the words below;
 - **not testable here (baseline fails < m)**: not significant, and both arms' means are surely
   under the margin m (their one-sided 95% t upper bounds over the pairs): every metric here is
   a failure measure of at least 0, so no reduction could reach m and the equivalence test says
@@ -148,6 +148,10 @@ def bca_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, seed: int = 0
     return math.nan, math.nan
 
 
+ROUND = 12
+"""Decimals the differences are rounded to before ranking: float noise (0.3 - 0.2 against 0.1)
+would otherwise break ties and give near-zero differences a rank."""
+
 EXACT_UP_TO = 16
 """Non-zero differences up to which the signed-rank p is exact (every sign pattern enumerated, ties
 at their mid-ranks): scipy falls back to the normal approximation wherever zeros or ties occur,
@@ -159,7 +163,7 @@ def signed_rank_p(d: np.ndarray, alternative: str = "two-sided") -> float:
     differences, scipy's otherwise); 1 when nothing differs."""
     from scipy import stats
 
-    d = np.asarray(d, dtype=np.float64)
+    d = np.round(np.asarray(d, dtype=np.float64), ROUND)  # 0.3 - 0.2 and 0.1 tie
     d = d[d != 0]
     if d.size == 0:
         return 1.0
@@ -186,7 +190,7 @@ def equivalence_p(d: np.ndarray, margin: float) -> float:
     if d.size < 2:
         return math.nan
     mean, se = float(d.mean()), float(d.std(ddof=1)) / math.sqrt(d.size)
-    if se == 0:
+    if np.all(d == d[0]):  # no spread (the std of equal floats can be 1e-17, not 0)
         return 0.0 if abs(mean) < margin else 1.0
     t = stats.t(d.size - 1)
     return float(max(t.sf((mean + margin) / se), t.cdf((mean - margin) / se)))
@@ -216,7 +220,7 @@ def pairs_for_power(d: np.ndarray, power: float = 0.8, alpha: float = ALPHA) -> 
     if mean == 0:
         return math.inf
     z = stats.norm.ppf(1 - alpha / 2) + stats.norm.ppf(power)
-    return float(math.ceil((z * sd / abs(mean)) ** 2 / (3 / math.pi))) if sd > 0 else float(MIN_PAIRS)
+    return float(math.ceil((z * sd / abs(mean)) ** 2 / (3 / math.pi))) if np.any(d != d[0]) else float(MIN_PAIRS)
 
 
 def untested(baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str | None:
@@ -249,10 +253,10 @@ def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: f
     why = untested(baseline, treated, fails_at)
     if why is not None:
         return why
-    if row["p_holm"] < ALPHA and row["nonzero_pairs"] >= MIN_PAIRS:  # (exact p: k < 6 cannot get here)
-        if row["ci_high"] < 0 or row["ci_low"] > 0:
-            return "holds" if row["ci_high"] < 0 else "does not hold"
-        return "undecided"  # the ranks moved, the mean's interval covers 0
+    significant = row["p_holm"] < ALPHA and row["nonzero_pairs"] >= MIN_PAIRS  # (exact p: k < 6 cannot)
+    if significant and (row["ci_high"] < 0 or row["ci_low"] > 0):
+        return "holds" if row["ci_high"] < 0 else "does not hold"
+    # (significant ranks with a mean interval over 0: the mean may still be bounded by the margin)
     if upper_bound(baseline) < row["margin"] and upper_bound(treated) < row["margin"]:  # no reduction could reach it
         return f"not testable here (baseline fails < {row['margin']:g})"
     if row["p_equivalence"] < ALPHA and -row["margin"] < row["ci_low"] <= row["ci_high"] < row["margin"]:
@@ -360,7 +364,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
     family = [r["p_value"] if untested(b, a, f) is None else math.nan for r, (b, a, f) in zip(out, arms)]
     for row, p in zip(out, holm(family)):
         row["p_holm"] = p
-    family = [r["p_prompts"] if f == f else math.nan for r, f in zip(out, family)]
+    family = [r["p_prompts"] if f == f and r["prompts"] >= MIN_PROMPTS else math.nan for r, f in zip(out, family)]
     for row, p in zip(out, holm(family)):
         row["p_prompts_holm"] = p
     for row, (b, a, fails_at) in zip(out, arms):
@@ -390,7 +394,7 @@ def across_prompts(keys: list[tuple], d: np.ndarray, margin: float) -> dict:
         return nan | ({"prompt_mean_diff": float(pm.mean())} if len(pm) else {})
     mean, se = float(pm.mean()), float(pm.std(ddof=1)) / math.sqrt(len(pm))
     t = stats.t(len(pm) - 1)
-    if se == 0:  # every prompt moved alike: the exact sign-flip p over the prompts
+    if np.all(pm == pm[0]):  # every prompt moved alike: the exact sign-flip p over the prompts
         p, lo, hi = (1.0 if mean == 0 else 2.0 / 2 ** len(pm)), mean, mean
     else:
         p = float(2 * t.sf(abs(mean) / se))
@@ -401,12 +405,13 @@ def across_prompts(keys: list[tuple], d: np.ndarray, margin: float) -> dict:
 
 def verdict_prompts(row: dict) -> str:
     """The verdict words with the prompt as the unit (``across_prompts``; Holm over the same
-    family): the pairs' words where they admit no test or the failure is too rare; otherwise
+    family): the pairs' words where they admit no test, the failure is too rare or fewer than six
+    pairs differ; otherwise
     holds / does not hold, no effect beyond +-m (t-TOST and the interval inside the margin),
     too few prompts, or undecided."""
     words = row["verdict"]
-    if words.startswith(("not measured", "not testable", "too few pairs")):
-        return words
+    if words.startswith(("not measured", "not testable", "too few pairs")) or row["nonzero_pairs"] < MIN_PAIRS:
+        return words  # (k < 6 non-tied pairs: a t test over their prompt means would be far too liberal)
     if row["prompts"] < MIN_PROMPTS:
         return f"too few prompts (G < {MIN_PROMPTS})"
     if row["p_prompts_holm"] < ALPHA:
