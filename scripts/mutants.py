@@ -133,7 +133,7 @@ MUTATIONS = [
     Mutation("bootstrap-90-percent", "gdbench/metrics/claims.py",
              "def bca_ci(d: np.ndarray, *, level: float = 0.95,", "def bca_ci(d: np.ndarray, *, level: float = 0.90,",
              "the claims' interval at 5/95 percentiles instead of 2.5/97.5", "metrics",
-             ("tests/test_sweep.py::test_the_statistics_against_independent_oracles",)),
+             ("tests/test_claims.py::test_the_statistics_against_independent_oracles",)),
     # the counter-based normal sampler (C++)
     Mutation("box-muller-u1-zero", "renderers/splat/csrc/normal_cpu.cpp",
              "(__builtin_convertvector((SI)(w1 >> 8), F) + 0.5f) * 5.9604644775390625e-8f",
