@@ -1,4 +1,4 @@
-"""The sweep's tables and figure, rewritten after every cell:
+"""The sweep's tables and figure, written when a sweep ends and every few minutes while it runs:
 
 - ``cells.csv``: one row per (group, setting, prompt, preset, seed) cell;
 - ``summary.csv``: per (group, setting, preset), numbers only: each metric's mean, standard deviation

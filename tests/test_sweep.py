@@ -101,6 +101,26 @@ def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep,
     assert [s.steps for s in ran] == [6]
 
 
+def test_a_running_sweep_writes_its_tables_on_a_clock_and_once_at_the_end(tmp_path, monkeypatch):
+    """The tables are rewritten while cells finish only every TABLES_EVERY_S seconds (at 1000 cells
+    each rewrite cost 5 s), always at the end, from every cell: the same files either way."""
+    from gdbench import sweep as sweep_module
+    from gdbench import sweep_tables
+
+    calls = []
+    real = sweep_tables.tables
+    monkeypatch.setattr(sweep_tables, "tables", lambda rows, out: calls.append(len(rows)) or real(rows, out))
+    kw = dict(steps=4, colmap=False, overrides=TINY, progress=False)
+    rows = sweep([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "a", **kw)
+    assert calls == [3]  # the default clock: one write, at the end, with every cell
+    monkeypatch.setattr(sweep_module, "TABLES_EVERY_S", 0.0)
+    calls.clear()
+    sweep([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "b", **kw)
+    assert calls == [1, 2, 3, 3]  # after each cell, then the end
+    untimed = lambda path: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in _read_csv(path)]  # noqa: E731
+    assert untimed(tmp_path / "a" / "cells.csv") == untimed(tmp_path / "b" / "cells.csv") and len(rows) == 3
+
+
 def test_sweep_rejects_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="presets: unknown"):
         sweep([PROMPT], ["gd", "best"], [0], out=tmp_path)
