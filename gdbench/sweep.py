@@ -478,21 +478,14 @@ def turntable_grid(
         return ((group is None or g == group) and (prompt is None or pr == cell_name(prompt))
                 and (prompt is not None or setting is None or st == setting))  # fmt: skip
 
-    def order(gif: Path, root: Path) -> tuple:
-        g, st, pr, preset_ = parts(root, gif)
-        return (g, pr if prompt is None else "", list(SETTINGS).index(st) if st in SETTINGS else 99,
-                list(PRESETS).index(preset_) if preset_ in PRESETS else 99)  # fmt: skip
+    def order(cell: tuple[Path, Path]) -> tuple:
+        g, st, pr, preset_ = parts(*cell)
+        st_i = list(SETTINGS).index(st) if st in SETTINGS else 99
+        key = (g, pr if prompt is None else "", st_i, list(PRESETS).index(preset_) if preset_ in PRESETS else 99)
+        return (st_i, *key) if len(roots) > 1 else key  # several sweeps: by setting first
 
-    cells = [
-        (root, gif)
-        for root in roots
-        for gif in sorted(
-            (g for g in (root / "cells").rglob(f"seed{seed}/turntable.gif") if keep(root, g)),
-            key=lambda g, r=root: order(g, r),
-        )
-    ]
-    if len(roots) > 1:  # several sweeps: by setting, then group, prompt and preset
-        cells.sort(key=lambda c: (lambda g, pr, st, ps: (st, g, pr, ps))(*order(c[1], c[0])))
+    found = ((root, g) for root in roots for g in (root / "cells").rglob(f"seed{seed}/turntable.gif"))
+    cells = sorted((c for c in found if keep(*c)), key=order)
     if not cells:
         return None
     plt = pyplot()

@@ -102,9 +102,9 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
     head = ["setting", "preset", "cells"]
     for _key, name, tailed in COLUMNS:
         head += [name] + ([f"median {name}"] if tailed else [])
-    tables = {v.get("tables_commit") for v in verdicts} - {None}
+    made_by = {v.get("tables_commit") for v in verdicts} - {None}
     md = (
-        [f"Cells {commits(rows)}" + (f"; tables by {', '.join(sorted(tables))}." if tables else "."), ""]
+        [f"Cells {commits(rows)}" + (f"; tables by {', '.join(sorted(made_by))}." if made_by else "."), ""]
         if rows
         else []
     )

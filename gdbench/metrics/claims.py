@@ -384,10 +384,7 @@ def across_prompts(keys: list[tuple], d: np.ndarray, margin: float) -> dict:
     prompts they are not independent; this is the reading for prompts beyond the ones run."""
     from scipy import stats
 
-    per: dict[str, list[float]] = {}
-    for (prompt, _seed), x in zip(keys, d):
-        per.setdefault(prompt, []).append(float(x))
-    pm = np.array([np.mean(v) for v in per.values()], dtype=np.float64)
+    pm = np.array([np.mean(v) for v in per_prompt(keys, d).values()], dtype=np.float64)
     nan = {"prompts": len(pm), "prompt_mean_diff": math.nan, "prompt_ci_low": math.nan, "prompt_ci_high": math.nan,
            "p_prompts": math.nan, "p_prompts_holm": math.nan, "p_prompts_equivalence": math.nan}  # fmt: skip
     if len(pm) < 2:
@@ -406,9 +403,8 @@ def across_prompts(keys: list[tuple], d: np.ndarray, margin: float) -> dict:
 def verdict_prompts(row: dict) -> str:
     """The verdict words with the prompt as the unit (``across_prompts``; Holm over the same
     family): the pairs' words where they admit no test, the failure is too rare or fewer than six
-    pairs differ; otherwise
-    holds / does not hold, no effect beyond +-m (t-TOST and the interval inside the margin),
-    too few prompts, or undecided."""
+    pairs differ; otherwise holds / does not hold, no effect beyond +-m (t-TOST and the interval
+    inside the margin), too few prompts, or undecided."""
     words = row["verdict"]
     if words.startswith(("not measured", "not testable", "too few pairs")) or row["nonzero_pairs"] < MIN_PAIRS:
         return words  # (k < 6 non-tied pairs: a t test over their prompt means would be far too liberal)
@@ -422,9 +418,14 @@ def verdict_prompts(row: dict) -> str:
     return "undecided"
 
 
-def by_prompt(keys: list[tuple], d: np.ndarray) -> str:
-    """The mean difference per prompt with its pair count, e.g. 'a corgi -0.05 (3); a duck 0 (3)'."""
+def per_prompt(keys: list[tuple], d: np.ndarray) -> dict[str, list[float]]:
+    """The differences ``d`` of the (prompt, seed) pairs ``keys``, grouped by prompt (first-seen order)."""
     per: dict[str, list[float]] = {}
     for (prompt, _seed), x in zip(keys, d):
         per.setdefault(prompt, []).append(float(x))
-    return "; ".join(f"{p} {np.mean(v):+.3g} ({len(v)})" for p, v in per.items())
+    return per
+
+
+def by_prompt(keys: list[tuple], d: np.ndarray) -> str:
+    """The mean difference per prompt with its pair count, e.g. 'a corgi -0.05 (3); a duck 0 (3)'."""
+    return "; ".join(f"{p} {np.mean(v):+.3g} ({len(v)})" for p, v in per_prompt(keys, d).items())
