@@ -274,10 +274,11 @@ so --log-every has no place here)."""
 @dataclass
 class Sweep:
     """Train and score every (setting, prompt, preset, seed) cell; write cells.csv, summary.csv,
-    summary.md, verdict.csv (the paper's claims over (prompt, seed) pairs: BCa intervals,
-    signed-rank p-values Holm-adjusted, equivalence tests, power, per-prompt effects) and
-    ablation.png. Resumable: finished cells (scored by the same code) are skipped, an
-    interrupted cell resumes from its checkpoint. The grid is validated before the first cell."""
+    summary.md and verdict.csv (the paper's claims over (prompt, seed) pairs: BCa intervals,
+    signed-rank p-values Holm-adjusted, equivalence tests, power, per-prompt effects); with
+    --figures also ablation.png and each cell's turntable. Resumable: finished cells (scored by
+    the same code) are skipped, an interrupted cell resumes from its checkpoint. The grid is
+    validated before the first cell."""
 
     config: Path | None = None
     """A YAML or JSON file of this command's options (their names with '_' or '-', lists for
@@ -316,6 +317,11 @@ class Sweep:
     """Score cells with COLMAP consistency (the slow part: ~1 min per cell)."""
     colmap_views: Annotated[int, AtLeast(2)] = 100
     """Views on the circle rendered for COLMAP."""
+    figures: bool = False
+    """Also draw each cell's turntable (GIF, MP4, contact sheet) and training curves, as generate
+    does (about 2 s a cell), and the sweep's ablation.png (every cell's metrics). Off, a cell
+    writes scene.ply, run.json, scores.json and cell.json, what the tables need; run a finished
+    sweep again with --figures to draw them (nothing is trained again)."""
     train: tyro.conf.OmitArgPrefixes[SweepTrain] = field(default_factory=SweepTrain)
     """Overrides applied to every cell (after its setting's)."""
     method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
@@ -439,6 +445,7 @@ def run_sweep(cmd: Sweep) -> dict:
         colmap_presets=list(cmd.colmap_presets) or None,
         colmap_settings=list(cmd.colmap_settings) or None,
         on_valid=record,
+        figures=cmd.figures,
     )
     print((Path(cmd.out) / "summary.md").read_text())
     return {"cells": len(rows), "out": str(cmd.out)}

@@ -174,8 +174,9 @@ def turned_failure(views: dict, front_defined: bool) -> float:
     return float(abs(num(views["turned_deg"])) > 45)
 
 
-def run_cell(spec: CellSpec) -> dict:
-    """Train (or resume) and score one cell; writes and returns its row."""
+def run_cell(spec: CellSpec, figures: bool = False) -> dict:
+    """Train (or resume) and score one cell; writes and returns its row. ``figures``: also the
+    run's turntable and curves (``train.run.train``); cell.json records the cell's timings."""
     from .io import num, read_json, write_json
     from .metrics.run_scores import score_run
     from .provenance import code_commit
@@ -185,13 +186,15 @@ def run_cell(spec: CellSpec) -> dict:
     t0 = time.perf_counter()
     cfg = cell_config(spec)
     try:
-        r = train(cfg)
+        r = train(cfg, figures=figures)
     except (CheckpointError, FileExistsError) as e:  # the sweep has no --overwrite: say what to delete
         raise CheckpointError(
             f"{str(e).split(';')[0]}; delete {spec.dir} to retrain this cell, or sweep into another --out"
         ) from None
     train_s = sum(h["seconds"] for h in r.state.history)
+    t_score = time.perf_counter()
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
+    t_scored = time.perf_counter()
     run_info = read_json(spec.dir / "run.json", what="run.json")
     front_defined = cfg.view_prompting != "none"
     # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
@@ -236,18 +239,30 @@ def run_cell(spec: CellSpec) -> dict:
         "score_commit": code_commit(),
         "versions": "; ".join(f"{k} {v}" for k, v in run_info.get("versions", {}).items()),
     }
-    write_json({"spec": asdict(spec), "row": row}, spec.dir / "cell.json")
+    made = run_info.get("timings", {})
+    timings = {  # where this call's time went (a resumed or finished run trains little or nothing)
+        "train_call_s": t_score - t0,
+        "setup_s": made.get("setup_s"),
+        "steps_s": train_s,
+        "outputs_s": made.get("outputs_s"),
+        "score_s": t_scored - t_score,
+        "score_blocks_s": {k: v["made"].get("seconds") for k, v in scores.items()
+                           if isinstance(v, dict) and "made" in v},
+        "cell_s": time.perf_counter() - t0,
+    }  # fmt: skip
+    write_json({"spec": asdict(spec), "row": row, "timings": timings}, spec.dir / "cell.json")
     return row
 
 
-def _done(spec: CellSpec) -> dict | None:
-    """The row of a cell finished with this spec and scored by this code; None otherwise (the
-    cell is then scored again: its training resumes, or is found finished, from its folder)."""
+def _done(spec: CellSpec, figures: bool = False) -> dict | None:
+    """The row of a cell finished with this spec and scored by this code (with its figures, when
+    ``figures``); None otherwise (the cell is then scored again: its training resumes, or is found
+    finished, from its folder)."""
     from .io import read_json
     from .provenance import same_code
 
     p = spec.dir / "cell.json"
-    if not p.is_file():
+    if not p.is_file() or (figures and not (spec.dir / "turntable.gif").is_file()):
         return None
     blob = read_json(p, what="cell.json")
     row = blob.get("row")
@@ -278,6 +293,7 @@ def sweep(
     colmap_settings: list[str] | None = None,
     groups: dict[str, dict] | None = None,
     on_valid=None,
+    figures: bool = False,
 ) -> list[dict]:
     """Train and score the grid groups x settings x prompts x presets x seeds; returns the rows.
 
@@ -286,7 +302,11 @@ def sweep(
     ``colmap``). ``groups`` names sets of overrides applied on top of ``overrides`` (a factor the
     ambiguity settings do not cover: the prior, views per step); each group's cells live in
     ``out/cells/<group>/`` and claims pair within a group (default: one unnamed group).
-    ``on_valid()``, if given, is called once the grid is validated, before any cell runs."""
+    ``on_valid()``, if given, is called once the grid is validated, before any cell runs.
+    ``figures``: each cell also writes its turntable and training curves (what ``turntable_grid``
+    reads), and the sweep ablation.png; off, only what the tables need (a finished sweep run again
+    with ``figures`` draws them without training). ``out/timings.json`` records where the call's
+    time went (validation, cells, tables)."""
     from .metrics.claims import label
     from .sweep_tables import tables
 
@@ -327,7 +347,9 @@ def sweep(
         for pr in prompts
         for p in per[st]
     ]
+    t_start = time.perf_counter()
     validate_grid(prompts, presets, seeds, specs)
+    t_valid = time.perf_counter()
     if executor == "ray" and address:
         check_ray_address(address)
     for line in inert_overrides(specs):
@@ -337,7 +359,7 @@ def sweep(
     rows: dict[int, dict] = {}
     todo = []
     for i, spec in enumerate(specs):
-        done = _done(spec)
+        done = _done(spec, figures)
         if done is not None:
             rows[i] = done
         else:
@@ -348,11 +370,15 @@ def sweep(
 
     bar = progress_bar(len(todo), "sweep", "cell", disable=not progress or not todo)
     written = time.monotonic()
+    tables_s = 0.0
+    t_cells = time.perf_counter()
     try:
-        for i, row in _execute([specs[i] for i in todo], executor, address, workers):
+        for i, row in _execute([specs[i] for i in todo], executor, address, workers, figures):
             rows[todo[i]] = row
             if time.monotonic() - written >= TABLES_EVERY_S:  # a look at a long sweep's tables
-                tables([rows[k] for k in sorted(rows)], out)
+                t0 = time.perf_counter()
+                tables([rows[k] for k in sorted(rows)], out, figures)
+                tables_s += time.perf_counter() - t0
                 written = time.monotonic()
             if bar is not None:
                 bar.write(
@@ -365,8 +391,18 @@ def sweep(
     finally:
         if bar is not None:
             bar.close()
+    t_end = time.perf_counter()
+    tables_during = tables_s  # the periodic rewrites while cells ran
     ordered = [rows[k] for k in sorted(rows)]
-    tables(ordered, out)
+    tables(ordered, out, figures)
+    tables_s += time.perf_counter() - t_end
+    from .io import write_json
+    from .provenance import code_commit
+
+    timings = {"commit": code_commit(), "cells": len(specs), "ran": len(todo), "workers": workers,
+               "validate_s": t_valid - t_start, "cells_s": t_end - t_cells - tables_during, "tables_s": tables_s,
+               "sweep_s": time.perf_counter() - t_start}  # fmt: skip
+    write_json(timings, out / "timings.json")
     return ordered
 
 
@@ -401,12 +437,15 @@ def check_ray_address(address: str, timeout: float = RAY_CONNECT_TIMEOUT) -> Non
         ) from None
 
 
-def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):
+def _execute(specs: list[CellSpec], executor: str, address: str, workers: int, figures: bool = False):
     """Yield (index, row) as cells finish."""
+    import functools
+
+    cell = functools.partial(run_cell, figures=figures)  # picklable: a module function and a bool
     if executor == "local":
         if workers <= 1:
             for i, s in enumerate(specs):
-                yield i, run_cell(s)
+                yield i, cell(s)
             return
         import multiprocessing
         import os
@@ -418,7 +457,7 @@ def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):
         ctx = multiprocessing.get_context("spawn")
         pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_threads, initargs=(threads,))
         try:
-            futs = {pool.submit(run_cell, s): i for i, s in enumerate(specs)}
+            futs = {pool.submit(cell, s): i for i, s in enumerate(specs)}
             for f in as_completed(futs):
                 yield futs[f], f.result()
         finally:  # a stop signal or an error: queued cells are cancelled, not run to the end
@@ -439,7 +478,7 @@ def _execute(specs: list[CellSpec], executor: str, address: str, workers: int):
             )
         try:
             remote = ray.remote(run_cell)
-            refs = {remote.remote(s): i for i, s in enumerate(specs)}
+            refs = {remote.remote(s, figures): i for i, s in enumerate(specs)}
             pending = list(refs)
             while pending:
                 ready, pending = ray.wait(pending, num_returns=1)

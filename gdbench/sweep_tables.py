@@ -8,7 +8,7 @@
   cells, and the commits that trained and scored the cells;
 - ``verdict.csv`` (and in ``summary.md``): each of the paper's claims in each setting, as the
   paired difference with a 95% bootstrap interval (``metrics/claims.py``);
-- ``ablation.png``: every cell's metrics per preset and setting.
+- ``ablation.png``: every cell's metrics per preset and setting (``gdbench sweep --figures``).
 """
 
 from __future__ import annotations
@@ -147,7 +147,8 @@ def _size_note(v: dict) -> str:
     return f" (sizes differ {v['size_ratio']:.1f}x: growth confounds the pair)" if v["size_confounded"] else ""
 
 
-def tables(rows: list[dict], out: Path) -> dict[str, Path]:
+def tables(rows: list[dict], out: Path, figures: bool = True) -> dict[str, Path]:
+    """cells.csv, summary.csv, verdict.csv, summary.md and, with ``figures``, ablation.png."""
     from .io import write_csv
     from .metrics.claims import evaluate
 
@@ -162,7 +163,8 @@ def tables(rows: list[dict], out: Path) -> dict[str, Path]:
     paths["verdict_csv"] = write_csv(verdicts, out / "verdict.csv")
     (out / "summary.md").write_text(markdown(summary, verdicts, rows))
     paths["summary_md"] = out / "summary.md"
-    paths["plot"] = plot(rows, out / "ablation.png")
+    if figures:
+        paths["plot"] = plot(rows, out / "ablation.png")
     return paths
 
 

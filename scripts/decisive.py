@@ -122,7 +122,7 @@ def run_blocks(blocks: list[Block], seeds: list[int], out: Path, args, rounds: i
                 b.prompts, b.presets, seeds[: min(k, len(seeds))], steps=b.steps, out=out / "blocks" / b.name,
                 executor=args.executor, address=args.address, workers=args.workers, colmap=b.colmap,
                 settings=b.settings, groups={g: GROUPS[g] for g in b.groups}, overrides=b.overrides,
-                progress=args.progress,
+                progress=args.progress, figures=True,  # the turntable grids read the cells' GIFs
             )  # fmt: skip
     return rows
 

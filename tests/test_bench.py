@@ -279,3 +279,29 @@ def test_bench_quick_runs_render_in_one_process_and_peers_as_asked(monkeypatch, 
     assert "--quick" not in seen["argv"] and "--inprocess" not in seen["argv"]
     with pytest.raises(ValueError, match="quick: only render and peers"):
         run_bench(Bench("train", out=tmp_path, quick=True))
+
+
+def test_bm_cell_breaks_a_cell_down_and_compares_a_peer_checkout(tmp_path):
+    """bm_cell on a 5-step cell, with this checkout as its own --peer: the phases it reports come
+    from the sweep's and the cell's own records (the training steps are the row's), none is
+    negative but 'other', they add up to the wall time, and two fresh processes of one checkout
+    write the same scene and scores (the check a speed change must pass against the code before)."""
+    import csv
+
+    from gdbench.bench import bm_cell
+
+    out = tmp_path / "cell.csv"
+    root = bm_cell.ROOT
+    assert bm_cell.main(["--steps", "5", "--rounds", "1", "--skip-colmap", "--skip-cold", "--peer", str(root),
+                         "--out", str(out)]) == 0  # fmt: skip
+    rows = list(csv.DictReader(out.open()))
+    wall = float(rows[0]["seconds"])
+    phases = {r["what"].removeprefix("  of which "): float(r["seconds"]) for r in rows if "of which" in r["what"]}
+    assert {"training steps", "scores (ground truth, views)", "start-up and imports", "other"} <= set(phases)
+    assert all(v >= 0 for k, v in phases.items() if k != "other")
+    assert sum(phases.values()) == pytest.approx(wall, rel=1e-9)
+    mean_step = next(float(r["seconds"]) for r in rows if "mean training step" in r["what"])
+    assert mean_step * 5 == pytest.approx(phases["training steps"], rel=1e-9)
+    peer = next(r for r in rows if "--peer" in r["what"])
+    assert peer["same_scene"] == "True" and peer["same_scores"] == "True" and float(peer["ratio"]) > 0
+    assert any("matrix product" in r["what"] and float(r["gflops"]) > 0 for r in rows)

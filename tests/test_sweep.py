@@ -58,6 +58,37 @@ def test_sweep_writes_every_cell_and_tables_that_summarise_them(tiny_sweep):
     assert md.count("\n| easy | gd |") == 1 and md.count("\n| easy | sjc-gs |") == 1
 
 
+def test_figures_are_drawn_on_request_and_a_finished_sweep_draws_them_without_training(tmp_path, monkeypatch):
+    """A sweep writes what its tables need (no turntable, curves or ablation.png), and records where
+    its time went (timings.json: the phases add up to at most the sweep's time; cell.json: the
+    run's steps as the row reports them). Run again with figures it draws them from the finished
+    cells: no training step runs (oracle: a step that raises), and the rows are the same."""
+    import gdbench.train.run as run_mod
+
+    args = ([PROMPT], ["gd"], [0])
+    kw = dict(steps=4, out=tmp_path, colmap=False, overrides=TINY, progress=False)
+    rows = sweep(*args, **kw)
+    cell = CellSpec(PROMPT, "gd", 0, 4, str(tmp_path), colmap=False, overrides=TINY).dir
+    assert (cell / "scene.ply").is_file() and (tmp_path / "verdict.csv").is_file()
+    for name in ("turntable.gif", "turntable.mp4", "turntable_sheet.png", "curves.png"):
+        assert not (cell / name).exists(), name
+    assert not (tmp_path / "ablation.png").exists()
+    t = json.loads((tmp_path / "timings.json").read_text())
+    assert t["ran"] == 1 and t["validate_s"] + t["cells_s"] + t["tables_s"] <= t["sweep_s"]
+    c = json.loads((cell / "cell.json").read_text())["timings"]
+    assert c["steps_s"] == rows[0]["train_time_s"] and c["score_s"] + c["train_call_s"] <= c["cell_s"]
+
+    def no_step(*a, **k):
+        raise AssertionError("a finished cell trained again")
+
+    monkeypatch.setattr(run_mod, "train_step", no_step)
+    again = sweep(*args, **kw, figures=True)
+    for name in ("turntable.gif", "turntable.mp4", "turntable_sheet.png", "curves.png"):
+        assert (cell / name).is_file(), name
+    assert (tmp_path / "ablation.png").is_file()
+    assert [r["gt_psnr"] for r in again] == [r["gt_psnr"] for r in rows]
+
+
 def test_seeds_give_different_cells_and_the_same_seed_the_same_cell(tiny_sweep, tmp_path):
     _, rows = tiny_sweep
     by = {(r["preset"], r["seed"]): r for r in rows}
@@ -70,7 +101,7 @@ def test_a_finished_sweep_skips_all_cells_and_an_interrupted_one_continues(tiny_
     out, rows = tiny_sweep
     import gdbench.sweep as sw
 
-    def boom(spec):
+    def boom(spec, **kw):
         raise AssertionError(f"cell {spec} should have been skipped")
 
     monkeypatch.setattr(sw, "run_cell", boom)
@@ -83,7 +114,7 @@ def test_a_finished_sweep_skips_all_cells_and_an_interrupted_one_continues(tiny_
     shutil.rmtree(spec.dir)
     train(cell_config(spec), stop_at=2)
     ran = []
-    monkeypatch.setattr(sw, "run_cell", lambda s: ran.append(s) or run_cell(s))
+    monkeypatch.setattr(sw, "run_cell", lambda s, **kw: ran.append(s) or run_cell(s, **kw))
     resumed = sweep([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
     assert ran == [spec]
     assert json.loads((spec.dir / "run.json").read_text())["resumed_from_step"] == 2
@@ -95,8 +126,8 @@ def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep,
     import gdbench.sweep as sw
 
     ran = []
-    monkeypatch.setattr(sw, "run_cell", lambda s: ran.append(s) or {"preset": s.preset})
-    monkeypatch.setattr("gdbench.sweep_tables.tables", lambda rows, out: {})
+    monkeypatch.setattr(sw, "run_cell", lambda s, **kw: ran.append(s) or {"preset": s.preset})
+    monkeypatch.setattr("gdbench.sweep_tables.tables", lambda rows, out, *a: {})
     sweep([PROMPT], ["gd"], [0], steps=6, out=out, colmap=False, overrides=TINY, progress=False)
     assert [s.steps for s in ran] == [6]
 
@@ -109,7 +140,7 @@ def test_a_running_sweep_writes_its_tables_on_a_clock_and_once_at_the_end(tmp_pa
 
     calls = []
     real = sweep_tables.tables
-    monkeypatch.setattr(sweep_tables, "tables", lambda rows, out: calls.append(len(rows)) or real(rows, out))
+    monkeypatch.setattr(sweep_tables, "tables", lambda rows, out, *a: calls.append(len(rows)) or real(rows, out, *a))
     kw = dict(steps=4, colmap=False, overrides=TINY, progress=False)
     rows = sweep([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "a", **kw)
     assert calls == [3]  # the default clock: one write, at the end, with every cell

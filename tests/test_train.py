@@ -2,6 +2,7 @@
 stiff cases. The slow-marked quality test runs the real duck."""
 
 import dataclasses
+import io
 import itertools
 import math
 
@@ -255,32 +256,65 @@ def test_non_finite_gradients_are_skipped_then_stop_the_run(prior, tmp_path, mon
     assert not (tmp_path / "b" / "scene.ply").exists()
 
 
-def test_adam_step_gives_torch_optims_bits():
-    """Oracle: torch.optim.Adam(fused=True).step() on a copy. The trainer's direct call of the
-    fused kernel must give the same parameters and state bit for bit, over steps with changing
-    learning rates, a group without a gradient, and the first step (whose state torch creates)."""
-    from gdbench.train.update import adam_step
+def test_adam_gives_torch_optims_bits_and_checkpoints():
+    """Oracle: torch.optim.Adam(fused=True). The trainer's Adam (adam.py) must give the same
+    parameters and state bit for bit, over steps with changing learning rates, a group without a
+    gradient, the first step (state made) and a row edit of the state as densification makes;
+    and each one's state_dict must load into the other and go on with the same bits."""
+    from gdbench.train.adam import Adam
 
     g = torch.Generator().manual_seed(3)
     shapes = {"means": (50, 3), "quats": (50, 4), "log_scales": (50, 3), "opacity_logits": (50,), "sh": (50, 1, 3),
               "sh_rest": (50, 3, 3)}  # fmt: skip
-    runs = []
-    for _ in range(2):
+
+    def fresh(kind, lr=0.01):
         params = {k: torch.zeros(s).requires_grad_(True) for k, s in shapes.items()}
-        groups = [{"params": [params[k]], "lr": 0.01 * (i + 1), "name": k} for i, k in enumerate(PARAM_NAMES)]
-        runs.append((params, torch.optim.Adam(groups, eps=1e-15, fused=True)))
-    grads = [{k: torch.randn(s, generator=g) for k, s in shapes.items()} for _ in range(5)]
-    for step, gs in enumerate(grads):
-        for i, (params, opt) in enumerate(runs):
+        groups = [{"params": [params[k]], "lr": lr * (i + 1), "name": k} for i, k in enumerate(PARAM_NAMES)]
+        return params, (torch.optim.Adam(groups, eps=1e-15, fused=True) if kind == "torch" else Adam(groups, eps=1e-15))
+
+    grads = [{k: torch.randn(s, generator=g) for k, s in shapes.items()} for _ in range(8)]
+
+    def run(params, opt, steps):
+        for step in steps:
             for k in PARAM_NAMES:
-                params[k].grad = None if (step == 3 and k == "quats") else gs[k].clone()
+                params[k].grad = None if (step == 3 and k == "quats") else grads[step][k].clone()
             opt.param_groups[0]["lr"] = 0.05 / (step + 1)
-            opt.step() if i == 0 else adam_step(opt)
-    (pa, oa), (pb, ob) = runs
-    for k in PARAM_NAMES:
-        assert torch.equal(pa[k], pb[k]) and not torch.equal(pa[k], torch.zeros(shapes[k]))
-        for key in ("exp_avg", "exp_avg_sq", "step"):
-            assert torch.equal(oa.state[pa[k]][key], ob.state[pb[k]][key])
+            opt.step()
+            if step == 4:  # densification's kind of edit: the moments of rows 0-9 dropped
+                st = opt.state[params["sh"]]
+                st["exp_avg"][:10] = 0
+                st["exp_avg_sq"][:10] = 0
+
+    def same(a, b):
+        (pa, oa), (pb, ob) = a, b
+        for k in PARAM_NAMES:
+            assert torch.equal(pa[k], pb[k]) and not torch.equal(pa[k], torch.zeros(shapes[k]))
+            for key in ("exp_avg", "exp_avg_sq", "step"):
+                sa, sb = oa.state[pa[k]][key], ob.state[pb[k]][key]
+                assert torch.equal(sa, sb) and sa.dtype == sb.dtype
+
+    ref, ours = fresh("torch"), fresh("ours")
+    run(*ref, range(5))
+    run(*ours, range(5))
+    same(ref, ours)
+
+    # checkpoints cross over: each state_dict, through torch.save's format, into a fresh optimizer of
+    # either kind, goes on as torch's own continuation does
+    def restored(src, kind):
+        buf = io.BytesIO()
+        torch.save({"params": {k: v.detach() for k, v in src[0].items()}, "opt": src[1].state_dict()}, buf)
+        blob = torch.load(io.BytesIO(buf.getvalue()), weights_only=True)
+        params, opt = fresh(kind, lr=0.5)  # the learning rates come from the state_dict
+        with torch.no_grad():
+            for k in PARAM_NAMES:
+                params[k].copy_(blob["params"][k])
+        opt.load_state_dict(blob["opt"])
+        run(params, opt, range(5, 8))
+        return params, opt
+
+    cont = restored(ref, "torch")
+    for src, kind in ((ref, "ours"), (ours, "torch"), (ours, "ours")):
+        same(cont, restored(src, kind))
 
 
 def test_finiteness_check_finds_each_kind_and_changes_nothing():

@@ -240,3 +240,61 @@ def test_gt_psnr_and_ssim_closed_forms():
     want = (2 * 0.2 * 0.6 + c1) / (0.2**2 + 0.6**2 + c1)
     torch.testing.assert_close(ssim(a, b), torch.full((2,), want), rtol=0, atol=1e-6)
     torch.testing.assert_close(ssim(b, b), torch.ones(2), rtol=0, atol=1e-6)
+
+
+def test_gt_score_renders_each_angle_once_with_the_bits_of_one_render_per_offset():
+    """Oracle: the score as it was written first, one render of the 12 held-out views per azimuth
+    offset (72 renders of 12 views). Rendering each distinct angle once and gathering them must
+    give the same PSNR, SSIM and offset, bit for bit, on a turned fixture (best offset not 0)."""
+    from gdbench.camera import SphericalPoses
+    from gdbench.metrics.fixtures3d import failure_scene
+    from gdbench.metrics.gt import asset_views, heldout_poses, psnr, score_against_asset, ssim
+    from gdbench.turntable import render_views
+
+    scene = failure_scene(CAPTION, "turned-90", n=3000)
+    poses = heldout_poses(12)
+    ref = asset_views(CAPTION, poses, 64)
+    offsets = torch.arange(0, 360, 5, dtype=torch.float64)
+    per = []
+    for off in offsets.tolist():
+        shifted = SphericalPoses(poses.azimuth + off, poses.elevation, poses.radius, poses.fovy)
+        img = render_views(scene, shifted.cameras(64, 64))
+        per.append((float(psnr(img, ref).mean()), off, img))
+    best = max(per, key=lambda t: t[0])  # the first of equal maxima, as the score's strict >
+    got = score_against_asset(scene, CAPTION, reference=ref)
+    assert got.offset_deg == best[1] and got.offset_deg != 0
+    assert got.psnr == best[0] and got.psnr_unaligned == per[0][0]
+    assert got.ssim == float(ssim(best[2], ref).mean())
+
+
+def test_asset_arrays_come_from_the_cache_as_built_and_a_corrupt_entry_is_rebuilt(tmp_path, monkeypatch):
+    """The held-out asset views and the prompt check's surface palette are cached beside the banks:
+    the cached arrays must equal a fresh render and the mesh's own colours and areas (the oracle),
+    bit for bit, and a damaged cache file is rebuilt, never read."""
+    import numpy as np
+
+    from gdbench.assets.library import build
+    from gdbench.metrics.gt import asset_views, heldout_poses
+    from gdbench.priors import prompt_check
+    from renderers.pyrender_points.mesh import render_mesh
+
+    monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path))
+    poses = heldout_poses(4)
+    cams = poses.cameras(32, 32)
+    pose_gl, K = cams.to_opengl()
+    want, _, _ = render_mesh(build(CAPTION), pose_gl.double().numpy(), K.double().numpy(), 32, 32)
+    first = asset_views(CAPTION, poses, 32)
+    files = list((tmp_path / "banks").glob("heldout-*.npz"))
+    assert len(files) == 1 and np.array_equal(first.numpy(), want)
+    assert torch.equal(asset_views(CAPTION, poses, 32), first)  # read back
+    files[0].write_bytes(b"not an npz")
+    assert torch.equal(asset_views(CAPTION, poses, 32), first)  # rebuilt
+    mesh = build(CAPTION)
+    w = mesh.area_faces / mesh.area_faces.sum()
+    lab = prompt_check._lab(mesh.visual.face_colors[:, :3].astype(np.float64) / 255)
+    prompt_check.palette.cache_clear()
+    for _ in range(2):  # built, then read from the file
+        got_lab, got_w = prompt_check.palette(CAPTION)
+        assert np.array_equal(got_lab, lab) and np.array_equal(got_w, w)
+        prompt_check.palette.cache_clear()
+    assert len(list((tmp_path / "banks").glob("palette-*.npz"))) == 1

@@ -167,23 +167,36 @@ def load_bank(caption: str, config: BankConfig | None = None, *, variant: int = 
 
 def _cache_write(path: Path, bank: Bank, verbose: bool) -> None:
     """Cache a bank atomically; a cache folder that cannot be written costs the cache, not the run."""
+    arrays = {k: getattr(bank, k).numpy() for k in ("images", "depth", "alpha", "azimuth", "elevation")}
+    _write_npz(path, arrays, "the bank")
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray], what: str) -> None:
     from ..io import atomic_write
 
-    def write(f) -> None:
-        np.savez(
-            f,
-            images=bank.images.numpy(),
-            depth=bank.depth.numpy(),
-            alpha=bank.alpha.numpy(),
-            azimuth=bank.azimuth.numpy(),
-            elevation=bank.elevation.numpy(),
-        )
-
     try:
-        atomic_write(path, write)
+        atomic_write(path, lambda f: np.savez(f, **arrays))
     except OSError as e:
         warnings.warn(
-            f"GDBENCH_CACHE: cannot write the bank cache {path.parent} ({e.strerror or e}); the bank is "
+            f"GDBENCH_CACHE: cannot write the bank cache {path.parent} ({e.strerror or e}); {what} is "
             "rebuilt in every process until GDBENCH_CACHE points at a writable folder",
-            stacklevel=3,
+            stacklevel=4,
         )
+
+
+def cached_arrays(name: str, key: dict, build) -> dict[str, np.ndarray]:
+    """Arrays derived from an asset (``build()``, a dict of numpy arrays), cached beside the banks
+    under a hash of ``key`` and the asset code version: the surface palette of the prompt check,
+    the held-out views of the ground-truth score. The same arrays, bit for bit, as ``build()``
+    (npz keeps dtypes and values); an unreadable entry is rebuilt, never trusted."""
+    blob = json.dumps(key | {"version": ASSET_VERSION}, sort_keys=True)
+    path = cache_dir() / f"{name}-{hashlib.sha256(blob.encode()).hexdigest()[:16]}.npz"
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                return {k: z[k] for k in z.files}
+        except Exception:  # a corrupt entry: rebuilt below
+            pass
+    arrays = build()
+    _write_npz(path, arrays, name)
+    return arrays

@@ -43,7 +43,7 @@ class DensifyState:
         return {"grad2d": self.grad2d, "count": self.count}
 
 
-def _edit(params: dict[str, Tensor], optimizer: torch.optim.Optimizer, keep: Tensor, extra: dict[str, Tensor]) -> None:
+def _edit(params: dict[str, Tensor], optimizer, keep: Tensor, extra: dict[str, Tensor]) -> None:
     """params[name] <- cat(params[name][keep], extra[name]) for every name, with Adam moments
     selected by ``keep`` and zeros for the new rows. ``keep`` is a boolean mask [N]."""
     for group in optimizer.param_groups:
@@ -122,7 +122,7 @@ class DensifyStrategy:
     def step(
         self,
         params: dict[str, Tensor],
-        optimizer: torch.optim.Optimizer,
+        optimizer,
         state: DensifyState,
         step: int,
         *,

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from ..noise import NoiseRenderer
 from ..scene import GaussianScene
+from .adam import Adam
 from .config import TrainConfig
 from .densify import PARAM_NAMES, SCENE_NAMES, DensifyState, DensifyStrategy, sh_coeffs
 from .streams import set_stream_states, stream_states
@@ -57,7 +58,7 @@ class Context:
 class TrainState:
     step: int
     params: dict[str, Tensor]
-    optimizer: torch.optim.Adam
+    optimizer: Adam
     densify: DensifyState
     noise_colors: Tensor | None
     streams: dict[str, torch.Generator]

@@ -1,5 +1,5 @@
-"""The end of a training step: the score's backward, the non-finite skip, Adam (its fused kernel
-called directly) and densification (``trainer`` holds the step)."""
+"""The end of a training step: the score's backward, the non-finite skip, Adam (``adam.Adam``) and
+densification (``trainer`` holds the step)."""
 
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
     for opt_group in state.optimizer.param_groups:
         if opt_group["name"] == "means":
             opt_group["lr"] = _means_lr(cfg, state.step, ctx.extent)
-    adam_step(state.optimizer)
+    state.optimizer.step()
     if not _all_finite([p[k] for k in PARAM_NAMES]):
         raise TrainingDiverged(
             f"parameters became non-finite at step {state.step + 1}; lower the learning rates "
@@ -87,43 +87,3 @@ def _all_finite(tensors: list[Tensor]) -> bool:
     with torch.no_grad():
         torch._amp_foreach_non_finite_check_and_unscale_([t.detach() for t in tensors], found, _ONE.to(found))
     return not bool(found)
-
-
-def adam_step(opt: torch.optim.Adam) -> None:
-    """``opt.step()`` for the trainer's fused Adam (one parameter per group), calling the fused
-    kernel directly: torch.optim's own step is about 1 ms of Python and checks per training step
-    on 2 cores for 5 kernel calls of ~10 us. The same kernel on the same tensors, so the same
-    bits (tests/test_train.py checks them against ``opt.step()``). Anything else, such as a
-    group's first step, whose state torch creates, or other options, goes through ``opt.step()``."""
-    todo = []  # (group, param, state)
-    for g in opt.param_groups:
-        p = g["params"][0]
-        if p.grad is None:
-            continue
-        st = opt.state.get(p)
-        if not st or len(g["params"]) != 1 or not _plain_fused(g):
-            opt.step()
-            return
-        todo.append((g, p, st))
-    if not todo:
-        return
-    torch._foreach_add_([st["step"] for _, _, st in todo], 1)
-    for g, p, st in todo:
-        b1, b2 = g["betas"]
-        torch._fused_adam_([p], [p.grad], [st["exp_avg"]], [st["exp_avg_sq"]], [], [st["step"]], amsgrad=False,
-                           lr=g["lr"], beta1=b1, beta2=b2, weight_decay=g["weight_decay"], eps=g["eps"],
-                           maximize=False, grad_scale=None, found_inf=None)  # fmt: skip
-
-
-def _plain_fused(g: dict) -> bool:
-    """The options ``adam_step`` reproduces: fused, no amsgrad, maximize, decoupled decay or
-    tensor learning rate."""
-    return (
-        g.get("fused") is True
-        and not g.get("amsgrad")
-        and not g.get("maximize")
-        and not g.get("decoupled_weight_decay", False)
-        and not g.get("capturable")
-        and not g.get("differentiable")
-        and not isinstance(g["lr"], Tensor)
-    )

@@ -1,0 +1,199 @@
+"""The unit cost of the science: one scored sweep cell, as a user pays for it, written to CSV/JSON.
+
+A 1000-step gd cell on "a yellow duck" at 64 px, trained and scored with the ground truth and the
+view metrics, no COLMAP, through ``gdbench sweep`` in a fresh process with the bank cached: its
+wall time and where it went (start-up and imports, the grid's validation, the run's set-up, the
+training steps, the run's outputs, the scores, the tables; from the sweep's timings.json and the
+cell's cell.json). Beside it, in the same run:
+
+- ``--peer DIR``: the same command from another checkout (e.g. a clone at an earlier commit),
+  alternating with this one over ``--rounds``, so the ratio compares two versions in one phase of
+  the machine; and whether both wrote the same scene and scores (a speed change must not change
+  results).
+- COLMAP consistency of the cell's scene at the sweep's settings (100 views at 256 px, exhaustive
+  matching): its time (target: at most 6 s).
+- A cold first run: ``gdbench generate`` of 1 step with an empty bank cache against the same with
+  the cache filled (the compiled compositor is shared): the cost of building the prompt's bank
+  (target: at most 5 s).
+- The machine's float32 matrix product before and after (GFLOP/s): the phase of the figures.
+
+    python -m gdbench.bench.bm_cell --out bench_results/cell.csv [--peer DIR] [--rounds 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from .common import environment, write_csv, write_json
+
+PROMPT = "a yellow duck"
+TARGET_CELL_S = 14.2 / 2.5
+"""The issue's target: 2.5x less than the 14.2 s one such cell took on a quiet machine before."""
+TARGET_RATIO = 2.5
+"""Against a ``--peer`` checkout of the code before (its wall time over this one's)."""
+TARGET_COLMAP_S = 6.0
+TARGET_COLD_S = 5.0
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None) -> dict:
+    """Wall time of one-cell ``gdbench sweep`` from checkout ``root`` in a fresh process, with the
+    phases the sweep and the cell record (where the checkout writes them)."""
+    cmd = [sys.executable, "-m", "gdbench.cli", "sweep", "--prompts", PROMPT, "--presets", "gd", "--seeds", "0",
+           "--steps", str(steps), "--no-colmap", "--out", str(out)]  # fmt: skip
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, cwd=root, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t0
+    if p.returncode != 0:
+        raise RuntimeError(f"sweep in {root} failed ({p.returncode}):\n{p.stderr[-3000:]}")
+    cell = out / "cells" / "easy" / PROMPT.replace(" ", "_") / "gd" / "seed0"
+    blob = json.loads((cell / "cell.json").read_text())
+    row = {"wall_s": wall, "row": blob["row"], "scene": (cell / "scene.ply").read_bytes()}
+    sw = out / "timings.json"
+    if sw.is_file() and "timings" in blob:  # a checkout that records its phases
+        s, c = json.loads(sw.read_text()), blob["timings"]
+        row["phases"] = {
+            "start-up and imports": wall - s["sweep_s"],
+            "validation of the grid (prompt check)": s["validate_s"],
+            "run set-up (prior, bank, initial state)": c["setup_s"],
+            "training steps": c["steps_s"],
+            "run outputs (PLY, run.json)": c["outputs_s"],
+            "scores (ground truth, views)": c["score_s"],
+            "tables": s["tables_s"],
+        }
+        row["phases"]["other"] = wall - sum(row["phases"].values())
+    return row
+
+
+def colmap_time(scene_ply: Path) -> dict:
+    from ..metrics.colmap_consistency import score_scene
+    from ..scene import GaussianScene
+
+    scene = GaussianScene.load_ply(scene_ply)
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        s = score_scene(scene, views=100, size=256, log=Path(d) / "colmap.log")
+        took = time.perf_counter() - t0
+    return {"what": "COLMAP consistency of the cell's scene (100 views, 256 px, exhaustive matching)",
+            "seconds": took, "target_s": TARGET_COLMAP_S, "met": took <= TARGET_COLMAP_S,
+            "registration_rate": s.registration_rate, "var_theta_deg2": s.var_theta_deg2}  # fmt: skip
+
+
+def cold_first_run(tmp: Path) -> dict:
+    """``generate --steps 1`` with an empty bank cache minus the same with the cache filled."""
+    from ..cache import root
+
+    cold = tmp / "cold_cache"
+    cold.mkdir(parents=True, exist_ok=True)
+    if (root() / "ext").is_dir():  # the compiled compositor is shared: only the bank is cold
+        (cold / "ext").symlink_to(root() / "ext")
+
+    def run(cache: Path, out: Path) -> float:
+        env = os.environ | {"GDBENCH_CACHE": str(cache)}
+        cmd = [sys.executable, "-m", "gdbench.cli", "generate", PROMPT, "--steps", "1", "--out", str(out),
+               "--no-progress", "--overwrite"]  # fmt: skip
+        t0 = time.perf_counter()
+        p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env)
+        if p.returncode != 0:
+            raise RuntimeError(f"generate failed ({p.returncode}):\n{p.stderr[-3000:]}")
+        return time.perf_counter() - t0
+
+    t_cold = run(cold, tmp / "cold_run")
+    t_warm = run(root(), tmp / "warm_run")
+    return {"what": "cold first run: generate --steps 1 with an empty bank cache, minus the same warm",
+            "seconds": t_cold - t_warm, "target_s": TARGET_COLD_S, "met": t_cold - t_warm <= TARGET_COLD_S,
+            "cold_s": t_cold, "warm_s": t_warm}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("bench_results/cell.csv"))
+    ap.add_argument("--steps", type=int, default=1000, help="training steps of the cell (default 1000)")
+    ap.add_argument("--rounds", type=int, default=2, help="timed cells of each checkout, alternating (default 2)")
+    ap.add_argument("--peer", type=Path, default=None, help="another checkout to time the same cell from")
+    ap.add_argument("--skip-colmap", action="store_true", help="leave out the COLMAP timing")
+    ap.add_argument("--skip-cold", action="store_true", help="leave out the cold first run")
+    args = ap.parse_args(argv)
+    if args.steps < 1 or args.rounds < 1:
+        ap.error(f"--steps and --rounds: expected at least 1, got {args.steps} and {args.rounds}")
+    if args.peer is not None and not (args.peer / "gdbench" / "cli.py").is_file():
+        ap.error(f"--peer: expected a gdbench checkout (a folder with gdbench/cli.py), got {args.peer}")
+    from .roofline import peak_gflops
+
+    before = peak_gflops()
+    rows: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="bm_cell_") as d:
+        tmp = Path(d)
+        print(f"bm_cell: warm-up cell (bank, caches), then {args.rounds} round(s)", flush=True)
+        sweep_cell(ROOT, tmp / "warm", 10)
+        checkouts = {"this": ROOT} | ({"peer": args.peer.resolve()} if args.peer is not None else {})
+        runs: dict[str, list[dict]] = {k: [] for k in checkouts}
+        for r in range(args.rounds):
+            for name, root in checkouts.items():
+                runs[name].append(sweep_cell(root, tmp / f"{name}{r}", args.steps))
+                print(f"  round {r + 1}: {name} {runs[name][-1]['wall_s']:.2f} s", flush=True)
+        this = min(runs["this"], key=lambda x: x["wall_s"])
+        wall = statistics.median(x["wall_s"] for x in runs["this"])
+        rows.append({"what": f"one {args.steps}-step gd cell through gdbench sweep (fresh process, bank cached, "
+                     f"no COLMAP), median of {args.rounds}", "seconds": wall, "target_s": TARGET_CELL_S,
+                     "met": wall <= TARGET_CELL_S, "steps": args.steps})  # fmt: skip
+        for phase, s in this.get("phases", {}).items():
+            rows.append({"what": f"  of which {phase}", "seconds": s, "share": s / this["wall_s"]})
+        step = this["row"]["train_time_s"] / max(this["row"]["iterations"], 1)
+        rows.append({"what": "  mean training step of the cell", "seconds": step})
+        if "peer" in runs:
+            peer = statistics.median(x["wall_s"] for x in runs["peer"])
+            same = all(x["scene"] == this["scene"] for x in runs["peer"] + runs["this"])
+            metrics = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters")
+            same_row = all(x["row"][m] == this["row"][m] for x in runs["peer"] for m in metrics)
+            rows.append({"what": f"the same cell from --peer {args.peer} (commit {checkout_commit(args.peer)})",
+                         "seconds": peer, "ratio": peer / wall, "target_ratio": TARGET_RATIO,
+                         "met": peer / wall >= TARGET_RATIO, "same_scene": same, "same_scores": same_row})  # fmt: skip
+        if not args.skip_colmap:
+            print("bm_cell: COLMAP on the cell's scene", flush=True)
+            cell = tmp / "this0" / "cells" / "easy" / PROMPT.replace(" ", "_") / "gd" / "seed0"
+            rows.append(colmap_time(cell / "scene.ply"))
+        if not args.skip_cold:
+            print("bm_cell: cold first run", flush=True)
+            rows.append(cold_first_run(tmp))
+    after = peak_gflops()
+    for when, g in (("before", before), ("after", after)):
+        rows.append({"what": f"machine: float32 matrix product {when} (GFLOP/s)", "seconds": float("nan"), "gflops": g})
+    for r in rows:
+        print(line(r))
+    write_csv(rows, args.out)
+    write_json({"environment": environment(), "rows": rows}, args.out.with_name(args.out.stem + "_summary.json"))
+    return 0
+
+
+def checkout_commit(root: Path) -> str:
+    p = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return p.stdout.strip() or "unknown"
+
+
+def line(r: dict) -> str:
+    if "gflops" in r:
+        return f"{r['what']}: {r['gflops']:.0f}"
+    text = f"{r['what']}: {r['seconds']:.3g} s"
+    if "ratio" in r:
+        text += f"; this checkout is {r['ratio']:.2f}x faster (target {r['target_ratio']}x) -> "
+        text += f"{'met' if r['met'] else 'NOT met'}; same scene: {r['same_scene']}, same scores: {r['same_scores']}"
+    elif "target_s" in r:
+        text += f" (target <= {r['target_s']:.3g} s) -> {'met' if r['met'] else 'NOT met'}"
+    elif "share" in r:
+        text += f" ({100 * r['share']:.0f}%)"
+    return text
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
