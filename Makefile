@@ -11,16 +11,18 @@ setup:
 demo: setup
 	$(PY) -m gdbench.cli generate "a yellow duck" --preset gd --out runs/duck
 
-test: setup
+# the tests set up without the background build of the banks (scripts/setup.sh): they build what they need
+test:
+	@GDBENCH_PREBUILD=0 scripts/setup.sh
 	$(PY) -m ruff check .
 	$(PYTEST) -q -m "not slow" tests
 
-test-slow: setup
-	@GDBENCH_BROWSER=1 scripts/setup.sh
+test-slow:
+	@GDBENCH_PREBUILD=0 GDBENCH_BROWSER=1 scripts/setup.sh
 	$(PYTEST) -q -m "slow" tests
 
-test-all: setup
-	@GDBENCH_BROWSER=1 scripts/setup.sh
+test-all:
+	@GDBENCH_PREBUILD=0 GDBENCH_BROWSER=1 scripts/setup.sh
 	$(PYTEST) -q tests
 
 bench: setup

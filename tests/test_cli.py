@@ -406,6 +406,36 @@ def test_cache_list_and_clear(tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "c" / "banks").exists() and (tmp_path / "c" / "fixtures" / "f.pt").is_file()
     main(Cache("clear"))
     assert cache.entries()[0].kind == "mine" and len(cache.entries()) == 1
+    with pytest.raises(ValueError, match="prompts: only for build"):
+        main(Cache("list", prompts=("a corgi",)))
+    with pytest.raises(ValueError, match="kinds: only for clear"):
+        main(Cache("build", kinds=("banks",)))
+
+
+@pytest.mark.slow
+def test_cache_build_leaves_nothing_for_a_first_run_to_render(tmp_path, monkeypatch):
+    """After `gdbench cache build --prompts PROMPT` in an empty cache, a first run of the prompt and
+    its scores render nothing with pyrender (oracle: pyrender's entry points raise), and the
+    build of every asset writes the marker scripts/setup.sh looks for."""
+    from gdbench import cache
+    from gdbench.cli import Cache, Generate, GenerateTrain
+
+    monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
+    assert main(Cache("build", prompts=("a yellow duck",)))["built"] == ["a yellow duck"]
+    assert not (tmp_path / "c" / "banks" / cache.PREBUILT).exists()  # only when every asset was built
+
+    def no_render(*a, **k):
+        raise AssertionError("a first run rendered with pyrender after cache build")
+
+    import renderers.pyrender_points.mesh as mesh
+
+    monkeypatch.setattr(mesh, "render_mesh", no_render)
+    main(
+        Generate(
+            "a yellow duck", out=tmp_path / "run", progress=False, train=GenerateTrain(steps=2, turntable_frames=2)
+        )
+    )
+    assert json.loads((tmp_path / "run" / "scores.json").read_text())["gt"]["psnr"] > 0
 
 
 def test_render_uses_the_runs_cameras_and_frames_any_ply(tmp_path):

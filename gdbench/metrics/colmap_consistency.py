@@ -112,7 +112,7 @@ def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: i
     """COLMAP's estimate of each registered view: {index: (rotation, camera centre)}, and the
     number of 3D points, from SIFT, exhaustive matching and incremental mapping with the known
     PINHOLE intrinsics held fixed (the largest model)."""
-    import imageio.v3 as iio
+    from PIL import Image
 
     from ..io import captured_output
 
@@ -125,8 +125,8 @@ def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: i
         img_dir.mkdir(parents=True, exist_ok=True)
         out_dir.mkdir(parents=True, exist_ok=True)
         names = [f"{i:04d}.png" for i in range(K)]
-        for name, im in zip(names, images):
-            iio.imwrite(img_dir / name, im)
+        for name, im in zip(names, images):  # uncompressed PNG: the same pixels, 5x faster to write
+            Image.fromarray(np.ascontiguousarray(im)).save(img_dir / name, compress_level=0)
         db = root / "database.db"
         if db.exists():
             db.unlink()
