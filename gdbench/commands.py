@@ -112,6 +112,7 @@ BENCHES = {
     "noise": ("gdbench.bench.bm_noise", "noise.csv", []),
     "train": ("gdbench.bench.bm_train", "train.csv", []),
     "scale": ("gdbench.bench.bm_scale", "scale.csv", []),
+    "cell": ("gdbench.bench.bm_cell", "cell.csv", []),
 }
 """Benchmark name -> (module, CSV name, extra arguments)."""
 
@@ -125,9 +126,11 @@ class Bench:
     10k Gaussians, 256 px, same run); error: error against run time over all fixtures (Pareto);
     stability: stiff and extreme cases on every renderer; noise: structured-noise share of a
     training step; train: denoiser, full-run and per-step timings; scale: 1M Gaussians with SH
-    degree 3 at 1920x1080 (time and peak memory)."""
+    degree 3 at 1920x1080 (time and peak memory); cell: one scored 1000-step sweep cell in a fresh
+    process and its phases, COLMAP on its scene, a cold first run (python -m gdbench.bench.bm_cell
+    --peer DIR compares another checkout in the same run)."""
 
-    which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train", "scale"]]
+    which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell"]]
     """The benchmark (above)."""
     out: Path = Path("bench_results")
     """Folder for the CSV/JSON/plots."""
@@ -221,7 +224,9 @@ def run_cache(cmd: Cache) -> dict:
     if cmd.action != "build" and cmd.prompts:
         raise ValueError("prompts: only for build")
     if cmd.action == "build":
-        built = cache.build(list(cmd.prompts) or None)
+        from .assets.prebuild import build
+
+        built = build(list(cmd.prompts) or None)
         return {"root": str(cache.root()), "built": built}
     if cmd.action == "clear":
         files, size = cache.clear(list(cmd.kinds) or None)

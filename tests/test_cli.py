@@ -417,12 +417,12 @@ def test_cache_build_leaves_nothing_for_a_first_run_to_render(tmp_path, monkeypa
     """After `gdbench cache build --prompts PROMPT` in an empty cache, a first run of the prompt and
     its scores render nothing with pyrender (oracle: pyrender's entry points raise), and the
     build of every asset writes the marker scripts/setup.sh looks for."""
-    from gdbench import cache
+    from gdbench.assets.prebuild import PREBUILT
     from gdbench.cli import Cache, Generate, GenerateTrain
 
     monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
     assert main(Cache("build", prompts=("a yellow duck",)))["built"] == ["a yellow duck"]
-    assert not (tmp_path / "c" / "banks" / cache.PREBUILT).exists()  # only when every asset was built
+    assert not (tmp_path / "c" / "banks" / PREBUILT).exists()  # only when every asset was built
 
     def no_render(*a, **k):
         raise AssertionError("a first run rendered with pyrender after cache build")

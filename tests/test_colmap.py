@@ -67,6 +67,19 @@ def test_colmap_cannot_see_a_3d_second_face_and_barely_sees_floaters(calibration
         assert s.var_theta_deg2 < 0.5
 
 
+def test_a_scene_scores_the_same_every_time(calibration):
+    """Same images, same seed, same score (the oracle: the calibration's own run of the floaters
+    fixture, which registers). COLMAP threaded in any stage (SIFT, matching, mapping) moved the same scene's
+    Var(theta) between runs; THREADS = 1 makes every field equal."""
+    from gdbench.metrics.colmap_consistency import fixture_circle_images
+
+    cams = circle_poses(100).cameras(256, 256)
+    again = score_images(fixture_circle_images("a yellow duck", cams, "floaters", flicker=0.2), cams).as_dict()
+    first = calibration["floaters"].as_dict()
+    assert first["registered"] > 50, first  # a reconstruction whose poses depend on every stage
+    assert {k: v for k, v in again.items() if k != "seconds"} == {k: v for k, v in first.items() if k != "seconds"}
+
+
 def test_bad_mode():
     with pytest.raises(ValueError, match="mode: expected 'consistent'"):
         asset_circle_images("a yellow duck", circle_poses(2).cameras(16, 16), mode="two-faced")

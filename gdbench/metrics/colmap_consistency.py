@@ -3,7 +3,8 @@
 
 Render K views on one circle (fixed radius and elevation, 360/K degrees apart, default K = 100
 at 256 px), run COLMAP on CPU (pycolmap: SIFT, exhaustive matching, incremental mapping with
-one PINHOLE camera whose known intrinsics stay fixed), take the largest model, align it to the
+one PINHOLE camera whose known intrinsics stay fixed; one thread, so a scene's score is
+reproducible), take the largest model, align it to the
 true cameras by a similarity (Umeyama on camera centres) and report:
 
 - ``registration_rate``: registered views / K (always reported: variance alone misses views
@@ -29,6 +30,12 @@ import numpy as np
 import torch
 
 from ..camera import Cameras, SphericalPoses
+
+THREADS = 1
+"""COLMAP's threads in every stage. One makes a scene's score reproducible: with two, the same
+scene's Var(theta) read 1.9-2.5 and once 7.6 over seven runs (SIFT extraction, matching and the
+mapper each change the result when threaded; measured in docs/performance.md), and a sweep runs
+its cells on one core each anyway."""
 
 FAIL_DEG = 5.0
 """An adjacent pair whose relative rotation is off the truth by more than this fails."""
@@ -136,12 +143,12 @@ def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: i
         reader.camera_params = f"{fx},{fy},{cx},{cy}"
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = max_image_size
-        extraction.num_threads = 2
+        extraction.num_threads = THREADS
         opts = pycolmap.IncrementalPipelineOptions()
         opts.ba_refine_focal_length = False
         opts.ba_refine_principal_point = False
         opts.ba_refine_extra_params = False
-        opts.num_threads = 2
+        opts.num_threads = THREADS
         opts.random_seed = seed
         phase("COLMAP features")
         with captured_output(log):
@@ -156,7 +163,9 @@ def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: i
             )
         phase("COLMAP matching")
         with captured_output(log):
-            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+            matching = pycolmap.FeatureMatchingOptions()
+            matching.num_threads = THREADS
+            pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
         phase("COLMAP mapping")
         with captured_output(log):
             models = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
