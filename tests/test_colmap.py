@@ -3,6 +3,8 @@ its calibration on 3D failure fixtures: what it sees (flicker, per-view jitter) 
 cannot (a second face, floaters)."""
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -105,3 +107,17 @@ def test_colmap_output_goes_to_the_log_not_the_console(tmp_path, capfd):
     assert glog.search(log.read_text()), log.read_text()
     out, err = capfd.readouterr()
     assert not glog.search(err) and not glog.search(out), err
+
+
+def test_scoring_survives_pycolmap_imported_first():
+    """A process that imported pycolmap before Pillow's zlib encoder was first used died in it
+    (double free in deflateEnd) when the views were written as PNG; they are BMP now. Oracle: the
+    process exits 0 and prints its registration (COLMAP ran on the written views)."""
+    code = (
+        "import pycolmap\n"
+        "from gdbench.metrics.colmap_consistency import asset_circle_images, circle_poses, score_images\n"
+        "cams = circle_poses(12).cameras(64, 64)\n"
+        "print('views', score_images(asset_circle_images('a yellow duck', cams), cams).views)\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "views 12" in p.stdout, p.stderr[-2000:]
