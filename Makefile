@@ -25,7 +25,8 @@ test-all:
 	@GDBENCH_PREBUILD=0 GDBENCH_BROWSER=1 scripts/setup.sh
 	$(PYTEST) -q tests
 
-bench: setup
+bench:
+	@GDBENCH_PREBUILD=0 scripts/setup.sh
 	$(PY) -m gdbench.bench.bm_render --out bench_results/render.csv
 
 lint: setup

@@ -220,7 +220,7 @@ def run_cache(cmd: Cache) -> dict:
     from . import cache
 
     if cmd.action != "clear" and cmd.kinds:
-        raise ValueError("kinds: only for clear (list shows every part)")
+        raise ValueError(f"kinds: only for clear, not {cmd.action} (list shows every part, build builds banks)")
     if cmd.action != "build" and cmd.prompts:
         raise ValueError("prompts: only for build")
     if cmd.action == "build":

@@ -243,11 +243,11 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
     timings = {  # where this call's time went (a resumed or finished run trains little or nothing)
         "train_call_s": t_score - t0,
         "setup_s": made.get("setup_s"),
-        "steps_s": train_s,
+        "steps_s": sum(h["seconds"] for h in r.state.history[r.resumed_from or 0 :]),  # this call's
         "outputs_s": made.get("outputs_s"),
         "score_s": t_scored - t_score,
-        "score_blocks_s": {k: v["made"].get("seconds") for k, v in scores.items()
-                           if isinstance(v, dict) and "made" in v},
+        "score_blocks_s": {k: v["made"].get("seconds") for k, v in scores.items()  # made in this call
+                           if isinstance(v, dict) and "made" in v and k not in scores.get("reused", [])},
         "cell_s": time.perf_counter() - t0,
     }  # fmt: skip
     write_json({"spec": asdict(spec), "row": row, "timings": timings}, spec.dir / "cell.json")

@@ -165,6 +165,8 @@ def tables(rows: list[dict], out: Path, figures: bool = True) -> dict[str, Path]
     paths["summary_md"] = out / "summary.md"
     if figures:
         paths["plot"] = plot(rows, out / "ablation.png")
+    else:  # one drawn by an earlier --figures pass would show other cells
+        (out / "ablation.png").unlink(missing_ok=True)
     return paths
 
 

@@ -88,7 +88,9 @@ fi
 # background at the lowest priority (gdbench cache build), unless GDBENCH_PREBUILD=0 (make test
 # sets it: the suite builds what it needs) or they are built or being built.
 cache_root=${GDBENCH_CACHE:-$HOME/.cache/gdbench}
-if [ "${GDBENCH_PREBUILD:-1}" != 0 ] && [ ! -f "$cache_root/banks/prebuilt.json" ] \
+asset_version=$(sed -n 's/^ASSET_VERSION = \([0-9]*\).*/\1/p' gdbench/assets/bank.py)
+if [ "${GDBENCH_PREBUILD:-1}" != 0 ] \
+  && ! grep -q "\"asset_version\": ${asset_version}[,}]" "$cache_root/banks/prebuilt.json" 2>/dev/null \
   && ! { command -v pgrep >/dev/null && pgrep -f "gdbench.cli cache build" >/dev/null; }; then
   mkdir -p "$cache_root"
   echo "setup: building the assets' image banks in the background (low priority, about 4 minutes; log: $cache_root/prebuild.log)"

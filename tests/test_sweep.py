@@ -62,7 +62,8 @@ def test_figures_are_drawn_on_request_and_a_finished_sweep_draws_them_without_tr
     """A sweep writes what its tables need (no turntable, curves or ablation.png), and records where
     its time went (timings.json: the phases add up to at most the sweep's time; cell.json: the
     run's steps as the row reports them). Run again with figures it draws them from the finished
-    cells: no training step runs (oracle: a step that raises), and the rows are the same."""
+    cells: no training step runs (oracle: a step that raises), the rows are the same and run.json
+    keeps the provenance and timings of the call that trained the scene."""
     import gdbench.train.run as run_mod
 
     args = ([PROMPT], ["gd"], [0])
@@ -82,7 +83,10 @@ def test_figures_are_drawn_on_request_and_a_finished_sweep_draws_them_without_tr
         raise AssertionError("a finished cell trained again")
 
     monkeypatch.setattr(run_mod, "train_step", no_step)
+    before = json.loads((cell / "run.json").read_text())
     again = sweep(*args, **kw, figures=True)
+    after = json.loads((cell / "run.json").read_text())  # the provenance of the call that trained it stands
+    assert {k: after[k] for k in run_mod.PROVENANCE} == {k: before[k] for k in run_mod.PROVENANCE}
     for name in ("turntable.gif", "turntable.mp4", "turntable_sheet.png", "curves.png"):
         assert (cell / name).is_file(), name
     assert (tmp_path / "ablation.png").is_file()

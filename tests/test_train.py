@@ -315,6 +315,21 @@ def test_adam_gives_torch_optims_bits_and_checkpoints():
     cont = restored(ref, "torch")
     for src, kind in ((ref, "ours"), (ours, "torch"), (ours, "ours")):
         same(cont, restored(src, kind))
+    # a state dict of arithmetic this Adam does not compute is refused, naming the option; a step
+    # saved as a number (torch's older format) loads as torch's float32 tensor
+    for option in ("amsgrad", "maximize"):
+        params = {k: torch.zeros(s).requires_grad_(True) for k, s in shapes.items()}
+        other = torch.optim.Adam([{"params": [params[k]], "name": k} for k in PARAM_NAMES], **{option: True})
+        with pytest.raises(ValueError, match=option):
+            fresh("ours")[1].load_state_dict(other.state_dict())
+    blob = ours[1].state_dict()
+    for st in blob["state"].values():
+        st["step"] = float(st["step"])
+    params, opt = fresh("ours")
+    opt.load_state_dict(blob)
+    assert [(st["step"].dtype, float(st["step"])) for st in opt.state.values()] == [
+        (torch.float32, float(st["step"])) for st in ours[1].state.values()
+    ]
 
 
 def test_finiteness_check_finds_each_kind_and_changes_nothing():

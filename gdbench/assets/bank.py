@@ -184,17 +184,19 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray], what: str) -> None:
         )
 
 
-def cached_arrays(name: str, key: dict, build) -> dict[str, np.ndarray]:
-    """Arrays derived from an asset (``build()``, a dict of numpy arrays), cached beside the banks
-    under a hash of ``key`` and the asset code version: the surface palette of the prompt check,
-    the held-out views of the ground-truth score. The same arrays, bit for bit, as ``build()``
-    (npz keeps dtypes and values); an unreadable entry is rebuilt, never trusted."""
-    blob = json.dumps(key | {"version": ASSET_VERSION}, sort_keys=True)
+def cached_arrays(name: str, key: dict, build, *, version: int, fields: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Arrays derived from an asset (``build()``, a dict of the numpy arrays ``fields``), cached
+    beside the banks under a hash of ``key``, ``version`` (the caller's: bump it when ``build``
+    changes) and the asset code version: the surface palette of the prompt check, the held-out
+    views of the ground-truth score. The same arrays, bit for bit, as ``build()`` (npz keeps dtypes
+    and values); an unreadable entry, or one without ``fields``, is rebuilt, never trusted."""
+    blob = json.dumps(key | {"version": ASSET_VERSION, "build_version": version}, sort_keys=True)
     path = cache_dir() / f"{name}-{hashlib.sha256(blob.encode()).hexdigest()[:16]}.npz"
     if path.is_file():
         try:
             with np.load(path) as z:
-                return {k: z[k] for k in z.files}
+                if set(z.files) == set(fields):
+                    return {k: z[k] for k in fields}
         except Exception:  # a corrupt entry: rebuilt below
             pass
     arrays = build()

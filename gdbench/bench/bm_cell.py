@@ -134,9 +134,10 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="bm_cell_") as d:
         tmp = Path(d)
-        print(f"bm_cell: warm-up cell (bank, caches), then {args.rounds} round(s)", flush=True)
-        sweep_cell(ROOT, tmp / "warm", 10)
         checkouts = {"this": ROOT} | ({"peer": args.peer.resolve()} if args.peer is not None else {})
+        print(f"bm_cell: warm-up cells (bank, caches, compiled files), then {args.rounds} round(s)", flush=True)
+        for name, root in checkouts.items():
+            sweep_cell(root, tmp / f"warm-{name}", 10)
         runs: dict[str, list[dict]] = {k: [] for k in checkouts}
         for r in range(args.rounds):
             for name, root in checkouts.items():

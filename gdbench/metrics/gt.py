@@ -84,7 +84,7 @@ def asset_views(
 
     key = {"caption": caption, "variant": variant, "size": size, "background": [float(c) for c in background]}
     key |= {k: getattr(poses, k).double().tolist() for k in ("azimuth", "elevation", "radius", "fovy")}
-    return torch.from_numpy(cached_arrays("heldout", key, build)["rgb"])
+    return torch.from_numpy(cached_arrays("heldout", key, build, version=1, fields=("rgb",))["rgb"])
 
 
 def score_against_asset(
@@ -107,6 +107,8 @@ def score_against_asset(
     poses = heldout_poses(n_views)
     ref = reference if reference is not None else asset_views(caption, poses, size, background, variant)
     offsets = offsets if offsets is not None else torch.arange(0, 360, 5, dtype=torch.float64)
+    if len(offsets) == 0:
+        raise ValueError("offsets: expected at least one azimuth offset")
     # every offset's views are azimuths + offset: with the default ring and offsets, 138 distinct
     # angles among 864 views (17.5 + 30 k + 5 j). Each distinct angle is rendered once (a view's
     # render does not depend on the others in its call) and gathered per offset: the same images

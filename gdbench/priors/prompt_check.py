@@ -93,7 +93,7 @@ def palette(caption: str) -> tuple[np.ndarray, np.ndarray]:
         rgb = mesh.visual.face_colors[:, :3].astype(np.float64) / 255
         return {"lab": _lab(rgb), "w": mesh.area_faces / mesh.area_faces.sum()}
 
-    z = cached_arrays("palette", {"caption": caption}, build)
+    z = cached_arrays("palette", {"caption": caption}, build, version=1, fields=("lab", "w"))
     return z["lab"], z["w"]
 
 

@@ -79,7 +79,11 @@ class Adam:
 
     def load_state_dict(self, blob: dict) -> None:
         """A state dict of this class or of torch.optim.Adam over the same groups (as torch's
-        ``load_state_dict``: moments cast to their parameter's dtype and device, steps float32)."""
+        ``load_state_dict``: moments cast to their parameter's dtype and device, steps float32).
+        Options this class does not compute (amsgrad, maximize, decoupled weight decay,
+        capturable, differentiable, a tensor learning rate) are refused, naming the option: the
+        run would go on with other arithmetic than it started with. Checkpoints from before the
+        trainer's Adam was fused (``fused`` None) go on fused: equal to about 1e-7."""
         saved = blob["param_groups"]
         if len(saved) != len(self.param_groups) or any(len(s["params"]) != 1 for s in saved):
             raise ValueError(
@@ -88,11 +92,22 @@ class Adam:
             )
         state: collections.defaultdict[Tensor, dict] = collections.defaultdict(dict)
         for g, s in zip(self.param_groups, saved):
+            for key in ("amsgrad", "maximize", "decoupled_weight_decay", "capturable", "differentiable"):
+                if s.get(key):
+                    raise ValueError(f"optimizer[{g.get('name')!r}].{key}: this trainer's Adam does not compute it")
+            if isinstance(s.get("lr"), Tensor):
+                raise ValueError(f"optimizer[{g.get('name')!r}].lr: expected a number, got a tensor")
             p = g["params"][0]
             st = blob["state"].get(s["params"][0])
             if st:
+                unknown = sorted(set(st) - {"step", "exp_avg", "exp_avg_sq"})
+                if unknown:
+                    raise ValueError(f"optimizer[{g.get('name')!r}]: unexpected state {unknown}")
                 state[p] = {
-                    k: v.to(dtype=torch.float32 if k == "step" else p.dtype, device=p.device) for k, v in st.items()
+                    k: (torch.as_tensor(float(v)) if k == "step" and not isinstance(v, Tensor) else v).to(
+                        dtype=torch.float32 if k == "step" else p.dtype, device=p.device
+                    )
+                    for k, v in st.items()
                 }
-            g.update({k: v for k, v in s.items() if k != "params"})
+            g.update({k: v for k, v in s.items() if k not in ("params", "fused", "foreach")})
         self.state = state

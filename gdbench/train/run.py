@@ -194,12 +194,30 @@ def train(
         save_checkpoint(state, ctx, ckpt)
         paths: dict[str, Path] = {"checkpoint": ckpt}
         if write_outputs and state.step >= cfg.steps:
+            # a run found finished (figures drawn later, scores made again) keeps its provenance:
+            # the commit, versions and threads that trained it, and its timings
+            made = _run_json(out) if read and resumed_from >= cfg.steps else None
             paths |= write_run_outputs(
-                state, ctx, out, time.perf_counter() - t_start, resumed_from, figures=figures, setup_s=setup_s
-            )
+                state, ctx, out, time.perf_counter() - t_start, resumed_from, figures=figures, setup_s=setup_s,
+                made=made,
+            )  # fmt: skip
     caption = getattr(ctx.cond, "caption", None)
     similarity = getattr(ctx.cond, "similarity", None)
     return RunResult(state, out, paths, time.perf_counter() - t_start, resumed_from, caption, similarity, cfg.prompt)
+
+
+def _run_json(out: Path) -> dict | None:
+    """The run.json in ``out`` as a dict, None when there is none or it does not read."""
+    try:
+        blob = read_json(out / "run.json", what="run.json")
+    except (OSError, ValueError):
+        return None
+    return blob if isinstance(blob, dict) else None
+
+
+PROVENANCE = ("commit", "utc", "versions", "threads", "timings", "resumed_from_step")
+"""What run.json says about how its scene was trained, kept when a finished run's outputs are
+written again."""
 
 
 def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
@@ -276,10 +294,13 @@ def write_run_outputs(
     *,
     figures: bool = True,
     setup_s: float = float("nan"),
+    made: dict | None = None,
 ) -> dict[str, Path]:
     """scene.ply, run.json and, with ``figures``, the turntable (GIF, MP4, sheet) and the curves.
     run.json's timings: ``this_call_s`` (the call up to its outputs), ``setup_s`` (prompt, prior,
-    bank and initial state or checkpoint), ``train_steps_s`` and ``outputs_s`` (these outputs)."""
+    bank and initial state or checkpoint), ``train_steps_s`` and ``outputs_s`` (these outputs).
+    ``made``: the run.json of an earlier call that finished this run, whose ``PROVENANCE`` fields
+    are kept."""
     from ..provenance import code_commit, utc_now
     from ..turntable import RUN_TURNTABLE, write_turntable
 
@@ -330,5 +351,7 @@ def write_run_outputs(
         "threads": torch.get_num_threads(),
         "outputs": {k: str(v) for k, v in paths.items()},
     }
+    if made is not None:  # the run.json of the call that trained this scene: its provenance stands
+        run |= {k: made[k] for k in PROVENANCE if k in made}
     paths["run_json"] = write_json(run, out / "run.json")
     return paths
