@@ -127,8 +127,8 @@ class Bench:
     stability: stiff and extreme cases on every renderer; noise: structured-noise share of a
     training step; train: denoiser, full-run and per-step timings; scale: 1M Gaussians with SH
     degree 3 at 1920x1080 (time and peak memory); cell: one scored 1000-step sweep cell in a fresh
-    process and its phases, COLMAP on its scene, a cold first run (python -m gdbench.bench.bm_cell
-    --peer DIR compares another checkout in the same run)."""
+    process and its phases, COLMAP on its scene, a cold first run (the module gdbench.bench.bm_cell
+    run with a peer checkout compares two versions of the code in one run)."""
 
     which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell"]]
     """The benchmark (above)."""
