@@ -193,10 +193,10 @@ def train(
         _loop(state, ctx, ckpt, last)
         save_checkpoint(state, ctx, ckpt)
         paths: dict[str, Path] = {"checkpoint": ckpt}
+        # a run found finished (figures drawn later, scores made again) keeps its provenance: the
+        # commit, versions and threads that trained it, and its timings
+        made = _run_json(out) if read and resumed_from >= cfg.steps else None
         if write_outputs and state.step >= cfg.steps:
-            # a run found finished (figures drawn later, scores made again) keeps its provenance:
-            # the commit, versions and threads that trained it, and its timings
-            made = _run_json(out) if read and resumed_from >= cfg.steps else None
             paths |= write_run_outputs(
                 state, ctx, out, time.perf_counter() - t_start, resumed_from, figures=figures, setup_s=setup_s,
                 made=made,
