@@ -239,7 +239,9 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
         "score_commit": code_commit(),
         "versions": "; ".join(f"{k} {v}" for k, v in run_info.get("versions", {}).items()),
     }
-    made = run_info.get("timings", {})
+    # run.json's timings are this call's only if it finished the run (a run found finished keeps
+    # those of the call that trained it)
+    made = run_info.get("timings", {}) if r.resumed_from is None or r.resumed_from < cfg.steps else {}
     timings = {  # where this call's time went (a resumed or finished run trains little or nothing)
         "train_call_s": t_score - t0,
         "setup_s": made.get("setup_s"),
@@ -392,7 +394,7 @@ def sweep(
         if bar is not None:
             bar.close()
     t_end = time.perf_counter()
-    tables_during = tables_s  # the periodic rewrites while cells ran
+    cells_s = t_end - t_cells - tables_s  # without the periodic rewrites of the tables
     ordered = [rows[k] for k in sorted(rows)]
     tables(ordered, out, figures)
     tables_s += time.perf_counter() - t_end
@@ -400,7 +402,7 @@ def sweep(
     from .provenance import code_commit
 
     timings = {"commit": code_commit(), "cells": len(specs), "ran": len(todo), "workers": workers,
-               "validate_s": t_valid - t_start, "cells_s": t_end - t_cells - tables_during, "tables_s": tables_s,
+               "validate_s": t_valid - t_start, "cells_s": cells_s, "tables_s": tables_s,
                "sweep_s": time.perf_counter() - t_start}  # fmt: skip
     write_json(timings, out / "timings.json")
     return ordered
