@@ -99,6 +99,9 @@ class Render:
     up: Literal["+z", "-y", "+y"] = "+z"
     """The up axis of the scene file: +z for gdbench's runs, -y for Inria/COLMAP captures and
     `gdbench export`'s default, +y."""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """Where the frames are rendered: cpu (the C++ compositor), cuda (the pure-torch renderer on
+    the GPU) or auto (cuda when torch sees one)."""
 
 
 def run_generate(cmd: Generate) -> dict:
@@ -142,7 +145,7 @@ def run_generate(cmd: Generate) -> dict:
     if cmd.score and r.caption is not None and r.state.step >= cfg.steps:
         from .metrics.run_scores import score_run
 
-        summary["gt"] = score_run(out, gt=True, colmap=False, progress=cmd.progress)["gt"]
+        summary["gt"] = score_run(out, gt=True, colmap=False, progress=cmd.progress, device=cfg.device)["gt"]
     print(r.report(summary, matched=False))
     return summary
 
@@ -169,11 +172,13 @@ def _config_file(path: Path, preset_name: str | None):
 def run_render(cmd: Render) -> dict:
     import contextlib
 
+    from .devices import resolve_device
     from .export import load_scene
     from .io import FolderLock
     from .resources import check_render_memory
     from .turntable import write_turntable
 
+    device = resolve_device(cmd.device, "device (--device)")
     src = Path(cmd.run)
     ply = src / "scene.ply" if src.is_dir() else src
     if not ply.is_file():
@@ -195,7 +200,7 @@ def run_render(cmd: Render) -> dict:
             scene, radius = frame(scene, cmd.fovy)
             framing = f", framed from its bounds at radius {radius:.3g}"
         res = write_turntable(
-            scene,
+            scene.to(device),
             out,
             frames=frames,
             size=size,
@@ -251,6 +256,9 @@ class Score:
     """COLMAP's: the number of turntable views rendered and registered."""
     size: Annotated[int, AtLeast(16, "px")] = 256
     """COLMAP's: the side of each rendered view, in pixels."""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """Where the scene's views are rendered: cpu, cuda or auto (cuda when torch sees one); the
+    images are compared on the CPU, and scores agree across devices to float rounding."""
 
 
 def run_score(cmd: Score) -> dict:
@@ -261,7 +269,9 @@ def run_score(cmd: Score) -> dict:
         raise FileNotFoundError(f"run: expected a run folder, got {cmd.run}")
     if cmd.colmap:
         check_score_memory(cmd.size, cmd.views)
-    s = score_run(cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size, progress=True)
+    s = score_run(
+        cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size, progress=True, device=cmd.device
+    )
     print(report(s))
     return s
 

@@ -113,8 +113,9 @@ BENCHES = {
     "train": ("gdbench.bench.bm_train", "train.csv", []),
     "scale": ("gdbench.bench.bm_scale", "scale.csv", []),
     "cell": ("gdbench.bench.bm_cell", "cell.csv", []),
+    "cuda": ("gdbench.bench.bm_cuda", "cuda", []),
 }
-"""Benchmark name -> (module, CSV name, extra arguments)."""
+"""Benchmark name -> (module, CSV name (a folder for cuda), extra arguments)."""
 
 
 @dataclass
@@ -128,9 +129,14 @@ class Bench:
     training step; train: denoiser, full-run and per-step timings; scale: 1M Gaussians with SH
     degree 3 at 1920x1080 (time and peak memory); cell: one scored 1000-step sweep cell in a fresh
     process and its phases, COLMAP on its scene, a cold first run (the module gdbench.bench.bm_cell
-    run with a peer checkout compares two versions of the code in one run)."""
+    run with a peer checkout compares two versions of the code in one run); cuda: on a GPU, the
+    torch renderer on CUDA against gsplat's CUDA rasterizer (agreement, speed), the training step
+    on both devices, and the C++ compositor's scaling with CPU threads (only that part without a
+    GPU)."""
 
-    which: tyro.conf.Positional[Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell"]]
+    which: tyro.conf.Positional[
+        Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell", "cuda"]
+    ]
     """The benchmark (above)."""
     out: Path = Path("bench_results")
     """Folder for the CSV/JSON/plots."""

@@ -74,7 +74,7 @@ def cell_name(prompt: str) -> str:
 def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], specs: list[CellSpec]) -> None:
     """Everything a sweep could fail on, checked before the first cell trains: presets, repeated
     entries, cell folders two prompts would share, prompts no asset matches (or that contradict
-    it), and each cell's config."""
+    it), and each cell's config and device."""
     from .assets.library import ASSETS
     from .priors.prompt_check import contradiction
     from .priors.text import CaptionMatcher
@@ -88,6 +88,10 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
     for name, items in (("presets", presets), ("seeds", seeds)):
         if len(set(items)) != len(items):
             raise ValueError(f"{name}: {sorted({x for x in items if items.count(x) > 1})} listed more than once")
+    from .devices import resolve_device
+
+    for device in sorted({cell_config(spec).device for spec in specs}):  # before any bank or palette
+        resolve_device(device, "device (--device)")
     names: dict[str, str] = {}
     for pr in prompts:
         n = cell_name(pr)
@@ -193,7 +197,7 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
         ) from None
     train_s = sum(h["seconds"] for h in r.state.history)
     t_score = time.perf_counter()
-    scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views)
+    scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views, device=cfg.device)
     t_scored = time.perf_counter()
     run_info = read_json(spec.dir / "run.json", what="run.json")
     front_defined = cfg.view_prompting != "none"
@@ -235,6 +239,7 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
         "cell_s": time.perf_counter() - t0,
         "run_id": run_info.get("run_id"),  # the hash of the config that changes the result
         "threads": run_info.get("threads"),  # results depend on the thread count (reduction order)
+        "device": run_info.get("device", "cpu"),  # and on the device, by float rounding
         "train_commit": run_info.get("commit", "unknown"),
         "score_commit": code_commit(),
         "versions": "; ".join(f"{k} {v}" for k, v in run_info.get("versions", {}).items()),

@@ -141,8 +141,8 @@ MUTATIONS = [
              "Box-Muller's u1 allowed to be exactly 0 (a normal of 13 where the tail bound is 5.9)", "normal sampler",
              ("tests/test_rand.py::test_normals_at_2_25_draws_keep_the_tail_bound_and_the_law",)),
     # the run folder's contract
-    Mutation("resume-ignores-a-result-field", "gdbench/train/checkpoint.py", 'RESUME_IGNORES = frozenset({"out",',
-             'RESUME_IGNORES = frozenset({"samples_per_step", "out",',
+    Mutation("resume-ignores-a-result-field", "gdbench/train/checkpoint.py", '    {"out", "progress",',
+             '    {"samples_per_step", "out", "progress",',
              "a result-changing field ignored by resume and the run id", "run folder",
              _train("test_every_config_field_is_classified_and_result_fields_change_the_run_id")),
     Mutation("outputs-after-lock", "gdbench/train/run.py",

@@ -700,10 +700,10 @@ def _changed(cfg, name):
     return dataclasses.replace(cfg, **{name: new})
 
 
-IGNORED_FIELDS = {"out", "progress", "checkpoint_every", "log_every", "turntable_frames", "log_dir"}
+IGNORED_FIELDS = {"out", "progress", "checkpoint_every", "log_every", "turntable_frames", "log_dir", "device"}
 """The only TrainConfig fields that cannot change a run's result (where it is written, how it
 reports, how often it checkpoints, where its TensorBoard scalars go; the turntable is drawn after
-training)."""
+training), and the device (float rounding only, as the thread count; recorded in run.json)."""
 RESULT_FIELDS = {
     "prompt", "preset", "steps", "seed", "resolution", "views_per_step", "views_spread_deg", "init", "init_points",
     "init_ply", "init_opacity", "init_color", "camera_radius", "fovy_range", "azimuth_range", "elevation_range",

@@ -189,7 +189,8 @@ def test_training_frustums_are_the_runs_own_views_within_its_ranges():
     config = config_dict(cfg)
     cams, steps = training_cameras(config, 40, max_views=10)
     assert steps == list(range(0, 40, 4)) and len(cams) == 10
-    ctx = SimpleNamespace(cfg=cfg, factor=1, mode="rgb", sigmas=torch.tensor([0.1, 1.0]), sigma_values=[0.1, 1.0])
+    ctx = SimpleNamespace(cfg=cfg, factor=1, mode="rgb", sigmas=torch.tensor([0.1, 1.0]), sigma_values=[0.1, 1.0],
+                          device=torch.device("cpu"))  # fmt: skip
     state = SimpleNamespace(streams=make_streams(3), step=0)
     trainer = []
     for step in range(40):

@@ -19,6 +19,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import torch
+
 from ..io import jsonable, num, read_json, sha256_file, write_json
 from ..scene import GaussianScene
 
@@ -52,21 +54,32 @@ def _reusable(previous: dict, name: str, params: dict) -> bool:
 
 
 def score_run(
-    run: str | Path, *, gt: bool = True, colmap: bool = True, views: int = 100, size: int = 256, progress: bool = False
+    run: str | Path,
+    *,
+    gt: bool = True,
+    colmap: bool = True,
+    views: int = 100,
+    size: int = 256,
+    progress: bool = False,
+    device: str = "cpu",
 ) -> dict:
     """Scores of a finished run folder into its scores.json; ``gt`` asks for the ground-truth
     blocks (PSNR/SSIM, and the view metrics: multi-face rate, instance consistency, floaters),
     ``colmap`` for the COLMAP block (``views`` renders of ``size`` px). Returns the file's
     content plus ``reused``: the asked-for blocks taken from an earlier call (same scene,
     parameters and commit), and ``kept``: blocks not asked for that the file still holds.
-    COLMAP's own output goes to the run folder's colmap.log; ``progress`` reports each stage."""
+    COLMAP's own output goes to the run folder's colmap.log; ``progress`` reports each stage.
+    ``device``: where the scene is rendered ('cpu', 'cuda' or 'auto'); the images are compared on
+    the CPU, and a score does not depend on the device beyond float rounding."""
+    from ..devices import resolve_device
     from ..io import FolderLock
 
+    dev = resolve_device(device, "device (--device)")
     run = Path(run)
     if not run.is_dir():
         raise FileNotFoundError(f"run: no run folder at {run}")
     with FolderLock(run, what="run"):  # one writer: not while a generate (--overwrite) writes here
-        return _score_run(run, gt=gt, colmap=colmap, views=views, size=size, progress=progress)
+        return _score_run(run, gt=gt, colmap=colmap, views=views, size=size, progress=progress, device=dev)
 
 
 def one_run(run: Path) -> tuple[dict, str]:
@@ -117,19 +130,22 @@ def _check_run_json(info: dict, path: Path) -> None:
         )
 
 
-def _score_run(run: Path, *, gt: bool, colmap: bool, views: int, size: int, progress: bool = False) -> dict:
+def _score_run(
+    run: Path, *, gt: bool, colmap: bool, views: int, size: int, progress: bool = False, device: torch.device
+) -> dict:
     from ..progress import Phases
 
     ply = run / "scene.ply"
     info, scene_sha = one_run(run)
     previous = previous_scores(run, scene_sha)  # a broken scores.json fails here, before the work
-    scene = GaussianScene.load_ply(ply)
+    scene = GaussianScene.load_ply(ply).to(device)
     out: dict = {
         "run": str(run),
         "run_id": info.get("run_id"),
         "scene_sha256": scene_sha,
         "gaussians": len(scene),
         "caption": info.get("caption"),
+        "device": device.type,  # where this call rendered (scores agree across devices to rounding)
     }
     t_call = time.perf_counter()
     config = info.get("config", {})

@@ -20,6 +20,7 @@ def make_prior(cfg):
         model = model_for_front_bias(cfg.front_bias) if cfg.learned_model == "auto" else cfg.learned_model
         prior = LearnedPrior(
             model,
+            device=_device(cfg),
             guidance_scale=cfg.learned_guidance,
             view_mode=cfg.view_prompting,
             variants=cfg.variants,
@@ -41,13 +42,24 @@ def make_prior(cfg):
     )
 
 
+def _device(cfg) -> torch.device:
+    """The trainer's device: a network prior runs where the renders are (the empirical prior's bank
+    stays in host memory whatever the device)."""
+    from ..devices import resolve_device
+
+    return resolve_device(getattr(cfg, "device", "cpu"), "device (--device)")
+
+
 def make_sd_prior(cfg):
     """The Stable Diffusion prior of a config, with its semantic code (made or reloaded)."""
     from .sd_3dfuse import SemanticCodeConfig, load_semantic_code, semantic_code
     from .stable_diffusion import StableDiffusionPrior
 
     kw = dict(
-        guidance_scale=cfg.sd_guidance, view_prompting=cfg.view_prompting != "none", dtype=getattr(torch, cfg.sd_dtype)
+        guidance_scale=cfg.sd_guidance,
+        view_prompting=cfg.view_prompting != "none",
+        dtype=getattr(torch, cfg.sd_dtype),
+        device=_device(cfg),
     )
     if cfg.sd_model == "tiny":
         prior = StableDiffusionPrior.tiny(seed=0, controlnet=cfg.depth_conditioning, **kw)

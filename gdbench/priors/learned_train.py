@@ -118,14 +118,6 @@ def lr_at(cfg: PriorTrainConfig, step: int) -> float:
     return cfg.lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
 
 
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device: 'cuda' asked for, but torch sees no CUDA device")
-    return torch.device(name)
-
-
 class Batches:
     """The training draws, all from one generator on the CPU (the same on every device)."""
 
@@ -178,10 +170,11 @@ def train_prior(cfg: PriorTrainConfig, *, stop_at: int | None = None) -> dict:
 
 
 def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
+    from ..devices import resolve_device
     from ..io import atomic_write
     from ..train.run import RunInterrupted, defer_stop_signals
 
-    device = _device(cfg.device)
+    device = resolve_device(cfg.device)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"

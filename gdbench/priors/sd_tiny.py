@@ -48,15 +48,15 @@ def clip_tokenizer_files() -> tuple[Path, Path]:
     reproduces OpenAI CLIP's 49,408-entry vocabulary (start 49406, end 49407)."""
     import importlib.util
 
+    out = cache_dir().parent / "clip_tokenizer"
+    vocab_path, merges_path = out / "vocab.json", out / "merges.txt"
+    if vocab_path.is_file() and merges_path.is_file():  # written once: open_clip is needed only then
+        return vocab_path, merges_path
     # find the file without importing open_clip (which would need torchvision)
     spec = importlib.util.find_spec("open_clip")
     bpe = Path(spec.origin).parent / "bpe_simple_vocab_16e6.txt.gz" if spec and spec.origin else None
     if bpe is None or not bpe.is_file():
         raise ImportError("the CLIP tokenizer needs open_clip's BPE file: pip install --no-deps open_clip_torch")
-    out = cache_dir().parent / "clip_tokenizer"
-    vocab_path, merges_path = out / "vocab.json", out / "merges.txt"
-    if vocab_path.is_file() and merges_path.is_file():
-        return vocab_path, merges_path
     lines = gzip.open(bpe).read().decode("utf-8").split("\n")[1 : 49152 - 256 - 2 + 1]
     merges = [tuple(m.split()) for m in lines]
     vocab = list(_bytes_to_unicode().values())

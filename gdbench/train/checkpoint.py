@@ -13,8 +13,11 @@ import torch
 
 from .streams import make_streams, set_stream_states
 
-RESUME_IGNORES = frozenset({"out", "progress", "checkpoint_every", "log_every", "turntable_frames", "log_dir"})
-"""Config fields that do not change a run's result (so a run may resume under other values)."""
+RESUME_IGNORES = frozenset(
+    {"out", "progress", "checkpoint_every", "log_every", "turntable_frames", "log_dir", "device"}
+)
+"""Config fields that do not change a run's result (so a run may resume under other values). ``device``
+changes it by float rounding only, as the thread count does: run.json records both."""
 
 ADDED_AT_DEFAULT = {"views_spread_deg": None}
 """Config fields added after runs were made, with the value that behaves as the code did before
@@ -124,7 +127,7 @@ def load_checkpoint(path: Path, ctx):
         )
     try:  # a well-formed file of format 2 can still lack or mangle a part: name it, do not crash on it
         _check_params(blob["params"])
-        params = {k: v.clone().requires_grad_(True) for k, v in blob["params"].items()}
+        params = {k: v.to(ctx.device).clone().requires_grad_(True) for k, v in blob["params"].items()}
         opt = _optimizer(params, ctx.cfg)
         opt.load_state_dict(blob["optimizer"])
         streams = make_streams(ctx.cfg.seed)
@@ -132,6 +135,7 @@ def load_checkpoint(path: Path, ctx):
         dens = DensifyState(blob["densify"]["grad2d"], blob["densify"]["count"])
         step, history, bad = int(blob["step"]), list(blob["history"]), int(blob["bad_steps"])
         noise_colors = blob["noise_colors"]
+        noise_colors = noise_colors.to(ctx.device) if noise_colors is not None else None
         _check_state(params, opt, dens, noise_colors, ctx)
     except (KeyError, TypeError, AttributeError, ValueError, RuntimeError, IndexError) as e:
         raise _broken(path, "its training state", f"{type(e).__name__}: {e}") from None

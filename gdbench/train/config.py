@@ -344,6 +344,11 @@ class TrainConfig:
     pip install -e '.[log]')."""
     max_bad_steps: Annotated[int, AtLeast(0)] = 20
     """Stop with an error after this many consecutive steps with non-finite gradients."""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """Where the scene, its renders and the noise live: cpu (the reference: the C++ compositor,
+    results reproduce bit for bit), cuda (the pure-torch renderer on the GPU; the same random draws,
+    results equal to float rounding; the empirical prior stays on the CPU) or auto (cuda when torch
+    sees one)."""
 
     def __post_init__(self) -> None:
         check_fields(self)  # every field against its declared type and range (gdbench.constraints)

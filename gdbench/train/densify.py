@@ -55,7 +55,7 @@ def _edit(params: dict[str, Tensor], optimizer, keep: Tensor, extra: dict[str, T
             n_new = extra[name].shape[0]
             for k in ("exp_avg", "exp_avg_sq"):
                 if k in st:
-                    st[k] = torch.cat([st[k][keep], torch.zeros((n_new, *st[k].shape[1:]), dtype=st[k].dtype)])
+                    st[k] = torch.cat([st[k][keep], st[k].new_zeros((n_new, *st[k].shape[1:]))])
             optimizer.state[new] = st
         group["params"][0] = new
         params[name] = new
@@ -152,10 +152,11 @@ class DensifyStrategy:
     ) -> dict[str, int]:
         c = self.cfg
         n = params["means"].shape[0]
-        avg = state.grad2d / state.count.clamp_min(1)
+        dev = params["means"].device  # the statistics are gathered on the CPU (accumulate)
+        avg = (state.grad2d / state.count.clamp_min(1)).to(dev)
         scale = params["log_scales"].detach().exp().amax(-1)
         big = scale > c.percent_dense * self.extent
-        hot = avg > self.threshold(avg, state.count)
+        hot = avg > self.threshold(avg, state.count.to(dev))
         room = max(0, c.max_gaussians - n)
         clone = hot & ~big
         split = hot & big
@@ -172,7 +173,7 @@ class DensifyStrategy:
         si = torch.nonzero(split).squeeze(1)
         s = p["log_scales"][si].exp()
         R = _rotmat(p["quats"][si])
-        offsets = [torch.randn(si.numel(), 3, generator=generator) * s for _ in range(2)]
+        offsets = [torch.randn(si.numel(), 3, generator=generator).to(s) * s for _ in range(2)]
         split_means = [p["means"][si] + (R @ o[..., None])[..., 0] for o in offsets]
         new = {k: torch.cat([p[k][clone], p[k][si], p[k][si]]) for k in PARAM_NAMES if k not in ("means", "log_scales")}
         new["means"] = torch.cat([p["means"][clone], *split_means])

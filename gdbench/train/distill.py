@@ -69,7 +69,7 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
     cfg = ctx.cfg
     iid = state.streams["noise_iid"]
     if ctx.noise is None:
-        return [randn(shape, generator=iid) for _ in range(cfg.samples_per_step)]
+        return [randn(shape, generator=iid, device=ctx.device) for _ in range(cfg.samples_per_step)]
     colors = state.noise_colors
     if state.step > 0:  # step 0 uses the initial draw
         nc = NoiseState(colors)

@@ -215,7 +215,7 @@ def _run_json(out: Path) -> dict | None:
     return blob if isinstance(blob, dict) else None
 
 
-PROVENANCE = ("commit", "utc", "versions", "threads", "timings", "resumed_from_step")
+PROVENANCE = ("commit", "utc", "versions", "threads", "device", "timings", "resumed_from_step")
 """What run.json says about how its scene was trained, kept when a finished run's outputs are
 written again."""
 
@@ -349,6 +349,7 @@ def write_run_outputs(
         "commit": code_commit(),
         "utc": utc_now(),
         "threads": torch.get_num_threads(),
+        "device": str(ctx.device),  # where it trained: results differ across devices by float rounding
         "outputs": {k: str(v) for k, v in paths.items()},
     }
     if made is not None:  # the run.json of the call that trained this scene: its provenance stands

@@ -47,6 +47,9 @@ class Context:
     """World length of one VGS unit for the means (``vgs_unit``)."""
     extent: float = 0.5
     """The scene's radius (``init.scene_extent``): world-size settings are fractions of it."""
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    """Where the parameters, renders and noise live (``cfg.device`` resolved); the random streams
+    stay on the CPU, so every device draws the same numbers."""
 
     @functools.cached_property
     def sigma_values(self) -> list[float]:
@@ -66,7 +69,8 @@ class TrainState:
     bad_steps: int = 0
 
     def scene(self) -> GaussianScene:
-        p = {k: self.params[k].detach() for k in PARAM_NAMES}
+        """The current Gaussians, on the CPU (outputs and scores are made there)."""
+        p = {k: self.params[k].detach().cpu() for k in PARAM_NAMES}
         sh = sh_coeffs(p)
         if sh.shape[-1] == 4:  # latent-mode features: colours by the linear latent preview
             from renderers.splat.sh import C0

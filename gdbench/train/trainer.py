@@ -54,8 +54,10 @@ __all__ = [
 
 
 def make_context(cfg: TrainConfig, prior=None) -> Context:
+    from ..devices import resolve_device
     from ..priors.factory import make_prior
 
+    device = resolve_device(cfg.device, "device (--device)")
     prior = make_prior(cfg) if prior is None else prior
     cond = prior.encode(cfg.prompt)
     encoder = prior.encode_images  # Prior protocol: None for pixel priors
@@ -70,11 +72,11 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
     depth_points, latent_bg = None, None
     if mode != "rgb" and cfg.depth_conditioning:  # 3DFuse: depth of the initial cloud
-        depth_points = initial_scene(cfg, generator=streams["init"]).means.detach()
+        depth_points = initial_scene(cfg, generator=streams["init"]).means.detach().to(device)
     if mode == "sd-latent":
         with torch.no_grad():
             bg = torch.tensor(cfg.background, dtype=torch.float32).expand(1, 8 * factor, 8 * factor, 3)
-            latent_bg = encoder(bg * 2 - 1).mean((0, 1, 2)).cpu()
+            latent_bg = encoder(bg * 2 - 1).mean((0, 1, 2)).to(device)
     bank = prior.bank(cond)
     _check_bank_camera(cfg, bank)
     extent = scene_extent(cfg, generator=make_streams(cfg.seed)["init"], bank=bank)
@@ -88,7 +90,7 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         cond,
         DensifyStrategy(cfg.densify, cfg.steps, extent),
         noise,
-        torch.tensor(cfg.background, dtype=torch.float32),
+        torch.tensor(cfg.background, dtype=torch.float32, device=device),
         prior.sigmas.float(),
         mode,
         factor,
@@ -96,6 +98,7 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         latent_bg,
         length,
         extent,
+        device,
     )
 
 
@@ -140,8 +143,11 @@ def init_state(ctx: Context) -> TrainState:
             z = ctx.prior.encode_images(grey).mean((0, 1, 2)).cpu()
         params["sh"] = z.expand(params["means"].shape[0], 1, 4).clone()
         params["sh_rest"] = torch.zeros(params["means"].shape[0], 0, 4)
-    params = {k: v.requires_grad_(True) for k, v in params.items()}
-    colors = init_colors(ctx.noise.cloud, generator=streams["noise_colors"]).colors if ctx.noise is not None else None
+    # drawn on the CPU (the same scene on every device), then moved
+    params = {k: v.to(ctx.device).requires_grad_(True) for k, v in params.items()}
+    colors = None
+    if ctx.noise is not None:
+        colors = init_colors(ctx.noise.cloud, generator=streams["noise_colors"]).colors.to(ctx.device)
     return TrainState(0, params, _optimizer(params, cfg), ctx.strategy.init_state(len(scene)), colors, streams)
 
 
@@ -185,14 +191,14 @@ def _point_depth(points: Tensor, cams) -> Tensor:
     """Depth [C, H, W] (0 where empty) of a point cloud drawn as small opaque Gaussians."""
     from renderers.splat import rasterize
 
-    n = points.shape[0]
+    n, dev = points.shape[0], points.device
     with torch.no_grad():
         out = rasterize(
             points,
-            torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4),
-            torch.full((n, 3), 0.01),
-            torch.full((n,), 0.99),
-            torch.zeros(n, 1),
+            torch.tensor([1.0, 0.0, 0.0, 0.0], device=dev).expand(n, 4),
+            torch.full((n, 3), 0.01, device=dev),
+            torch.full((n,), 0.99, device=dev),
+            torch.zeros(n, 1, device=dev),
             cams.viewmats,
             cams.Ks,
             cams.width,

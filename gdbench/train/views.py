@@ -71,5 +71,8 @@ def sample_views(ctx: Context, state: TrainState) -> Views:
     R, r = cfg.resolution, cfg.resolution // ctx.factor
     prior_cams = poses.cameras(r, r)
     cams = prior_cams if ctx.mode == "sd-latent" or r == R else poses.cameras(R, R)
+    if ctx.device.type != "cpu":  # the poses stay on the CPU (the priors read them there)
+        prior_cams = prior_cams.to(ctx.device)
+        cams = prior_cams if ctx.mode == "sd-latent" or r == R else cams.to(ctx.device)
     sigma, w = sample_sigma(ctx, state.step, state.streams["sigma"])
     return Views(poses, cams, prior_cams, sigma, w)

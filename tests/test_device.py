@@ -1,0 +1,181 @@
+"""``--device``: where a run, a render and a score compute. On every machine: the choice is checked
+before any work (one line naming the option), leaves a run's id alone and is recorded. With a CUDA
+GPU (``-m cuda``, skipped with its reason elsewhere): the renderer, the trainer, the three priors,
+``render`` and ``score`` on CUDA against the same work on the CPU (docs/renderer.md, "On a GPU")."""
+
+import json
+
+import pytest
+import torch
+
+from gdbench.devices import resolve_device
+from gdbench.priors.empirical import EmpiricalPrior
+from gdbench.train.run import run_id, train
+from tests._util import tiny_bank
+from tests.test_reliability import cli, one_line
+from tests.test_train import CAPTION, tiny
+
+CUDA = torch.cuda.is_available()
+NO_CUDA = "needs a CUDA GPU (torch sees none)"
+
+
+@pytest.fixture(scope="module")
+def prior():
+    return EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
+
+
+# ------------------------------------------------------------------ every machine
+def test_resolve_device_names_the_option_and_what_is_missing():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto") == torch.device("cuda" if CUDA else "cpu")
+    with pytest.raises(ValueError, match=r"--device: expected one of \('cpu', 'cuda', 'auto'\).*got 'tpu'"):
+        resolve_device("tpu", "--device")
+    with pytest.raises(ValueError, match=r"--device: expected one of .*got 'cpu:1'"):
+        resolve_device("cpu:1", "--device")
+    if not CUDA:
+        with pytest.raises(ValueError, match=r"--device: 'cuda' asked for, but torch sees no CUDA device"):
+            resolve_device("cuda", "--device")
+
+
+@pytest.mark.skipif(CUDA, reason="checks the refusal on a machine without CUDA")
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ("generate", "a yellow duck", "--steps", "3", "--device", "cuda"),
+        ("render", "RUN", "--device", "cuda"),
+        ("score", "RUN", "--device", "cuda"),
+        ("sweep", "--prompts", "a yellow duck", "--presets", "gd", "--seeds", "0", "--steps", "3", "--device", "cuda"),
+    ],
+)
+def test_cuda_without_a_gpu_is_one_line_before_any_work(argv, tmp_path, monkeypatch, capsys):
+    """No bank built, no folder written: the refusal comes first and names --device."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "cache"))
+    if argv[0] in ("render", "score"):
+        from gdbench.scene import sphere_init
+
+        (tmp_path / "RUN").mkdir()
+        sphere_init(20, 0.3, 0.5, 0.8, generator=torch.Generator().manual_seed(0)).save_ply(tmp_path / "RUN/scene.ply")
+    code, _, err = cli(monkeypatch, capsys, *argv)
+    assert code == 2
+    line = one_line(err)
+    assert "device" in line and "torch sees no CUDA device" in line, line
+    assert not (tmp_path / "cache" / "banks").exists()
+    assert not (tmp_path / "runs").exists()
+
+
+def test_device_leaves_the_run_id_and_is_recorded(prior, tmp_path):
+    """The device is where a run computes, like the thread count: not part of the run's id (a CPU
+    run's checkpoint resumes on CUDA and back), but recorded in run.json and a sweep's rows."""
+    assert run_id(tiny("gd", device="cpu")) == run_id(tiny("gd", device="auto")) == run_id(tiny("gd", device="cuda"))
+    r = train(tiny("gd", tmp_path / "run", steps=2), prior)
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert info["device"] == "cpu" and info["config"]["device"] == "cpu"
+    assert r.state.scene().means.device.type == "cpu"
+
+
+# ------------------------------------------------------------------ CUDA
+def _both(cfg_kw: dict, prior, tmp_path, steps: int):
+    out = {}
+    for dev in ("cpu", "cuda"):
+        r = train(tiny("gd", tmp_path / dev, steps=steps, device=dev, **cfg_kw), prior, write_outputs=False)
+        out[dev] = r.state
+    return out
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=NO_CUDA)
+@pytest.mark.parametrize("name", ["anisotropic", "crossing", "random_cloud_10k", "procedural", "subpixel"])
+def test_torch_renderer_on_cuda_matches_the_cpu(name):
+    """Images and gradients of the torch compositor on CUDA against the C++ compositor on the CPU."""
+    from gdbench.bench.bm_cuda import GSPLAT_ALPHA_MAX, _ours_images, _render_and_grad
+    from gdbench.fixtures import load_fixture
+
+    f = load_fixture(name)
+    gpu = _render_and_grad(_ours_images(GSPLAT_ALPHA_MAX), f.scene, f.cameras, "cuda", 0)
+    cpu = _render_and_grad(_ours_images(GSPLAT_ALPHA_MAX, "cpp"), f.scene, f.cameras, "cpu", 0)
+    for k in cpu:
+        scale = float(cpu[k].abs().max()) or 1.0
+        err = float((gpu[k].cpu() - cpu[k]).abs().max())
+        assert gpu[k].device.type == "cuda"
+        assert err <= (2e-5 if k in ("rgb", "alpha") else 1e-3) * max(scale, 1.0), (k, err, scale)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=NO_CUDA)
+def test_training_on_cuda_follows_the_cpu_run(prior, tmp_path):
+    """The same draws on both devices (the streams stay on the CPU): the first step's gradients
+    agree to float rounding (its Adam step is sign(g) lr, so a gradient near 0 may flip: the
+    parameters are not compared), the residuals of a few steps stay close, and every tensor of the
+    CUDA run's state lives on the GPU."""
+    one = _both({}, prior, tmp_path / "one", 1)
+    for k, v in one["cpu"].params.items():
+        assert one["cuda"].params[k].device.type == "cuda"
+        if v.numel() == 0:  # sh_rest at SH degree 0
+            continue
+        g_cpu, g_gpu = v.grad, one["cuda"].params[k].grad
+        assert g_cpu is not None and float(g_cpu.abs().max()) > 0, k
+        torch.testing.assert_close(g_gpu.cpu(), g_cpu, rtol=1e-3, atol=1e-4 * float(g_cpu.abs().max()))
+    few = _both({}, prior, tmp_path / "few", 4)
+    r_cpu = [h["residual"] for h in few["cpu"].history]
+    r_gpu = [h["residual"] for h in few["cuda"].history]
+    assert r_gpu == pytest.approx(r_cpu, rel=0.02)
+    assert few["cuda"].noise_colors.device.type == "cuda"
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=NO_CUDA)
+def test_generate_render_and_score_on_cuda(tmp_path, monkeypatch, capsys):
+    """The commands end to end on CUDA: a run records its device; render's frames and score's
+    numbers on CUDA agree with the CPU's."""
+    monkeypatch.chdir(tmp_path)
+    code, _, err = cli(monkeypatch, capsys, "generate", "a yellow duck", "--steps", "30", "--device", "cuda",
+                         "--out", "gpu", "--no-progress", "--no-score")  # fmt: skip
+    assert code == 0, err
+    assert json.loads((tmp_path / "gpu/run.json").read_text())["device"] == "cuda"
+    scores = {}
+    for dev in ("cpu", "cuda"):
+        code, _, err = cli(monkeypatch, capsys, "score", "gpu", "--no-colmap", "--device", dev)
+        assert code == 0, err
+        scores[dev] = json.loads((tmp_path / "gpu/scores.json").read_text())
+    assert scores["cuda"]["device"] == "cuda"
+    assert scores["cuda"]["gt"]["psnr"] == pytest.approx(scores["cpu"]["gt"]["psnr"], abs=0.01)
+    frames = {}
+    for dev in ("cpu", "cuda"):
+        code, _, err = cli(monkeypatch, capsys, "render", "gpu", "--out", dev, "--frames", "4", "--device", dev)
+        assert code == 0, err
+        import imageio.v3 as iio
+
+        frames[dev] = iio.imread(tmp_path / dev / "scene_turntable_sheet.png").astype(int)
+    assert abs(frames["cuda"] - frames["cpu"]).max() <= 2
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=NO_CUDA)
+@pytest.mark.parametrize("dtype,mode", [("float32", "rgb"), ("float16", "rgb"), ("float32", "latent")])
+def test_stable_diffusion_prior_on_cuda(dtype, mode, tmp_path):
+    """The Stable Diffusion code path with the tiny offline models on CUDA, in both precisions and
+    both modes: the prior, its VAE encoder in the graph (rgb) or the latent render, on one device."""
+    pytest.importorskip("diffusers")
+    from gdbench.noise import NoiseConfig
+    from gdbench.train.config import preset
+
+    cfg = preset("gd", prompt="a yellow duck", prior="sd", sd_model="tiny", sd_dtype=dtype, sd_mode=mode, steps=2,
+                 resolution=32, init_points=200, progress=False, out=tmp_path / f"{dtype}-{mode}", device="cuda",
+                 noise=NoiseConfig(n_gaussians=200, scale=0.05))  # fmt: skip
+    r = train(cfg, write_outputs=False)
+    assert r.state.step == 2 and r.state.params["means"].device.type == "cuda"
+    assert all(bool(torch.isfinite(v).all()) for v in r.state.params.values())
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=NO_CUDA)
+def test_learned_prior_on_cuda(tmp_path):
+    """The shipped learned prior's network on the GPU beside the render."""
+    from gdbench.train.config import preset
+
+    cfg = preset("gd", prompt="a yellow duck", prior="learned", steps=2, resolution=64, init_points=512,
+                 progress=False, out=tmp_path / "learned", device="cuda")  # fmt: skip
+    r = train(cfg, write_outputs=False)
+    assert r.state.step == 2 and r.state.params["means"].device.type == "cuda"
+    assert r.state.history[-1]["residual"] > 0
