@@ -58,9 +58,10 @@ class Generate:
     )
     """gd: structured noise + VGS (the paper); the others are its ablations and baselines."""
     config: Path | None = None
-    """A run.json (reproduces that run: same settings, same result on CPU) or a JSON/YAML file of
-    settings (TrainConfig's field names; nested groups as mappings). Options given on the command
-    line override it; the file's run folder is used when --out is not given (default: none)."""
+    """A run.json (reproduces that run: same settings, same result on CPU; its device is not taken
+    from it) or a JSON/YAML file of settings (TrainConfig's field names; nested groups as
+    mappings). Options given on the command line override it; the file's run folder is used when
+    --out is not given (default: none)."""
     out: Path | None = None
     """The run folder (default: runs/<the prompt, lower-case, '_' for other characters>, such as
     runs/a_yellow_duck)."""
@@ -159,6 +160,8 @@ def _config_file(path: Path, preset_name: str | None):
 
     d = load_mapping(path)
     settings = d["config"] if "run_id" in d and isinstance(d.get("config"), dict) else d  # a run.json
+    if settings is not d:  # a run.json reproduces its run on any device: --device chooses (default cpu)
+        settings = {k: v for k, v in settings.items() if k != "device"}
     if preset_name and "preset" in settings and settings["preset"] != preset_name:
         raise ValueError(
             f"preset: {path} holds the settings of preset {settings['preset']!r}; drop --preset {preset_name}, "

@@ -13,9 +13,11 @@ import torch
 CHOICES = ("cpu", "cuda", "auto")
 
 
-def resolve_device(name: str, what: str = "device") -> torch.device:
+def resolve_device(name: str | torch.device, what: str = "device") -> torch.device:
     """``torch.device`` of ``name`` ('cpu', 'cuda', 'cuda:N' or 'auto'); CUDA asked for where torch
     sees none raises a ValueError naming ``what``."""
+    if isinstance(name, torch.device):
+        name = str(name)
     if not isinstance(name, str):
         raise ValueError(f"{what}: expected one of {CHOICES}, got {name!r}")
     if name == "auto":

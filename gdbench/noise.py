@@ -199,7 +199,13 @@ class NoiseRenderer:
 
         key = None
         if self.cache_size > 0:
-            key = (cams.viewmats.cpu().numpy().tobytes(), cams.Ks.cpu().numpy().tobytes(), cams.width, cams.height)
+            key = (
+                str(cams.viewmats.device),
+                cams.viewmats.cpu().numpy().tobytes(),
+                cams.Ks.cpu().numpy().tobytes(),
+                cams.width,
+                cams.height,
+            )
             if key in self._cache:
                 return self._cache[key]
         means, quats, scales, opacities = self._geometry(cams.viewmats.device)

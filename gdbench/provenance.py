@@ -64,6 +64,8 @@ def utc_now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
-def made(params: dict, seconds: float) -> dict:
-    """The provenance of one result block: its parameters, the commit, the time, its cost."""
-    return {"params": params, "commit": code_commit(), "utc": utc_now(), "seconds": seconds}
+def made(params: dict, seconds: float, device: str | None = None) -> dict:
+    """The provenance of one result block: its parameters, the commit, the time, its cost (and
+    where it was computed, outside the parameters: a block is reused across devices)."""
+    out = {"params": params, "commit": code_commit(), "utc": utc_now(), "seconds": seconds}
+    return out | ({"device": device} if device is not None else {})

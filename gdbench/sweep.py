@@ -356,6 +356,13 @@ def sweep(
     ]
     t_start = time.perf_counter()
     validate_grid(prompts, presets, seeds, specs)
+    from .devices import resolve_device
+
+    if executor == "ray" and any(resolve_device(cell_config(s).device).type == "cuda" for s in specs):
+        raise ValueError(
+            "device: Ray runs a sweep's cells as tasks without a GPU (it hides the GPUs from them); "
+            "use --executor local with --device cuda"
+        )
     t_valid = time.perf_counter()
     if executor == "ray" and address:
         check_ray_address(address)

@@ -51,8 +51,8 @@ for dev in cuda cpu; do
 done
 pack
 
-stamp "bm_cuda agreement, speed"
-timeout 150 python3 -m gdbench.bench.bm_cuda --parts agreement,speed --out "$R/bm" > "$R/bm_cuda.log" 2>&1
+stamp "bm_cuda agreement, speed, trainer"
+timeout 200 python3 -m gdbench.bench.bm_cuda --parts agreement,speed,trainer --out "$R/bm" > "$R/bm_cuda.log" 2>&1
 pack
 stamp "bm_cuda threads"
 timeout 70 python3 -m gdbench.bench.bm_cuda --parts threads --out "$R/bm_threads" > "$R/bm_threads.log" 2>&1

@@ -26,7 +26,7 @@ def prior():
 
 # ------------------------------------------------------------------ every machine
 def test_resolve_device_names_the_option_and_what_is_missing():
-    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("cpu") == resolve_device(torch.device("cpu")) == torch.device("cpu")
     assert resolve_device("auto") == torch.device("cuda" if CUDA else "cpu")
     with pytest.raises(ValueError, match=r"--device: expected one of \('cpu', 'cuda', 'auto'\).*got 'tpu'"):
         resolve_device("tpu", "--device")
@@ -62,6 +62,38 @@ def test_cuda_without_a_gpu_is_one_line_before_any_work(argv, tmp_path, monkeypa
     assert "device" in line and "torch sees no CUDA device" in line, line
     assert not (tmp_path / "cache" / "banks").exists()
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_run_json_config_leaves_the_device_to_the_command_line(tmp_path):
+    """A run.json made on a GPU reproduces its run on a machine without one (--device chooses);
+    a settings file's device is a setting like any other."""
+    from gdbench.cli import _config_file
+    from gdbench.train.outputs import config_dict
+
+    cfg = config_dict(tiny("gd", tmp_path / "run", device="cuda"))
+    (tmp_path / "run.json").write_text(json.dumps({"run_id": "x", "config": cfg}))
+    (tmp_path / "settings.json").write_text(json.dumps(cfg))
+    assert _config_file(tmp_path / "run.json", None)[0].device == "cpu"
+    assert _config_file(tmp_path / "settings.json", None)[0].device == "cuda"
+
+
+def test_ray_sweeps_on_cuda_are_refused_before_any_cell(tmp_path, monkeypatch):
+    """Ray hides the GPUs from tasks that ask for none: a Ray sweep on CUDA would fail in every
+    cell after the grid was accepted, so it is refused with the grid (a GPU is faked here)."""
+    import gdbench.devices
+    from gdbench.sweep import sweep
+
+    real = gdbench.devices.resolve_device
+    monkeypatch.setattr(
+        gdbench.devices,
+        "resolve_device",
+        lambda name, what="device": torch.device("cuda") if name == "cuda" else real(name, what),
+    )
+    with pytest.raises(ValueError, match=r"device: Ray runs a sweep's cells as tasks without a GPU"):
+        sweep(
+            ["a yellow duck"], ["gd"], [0], steps=2, out=tmp_path / "sw", executor="ray", overrides={"device": "cuda"}
+        )
+    assert not (tmp_path / "sw" / "cells").exists()
 
 
 def test_device_leaves_the_run_id_and_is_recorded(prior, tmp_path):
@@ -135,10 +167,11 @@ def test_generate_render_and_score_on_cuda(tmp_path, monkeypatch, capsys):
     assert json.loads((tmp_path / "gpu/run.json").read_text())["device"] == "cuda"
     scores = {}
     for dev in ("cpu", "cuda"):
+        (tmp_path / "gpu/scores.json").unlink(missing_ok=True)  # else the second call reuses the first's
         code, _, err = cli(monkeypatch, capsys, "score", "gpu", "--no-colmap", "--device", dev)
         assert code == 0, err
         scores[dev] = json.loads((tmp_path / "gpu/scores.json").read_text())
-    assert scores["cuda"]["device"] == "cuda"
+        assert scores[dev]["gt"]["made"]["device"] == dev
     assert scores["cuda"]["gt"]["psnr"] == pytest.approx(scores["cpu"]["gt"]["psnr"], abs=0.01)
     frames = {}
     for dev in ("cpu", "cuda"):
@@ -163,6 +196,9 @@ def test_stable_diffusion_prior_on_cuda(dtype, mode, tmp_path):
     cfg = preset("gd", prompt="a yellow duck", prior="sd", sd_model="tiny", sd_dtype=dtype, sd_mode=mode, steps=2,
                  resolution=32, init_points=200, progress=False, out=tmp_path / f"{dtype}-{mode}", device="cuda",
                  noise=NoiseConfig(n_gaussians=200, scale=0.05))  # fmt: skip
+    from gdbench.train.trainer import make_context
+
+    assert make_context(cfg).prior.device.type == "cuda"
     r = train(cfg, write_outputs=False)
     assert r.state.step == 2 and r.state.params["means"].device.type == "cuda"
     assert all(bool(torch.isfinite(v).all()) for v in r.state.params.values())
@@ -176,6 +212,9 @@ def test_learned_prior_on_cuda(tmp_path):
 
     cfg = preset("gd", prompt="a yellow duck", prior="learned", steps=2, resolution=64, init_points=512,
                  progress=False, out=tmp_path / "learned", device="cuda")  # fmt: skip
+    from gdbench.train.trainer import make_context
+
+    assert make_context(cfg).prior.device.type == "cuda"
     r = train(cfg, write_outputs=False)
     assert r.state.step == 2 and r.state.params["means"].device.type == "cuda"
     assert r.state.history[-1]["residual"] > 0

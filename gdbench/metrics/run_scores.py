@@ -145,7 +145,6 @@ def _score_run(
         "scene_sha256": scene_sha,
         "gaussians": len(scene),
         "caption": info.get("caption"),
-        "device": device.type,  # where this call rendered (scores agree across devices to rounding)
     }
     t_call = time.perf_counter()
     config = info.get("config", {})
@@ -191,7 +190,7 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
                 "variant": v["majority_variant"],
                 "background": list(bg),
             }
-            stamp = made(params, time.perf_counter() - t0)
+            stamp = made(params, time.perf_counter() - t0, scene.means.device.type)
             blocks |= {"gt": g | {"made": stamp}, "views": v | {"made": stamp}}
     if colmap:
         params = {"views": views, "size": size, "background": list(bg)}
@@ -205,7 +204,7 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
             t0 = time.perf_counter()
             log = run / "colmap.log"  # COLMAP's own lines, not the console's
             c = score_scene(scene, views=views, size=size, background=bg, log=log, phase=phases.start).as_dict()
-            blocks["colmap"] = c | {"made": made(params, time.perf_counter() - t0)}
+            blocks["colmap"] = c | {"made": made(params, time.perf_counter() - t0, scene.means.device.type)}
 
 
 def _mark(s: dict, name: str) -> str:

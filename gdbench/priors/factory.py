@@ -42,12 +42,14 @@ def make_prior(cfg):
     )
 
 
-def _device(cfg) -> torch.device:
-    """The trainer's device: a network prior runs where the renders are (the empirical prior's bank
-    stays in host memory whatever the device)."""
+def _device(cfg) -> torch.device | None:
+    """Where a network prior (learned, SD) runs: on the trainer's device when that is a GPU, else
+    on CUDA when torch sees one (None: the prior's own choice; the renders stay on the CPU and the
+    prior moves its inputs and outputs). The empirical prior's bank stays in host memory."""
     from ..devices import resolve_device
 
-    return resolve_device(getattr(cfg, "device", "cpu"), "device (--device)")
+    dev = resolve_device(getattr(cfg, "device", "cpu"), "device (--device)")
+    return dev if dev.type != "cpu" else None
 
 
 def make_sd_prior(cfg):

@@ -354,5 +354,7 @@ def write_run_outputs(
     }
     if made is not None:  # the run.json of the call that trained this scene: its provenance stands
         run |= {k: made[k] for k in PROVENANCE if k in made}
+        if "device" not in made:  # made before the option: trained on the CPU
+            run["device"] = "cpu"
     paths["run_json"] = write_json(run, out / "run.json")
     return paths
