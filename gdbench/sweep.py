@@ -71,10 +71,12 @@ def cell_name(prompt: str) -> str:
     return prompt_slug(prompt, "prompts")
 
 
-def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], specs: list[CellSpec]) -> None:
+def validate_grid(
+    prompts: list[str], presets: list[str], seeds: list[int], specs: list[CellSpec], executor: str = "local"
+) -> None:
     """Everything a sweep could fail on, checked before the first cell trains: presets, repeated
     entries, cell folders two prompts would share, prompts no asset matches (or that contradict
-    it), and each cell's config and device."""
+    it), and each cell's config and device (Ray's tasks get no GPU)."""
     from .assets.library import ASSETS
     from .priors.prompt_check import contradiction
     from .priors.text import CaptionMatcher
@@ -90,8 +92,13 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
             raise ValueError(f"{name}: {sorted({x for x in items if items.count(x) > 1})} listed more than once")
     from .devices import resolve_device
 
-    for device in sorted({cell_config(spec).device for spec in specs}):  # before any bank or palette
-        resolve_device(device, "device (--device)")
+    configs = [cell_config(spec) for spec in specs]  # a bad override raises here, naming the setting
+    for device in sorted({cfg.device for cfg in configs}):  # before any bank or palette
+        if resolve_device(device, "device (--device)").type == "cuda" and executor == "ray":
+            raise ValueError(
+                "device: Ray runs a sweep's cells as tasks without a GPU (it hides the GPUs from them); "
+                "use --executor local with --device cuda"
+            )
     names: dict[str, str] = {}
     for pr in prompts:
         n = cell_name(pr)
@@ -106,8 +113,6 @@ def validate_grid(prompts: list[str], presets: list[str], seeds: list[int], spec
         why = contradiction(pr, caption, matcher)
         if why is not None:
             raise ValueError(f"prompts: {pr!r} matched {caption!r} (cosine {sim:.2f}): {why}")
-    for spec in specs:
-        cell_config(spec)  # a bad override raises here, naming the setting
 
 
 def inert_overrides(specs: list[CellSpec]) -> list[str]:
@@ -355,14 +360,7 @@ def sweep(
         for p in per[st]
     ]
     t_start = time.perf_counter()
-    validate_grid(prompts, presets, seeds, specs)
-    from .devices import resolve_device
-
-    if executor == "ray" and any(resolve_device(cell_config(s).device).type == "cuda" for s in specs):
-        raise ValueError(
-            "device: Ray runs a sweep's cells as tasks without a GPU (it hides the GPUs from them); "
-            "use --executor local with --device cuda"
-        )
+    validate_grid(prompts, presets, seeds, specs, executor)
     t_valid = time.perf_counter()
     if executor == "ray" and address:
         check_ray_address(address)

@@ -28,7 +28,8 @@ class TurntableResult:
 def render_views_alpha(
     scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Render cameras in batches without gradients; returns (rgb [C, H, W, 3] in [0, 1], alpha [C, H, W])."""
+    """Render cameras in batches without gradients, on the scene's device; returns (rgb [C, H, W, 3]
+    in [0, 1], alpha [C, H, W]) on the CPU, where outputs and scores are made."""
     from renderers.splat import rasterize
 
     bg = torch.as_tensor(background, dtype=scene.means.dtype, device=scene.means.device)
@@ -46,15 +47,15 @@ def render_views_alpha(
                 outputs=("rgb", "alpha"),
                 **kwargs,
             )
-            rgb.append(r.rgb.clamp(0, 1))
-            alpha.append(r.alpha[..., 0])
+            rgb.append(r.rgb.clamp(0, 1).cpu())
+            alpha.append(r.alpha[..., 0].cpu())
     return torch.cat(rgb), torch.cat(alpha)
 
 
 def render_views(
     scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
 ) -> torch.Tensor:
-    """Render cameras in batches without gradients; returns [C, H, W, 3] in [0, 1]."""
+    """Render cameras in batches without gradients; returns [C, H, W, 3] in [0, 1], on the CPU."""
     return render_views_alpha(scene, cams, background, batch, **kwargs)[0]
 
 

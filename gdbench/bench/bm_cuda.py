@@ -155,7 +155,7 @@ def _render_and_grad(fn, scene, cams, device, seed: int) -> dict:
 
 def agreement(out: Path, device: str) -> dict:
     rows = []
-    ours = _ours_images
+    ours = _ours_images  # (alpha_max, backend) -> the renderer as _gsplat's signature
     for name, (scene, cams) in _scenes().items():
         cuda_g = _render_and_grad(ours(GSPLAT_ALPHA_MAX), scene, cams, device, 0)
         cpu = _render_and_grad(ours(GSPLAT_ALPHA_MAX, "cpp"), scene, cams, "cpu", 0)

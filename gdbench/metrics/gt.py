@@ -121,7 +121,7 @@ def score_against_asset(
         a = angles[i : i + CHUNK]
         ring = SphericalPoses(a, *(getattr(poses, k)[:1].expand(len(a)) for k in ("elevation", "radius", "fovy")))
         rendered.append(render_views(scene, ring.cameras(size, size), background=background))
-    rendered = torch.cat(rendered).cpu()  # a scene on CUDA is scored against the CPU's reference
+    rendered = torch.cat(rendered)
     best = None
     at0 = None
     for j, off in enumerate(offsets.tolist()):

@@ -262,12 +262,11 @@ def _detached(alpha: Tensor, dilate: int) -> float:
 def render_turntable(
     scene, frames: int = FRAMES, size: int = SIZE, background=(1.0, 1.0, 1.0)
 ) -> tuple[Tensor, Tensor]:
-    """(images [F, H, W, 3], alpha [F, H, W]) of a GaussianScene at the metric's views, on the CPU
-    (a scene on CUDA is rendered there and scored here)."""
+    """(images [F, H, W, 3], alpha [F, H, W]) of a GaussianScene at the metric's views (on the CPU,
+    wherever the scene is)."""
     from ..turntable import render_views_alpha
 
-    images, alpha = render_views_alpha(scene, turntable_poses(frames).cameras(size, size), background)
-    return images.cpu(), alpha.cpu()
+    return render_views_alpha(scene, turntable_poses(frames).cameras(size, size), background)
 
 
 def score_scene(

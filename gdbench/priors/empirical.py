@@ -209,6 +209,7 @@ class EmpiricalPrior:
         use_depth = depth is not None and self.depth_weight > 0
         mask = self._allowed(cond, azimuth, elevation, B)
         xf = x.reshape(B, -1).float().cpu()  # the bank lives in host memory: queries on any device come here
+        zf = depth.reshape(B, -1).float().cpu() if use_depth else None
         out = torch.empty(B, H * W * 3, dtype=torch.float32)
         az_bank = _array(cond.azimuth).astype(np.float64) if self.front_bias else None
         for b in range(B):
@@ -216,8 +217,11 @@ class EmpiricalPrior:
             runs = _runs(mask[b])  # the allowed views as contiguous row ranges: slices, no copies
             d2 = _cat([_sqdist(xf[b : b + 1], level.images[i:j]) for i, j in runs]).cpu().numpy()
             if use_depth:
-                zb = depth[b].reshape(1, -1).float().cpu()
-                d2 = d2 + self.depth_weight * _cat([_sqdist(zb, level.depth[i:j]) for i, j in runs]).cpu().numpy()
+                d2 = (
+                    d2
+                    + self.depth_weight
+                    * _cat([_sqdist(zf[b : b + 1], level.depth[i:j]) for i, j in runs]).cpu().numpy()
+                )
             # the posterior weights over the allowed views, in float64 numpy (a few hundred entries)
             logits = -d2 / (2 * float(sig[b]) ** 2)
             if self.front_bias:

@@ -48,7 +48,7 @@ def _device(cfg) -> torch.device | None:
     prior moves its inputs and outputs). The empirical prior's bank stays in host memory."""
     from ..devices import resolve_device
 
-    dev = resolve_device(getattr(cfg, "device", "cpu"), "device (--device)")
+    dev = resolve_device(cfg.device, "device (--device)")
     return dev if dev.type != "cpu" else None
 
 
