@@ -5,6 +5,8 @@ import dataclasses
 import io
 import itertools
 import math
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -345,6 +347,28 @@ def test_finiteness_check_finds_each_kind_and_changes_nothing():
         t[i].view(-1)[1] = bad
         assert not _all_finite(t)
     assert _all_finite([])
+
+
+def test_the_seeded_backward_gives_x_backwards_bits_without_importing_sympy():
+    """Oracle: ``x.backward(g)`` on the same graph (leaf gradients bit for bit); a training
+    process never imports torch's symbolic shapes (sympy, 0.4 s), which that call's shape check
+    would; a wrong shape is refused by name."""
+    from gdbench.train.update import _backward
+
+    g = torch.Generator().manual_seed(5)
+    w, a = torch.randn(6, 4, generator=g, requires_grad=True), torch.randn(3, 6, generator=g)
+    seed = torch.randn(3, 4, generator=g)
+    (a @ w.tanh()).backward(seed)
+    want, w.grad = w.grad, None
+    _backward(a @ w.tanh(), seed)
+    assert torch.equal(w.grad, want) and want.abs().sum() > 0
+    with pytest.raises(ValueError, match="grad: expected the shape of x"):
+        _backward(a @ w.tanh(), seed.T)
+    code = "import sys; from tests.test_train import *; ctx = make_context(tiny(), EmpiricalPrior(banks={CAPTION: "
+    code += "tiny_bank(CAPTION)})); st = init_state(ctx); [train_step(st, ctx) for _ in range(2)]; "
+    code += "print('torch.fx.experimental.symbolic_shapes' in sys.modules, st.step)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "2"]
 
 
 # -------------------------------------------------------------------- quality (slow)

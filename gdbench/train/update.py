@@ -44,9 +44,9 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
     # losses), for every prior. Its gradient is handed to x directly: no loss graph to build and walk
     g = score * (-(cfg.weight * views.weight) / out.rgb.numel())
     if x.requires_grad:
-        x.backward(g)
+        _backward(x, g)
     else:  # rgb mode: x = 2 rgb - 1 (render_for_prior), dL/drgb = 2 dL/dx exactly (autograd's bits)
-        out.rgb.backward(g * 2)
+        _backward(out.rgb, g * 2)
     if not _all_finite([p[k].grad for k in PARAM_NAMES if p[k].grad is not None]):
         state.bad_steps += 1
         if state.bad_steps > cfg.max_bad_steps:
@@ -72,6 +72,28 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
         p, state.optimizer, state.densify, state.step + 1, generator=state.streams["densify"]
     )
     return {k: v for k, v in info.items() if v}
+
+
+class _Seed(torch.autograd.Function):
+    """A scalar whose backward hands ``grad`` to ``x`` as it is: ``_Seed.apply(x, grad).backward()``
+    is ``x.backward(grad)`` (the same bits reach x's graph), without torch's check of a given
+    gradient's shape, whose first call imports sympy (0.4 s of every training process)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, grad: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.grad = grad
+        return x.new_zeros(())
+
+    @staticmethod
+    def backward(ctx, _one: Tensor):  # type: ignore[override]
+        return ctx.grad, None
+
+
+def _backward(x: Tensor, grad: Tensor) -> None:
+    """``x.backward(grad)`` (``_Seed``); the shapes must match, as ``backward`` demands."""
+    if grad.shape != x.shape:
+        raise ValueError(f"grad: expected the shape of x, {list(x.shape)}, got {list(grad.shape)}")
+    _Seed.apply(x, grad).backward()
 
 
 _ONE = torch.ones(())

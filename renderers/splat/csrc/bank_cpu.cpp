@@ -5,7 +5,8 @@
 // 360-view bank to each field of view it serves). out[v, y, x, c] =
 // sum_k wx[x, k] sum_j wy[y, j] img[v, iy[y, j], ix[x, k], c]: the product A_y Y A_x^T of
 // zoom.py with A's few non-zero entries per row given as taps (index, weight). Per image, rows
-// first into a double buffer of w * C, then columns; sums in double, one rounding at the end.
+// first into a double buffer of w * C, then columns (one vector pass per tap); sums in double,
+// one rounding at the end.
 // The dense matrix products of the torch path read every source pixel once per target row
 // (128 times); this reads each at most a few times.
 //
@@ -26,15 +27,29 @@ template <typename scalar_t>
 void zoom_impl(const torch::Tensor& images, const torch::Tensor& iy, const torch::Tensor& wy,
                const torch::Tensor& ix, const torch::Tensor& wx, torch::Tensor& out) {
   const int64_t V = images.size(0), h = images.size(1), w = images.size(2), C = images.size(3);
-  const int64_t H = iy.size(0), Ky = iy.size(1), W = ix.size(0), Kx = ix.size(1), row = w * C;
+  const int64_t H = iy.size(0), Ky = iy.size(1), W = ix.size(0), Kx = ix.size(1), row = w * C, orow = W * C;
   const scalar_t* src = images.data_ptr<scalar_t>();
   const int64_t* py = iy.data_ptr<int64_t>();
   const int64_t* px = ix.data_ptr<int64_t>();
   const double* qy = wy.data_ptr<double>();
   const double* qx = wx.data_ptr<double>();
   scalar_t* dst = out.data_ptr<scalar_t>();
+  // The column taps laid out per output entry o = x C + c, one table per tap k: the source entry
+  // (px[x, k] C + c) and its weight. Each output is then 0 + t_0 + t_1 + ... in tap order, the
+  // sum the scalar loop formed, but as Kx vector passes over the row (gathers) instead of a loop
+  // of Kx dependent steps per entry.
+  std::vector<int32_t> gi(Kx * orow);
+  std::vector<double> gw(Kx * orow);
+  for (int64_t k = 0; k < Kx; ++k)
+    for (int64_t x = 0; x < W; ++x)
+      for (int64_t c = 0; c < C; ++c) {
+        gi[k * orow + x * C + c] = int32_t(px[x * Kx + k] * C + c);
+        gw[k * orow + x * C + c] = qx[x * Kx + k];
+      }
   at::parallel_for(0, V, 1, [&](int64_t v0, int64_t v1) {
-    std::vector<double> acc(row);
+    std::vector<double> acc(row), sum(orow);
+    double* pa = acc.data();
+    double* ps = sum.data();
     for (int64_t v = v0; v < v1; ++v) {
       for (int64_t y = 0; y < H; ++y) {
         std::fill(acc.begin(), acc.end(), 0.0);
@@ -43,16 +58,18 @@ void zoom_impl(const torch::Tensor& images, const torch::Tensor& iy, const torch
           if (a == 0) continue;
           const scalar_t* s = src + (v * h + py[y * Ky + j]) * row;
 #pragma omp simd
-          for (int64_t i = 0; i < row; ++i) acc[i] += a * double(s[i]);
+          for (int64_t i = 0; i < row; ++i) pa[i] += a * double(s[i]);
         }
-        scalar_t* o = dst + (v * H + y) * W * C;
-        for (int64_t x = 0; x < W; ++x) {
-          for (int64_t c = 0; c < C; ++c) {
-            double sum = 0;
-            for (int64_t k = 0; k < Kx; ++k) sum += qx[x * Kx + k] * acc[px[x * Kx + k] * C + c];
-            o[x * C + c] = scalar_t(sum);
-          }
+        std::fill(sum.begin(), sum.end(), 0.0);
+        for (int64_t k = 0; k < Kx; ++k) {
+          const int32_t* g = gi.data() + k * orow;
+          const double* q = gw.data() + k * orow;
+#pragma omp simd
+          for (int64_t o = 0; o < orow; ++o) ps[o] += q[o] * pa[g[o]];
         }
+        scalar_t* o = dst + (v * H + y) * orow;
+#pragma omp simd
+        for (int64_t i = 0; i < orow; ++i) o[i] = scalar_t(ps[i]);
       }
     }
   });
