@@ -91,9 +91,9 @@ def test_equal_depths_keep_gaussian_order():
 def test_cpu_binning_gives_the_same_lists(cpp_extension):
     from renderers.splat.bin_tiles import bin_tiles_cpu
 
-    for dtype in (torch.float32, torch.float64):
-        gs = random_gaussians(400, seed=4, dtype=dtype, scale=(0.002, 0.2))
-        cams = ring_cameras(3, 70, 45, dtype=dtype, seed=2)
+    for dtype, C in ((torch.float32, 3), (torch.float64, 3), (torch.float32, 1)):  # one image: no division
+        gs = random_gaussians(400 * 3 // C, seed=4, dtype=dtype, scale=(0.002, 0.2))
+        cams = ring_cameras(C, 70, 45, dtype=dtype, seed=2)
         p = project(gs["means"], gs["quats"], gs["scales"], gs["opacities"], cams.viewmats, cams.Ks, 70, 45)
         a = bin_tiles(p.means2d, p.radii, p.depths, p.visible, 70, 45, 16)
         b = bin_tiles_cpu(p.means2d, p.radii, p.depths, p.visible, 70, 45, 16)

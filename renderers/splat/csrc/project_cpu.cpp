@@ -415,18 +415,24 @@ template <typename T>
 void sort_by_depth(std::vector<int64_t>& ids, const T* pz) {
   using U = std::conditional_t<sizeof(T) == 4, uint32_t, uint64_t>;
   constexpr U sign = U(1) << (8 * sizeof(U) - 1);
+  constexpr int kPasses = int(sizeof(U));
   const size_t n = ids.size();
   std::vector<U> key(n), key2(n);
   std::vector<int64_t> ids2(n);
+  // every pass's digit counts in one sweep over the keys (the passes' counts do not depend on
+  // each other's order): one chain of increments per pass, side by side
+  std::vector<size_t> count(kPasses * 257, 0);
   for (size_t i = 0; i < n; ++i) {
     U u;
     std::memcpy(&u, &pz[ids[i]], sizeof(U));
-    key[i] = (u & sign) ? ~u : (u | sign);
+    const U k = (u & sign) ? ~u : (u | sign);
+    key[i] = k;
+    for (int p = 0; p < kPasses; ++p) ++count[p * 257 + ((k >> (8 * p)) & 255) + 1];
   }
-  for (unsigned shift = 0; shift < 8 * sizeof(U); shift += 8) {
-    size_t start[257] = {0};
-    for (size_t i = 0; i < n; ++i) ++start[((key[i] >> shift) & 255) + 1];
+  for (int p = 0; p < kPasses; ++p) {
+    size_t* start = count.data() + p * 257;
     if (std::any_of(start + 1, start + 257, [&](size_t c) { return c == n; })) continue;
+    const unsigned shift = 8 * p;
     for (int d = 0; d < 256; ++d) start[d + 1] += start[d];
     for (size_t i = 0; i < n; ++i) {
       const size_t at = start[(key[i] >> shift) & 255]++;
@@ -457,7 +463,9 @@ std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tenso
   // counts its pairs per tile, and writes them after those of chunks 0..c-1 in every tile, so
   // each tile's list stays in depth order (the serial result).
   const int64_t n_ids = int64_t(ids.size());
-  const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_ids / 1024));
+  // chunks of at least 16k entries: below that a second thread costs more than it saves (a 64 px
+  // training step bins 4k Gaussians: 0.15 ms on one thread, 0.19 on two)
+  const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_ids / 16384));
   std::vector<int64_t> boxes(4 * n_ids), counts(n_chunks * n_tiles, 0);
   auto chunk_range = [&](int64_t c) { return std::make_pair(n_ids * c / n_chunks, n_ids * (c + 1) / n_chunks); };
   at::parallel_for(0, n_chunks, 1, [&](int64_t c0, int64_t c1) {
@@ -465,7 +473,7 @@ std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tenso
       int64_t* cnt = counts.data() + c * n_tiles;
       const auto [k0, k1] = chunk_range(c);
       for (int64_t k = k0; k < k1; ++k) {
-        const int64_t g = ids[k], img = g / N;
+        const int64_t g = ids[k], img = I == 1 ? 0 : g / N;  // no integer division for one image
         int64_t* bx = &boxes[4 * k];
         tile_box(pm + 2 * g, pr + 2 * g, ts, tiles_x, tiles_y, bx);
         for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
@@ -492,7 +500,7 @@ std::vector<torch::Tensor> bin_impl(const torch::Tensor& m2d, const torch::Tenso
       int64_t* cursor = counts.data() + c * n_tiles;
       const auto [k0, k1] = chunk_range(c);
       for (int64_t k = k0; k < k1; ++k) {  // depth order: each tile's list comes out sorted
-        const int64_t g = ids[k], img = g / N;
+        const int64_t g = ids[k], img = I == 1 ? 0 : g / N;
         const int64_t* bx = &boxes[4 * k];
         for (int64_t ty = bx[2]; ty <= bx[3]; ++ty)
           for (int64_t tx = bx[0]; tx <= bx[1]; ++tx) out[cursor[img * per_img + ty * tiles_x + tx]++] = g;
