@@ -481,6 +481,34 @@ def test_prompts_that_contradict_their_asset_are_refused_on_the_committed_sets()
     assert false_accepts == [], false_accepts
 
 
+def test_the_shipped_colour_table_is_matplotlibs():
+    """Oracle: matplotlib's CSS4 and XKCD tables and ``to_rgb``, as the lexicon was built from them
+    before it was shipped as data (so that a prompt check imports no matplotlib); the basic terms'
+    prototypes are XKCD's values."""
+    import subprocess
+    import sys
+
+    import numpy as np
+    from matplotlib import colors as mc
+
+    from gdbench.priors import colour_names
+    from gdbench.priors import prompt_check as pc
+
+    assert colour_names.parse() == colour_names.from_matplotlib() and len(colour_names.parse()) > 1000
+    table = dict(mc.CSS4_COLORS) | {k.removeprefix("xkcd:"): v for k, v in mc.XKCD_COLORS.items()}
+    want = {}
+    for name, value in table.items():
+        if "/" not in name and not any(ch.isdigit() for ch in name):
+            want[tuple(name.replace("'", "").split())] = mc.to_rgb(value)
+    want = dict(sorted(want.items(), key=lambda kv: -len(kv[0])))
+    assert list(pc.colour_lexicon().items()) == list(want.items())
+    basic = pc._lab(np.array([mc.to_rgb(f"xkcd:{b}") for b in pc.BASIC]))
+    assert np.array_equal(pc._basic_lab(), basic)
+    code = "import sys; from gdbench.priors import prompt_check as pc; pc.colour_lexicon(); pc._basic_lab(); "
+    code += "print('matplotlib' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
+
+
 def test_colour_categories_of_the_basic_terms_and_of_known_names():
     """Each of the eleven basic colour terms' own centroid falls in its category, and named colours
     outside them fall where a dictionary puts them."""

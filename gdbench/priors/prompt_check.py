@@ -54,17 +54,18 @@ def _words(prompt: str) -> str:
 @functools.cache
 def colour_lexicon() -> dict[tuple[str, ...], tuple[float, float, float]]:
     """Colour names (as word tuples, longest first) -> sRGB in [0, 1], from matplotlib's CSS4 and
-    XKCD tables (names with '/' or digits left out)."""
-    from matplotlib import colors as mc
+    XKCD tables (names with '/' or digits left out; XKCD's survey names win over CSS4's where both
+    exist: CSS "lavender" is nearly white), as ``colour_names`` keeps them."""
+    from .colour_names import parse
 
-    # XKCD's survey names win over CSS4's where both exist (CSS "lavender" is nearly white)
-    table = dict(mc.CSS4_COLORS) | {k.removeprefix("xkcd:"): v for k, v in mc.XKCD_COLORS.items()}
-    out = {}
-    for name, value in table.items():
-        if "/" in name or any(ch.isdigit() for ch in name):
-            continue
-        out[tuple(name.replace("'", "").split())] = mc.to_rgb(value)
+    out = {tuple(name.replace("'", "").split()): _rgb(value) for name, value in parse().items()}
     return dict(sorted(out.items(), key=lambda kv: -len(kv[0])))
+
+
+def _rgb(hex_colour: str) -> tuple[float, float, float]:
+    """'#rrggbb' -> sRGB in [0, 1] (matplotlib's to_rgb, the same divisions)."""
+    r, g, b = (int(hex_colour[i : i + 2], 16) / 255 for i in (1, 3, 5))
+    return r, g, b
 
 
 def _lab(rgb: np.ndarray) -> np.ndarray:
@@ -101,9 +102,10 @@ survey centroids)."""
 
 @functools.cache
 def _basic_lab() -> np.ndarray:
-    from matplotlib import colors as mc
+    from .colour_names import parse
 
-    return _lab(np.array([mc.to_rgb(f"xkcd:{b}") for b in BASIC]))
+    table = parse()  # XKCD's values for these names (they are all in its table)
+    return _lab(np.array([_rgb(table[b]) for b in BASIC]))
 
 
 HUE_TOLERANCE = 45.0
