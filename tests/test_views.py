@@ -298,3 +298,177 @@ def test_asset_arrays_come_from_the_cache_as_built_and_a_corrupt_entry_is_rebuil
         assert np.array_equal(got_lab, lab) and np.array_equal(got_w, w)
         prompt_check.palette.cache_clear()
     assert len(list((tmp_path / "banks").glob("palette-*.npz"))) == 1
+
+
+def _scipy_detached(alpha, dilate):
+    """The oracle: the floaters share as first written, with scipy.ndimage."""
+    import numpy as np
+    from scipy import ndimage
+
+    total = float(alpha.sum())
+    if total <= 0:
+        return 0.0
+    out = 0.0
+    for a in alpha.double().numpy():
+        labels, n = ndimage.label(a > 0.1)
+        if n <= 1:
+            continue
+        sizes = ndimage.sum(a, labels, index=np.arange(1, n + 1))
+        body = labels == 1 + int(np.argmax(sizes))
+        if dilate > 0:
+            body = ndimage.binary_dilation(body, iterations=dilate)
+        out += float(a[~body].sum())
+    return out / total
+
+
+def _spiral(n):
+    """A 1-px spiral from the corner inwards, its arms 1 px apart: one piece whose raster order
+    jumps back and forth along it (naive min-label propagation takes its length)."""
+    import numpy as np
+
+    m = np.zeros((n, n), bool)
+    y, x, dy, dx = 0, 0, 0, 1
+    m[0, 0] = True
+
+    def free(y, x):
+        return (
+            0 <= y < n
+            and 0 <= x < n
+            and not m[y, x]
+            and not (0 <= y + dy < n and 0 <= x + dx < n and m[y + dy, x + dx])
+        )
+
+    while True:
+        if not free(y + dy, x + dx):
+            dy, dx = dx, -dy  # turn right
+            if not free(y + dy, x + dx):
+                return m
+        y, x = y + dy, x + dx
+        m[y, x] = True
+
+
+def _masks(rng):
+    """Boolean masks of every kind the floaters share must label like scipy (test below)."""
+    import numpy as np
+
+    for _ in range(120):  # random densities around the percolation threshold and away from it
+        h, w = rng.integers(1, 40, size=2)
+        yield rng.random((h, w)) < rng.choice([0.05, 0.3, 0.5, 0.6, 0.7, 0.95])
+    yield np.zeros((16, 16), bool)
+    yield np.ones((16, 16), bool)
+    yield np.ones((1, 1), bool)
+    one = np.zeros((9, 7), bool)
+    one[4, 3] = True
+    yield one
+    corners = np.zeros((12, 12), bool)  # pieces on every border and corner
+    corners[[0, 0, -1, -1], [0, -1, 0, -1]] = True
+    corners[5:7, 0] = corners[0, 5:7] = corners[5:7, -1] = corners[-1, 5:7] = True
+    yield corners
+    for n in (2, 5, 33, 64):
+        yield _spiral(n)
+        yield _spiral(n)[::-1, ::-1].copy()  # entered from the centre
+        yield _spiral(n).T.copy()
+    snake = np.zeros((31, 40), bool)  # boustrophedon: one piece, 16 rows joined at alternate ends
+    snake[::2] = True
+    snake[1::4, -1] = snake[3::4, 0] = True
+    yield snake
+    comb = np.zeros((20, 41), bool)  # 21 teeth joined only by the last row: one piece, known as one last
+    comb[:, ::2] = True
+    comb[-1] = True
+    yield comb
+    for _ in range(20):  # equal squares (equal sums where the values repeat): the first must win
+        m = np.zeros((30, 30), bool)
+        for y, x in rng.integers(0, 27, size=(rng.integers(2, 6), 2)):
+            m[y : y + 3, x : x + 3] = True
+        yield m
+
+
+def test_floater_pieces_are_numbered_as_scipy_labels_them():
+    """Oracle: scipy.ndimage.label (4-connected): the same piece for every pixel, numbered in the
+    same order, on random masks, spirals and snakes (one piece whose raster order zigzags along
+    it), pieces on the borders, empty and full images; and stacked views stay apart."""
+    import numpy as np
+    from scipy import ndimage
+
+    from gdbench.metrics.views import _components
+
+    rng = np.random.default_rng(0)
+    masks = list(_masks(rng))
+    for m in masks:
+        want, n = ndimage.label(m)
+        pixels, label, first = _components(m)
+        assert len(first) == n and np.array_equal(pixels, np.flatnonzero(want))
+        assert np.array_equal(label + 1, want.reshape(-1)[pixels])
+        assert np.array_equal(first, [np.flatnonzero(want == k)[0] for k in range(1, n + 1)])
+    stack = np.stack([m for m in masks if m.shape == (16, 16)] + [np.ones((16, 16), bool)] * 2)
+    cross = np.zeros((3, 3, 3), bool)  # 4-connected within each view, never across views
+    cross[1] = ndimage.generate_binary_structure(2, 1)
+    want, n = ndimage.label(stack, cross)
+    pixels, label, first = _components(stack)
+    assert len(first) == n and np.array_equal(label + 1, want.reshape(-1)[pixels])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_floaters_equal_scipys_bit_for_bit(dtype):
+    """Oracle: the scipy.ndimage implementation (``_scipy_detached``), compared with ``==``: the
+    same piece kept (the first of equal sums, in scipy's order), the same sums and the same
+    dilation, on the masks above with random values (some exactly at the 0.1 threshold, and equal
+    values on the equal squares), blobs with floaters, and (float64) two pieces whose sums differ
+    only by the order of adding, stacked into views with empty and full ones, dilated 0-5 px and
+    past the image's size."""
+    import numpy as np
+
+    from gdbench.metrics.views import _detached
+
+    rng = np.random.default_rng(1)
+    views = {}
+    for m in _masks(rng):
+        a = np.where(m, rng.uniform(0.1, 1.0, m.shape), rng.uniform(0.0, 0.1, m.shape) * (rng.random(m.shape) < 0.5))
+        a[rng.random(m.shape) < 0.05] = 0.1  # exactly the threshold: out of the silhouette in float64
+        if rng.random() < 0.3:
+            a = np.where(m, 0.5, 0.0)  # equal values: equal squares have equal sums
+        views.setdefault(m.shape, []).append(a)
+    y, x = np.mgrid[:96, :96]
+    for _ in range(12):  # blobs with floaters at 96 px
+        a = np.zeros((96, 96))
+        for cy, cx, r in zip(*rng.uniform(0, 96, (2, 6)), [30, 3, 2, 4, 1, 2]):
+            a = np.maximum(a, np.clip(1 - np.hypot(y - cy, x - cx) / r, 0, 1) * rng.uniform(0.3, 1.0))
+        views.setdefault(a.shape, []).append(a)
+    if dtype == torch.float64:  # pieces whose sums differ only by the order of adding: scipy's decides
+        # (three float32 values add exactly in float64, so only float64 values can tell)
+        v = next(v for v in rng.uniform(0.1, 1.0, (1000, 3)) if (v[0] + v[1]) + v[2] > (v[2] + v[1]) + v[0])
+        a = np.zeros((5, 20))
+        a[1, 1:4], a[3, 14:17] = v[::-1], v  # the first piece sums to the second's sum backwards
+        a[4, 15] = 0.05  # a halo that the dilated second piece takes in: the piece kept shows
+        views[(5, 20)] = [a]
+    cases = 0
+    for shape, group in views.items():
+        group = group + [np.zeros(shape), np.ones(shape)]
+        for start in range(0, len(group), 4):
+            alpha = torch.tensor(np.stack(group[start : start + 4]), dtype=dtype)
+            for dilate in (0, 1, 2, 5, shape[0] + shape[1] + 3):
+                got, want = _detached(alpha, dilate), _scipy_detached(alpha, dilate)
+                assert got == want, (shape, start, dilate, got, want)
+                cases += got > 0
+    assert cases > 100  # most cases have floaters
+    assert _detached(torch.zeros(3, 8, 8, dtype=dtype), 2) == 0.0
+
+
+def test_floaters_never_import_scipy():
+    """scipy.ndimage's import costs about 0.3 s of every scoring process: a fresh interpreter
+    scores floaters without importing any of scipy."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import sys, torch\n"
+        "from gdbench.metrics.views import _detached\n"
+        "g = torch.Generator().manual_seed(0)\n"
+        "a = torch.rand(4, 32, 32, generator=g) * (torch.rand(4, 32, 32, generator=g) < 0.3)\n"
+        "assert _detached(a, 2) > 0\n"
+        "assert not [m for m in sys.modules if m.split('.')[0] == 'scipy'], 'scipy imported'\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr

@@ -239,24 +239,75 @@ def _pixel_votes(images: Tensor, alpha: Tensor, ref: Reference, at: Tensor) -> T
 
 
 def _detached(alpha: Tensor, dilate: int) -> float:
-    """The share of opacity outside the largest connected piece of each view's silhouette."""
+    """The share of opacity outside the largest connected piece of each view's silhouette. Equal,
+    bit for bit, to scipy.ndimage's label (4-connected), sum by label (per-label float64 sums in
+    raster order), the first largest piece and binary_dilation by the cross (nothing outside the
+    image), without importing scipy: scipy.ndimage's import costs about 0.3 s of every scoring
+    process, and nothing else there needs scipy."""
     import numpy as np
-    from scipy import ndimage
 
     total = float(alpha.sum())
     if total <= 0:
         return 0.0
+    A = alpha.double().numpy()
+    F, H, W = A.shape
+    pixels, label, first = _components(A > 0.1)
+    sizes = np.bincount(label, weights=A.reshape(-1)[pixels], minlength=len(first))  # as ndimage.sum sums
+    bounds = np.searchsorted(first // (H * W), np.arange(F + 1))  # each view's pieces
+    views = [f for f in range(F) if bounds[f + 1] - bounds[f] > 1]
+    if not views:
+        return 0.0
+    chosen = np.zeros(len(first), bool)
+    for f in views:
+        chosen[bounds[f] + int(np.argmax(sizes[bounds[f] : bounds[f + 1]]))] = True
+    body = np.zeros(F * H * W, bool)
+    body[pixels[chosen[label]]] = True
+    body = body.reshape(F, H, W)[views]
+    for _ in range(min(dilate, H + W)):  # within L1 distance ``dilate``; H + W steps cover the image
+        grown = body.copy()
+        grown[:, 1:] |= body[:, :-1]
+        grown[:, :-1] |= body[:, 1:]
+        grown[:, :, 1:] |= body[:, :, :-1]
+        grown[:, :, :-1] |= body[:, :, 1:]
+        body = grown
     out = 0.0
-    for a in alpha.double().numpy():
-        labels, n = ndimage.label(a > 0.1)
-        if n <= 1:
-            continue
-        sizes = ndimage.sum(a, labels, index=np.arange(1, n + 1))
-        body = labels == 1 + int(np.argmax(sizes))
-        if dilate > 0:
-            body = ndimage.binary_dilation(body, iterations=dilate)
-        out += float(a[~body].sum())
+    for a, b in zip(A[views], body):
+        out += float(a[~b].sum())
     return out / total
+
+
+def _components(mask):
+    """(pixels, label, first) of a boolean [..., H, W] ``mask``: the flat indices of its set pixels
+    in raster order, the 4-connected piece of each (connected within its [H, W] plane) and each
+    piece's first pixel. Pieces are numbered 0, 1, ... in the raster order of their first pixels,
+    as scipy.ndimage.label numbers them from 1. Union-find over the horizontal runs: each round
+    hooks the larger root of every pair of touching runs (a run and one in the next row) to the
+    smaller and flattens the trees by pointer jumping; a round at least halves a piece's trees, so
+    a long snake costs a few rounds, not its length."""
+    import numpy as np
+
+    W = mask.shape[-1]
+    start = mask.copy()  # the first pixel of each horizontal run
+    start[..., 1:] &= ~mask[..., :-1]
+    pixels, starts = np.flatnonzero(mask), np.flatnonzero(start)
+    below = np.zeros_like(mask)
+    below[..., :-1, :] = mask[..., :-1, :] & mask[..., 1:, :]
+    overlap = below.copy()  # the first column of each overlap of a run with one in the next row
+    overlap[..., 1:] &= ~below[..., :-1]
+    top = np.flatnonzero(overlap)
+    u, w = np.searchsorted(starts, top, "right") - 1, np.searchsorted(starts, top + W, "right") - 1
+    parent = np.arange(len(starts))
+    while not np.array_equal(pu := parent[u], pw := parent[w]):
+        lo = np.minimum(pu, pw)
+        np.minimum.at(parent, pu, lo)
+        np.minimum.at(parent, pw, lo)
+        deep = np.flatnonzero(parent[parent] != parent)  # jump until every run's parent is a root
+        while len(deep):
+            parent[deep] = parent[parent[deep]]
+            deep = deep[parent[deep] != parent[parent[deep]]]
+    root = parent == np.arange(len(parent))
+    run = np.cumsum(start.reshape(-1)[pixels]) - 1  # the run of each set pixel
+    return pixels, (np.cumsum(root) - 1)[parent][run], starts[root]
 
 
 def render_turntable(
