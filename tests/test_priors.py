@@ -506,7 +506,9 @@ def test_the_shipped_colour_table_is_matplotlibs():
     assert np.array_equal(pc._basic_lab(), basic)
     code = "import sys; from gdbench.priors import prompt_check as pc; pc.colour_lexicon(); pc._basic_lab(); "
     code += "print('matplotlib' in sys.modules)"
-    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root)
+    assert run.returncode == 0 and run.stdout == "False\n", run.stderr[-2000:]
 
 
 def test_colour_categories_of_the_basic_terms_and_of_known_names():

@@ -20,6 +20,7 @@ from gdbench.train.trainer import TrainingDiverged, init_state, make_context, tr
 from tests._util import PACED_RUN, tiny_bank
 
 CAPTION = "a test blob"
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -350,25 +351,25 @@ def test_finiteness_check_finds_each_kind_and_changes_nothing():
 
 
 def test_the_seeded_backward_gives_x_backwards_bits_without_importing_sympy():
-    """Oracle: ``x.backward(g)`` on the same graph (leaf gradients bit for bit); a training
-    process never imports torch's symbolic shapes (sympy, 0.4 s), which that call's shape check
-    would; a wrong shape is refused by name."""
+    """Oracle: ``x.backward(g)`` (leaf gradients bit for bit, under no_grad too); a training process
+    never imports torch's symbolic shapes (sympy, 0.4 s), as that call's shape check would."""
     from gdbench.train.update import _backward
 
     g = torch.Generator().manual_seed(5)
     w, a = torch.randn(6, 4, generator=g, requires_grad=True), torch.randn(3, 6, generator=g)
     seed = torch.randn(3, 4, generator=g)
     (a @ w.tanh()).backward(seed)
-    want, w.grad = w.grad, None
-    _backward(a @ w.tanh(), seed)
+    want, w.grad, x = w.grad, None, a @ w.tanh()
+    with torch.no_grad():
+        _backward(x, seed)
     assert torch.equal(w.grad, want) and want.abs().sum() > 0
     with pytest.raises(ValueError, match="grad: expected the shape of x"):
         _backward(a @ w.tanh(), seed.T)
     code = "import sys; from tests.test_train import *; ctx = make_context(tiny(), EmpiricalPrior(banks={CAPTION: "
     code += "tiny_bank(CAPTION)})); st = init_state(ctx); [train_step(st, ctx) for _ in range(2)]; "
     code += "print('torch.fx.experimental.symbolic_shapes' in sys.modules, st.step)"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert out == ["False", "2"]
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 0 and run.stdout.split() == ["False", "2"], run.stderr[-2000:]
 
 
 # -------------------------------------------------------------------- quality (slow)

@@ -93,7 +93,8 @@ def _backward(x: Tensor, grad: Tensor) -> None:
     """``x.backward(grad)`` (``_Seed``); the shapes must match, as ``backward`` demands."""
     if grad.shape != x.shape:
         raise ValueError(f"grad: expected the shape of x, {list(x.shape)}, got {list(grad.shape)}")
-    _Seed.apply(x, grad).backward()
+    with torch.enable_grad():  # x.backward(grad) works under no_grad too: its graph exists already
+        _Seed.apply(x, grad).backward()
 
 
 _ONE = torch.ones(())

@@ -122,6 +122,7 @@ torch::Tensor zoom_taps(const torch::Tensor& images, const torch::Tensor& iy, co
               "images: expected float32 or float64");
   check_taps("iy", iy, wy, images.size(1));
   check_taps("ix", ix, wx, images.size(2));
+  TORCH_CHECK(images.size(2) * images.size(3) <= INT32_MAX, "images: rows of at most 2^31 - 1 values (w * C)");
   auto out = torch::empty({images.size(0), iy.size(0), ix.size(0), images.size(3)}, images.options());
   AT_DISPATCH_FLOATING_TYPES(images.scalar_type(), "zoom_taps", [&] { zoom_impl<scalar_t>(images, iy, wy, ix, wx, out); });
   return out;
