@@ -7,7 +7,7 @@ compiler the trainer never calls, and torch.optim's ``step`` is about 1 ms of Py
 per training step for 6 kernel calls of ~10 us. This class calls the same fused kernel on the
 same tensors (``torch._fused_adam_``), so its parameters and moments are torch's bit for bit,
 and its ``state_dict`` is torch's format: checkpoints written by either load into the other
-(tests/test_train.py checks both against ``torch.optim.Adam(fused=True)``).
+(tests/test_update.py checks both against ``torch.optim.Adam(fused=True)``).
 
 One parameter per group (the trainer's six: means, quats, ...), each group named.
 """
