@@ -305,3 +305,21 @@ def test_bm_cell_breaks_a_cell_down_and_compares_a_peer_checkout(tmp_path):
     peer = next(r for r in rows if "--peer" in r["what"])
     assert peer["same_scene"] == "True" and peer["same_scores"] == "True" and float(peer["ratio"]) > 0
     assert any("matrix product" in r["what"] and float(r["gflops"]) > 0 for r in rows)
+
+
+def test_bm_cell_times_colmap_by_stage(tmp_path):
+    """bm_cell's COLMAP rows: the four stages (views, features, matching, mapping) in the order
+    they run, each a part of the total; and the score is the one score_scene gives the same scene
+    (oracle: the calibration's asset, which registers every view)."""
+    pytest.importorskip("pycolmap")
+    from gdbench.bench import bm_cell
+    from gdbench.metrics.fixtures3d import failure_scene
+
+    ply = failure_scene("a yellow duck", "asset").save_ply(tmp_path / "scene.ply")
+    rows = bm_cell.colmap_time(ply)
+    total = rows[0]["seconds"]
+    stages = [r["what"].removeprefix("  of which ") for r in rows[1:]]
+    assert stages == ["COLMAP views", "COLMAP features", "COLMAP matching", "COLMAP mapping"]
+    assert all(r["seconds"] > 0 for r in rows[1:]) and sum(r["seconds"] for r in rows[1:]) <= total
+    assert sum(r["seconds"] for r in rows[1:]) >= 0.9 * total  # the stages are the run, not a part of it
+    assert rows[0]["registration_rate"] == 1.0 and rows[0]["met"] == (total <= bm_cell.TARGET_COLMAP_S)

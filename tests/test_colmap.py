@@ -72,7 +72,8 @@ def test_colmap_cannot_see_a_3d_second_face_and_barely_sees_floaters(calibration
 def test_a_scene_scores_the_same_every_time(calibration):
     """Same images, same seed, same score (the oracle: the calibration's own run of the floaters
     fixture, which registers). COLMAP threaded in any stage (SIFT, matching, mapping) moved the same scene's
-    Var(theta) between runs; THREADS = 1 makes every field equal."""
+    Var(theta) between runs, and so did two matchers in one process; THREADS = 1 and one share per
+    process (SHARES) make every field equal."""
     from gdbench.metrics.colmap_consistency import fixture_circle_images
 
     cams = circle_poses(100).cameras(256, 256)
@@ -121,3 +122,81 @@ def test_scoring_survives_pycolmap_imported_first():
     )
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0 and "views 12" in p.stdout, p.stderr[-2000:]
+
+
+def _tables(db, skip=()):
+    import sqlite3
+
+    con = sqlite3.connect(db)
+    try:
+        names = [n for (n,) in con.execute("SELECT name FROM sqlite_master WHERE type='table'") if n not in skip]
+        return {n: con.execute(f"SELECT * FROM {n} ORDER BY rowid").fetchall() for n in names}
+    finally:
+        con.close()
+
+
+def test_the_shares_write_one_threads_features_and_match_every_pair_once(tmp_path):
+    """Extraction and matching run as two shares, this process and a helper (SHARES). Oracle:
+    pycolmap on one thread over all views (extract_features, then match_exhaustive): the
+    database's every table but the matches' is the same, row for row, and every view pair has the
+    same set of matches."""
+    import shutil
+
+    from gdbench.metrics.colmap_consistency import SHARES, fixture_circle_images
+
+    assert SHARES == 2
+    K = 16
+    cams = circle_poses(K).cameras(192, 192)
+    score_images(fixture_circle_images("a yellow duck", cams, "asset"), cams, tmp_path / "split")
+    db = tmp_path / "split" / "database.db"
+    fx, fy, cx, cy = (float(v) for v in cams.Ks[0, [0, 1, 0, 1], [0, 1, 2, 2]])
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model, reader.camera_params = "PINHOLE", f"{fx},{fy},{cx},{cy}"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size, extraction.num_threads = 512, 1
+    one = tmp_path / "one.db"
+    names = [f"{i:04d}.bmp" for i in range(K)]
+    pycolmap.extract_features(one, tmp_path / "split" / "images", image_names=names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)  # fmt: skip
+    matches = ("matches", "two_view_geometries")
+    split_tables, one_tables = _tables(db, skip=matches), _tables(one, skip=matches)
+    assert len(one_tables["keypoints"]) == K and all(r[1] > 0 for r in one_tables["keypoints"])
+    assert split_tables == one_tables
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1
+    matched = tmp_path / "matched.db"
+    shutil.copyfile(one, matched)
+    pycolmap.match_exhaustive(matched, matching_options=matching, device=pycolmap.Device.cpu)
+
+    def match_sets(path):
+        rows = _tables(path)["matches"]
+        return {r[0]: set(map(tuple, np.frombuffer(r[3] or b"", np.uint32).reshape(-1, 2).tolist())) for r in rows}
+
+    split, truth = match_sets(db), match_sets(matched)
+    assert len(truth) == K * (K - 1) // 2 and sum(bool(m) for m in truth.values()) >= K // 2  # neighbours match
+    assert split == truth
+    # shares=1 is the metric as it was: one thread's database, verified geometries included
+    score_images(fixture_circle_images("a yellow duck", cams, "asset"), cams, tmp_path / "one", shares=1)
+    assert _tables(tmp_path / "one" / "database.db") == _tables(matched)
+    with pytest.raises(ValueError, match="shares: expected an integer of at least 1, got 0"):
+        score_images(fixture_circle_images("a yellow duck", cams, "asset"), cams, shares=0)
+
+
+def test_a_failing_share_process_raises_its_error(tmp_path):
+    """A share's process reports its job's error, and the caller raises it with COLMAP's words
+    (oracle: pycolmap's own refusal of a pairs list in a folder that does not exist)."""
+    from gdbench.metrics._colmap_share import match
+    from gdbench.metrics.colmap_consistency import _Helpers
+
+    job = {"job": "match", "database": str(tmp_path / "none" / "db.db"), "pairs": str(tmp_path / "none" / "p"),
+           "threads": 1}  # fmt: skip
+    with pytest.raises(Exception) as here:
+        match(job)
+    with (
+        _Helpers(1, tmp_path / "log") as helpers,
+        pytest.raises(RuntimeError, match="COLMAP share process: error: ") as e,
+    ):
+        helpers.run([{"job": "match", "database": str(tmp_path / "ok.db"), "pairs": str(tmp_path / "x")}, job],
+                    lambda job: None)  # fmt: skip
+    assert str(here.value).splitlines()[0][:40] in str(e.value)

@@ -3,8 +3,10 @@
 
 Render K views on one circle (fixed radius and elevation, 360/K degrees apart, default K = 100
 at 256 px), run COLMAP on CPU (pycolmap: SIFT, exhaustive matching, incremental mapping with
-one PINHOLE camera whose known intrinsics stay fixed; one thread, so a scene's score is
-reproducible), take the largest model, align it to the
+one PINHOLE camera whose known intrinsics stay fixed; extraction and matching in two fixed
+shares in two processes, each on one thread, the mapper on one thread, so a scene's score is
+reproducible: ``SHARES``), take
+the largest model, align it to the
 true cameras by a similarity (Umeyama on camera centres) and report:
 
 - ``registration_rate``: registered views / K (always reported: variance alone misses views
@@ -19,8 +21,10 @@ true cameras by a similarity (Umeyama on camera centres) and report:
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import shutil
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -32,10 +36,26 @@ import torch
 from ..camera import Cameras, SphericalPoses
 
 THREADS = 1
-"""COLMAP's threads in every stage. One makes a scene's score reproducible: with two, the same
+"""COLMAP's own threads in every call. One makes a scene's score reproducible: with two, the same
 scene's Var(theta) read 1.9-2.5 and once 7.6 over seven runs (SIFT extraction, matching and the
-mapper each change the result when threaded; measured in docs/performance.md), and a sweep runs
-its cells on one core each anyway."""
+mapper each change the result when COLMAP threads them; measured in docs/performance.md)."""
+
+SHARES = 2
+"""Feature extraction and matching run as this many fixed shares side by side, the first in this
+process and each other in a process of its own (``_colmap_share.py``; two matchers in one
+process interleave and give another result each time, one per process the same), each on one
+thread; the mapper, on one thread, cannot be split. Extraction: each share extracts its
+contiguous part of the views into a database of its own, and the rows are copied into one
+database made by ``import_images``: the database one thread writes, row for row (tested), so the
+features are COLMAP's. Matching: share k matches every SHARES-th pair of the exhaustive list
+(i < j, in order) in its own copy of that database, and the rows are merged by pair id (each
+table's key, so the order of insertion leaves no trace). Each pair's matches are one thread's
+as sets (tested; a few pairs list them in another order), and the verification's RANSAC draws
+differ from one thread's with that order and the pairs each share saw before: the verified
+geometries are another draw than one thread's, the same in every run and on every machine (the
+shares are fixed, not the machine's cores). Two shares took a scene's score from 10.4-12.2 s to
+7.6-7.9 s in one slow phase; the agreement with one thread on the calibration fixtures and
+trained scenes is in docs/performance.md."""
 
 FAIL_DEG = 5.0
 """An adjacent pair whose relative rotation is off the truth by more than this fails."""
@@ -106,27 +126,36 @@ def score_images(
     max_image_size: int = 512,
     log: str | Path | None = None,
     phase=None,
+    shares: int = SHARES,
 ) -> ColmapScore:
     """Run COLMAP on uint8 images [K, H, W, 3] taken (in order around the circle) by ``cams``.
     COLMAP's own output goes to ``log`` (appended; None: discarded), not the console; ``phase``
-    (optional) is called with the name of each stage as it starts."""
+    (optional) is called with the name of each stage as it starts. ``shares``: the shares of
+    extraction and matching (``SHARES``); 1 is COLMAP on one thread throughout, exhaustive
+    matching included: the metric as it was scored until 2026-11-26."""
+    if not isinstance(shares, int) or isinstance(shares, bool) or shares < 1:
+        raise ValueError(f"shares: expected an integer of at least 1, got {shares!r}")
     t0 = time.perf_counter()
-    est, points = _reconstruct(images, cams, workdir, seed=seed, max_image_size=max_image_size, log=log, phase=phase)
+    est, points = _reconstruct(images, cams, workdir, seed=seed, max_image_size=max_image_size, log=log, phase=phase,
+                               shares=shares)  # fmt: skip
     return _score(est, points, cams, time.perf_counter() - t0)
 
 
-def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: int, log=None, phase=None):
+def _reconstruct(
+    images, cams: Cameras, workdir, *, seed: int, max_image_size: int, log=None, phase=None, shares=SHARES
+):
     """COLMAP's estimate of each registered view: {index: (rotation, camera centre)}, and the
     number of 3D points, from SIFT, exhaustive matching and incremental mapping with the known
-    PINHOLE intrinsics held fixed (the largest model)."""
+    PINHOLE intrinsics held fixed (the largest model); extraction and matching in ``shares``."""
     from PIL import Image
 
     from ..io import captured_output
+    from ._colmap_share import extract, match
 
     pycolmap = _import_pycolmap()
     phase = phase or (lambda name: None)
     K = len(cams)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, _Helpers(shares - 1, log) as helpers:
         root = Path(workdir) if workdir is not None else Path(tmp)
         img_dir, out_dir = root / "images", root / "sparse"
         img_dir.mkdir(parents=True, exist_ok=True)
@@ -137,39 +166,50 @@ def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: i
         for name, im in zip(names, images):
             Image.fromarray(np.ascontiguousarray(im)).save(img_dir / name)
         db = root / "database.db"
-        if db.exists():
-            db.unlink()
+        for stale in [db, *root.glob("share*.db")]:
+            stale.unlink(missing_ok=True)
         fx, fy, cx, cy = (float(v) for v in cams.Ks[0, [0, 1, 0, 1], [0, 1, 2, 2]])
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "PINHOLE"
-        reader.camera_params = f"{fx},{fy},{cx},{cy}"
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.max_image_size = max_image_size
-        extraction.num_threads = THREADS
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.ba_refine_focal_length = False
-        opts.ba_refine_principal_point = False
-        opts.ba_refine_extra_params = False
-        opts.num_threads = THREADS
-        opts.random_seed = seed
+        camera = f"{fx},{fy},{cx},{cy}"
+        step = -(-K // shares)
+        # no empty share: extract_features given no names reads every image in the folder
+        views = [v for v in (names[k * step : (k + 1) * step] for k in range(shares)) if v]
+        pairs = [(names[i], names[j]) for i in range(K) for j in range(i + 1, K)]
+        matched = [m for m in (pairs[k::shares] for k in range(shares)) if m]
         phase("COLMAP features")
         with captured_output(log):
-            pycolmap.extract_features(
-                db,
-                img_dir,
-                image_names=names,
-                camera_mode=pycolmap.CameraMode.SINGLE,
-                reader_options=reader,
-                extraction_options=extraction,
-                device=pycolmap.Device.cpu,
-            )
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model, reader.camera_params = "PINHOLE", camera
+            pycolmap.Database.open(db).close()
+            pycolmap.import_images(db, img_dir, pycolmap.CameraMode.SINGLE, names, reader)
+            jobs = [{"job": "extract", "database": str(root / f"share{k}.db"), "images": str(img_dir), "names": v,
+                     "camera_params": camera, "max_image_size": max_image_size, "threads": THREADS}
+                    for k, v in enumerate(views)]  # fmt: skip
+            helpers.run(jobs, extract)
+            _copy_features(db, [Path(j["database"]) for j in jobs])
         phase("COLMAP matching")
         with captured_output(log):
-            matching = pycolmap.FeatureMatchingOptions()
-            matching.num_threads = THREADS
-            pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+            jobs = []
+            if shares == 1:  # one thread's exhaustive matching, in its own order of pairs
+                matched = []
+                matching = pycolmap.FeatureMatchingOptions()
+                matching.num_threads = THREADS
+                pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+            for k, share in enumerate(matched):
+                copy, listing = root / f"share{k}.db", root / f"share{k}.pairs"
+                copy.unlink(missing_ok=True)
+                shutil.copyfile(db, copy)
+                listing.write_text("".join(f"{a} {b}\n" for a, b in share))
+                jobs.append({"job": "match", "database": str(copy), "pairs": str(listing), "threads": THREADS})
+            helpers.run(jobs, match)
+            _merge_matches(db, [Path(j["database"]) for j in jobs])
         phase("COLMAP mapping")
         with captured_output(log):
+            opts = pycolmap.IncrementalPipelineOptions()
+            opts.ba_refine_focal_length = False
+            opts.ba_refine_principal_point = False
+            opts.ba_refine_extra_params = False
+            opts.num_threads = THREADS
+            opts.random_seed = seed
             models = pycolmap.incremental_mapping(db, img_dir, out_dir, options=opts)
     if not models:
         return {}, 0
@@ -181,6 +221,91 @@ def _reconstruct(images, cams: Cameras, workdir, *, seed: int, max_image_size: i
             R = np.asarray(pose.rotation.matrix())
             est[int(Path(image.name).stem)] = (R, -R.T @ np.asarray(pose.translation))  # rotation, centre
     return est, int(rec.num_points3D())
+
+
+class _Helpers:
+    """The processes of the shares after the first (``_colmap_share.py``), started on entry so
+    their import of pycolmap overlaps the caller's work; their COLMAP lines go to ``log``."""
+
+    def __init__(self, n: int, log):
+        self.n, self.log, self.procs = n, log, []
+
+    def __enter__(self):
+        import subprocess
+        import sys
+
+        script = str(Path(__file__).with_name("_colmap_share.py"))
+        err = open(os.fspath(self.log) if self.log is not None else os.devnull, "a")
+        try:
+            for _ in range(self.n):
+                self.procs.append(subprocess.Popen([sys.executable, script], stdin=subprocess.PIPE,
+                                                   stdout=subprocess.PIPE, stderr=err, text=True))  # fmt: skip
+        finally:
+            err.close()
+        return self
+
+    def run(self, jobs: list[dict], local) -> None:
+        """Job 0 here (``local(job)``), job k in process k; returns when all are done."""
+        for proc, job in zip(self.procs, jobs[1:]):
+            proc.stdin.write(json.dumps(job) + "\n")
+            proc.stdin.flush()
+        if jobs:
+            local(jobs[0])
+        for proc, _ in zip(self.procs, jobs[1:]):
+            answer = proc.stdout.readline().strip()
+            if answer != "ok":
+                raise RuntimeError(f"COLMAP share process: {answer or f'ended with code {proc.wait()}'}")
+
+    def __exit__(self, *exc):
+        for proc in self.procs:
+            try:
+                proc.stdin.close()
+                proc.wait(timeout=10)
+            except Exception:
+                proc.kill()
+                proc.wait()
+        return False
+
+
+def _copy_features(db: Path, shares: list[Path]) -> None:
+    """Copy the keypoints and descriptors rows of the share databases into ``db``, each under
+    the id ``db`` gives its image (by name)."""
+    import sqlite3
+
+    main = sqlite3.connect(db)
+    try:
+        ids = dict(main.execute("SELECT name, image_id FROM images"))
+        for share in shares:
+            part = sqlite3.connect(share)
+            try:
+                names = {i: n for n, i in part.execute("SELECT name, image_id FROM images")}
+                for table in ("keypoints", "descriptors"):
+                    cols = [r[1] for r in part.execute(f"PRAGMA table_info({table})")]
+                    insert = f"INSERT INTO {table} ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})"
+                    for row in part.execute(f"SELECT * FROM {table} ORDER BY rowid"):
+                        main.execute(insert, (ids[names[row[0]]], *row[1:]))
+            finally:
+                part.close()
+        main.commit()
+    finally:
+        main.close()
+
+
+def _merge_matches(db: Path, shares: list[Path]) -> None:
+    """Insert the matches and verified two-view geometries of the share databases into ``db``
+    (keyed by pair id: each pair is in one share)."""
+    import sqlite3
+
+    main = sqlite3.connect(db)
+    try:
+        for share in shares:
+            main.execute("ATTACH DATABASE ? AS share", (str(share),))
+            for table in ("matches", "two_view_geometries"):
+                main.execute(f"INSERT INTO main.{table} SELECT * FROM share.{table}")
+            main.commit()
+            main.execute("DETACH DATABASE share")
+    finally:
+        main.close()
 
 
 def _score(est: dict, points: int, cams: Cameras, seconds: float) -> ColmapScore:
