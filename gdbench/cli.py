@@ -645,5 +645,48 @@ def entrypoint() -> None:
     run_reporting(name, lambda: main(cmd))
 
 
+def program() -> None:
+    """The ``gdbench`` command and ``python -m gdbench.cli``: ``entrypoint``, then the process
+    ends without Python's teardown of its modules, which took 0.4 s of every command once torch
+    was imported (``import torch`` and exit: 0.43 s; with ``os._exit`` 0.03 s), 3% of a sweep
+    cell. What an exit owes still happens, in the order Python does it: the threads that are not
+    daemons are joined, the exit handlers run (logging's flush, the finalizers of temporary
+    folders, worker pools), both streams are flushed, and the exit code is the one ``sys.exit``
+    gives. An error that escapes (``GDBENCH_DEBUG=1``) takes Python's own way out, traceback
+    and all."""
+    import atexit
+    import contextlib
+    import os
+    import sys
+    import threading
+
+    try:
+        entrypoint()
+        code = 0
+    except SystemExit as e:
+        code = exit_code(e.code)
+    for t in threading.enumerate():
+        if t is not threading.main_thread() and not t.daemon:
+            t.join()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
+
+
+def exit_code(code) -> int:
+    """The exit status ``SystemExit(code)`` gives a Python process: None is 0, an integer itself,
+    anything else is written to standard error and gives 1."""
+    import sys
+
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
+
+
 if __name__ == "__main__":
-    entrypoint()
+    program()

@@ -552,3 +552,42 @@ def test_sweep_grid_files_and_optional_parts_fail_in_one_line(tmp_path, monkeypa
     monkeypatch.setenv("GDBENCH_CACHE", ".")
     with pytest.raises(ValueError, match="relative or the current folder"):
         cache.clear(["fixtures"])
+
+
+def test_the_program_exits_as_python_would_without_its_teardown():
+    """``program`` (the gdbench command) ends with os._exit after what a normal exit owes. Oracle:
+    Python's own exit of the same script: an exit handler registered before runs and prints, a
+    thread that is not a daemon finishes its line, every line of the help reaches the pipe, and the
+    exit codes are Python's (0 for --help, 2 for a bad option, 1 and the text for a string)."""
+    import os
+
+    root = Path(__file__).resolve().parents[1]
+    script = (
+        "import atexit, sys, threading, time\n"
+        "atexit.register(lambda: print('exit handler ran', flush=True))\n"
+        "from gdbench import cli\n"
+        "sys.argv = ['gdbench', *sys.argv[1:]]\n"
+        "real = cli.entrypoint if sys.argv[1:] != ['text'] else lambda: sys.exit('a text exit')\n"
+        "def entrypoint():\n"
+        "    threading.Thread(target=lambda: (time.sleep(1.0), print('thread done', flush=True))).start()\n"
+        "    real()\n"
+        "cli.entrypoint = entrypoint\n"
+        "cli.program()\n"
+        "print('not reached')\n"
+    )
+    env = dict(os.environ, COLUMNS="100")
+
+    def run(*argv):
+        return subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, cwd=root, env=env)
+
+    ok = run("generate", "--help")
+    python = subprocess.run([sys.executable, "-m", "gdbench.cli", "generate", "--help"], capture_output=True,
+                            text=True, cwd=root, env=env)  # fmt: skip
+    assert ok.returncode == 0 and "not reached" not in ok.stdout
+    help_lines = python.stdout.splitlines()[1:]  # the first names the program as it was called
+    assert ok.stdout.splitlines()[1 : len(help_lines) + 1] == help_lines and "--steps INT" in ok.stdout
+    assert ok.stdout.splitlines()[len(help_lines) + 1 :] == ["thread done", "exit handler ran"]  # Python's order
+    bad = run("generate", "--steps", "many")
+    assert bad.returncode == 2 and "exit handler ran" in bad.stdout and "--steps" in bad.stderr
+    text = run("text")
+    assert text.returncode == 1 and "a text exit" in text.stderr and "exit handler ran" in text.stdout
