@@ -649,13 +649,12 @@ def program() -> None:
     """The ``gdbench`` command and ``python -m gdbench.cli``: ``entrypoint``, then the process
     ends without Python's teardown of its modules, which took 0.4 s of every command once torch
     was imported (``import torch`` and exit: 0.43 s; with ``os._exit`` 0.03 s), 3% of a sweep
-    cell. What an exit owes still happens, in the order Python does it: the threads that are not
-    daemons are joined, the exit handlers run (logging's flush, the finalizers of temporary
-    folders, worker pools), both streams are flushed, and the exit code is the one ``sys.exit``
-    gives. An error that escapes (``GDBENCH_DEBUG=1``) takes Python's own way out, traceback
-    and all."""
+    cell. What an exit owes still happens, in the order Python does it: ``threading._shutdown``
+    (executors' exit hooks, then the threads that are not daemons joined), the exit handlers
+    (logging's flush, the finalizers of temporary folders, multiprocessing), both streams flushed
+    (a failed flush exits 120, as Python does), and the exit code is the one ``sys.exit`` gives.
+    An error that escapes (``GDBENCH_DEBUG=1``) takes Python's own way out, traceback and all."""
     import atexit
-    import contextlib
     import os
     import sys
     import threading
@@ -665,13 +664,14 @@ def program() -> None:
         code = 0
     except SystemExit as e:
         code = exit_code(e.code)
-    for t in threading.enumerate():
-        if t is not threading.main_thread() and not t.daemon:
-            t.join()
+    threading._shutdown()  # Python's own first step: wakes executors' workers, joins non-daemon threads
     atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
+    for stream in (sys.stdout, sys.stderr, sys.__stdout__, sys.__stderr__):
+        try:
+            if stream is not None:
+                stream.flush()
+        except Exception:
+            code = code or 120  # as Python does when its streams cannot be flushed at exit
     os._exit(code)
 
 

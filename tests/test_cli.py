@@ -564,7 +564,10 @@ def test_the_program_exits_as_python_would_without_its_teardown():
     root = Path(__file__).resolve().parents[1]
     script = (
         "import atexit, sys, threading, time\n"
+        "from concurrent.futures import ThreadPoolExecutor\n"
         "atexit.register(lambda: print('exit handler ran', flush=True))\n"
+        "pool = ThreadPoolExecutor(1)\n"  # a worker left waiting: Python's exit wakes it, so must program
+        "pool.submit(lambda: None).result()\n"
         "from gdbench import cli\n"
         "sys.argv = ['gdbench', *sys.argv[1:]]\n"
         "real = cli.entrypoint if sys.argv[1:] != ['text'] else lambda: sys.exit('a text exit')\n"
@@ -578,7 +581,8 @@ def test_the_program_exits_as_python_would_without_its_teardown():
     env = dict(os.environ, COLUMNS="100")
 
     def run(*argv):
-        return subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, cwd=root, env=env)
+        return subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, cwd=root, env=env,
+                              timeout=120)  # fmt: skip
 
     ok = run("generate", "--help")
     python = subprocess.run([sys.executable, "-m", "gdbench.cli", "generate", "--help"], capture_output=True,

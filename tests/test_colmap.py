@@ -179,8 +179,9 @@ def test_the_shares_write_one_threads_features_and_match_every_pair_once(tmp_pat
     # shares=1 is the metric as it was: one thread's database, verified geometries included
     score_images(fixture_circle_images("a yellow duck", cams, "asset"), cams, tmp_path / "one", shares=1)
     assert _tables(tmp_path / "one" / "database.db") == _tables(matched)
-    with pytest.raises(ValueError, match="shares: expected an integer of at least 1, got 0"):
-        score_images(fixture_circle_images("a yellow duck", cams, "asset"), cams, shares=0)
+    for bad in (0, 17, True, 2.0):
+        with pytest.raises(ValueError, match="shares: expected an integer from 1 to 16, got "):
+            score_images(fixture_circle_images("a yellow duck", cams, "asset"), cams, shares=bad)
 
 
 def test_a_failing_share_process_raises_its_error(tmp_path):
@@ -200,3 +201,4 @@ def test_a_failing_share_process_raises_its_error(tmp_path):
         helpers.run([{"job": "match", "database": str(tmp_path / "ok.db"), "pairs": str(tmp_path / "x")}, job],
                     lambda job: None)  # fmt: skip
     assert str(here.value).splitlines()[0][:40] in str(e.value)
+    assert all(p.poll() is not None for p in helpers.procs)  # ended with the block, killed on the error

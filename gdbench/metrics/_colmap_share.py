@@ -7,8 +7,12 @@ while one per process does: so the second share runs here, the first in the call
 standard input is a JSON job, answered on standard output by one line, "ok" or "error: ...";
 COLMAP's own lines go to standard error (the caller's log)."""
 
-import json
 import sys
+
+if __name__ == "__main__":  # run as a script: its folder (the package's modules) is not a place to import from
+    sys.path[:] = [p for p in sys.path if p not in ("", sys.path[0])]
+
+import json
 
 
 def extract(job: dict) -> None:

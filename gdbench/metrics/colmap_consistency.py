@@ -52,10 +52,15 @@ features are COLMAP's. Matching: share k matches every SHARES-th pair of the exh
 table's key, so the order of insertion leaves no trace). Each pair's matches are one thread's
 as sets (tested; a few pairs list them in another order), and the verification's RANSAC draws
 differ from one thread's with that order and the pairs each share saw before: the verified
-geometries are another draw than one thread's, the same in every run and on every machine (the
-shares are fixed, not the machine's cores). Two shares took a scene's score from 10.4-12.2 s to
-7.6-7.9 s in one slow phase; the agreement with one thread on the calibration fixtures and
-trained scenes is in docs/performance.md."""
+geometries are another draw than one thread's, the same in every run and whatever the number of
+cores (the shares are fixed, not the machine's; another CPU or pycolmap build may round
+differently, as one thread may). Two shares took a scene's score from 10.4-12.2 s to 7.6-7.9 s
+in one slow phase, on a machine otherwise idle: a sweep with as many workers as cores runs two
+COLMAP processes per cell in these stages and gains little. The agreement with one thread on the
+calibration fixtures and trained scenes is in docs/performance.md."""
+
+MAX_SHARES = 16
+"""The most shares ``score_images`` takes (each beyond the first is a process)."""
 
 FAIL_DEG = 5.0
 """An adjacent pair whose relative rotation is off the truth by more than this fails."""
@@ -133,8 +138,8 @@ def score_images(
     (optional) is called with the name of each stage as it starts. ``shares``: the shares of
     extraction and matching (``SHARES``); 1 is COLMAP on one thread throughout, exhaustive
     matching included: the metric as it was scored until 2026-11-26."""
-    if not isinstance(shares, int) or isinstance(shares, bool) or shares < 1:
-        raise ValueError(f"shares: expected an integer of at least 1, got {shares!r}")
+    if not isinstance(shares, int) or isinstance(shares, bool) or not 1 <= shares <= MAX_SHARES:
+        raise ValueError(f"shares: expected an integer from 1 to {MAX_SHARES}, got {shares!r}")
     t0 = time.perf_counter()
     est, points = _reconstruct(images, cams, workdir, seed=seed, max_image_size=max_image_size, log=log, phase=phase,
                                shares=shares)  # fmt: skip
@@ -166,8 +171,9 @@ def _reconstruct(
         for name, im in zip(names, images):
             Image.fromarray(np.ascontiguousarray(im)).save(img_dir / name)
         db = root / "database.db"
-        for stale in [db, *root.glob("share*.db")]:
-            stale.unlink(missing_ok=True)
+        for stale in [db, *root.glob("share*.db")]:  # and SQLite's sidecars, which it would replay
+            for path in (stale, *(stale.with_name(stale.name + x) for x in ("-wal", "-shm", "-journal"))):
+                path.unlink(missing_ok=True)
         fx, fy, cx, cy = (float(v) for v in cams.Ks[0, [0, 1, 0, 1], [0, 1, 2, 2]])
         camera = f"{fx},{fy},{cx},{cy}"
         step = -(-K // shares)
@@ -196,7 +202,8 @@ def _reconstruct(
                 pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
             for k, share in enumerate(matched):
                 copy, listing = root / f"share{k}.db", root / f"share{k}.pairs"
-                copy.unlink(missing_ok=True)
+                for path in (copy, *(copy.with_name(copy.name + x) for x in ("-wal", "-shm", "-journal"))):
+                    path.unlink(missing_ok=True)
                 shutil.copyfile(db, copy)
                 listing.write_text("".join(f"{a} {b}\n" for a, b in share))
                 jobs.append({"job": "match", "database": str(copy), "pairs": str(listing), "threads": THREADS})
@@ -225,7 +232,8 @@ def _reconstruct(
 
 class _Helpers:
     """The processes of the shares after the first (``_colmap_share.py``), started on entry so
-    their import of pycolmap overlaps the caller's work; their COLMAP lines go to ``log``."""
+    their import of pycolmap overlaps the caller's work; their COLMAP lines go to ``log``. On an
+    error or a stop in the block they are killed at once (a job under way is not waited for)."""
 
     def __init__(self, n: int, log):
         self.n, self.log, self.procs = n, log, []
@@ -240,6 +248,9 @@ class _Helpers:
             for _ in range(self.n):
                 self.procs.append(subprocess.Popen([sys.executable, script], stdin=subprocess.PIPE,
                                                    stdout=subprocess.PIPE, stderr=err, text=True))  # fmt: skip
+        except BaseException:
+            self._end(kill=True)
+            raise
         finally:
             err.close()
         return self
@@ -247,8 +258,11 @@ class _Helpers:
     def run(self, jobs: list[dict], local) -> None:
         """Job 0 here (``local(job)``), job k in process k; returns when all are done."""
         for proc, job in zip(self.procs, jobs[1:]):
-            proc.stdin.write(json.dumps(job) + "\n")
-            proc.stdin.flush()
+            try:
+                proc.stdin.write(json.dumps(job) + "\n")
+                proc.stdin.flush()
+            except OSError as e:  # the process is gone
+                raise RuntimeError(f"COLMAP share process: ended with code {proc.wait()} ({e})") from e
         if jobs:
             local(jobs[0])
         for proc, _ in zip(self.procs, jobs[1:]):
@@ -256,14 +270,23 @@ class _Helpers:
             if answer != "ok":
                 raise RuntimeError(f"COLMAP share process: {answer or f'ended with code {proc.wait()}'}")
 
-    def __exit__(self, *exc):
+    def _end(self, kill: bool) -> None:
         for proc in self.procs:
             try:
+                if kill:
+                    proc.kill()
                 proc.stdin.close()
                 proc.wait(timeout=10)
-            except Exception:
+            except BaseException:  # a second stop while waiting: no process is left behind
                 proc.kill()
                 proc.wait()
+                if not kill:
+                    raise
+            finally:
+                proc.stdout.close()
+
+    def __exit__(self, kind, *exc):
+        self._end(kill=kind is not None)
         return False
 
 
