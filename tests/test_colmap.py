@@ -202,3 +202,22 @@ def test_a_failing_share_process_raises_its_error(tmp_path):
                     lambda job: None)  # fmt: skip
     assert str(here.value).splitlines()[0][:40] in str(e.value)
     assert all(p.poll() is not None for p in helpers.procs)  # ended with the block, killed on the error
+
+
+def test_score_scene_is_score_images_of_its_views(tmp_path):
+    """score_scene passes its shares on; oracle: score_images of the same views, rendered apart,
+    with one share and with two (every field but the seconds)."""
+    from gdbench.metrics.colmap_consistency import score_scene
+    from gdbench.metrics.fixtures3d import failure_scene
+    from gdbench.turntable import render_views, to_uint8
+
+    scene = failure_scene("a yellow duck", "asset")
+    cams = circle_poses(40).cameras(192, 192)
+    images = to_uint8(render_views(scene, cams, background=(1.0, 1.0, 1.0)))
+    for shares in (1, 2):
+        whole = score_scene(scene, views=40, size=192, shares=shares).as_dict()
+        apart = score_images(images, cams, shares=shares).as_dict()
+        whole.pop("seconds"), apart.pop("seconds")
+        assert whole == apart and whole["registered"] >= 20, (shares, whole)
+    with pytest.raises(ValueError, match="shares: expected an integer from 1 to 16"):
+        score_scene(scene, views=16, size=192, shares=0)

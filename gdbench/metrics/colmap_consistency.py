@@ -138,16 +138,21 @@ def score_images(
     (optional) is called with the name of each stage as it starts. ``shares``: the shares of
     extraction and matching (``SHARES``); 1 is COLMAP on one thread throughout, exhaustive
     matching included: the metric as it was scored until 2026-11-26."""
-    if not isinstance(shares, int) or isinstance(shares, bool) or not 1 <= shares <= MAX_SHARES:
-        raise ValueError(f"shares: expected an integer from 1 to {MAX_SHARES}, got {shares!r}")
+    _check_shares(shares)
     t0 = time.perf_counter()
-    est, points = _reconstruct(images, cams, workdir, seed=seed, max_image_size=max_image_size, log=log, phase=phase,
-                               shares=shares)  # fmt: skip
+    with _Helpers(shares - 1, log) as helpers:
+        est, points = _reconstruct(images, cams, workdir, helpers, seed=seed, max_image_size=max_image_size, log=log,
+                                   phase=phase, shares=shares)  # fmt: skip
     return _score(est, points, cams, time.perf_counter() - t0)
 
 
+def _check_shares(shares) -> None:
+    if not isinstance(shares, int) or isinstance(shares, bool) or not 1 <= shares <= MAX_SHARES:
+        raise ValueError(f"shares: expected an integer from 1 to {MAX_SHARES}, got {shares!r}")
+
+
 def _reconstruct(
-    images, cams: Cameras, workdir, *, seed: int, max_image_size: int, log=None, phase=None, shares=SHARES
+    images, cams: Cameras, workdir, helpers, *, seed: int, max_image_size: int, log=None, phase=None, shares=SHARES
 ):
     """COLMAP's estimate of each registered view: {index: (rotation, camera centre)}, and the
     number of 3D points, from SIFT, exhaustive matching and incremental mapping with the known
@@ -160,7 +165,7 @@ def _reconstruct(
     pycolmap = _import_pycolmap()
     phase = phase or (lambda name: None)
     K = len(cams)
-    with tempfile.TemporaryDirectory() as tmp, _Helpers(shares - 1, log) as helpers:
+    with tempfile.TemporaryDirectory() as tmp:
         root = Path(workdir) if workdir is not None else Path(tmp)
         img_dir, out_dir = root / "images", root / "sparse"
         img_dir.mkdir(parents=True, exist_ok=True)
@@ -382,17 +387,21 @@ def score_scene(
     background=(1.0, 1.0, 1.0),
     log=None,
     phase=None,
+    shares: int = SHARES,
     **pose_kw,
 ) -> ColmapScore:
     """Render a GaussianScene on the circle (on ``background``, a run's own) and score it
-    (``log``, ``phase``: as ``score_images``)."""
+    (``log``, ``phase``, ``shares``: as ``score_images``). The share processes start after the
+    render: started before it, their import of pycolmap slowed the two-thread render by more than
+    it hid (views and features 4.07 s against 3.63 s, medians of four, the duck cell's scene)."""
     from ..turntable import render_views, to_uint8
 
+    _check_shares(shares)
     cams = circle_poses(views, **pose_kw).cameras(size, size)
     if phase is not None:
         phase("COLMAP views")
     images = to_uint8(render_views(scene, cams, background=background))
-    return score_images(images, cams, workdir, seed=seed, log=log, phase=phase)
+    return score_images(images, cams, workdir, seed=seed, log=log, phase=phase, shares=shares)
 
 
 def asset_circle_images(
