@@ -15,12 +15,20 @@ if __name__ == "__main__":  # run as a script: its folder (the package's modules
 import json
 
 
-def extract(job: dict) -> None:
+def reader_options(camera_params: str):
+    """COLMAP's image reader for one PINHOLE camera with the given "fx,fy,cx,cy"."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
-    reader.camera_params = job["camera_params"]
+    reader.camera_params = camera_params
+    return reader
+
+
+def extract(job: dict) -> None:
+    import pycolmap
+
+    reader = reader_options(job["camera_params"])
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = job["max_image_size"]
     extraction.num_threads = job["threads"]

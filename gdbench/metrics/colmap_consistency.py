@@ -5,9 +5,8 @@ Render K views on one circle (fixed radius and elevation, 360/K degrees apart, d
 at 256 px), run COLMAP on CPU (pycolmap: SIFT, exhaustive matching, incremental mapping with
 one PINHOLE camera whose known intrinsics stay fixed; extraction and matching in two fixed
 shares in two processes, each on one thread, the mapper on one thread, so a scene's score is
-reproducible: ``SHARES``), take
-the largest model, align it to the
-true cameras by a similarity (Umeyama on camera centres) and report:
+reproducible: ``SHARES``), take the largest model, align it to the true cameras by a similarity
+(Umeyama on camera centres) and report:
 
 - ``registration_rate``: registered views / K (always reported: variance alone misses views
   that fail to register);
@@ -160,7 +159,7 @@ def _reconstruct(
     from PIL import Image
 
     from ..io import captured_output
-    from ._colmap_share import extract, match
+    from ._colmap_share import extract, match, reader_options
 
     pycolmap = _import_pycolmap()
     phase = phase or (lambda name: None)
@@ -176,22 +175,17 @@ def _reconstruct(
         for name, im in zip(names, images):
             Image.fromarray(np.ascontiguousarray(im)).save(img_dir / name)
         db = root / "database.db"
-        for stale in [db, *root.glob("share*.db")]:  # and SQLite's sidecars, which it would replay
-            for path in (stale, *(stale.with_name(stale.name + x) for x in ("-wal", "-shm", "-journal"))):
-                path.unlink(missing_ok=True)
+        for stale in [db, *root.glob("share*.db")]:
+            _remove_database(stale)
         fx, fy, cx, cy = (float(v) for v in cams.Ks[0, [0, 1, 0, 1], [0, 1, 2, 2]])
         camera = f"{fx},{fy},{cx},{cy}"
         step = -(-K // shares)
         # no empty share: extract_features given no names reads every image in the folder
         views = [v for v in (names[k * step : (k + 1) * step] for k in range(shares)) if v]
-        pairs = [(names[i], names[j]) for i in range(K) for j in range(i + 1, K)]
-        matched = [m for m in (pairs[k::shares] for k in range(shares)) if m]
         phase("COLMAP features")
         with captured_output(log):
-            reader = pycolmap.ImageReaderOptions()
-            reader.camera_model, reader.camera_params = "PINHOLE", camera
             pycolmap.Database.open(db).close()
-            pycolmap.import_images(db, img_dir, pycolmap.CameraMode.SINGLE, names, reader)
+            pycolmap.import_images(db, img_dir, pycolmap.CameraMode.SINGLE, names, reader_options(camera))
             jobs = [{"job": "extract", "database": str(root / f"share{k}.db"), "images": str(img_dir), "names": v,
                      "camera_params": camera, "max_image_size": max_image_size, "threads": THREADS}
                     for k, v in enumerate(views)]  # fmt: skip
@@ -199,16 +193,17 @@ def _reconstruct(
             _copy_features(db, [Path(j["database"]) for j in jobs])
         phase("COLMAP matching")
         with captured_output(log):
-            jobs = []
+            jobs, matched = [], []
             if shares == 1:  # one thread's exhaustive matching, in its own order of pairs
-                matched = []
                 matching = pycolmap.FeatureMatchingOptions()
                 matching.num_threads = THREADS
                 pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+            else:
+                pairs = [(names[i], names[j]) for i in range(K) for j in range(i + 1, K)]
+                matched = [m for m in (pairs[k::shares] for k in range(shares)) if m]
             for k, share in enumerate(matched):
                 copy, listing = root / f"share{k}.db", root / f"share{k}.pairs"
-                for path in (copy, *(copy.with_name(copy.name + x) for x in ("-wal", "-shm", "-journal"))):
-                    path.unlink(missing_ok=True)
+                _remove_database(copy)
                 shutil.copyfile(db, copy)
                 listing.write_text("".join(f"{a} {b}\n" for a, b in share))
                 jobs.append({"job": "match", "database": str(copy), "pairs": str(listing), "threads": THREADS})
@@ -293,6 +288,13 @@ class _Helpers:
     def __exit__(self, kind, *exc):
         self._end(kill=kind is not None)
         return False
+
+
+def _remove_database(path: Path) -> None:
+    """Remove an SQLite database and its sidecars, which SQLite would replay onto a new file of
+    that name."""
+    for p in (path, *(path.with_name(path.name + x) for x in ("-wal", "-shm", "-journal"))):
+        p.unlink(missing_ok=True)
 
 
 def _copy_features(db: Path, shares: list[Path]) -> None:
