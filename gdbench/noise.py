@@ -218,22 +218,26 @@ class NoiseRenderer:
                 self._cache.pop(next(iter(self._cache)))
         return prepared
 
-    def render(self, colors: Tensor, cams: Cameras, *, generator: torch.Generator) -> StructuredNoise:
-        """n_s for every camera from one set of colours [M, D]; iid (from ``generator``) where uncovered."""
-        from renderers.splat import composite_features
+    def render(
+        self, colors: Tensor, cams: Cameras, *, generator: torch.Generator, check_values: bool = True
+    ) -> StructuredNoise:
+        """n_s for every camera from one set of colours [M, D]; iid (from ``generator``) where
+        uncovered. ``check_values=False`` skips the scan of ``colors`` for non-finite values (the
+        trainer's colours are its own normal draws)."""
+        from renderers.splat import normalised_features
 
         if colors.shape != (len(self.cloud), self.cloud.channels):
             raise ValueError(
                 f"colors: expected shape [{len(self.cloud)}, {self.cloud.channels}], got {list(colors.shape)}"
             )
         with torch.no_grad():
-            out = composite_features(self._prepared(cams), colors.to(cams.viewmats), outputs=("rgb", "weight_sq"))
-            V = out.weight_sq
-            covered = V >= self.v_min if self.v_min > 0 else V > 0
-            n_s = out.rgb / torch.sqrt(torch.where(covered, V, torch.ones_like(V)))
-            iid = randn(out.rgb.shape, generator=generator).to(n_s)
-            noise = torch.where(covered, n_s, iid)
-        return StructuredNoise(noise, covered.to(noise.dtype))
+            prepared = self._prepared(cams)
+            shape = prepared.batch + (prepared.n_cameras, cams.height, cams.width, self.cloud.channels)
+            iid = randn(shape, generator=generator)  # drawn whether or not a pixel needs it
+            noise, coverage = normalised_features(
+                prepared, colors.to(cams.viewmats), iid, v_min=self.v_min, check_values=check_values
+            )
+        return StructuredNoise(noise, coverage)
 
 
 def structured_noise(

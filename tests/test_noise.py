@@ -220,6 +220,53 @@ def test_projection_is_reused_for_repeated_cameras():
     del g
 
 
+def _torch_chain(cloud, colors, cams, g, v_min):
+    """The noise as composite_features' images and torch operations give it (the oracle of the
+    C++ last pass, which must give the same bits)."""
+    from gdbench.rand import randn
+    from renderers.splat import composite_features, prepare
+
+    p = prepare(cloud.means, cloud.quats, cloud.scales, cloud.opacities, cams.viewmats, cams.Ks, cams.width,
+                cams.height)  # fmt: skip
+    out = composite_features(p, colors.to(cams.viewmats), outputs=("rgb", "weight_sq"))
+    V = out.weight_sq
+    covered = V >= v_min if v_min > 0 else V > 0
+    n = out.rgb / torch.sqrt(torch.where(covered, V, torch.ones_like(V)))
+    iid = randn(out.rgb.shape, generator=g).to(n)
+    return torch.where(covered, n, iid), covered.to(n.dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("res", [32, 40])  # 40: tiles past the image's edge
+def test_last_pass_is_the_torch_chain_bit_for_bit(dtype, res):
+    cloud = _cloud(3, NoiseConfig(n_gaussians=800, radius=0.25, scale=0.03)).to(dtype)
+    cams = _cams((0.0, 70.0, 200.0), res=res)
+    cams = Cameras(cams.viewmats.to(dtype), cams.Ks.to(dtype), cams.width, cams.height)
+    colors = init_colors(cloud, generator=torch.Generator().manual_seed(3)).colors
+    ref_cov = _torch_chain(cloud, colors, cams, torch.Generator().manual_seed(4), CFG.v_min)[1]
+    assert 0.05 < float(ref_cov.mean()) < 0.95  # covered and uncovered pixels both
+    # v_min as configured, at a pixel's own weight (>= takes that pixel), and 0 (> 0)
+    from renderers.splat import composite_features, prepare
+
+    p = prepare(cloud.means, cloud.quats, cloud.scales, cloud.opacities, cams.viewmats, cams.Ks, res, res)
+    w = composite_features(p, colors, outputs=("weight_sq",)).weight_sq
+    edge = float(w[w > 0].median())
+    for v_min in (CFG.v_min, edge, 0.0):
+        r = NoiseRenderer(cloud, v_min=v_min, cache_size=0)
+        got = r.render(colors, cams, generator=torch.Generator().manual_seed(4), check_values=v_min > 0)
+        want, want_cov = _torch_chain(cloud, colors, cams, torch.Generator().manual_seed(4), v_min)
+        assert got.noise.dtype == dtype and torch.equal(got.noise, want) and torch.equal(got.coverage, want_cov)
+    assert float((w == edge).sum()) >= 1  # the edge case was met
+
+
+def test_non_finite_colours_are_refused_unless_unchecked():
+    cloud = _cloud(3)
+    colors = init_colors(cloud, generator=torch.Generator().manual_seed(1)).colors.clone()
+    colors[5, 1] = float("nan")
+    with pytest.raises(ValueError, match="features"):
+        NoiseRenderer(cloud).render(colors, _cams(), generator=torch.Generator())
+
+
 def test_any_resolution_and_batch_of_views():
     cloud = _cloud(4)
     out = _draws(cloud, _cams((0.0, 90.0, 180.0), res=48))

@@ -460,9 +460,9 @@ def test_train_step_redraws_the_noise_colours_as_configured(prior, redraw):
     seen = []
     render = ctx.noise.render
 
-    def capture(colors, cams, *, generator):
+    def capture(colors, cams, *, generator, **kw):
         seen.append(colors.detach().clone())
-        return render(colors, cams, generator=generator)
+        return render(colors, cams, generator=generator, **kw)
 
     ctx.noise.render = capture
     state = init_state(ctx)
@@ -494,9 +494,9 @@ def test_views_spread_reaches_the_noise_renderer(prior):
         seen = []
         render = ctx.noise.render
 
-        def capture(colors, cams, *, generator, render=render, seen=seen):
+        def capture(colors, cams, *, generator, render=render, seen=seen, **kw):
             seen.append(cams.centers.detach().double().clone())
-            return render(colors, cams, generator=generator)
+            return render(colors, cams, generator=generator, **kw)
 
         ctx.noise.render = capture
         state = init_state(ctx)

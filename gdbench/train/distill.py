@@ -77,7 +77,9 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
         colors = colors.colors
     if update:
         state.noise_colors = colors
-    n_s = ctx.noise.render(colors, views.prior_cams, generator=state.streams["noise_colors"]).noise
+    # the colours are this run's own normal draws: no scan for non-finite values
+    gen = state.streams["noise_colors"]
+    n_s = ctx.noise.render(colors, views.prior_cams, generator=gen, check_values=False).noise
     ratio = ratio_schedule(state.step, cfg.steps, cfg.noise.ratio_start, cfg.noise.ratio_end)
     return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio_mode) for _ in range(cfg.samples_per_step)]
 

@@ -7,7 +7,16 @@ object. ``reference`` is the slow dense float64 twin used as the test oracle and
 baseline.
 """
 
-from .rasterize import OUTPUTS, Prepared, RenderOutput, composite_features, prepare, rasterize
+from .rasterize import OUTPUTS, Prepared, RenderOutput, composite_features, normalised_features, prepare, rasterize
 from .settings import RasterSettings
 
-__all__ = ["OUTPUTS", "Prepared", "RasterSettings", "RenderOutput", "composite_features", "prepare", "rasterize"]
+__all__ = [
+    "OUTPUTS",
+    "Prepared",
+    "RasterSettings",
+    "RenderOutput",
+    "composite_features",
+    "normalised_features",
+    "prepare",
+    "rasterize",
+]

@@ -38,6 +38,7 @@ SOURCES = (
     CSRC / "sh_cpu.cpp",
     CSRC / "bank_cpu.cpp",
     CSRC / "normal_cpu.cpp",
+    CSRC / "noise_cpu.cpp",
 )
 HEADERS = (CSRC / "splat_cpu.h", CSRC / "simd.h")
 

@@ -12,14 +12,23 @@ from torch import Tensor
 from . import _checks as ck
 from ._checks import OUTPUTS
 from ._ext import load_extension
-from .autograd import composite, resolve_backend
+from .autograd import _cpp_forward, _flat, composite, resolve_backend
 from .bin_tiles import TileBins, bin_tiles, bin_tiles_cpu
 from .composite import Splats, finish_images
 from .project import Projection, project, project_cpu, view_dirs
 from .settings import RasterSettings, resolve_settings
 from .sh import C0, eval_sh
 
-__all__ = ["OUTPUTS", "Prepared", "RasterSettings", "RenderOutput", "composite_features", "prepare", "rasterize"]
+__all__ = [
+    "OUTPUTS",
+    "Prepared",
+    "RasterSettings",
+    "RenderOutput",
+    "composite_features",
+    "normalised_features",
+    "prepare",
+    "rasterize",
+]
 
 
 class RenderOutput(NamedTuple):
@@ -124,6 +133,45 @@ def composite_features(
     ck.check_same({"means2d": p.projection.means2d, **extra})
     ck.check_values(extra, None, None)
     return _composite_images(p, features, per_camera, D, background, set(outputs))
+
+
+def normalised_features(
+    prepared: Prepared, features: Tensor, fill: Tensor, *, v_min: float = 1e-6, check_values: bool = True
+) -> tuple[Tensor, Tensor]:
+    """(n, coverage): the composite of ``features`` ``[*B, N, D]`` divided by sqrt(weight_sq), the
+    composite's standard deviation for unit-variance iid features, where weight_sq >= ``v_min``
+    (> 0 when ``v_min`` is 0), and ``fill`` ``[*B, C, H, W, D]`` elsewhere; coverage
+    ``[*B, C, H, W, 1]`` is 1 where the composite was used, else 0. Without gradients. On the C++
+    backend one pass from the kernel's tile sums to the images (``csrc/noise_cpu.cpp``); the same
+    bits as ``composite_features`` followed by the torch chain below, which other backends run.
+    ``check_values=False`` skips the scan of ``features`` for non-finite values."""
+    p = prepared
+    images = p.batch + (p.n_cameras, p.height, p.width)
+    D = features.shape[-1]
+    if features.shape != p.batch + (p.n, D) or fill.shape != images + (D,):
+        raise ValueError(
+            f"features, fill: expected {list(p.batch + (p.n,))} + [D] and {list(images)} + [D], got "
+            f"{list(features.shape)} and {list(fill.shape)}"
+        )
+    with torch.no_grad():
+        if resolve_backend(p.settings.backend, p.projection.means2d.device) != "cpp":
+            out = composite_features(p, features, outputs=("rgb", "weight_sq"))
+            V = out.weight_sq
+            covered = V >= v_min if v_min > 0 else V > 0
+            n = out.rgb / torch.sqrt(torch.where(covered, V, torch.ones_like(V)))
+            return torch.where(covered, n, fill.to(n)), covered.to(n.dtype)
+        if check_values:
+            ck.check_values({"features": features}, None, None)
+        I = p.n_cameras * int(torch.Size(p.batch).numel())
+        feats = features.to(p.projection.means2d)[..., None, :, :].expand(p.batch + (p.n_cameras, p.n, D))
+        proj, bins = p.projection, p.bins
+        splats = _flat(proj.means2d, proj.conics, p.opacities, feats, proj.depths)
+        feat, _, _, wsq, _ = _cpp_forward(splats, bins, p.settings.blend, (True, False, True))
+        n, coverage = load_extension().noise_finish(
+            feat, wsq, fill.to(feat).reshape(I, p.height, p.width, D).contiguous(), bins.tiles_x, bins.tiles_y,
+            bins.tile_size, p.height, p.width, float(v_min),
+        )  # fmt: skip
+    return n.reshape(images + (D,)), coverage.reshape(images + (1,))
 
 
 def _composite_images(p: Prepared, feats: Tensor, per_camera: bool, D: int, background, want: set) -> RenderOutput:

@@ -645,6 +645,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("fast_exp", &fast_exp, "The compositor's exp on [-80, 0] (for tests)");
   m.def("philox_normal", &philox_normal, py::arg("n"), py::arg("seed"),
         "n standard normals (float32) from Philox4x32-10 keyed by seed and Box-Muller (gdbench.rand)");
+  m.def("noise_finish", &noise_finish,
+        "Structured noise's last pass: tile sums -> feat / sqrt(sum w^2) images, iid where uncovered (CPU)");
   m.def("philox4x32", &philox4x32, "One Philox4x32-10 block: 4 counter words, 2 key words (for tests)");
   m.def("normal_parts", &normal_parts, "philox_normal's log (0), cos (1) and sin (2) of 2 pi u (for tests)");
 }

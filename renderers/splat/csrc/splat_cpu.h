@@ -1,5 +1,5 @@
 // Entry points of the CPU extension of renderers.splat defined in project_cpu.cpp, sh_cpu.cpp
-// bank_cpu.cpp and normal_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
+// bank_cpu.cpp, normal_cpu.cpp and noise_cpu.cpp (composite_cpu.cpp holds the compositor and the Python bindings).
 #pragma once
 #include <torch/extension.h>
 
@@ -32,3 +32,7 @@ torch::Tensor sqdist_rows(const torch::Tensor& x, const torch::Tensor& Y);
 torch::Tensor philox_normal(int64_t n, int64_t seed);
 std::vector<int64_t> philox4x32(std::vector<int64_t> counter, std::vector<int64_t> key);
 torch::Tensor normal_parts(const torch::Tensor& u, int64_t which);
+
+std::vector<torch::Tensor> noise_finish(const torch::Tensor& feat, const torch::Tensor& wsq,
+                                        const torch::Tensor& iid, int64_t tiles_x, int64_t tiles_y, int64_t ts,
+                                        int64_t height, int64_t width, double v_min);
