@@ -142,7 +142,7 @@ def test_the_shares_write_one_threads_features_and_match_every_pair_once(tmp_pat
     same set of matches."""
     import shutil
 
-    from gdbench.metrics.colmap_consistency import SHARES, fixture_circle_images
+    from gdbench.metrics.colmap_consistency import SHARES, _extraction_shares, fixture_circle_images
 
     assert SHARES == 2
     K = 16
@@ -182,6 +182,10 @@ def test_the_shares_write_one_threads_features_and_match_every_pair_once(tmp_pat
     for bad in (0, 17, True, 2.0):
         with pytest.raises(ValueError, match="shares: expected an integer from 1 to 16, got "):
             score_images(fixture_circle_images("a yellow duck", cams, "asset"), cams, shares=bad)
+    # the views went to the shares alternately (the database above is the proof that it does not
+    # matter which share extracts a view); no share is empty
+    assert _extraction_shares(names, 2) == [names[0::2], names[1::2]]
+    assert _extraction_shares(names[:1], 2) == [names[:1]]
 
 
 def test_a_failing_share_process_raises_its_error(tmp_path):

@@ -52,6 +52,8 @@ JOBS = {"extract": extract, "match": match}
 
 
 def main() -> None:
+    import pycolmap  # noqa: F401  (imported before the first job arrives: the caller is still writing the views)
+
     for line in sys.stdin:
         job = json.loads(line)
         try:
