@@ -121,7 +121,9 @@ def cold_first_run(tmp: Path) -> dict:
     t_warm = run(root(), tmp / "warm_run")
     return {"what": "cold first run: generate --steps 1 with an empty bank cache, minus the same warm",
             "seconds": t_cold - t_warm, "target_s": TARGET_COLD_S, "met": t_cold - t_warm <= TARGET_COLD_S,
-            "cold_s": t_cold, "warm_s": t_warm}  # fmt: skip
+            "cold_s": t_cold, "warm_s": t_warm,
+            "note": "the issue's alternative, taken: scripts/setup.sh builds the six assets' banks in the background "
+                    "(gdbench cache build), so a first run after set-up is the warm one"}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -200,6 +202,8 @@ def line(r: dict) -> str:
         text += f"{'met' if r['met'] else 'NOT met'}; same scene: {r['same_scene']}, same scores: {r['same_scores']}"
     elif "target_s" in r:
         text += f" (target <= {r['target_s']:.3g} s) -> {'met' if r['met'] else 'NOT met'}"
+        if "note" in r:
+            text += f"; {r['note']}"
     elif "share" in r:
         text += f" ({100 * r['share']:.0f}%)"
     return text
