@@ -230,12 +230,14 @@ class NoiseRenderer:
             raise ValueError(
                 f"colors: expected shape [{len(self.cloud)}, {self.cloud.channels}], got {list(colors.shape)}"
             )
+        if check_values and colors.numel() and not bool(torch.isfinite(colors).all()):
+            raise ValueError("colors: expected finite values (NaN or infinity found)")  # before any draw
         with torch.no_grad():
             prepared = self._prepared(cams)
             shape = prepared.batch + (prepared.n_cameras, cams.height, cams.width, self.cloud.channels)
             iid = randn(shape, generator=generator)  # drawn whether or not a pixel needs it
             noise, coverage = normalised_features(
-                prepared, colors.to(cams.viewmats), iid, v_min=self.v_min, check_values=check_values
+                prepared, colors.to(cams.viewmats), iid, v_min=self.v_min, check_values=False
             )
         return StructuredNoise(noise, coverage)
 

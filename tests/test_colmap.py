@@ -208,6 +208,21 @@ def test_a_failing_share_process_raises_its_error(tmp_path):
     assert all(p.poll() is not None for p in helpers.procs)  # ended with the block, killed on the error
 
 
+def test_a_share_process_without_pycolmap_says_so(tmp_path, monkeypatch):
+    """The helper imports pycolmap before its first job; if that fails, the job's answer carries
+    the import's error (a pycolmap that raises on import shadows the real one in the helper)."""
+    from gdbench.metrics.colmap_consistency import _Helpers
+
+    (tmp_path / "shadow").mkdir()
+    (tmp_path / "shadow" / "pycolmap.py").write_text("raise ImportError('no pycolmap in this test')\n")
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path / "shadow"))
+    with (
+        _Helpers(1, tmp_path / "log") as helpers,
+        pytest.raises(RuntimeError, match="COLMAP share process: error: ImportError: no pycolmap in this test"),
+    ):
+        helpers.run([{"job": "match"}, {"job": "match"}], lambda job: None)
+
+
 def test_score_scene_is_score_images_of_its_views(tmp_path):
     """score_scene passes its shares on; oracle: score_images of the same views, rendered apart,
     with one share and with two (every field but the seconds)."""

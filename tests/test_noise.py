@@ -245,13 +245,13 @@ def test_last_pass_is_the_torch_chain_bit_for_bit(dtype, res):
     colors = init_colors(cloud, generator=torch.Generator().manual_seed(3)).colors
     ref_cov = _torch_chain(cloud, colors, cams, torch.Generator().manual_seed(4), CFG.v_min)[1]
     assert 0.05 < float(ref_cov.mean()) < 0.95  # covered and uncovered pixels both
-    # v_min as configured, at a pixel's own weight (>= takes that pixel), and 0 (> 0)
+    # v_min as configured, at a pixel's own weight (>= takes that pixel), and 0, negative or NaN (> 0)
     from renderers.splat import composite_features, prepare
 
     p = prepare(cloud.means, cloud.quats, cloud.scales, cloud.opacities, cams.viewmats, cams.Ks, res, res)
     w = composite_features(p, colors, outputs=("weight_sq",)).weight_sq
     edge = float(w[w > 0].median())
-    for v_min in (CFG.v_min, edge, 0.0):
+    for v_min in (CFG.v_min, edge, 0.0, -1.0, float("nan")):
         r = NoiseRenderer(cloud, v_min=v_min, cache_size=0)
         got = r.render(colors, cams, generator=torch.Generator().manual_seed(4), check_values=v_min > 0)
         want, want_cov = _torch_chain(cloud, colors, cams, torch.Generator().manual_seed(4), v_min)
@@ -260,11 +260,21 @@ def test_last_pass_is_the_torch_chain_bit_for_bit(dtype, res):
 
 
 def test_non_finite_colours_are_refused_unless_unchecked():
+    """Refused before the iid draw (the generator is where it was); unchecked, a NaN colour
+    reaches the pixels that see its Gaussian (the C++ pass scans nothing; torch's always does)."""
+    from renderers.splat.autograd import resolve_backend
+
     cloud = _cloud(3)
     colors = init_colors(cloud, generator=torch.Generator().manual_seed(1)).colors.clone()
-    colors[5, 1] = float("nan")
-    with pytest.raises(ValueError, match="features"):
-        NoiseRenderer(cloud).render(colors, _cams(), generator=torch.Generator())
+    colors[:, 1] = float("nan")
+    g = torch.Generator().manual_seed(5)
+    with pytest.raises(ValueError, match="colors: expected finite values"):
+        NoiseRenderer(cloud).render(colors, _cams(), generator=g)
+    assert torch.equal(g.get_state(), torch.Generator().manual_seed(5).get_state())
+    if resolve_backend("auto", torch.device("cpu")) == "cpp":
+        out = NoiseRenderer(cloud).render(colors, _cams(), generator=g, check_values=False)
+        covered = out.coverage[..., 0] > 0
+        assert bool(out.noise[..., 1][covered].isnan().all()) and not bool(out.noise[..., 0].isnan().any())
 
 
 def test_any_resolution_and_batch_of_views():

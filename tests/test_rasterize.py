@@ -312,6 +312,27 @@ def test_bad_input_names_the_argument(change, error, match):
         rasterize(**args)
 
 
+@pytest.mark.parametrize(
+    ("features", "fill", "error", "match"),
+    [
+        (lambda f: f[:, :2], lambda x: x, ValueError, r"features, fill: expected \[10\] \+ \[D\]"),
+        (lambda f: f, lambda x: x[:1], ValueError, r"features, fill: expected .* got \[10, 3\] and \[1, 16, 16, 3\]"),
+        (lambda f: f.double(), lambda x: x, TypeError, "features: expected dtype torch.float32"),
+        (lambda f: f.tolist(), lambda x: x, TypeError, "features: expected a torch.Tensor"),
+        (lambda f: f, lambda x: x.numpy(), TypeError, "fill: expected a torch.Tensor"),
+    ],
+)
+def test_normalised_features_bad_input(features, fill, error, match):
+    """The noise's last pass names what is wrong on every backend (here the default one)."""
+    from renderers.splat import normalised_features, prepare
+
+    a = _good()
+    colors = a.pop("colors")
+    p = prepare(a["means"], a["quats"], a["scales"], a["opacities"], a["viewmats"], a["Ks"], 16, 16)
+    with pytest.raises(error, match=match):
+        normalised_features(p, features(colors), fill(torch.zeros(2, 16, 16, 3)))
+
+
 def test_value_checks_of_differentiable_inputs_raise_no_warnings():
     """The value checks read scalars from inputs that require gradients (cameras included):
     they must detach first, or torch warns on every call. A fresh process with warnings as

@@ -52,11 +52,16 @@ JOBS = {"extract": extract, "match": match}
 
 
 def main() -> None:
-    import pycolmap  # noqa: F401  (imported before the first job arrives: the caller is still writing the views)
-
+    failed = None
+    try:  # imported before the first job arrives: the caller is still writing the views
+        import pycolmap  # noqa: F401
+    except Exception as e:  # the answer to every job
+        failed = e
     for line in sys.stdin:
         job = json.loads(line)
         try:
+            if failed is not None:
+                raise failed
             JOBS[job["job"]](job)
             answer = "ok"
         except Exception as e:  # reported to the caller, which raises it

@@ -140,12 +140,15 @@ def normalised_features(
 ) -> tuple[Tensor, Tensor]:
     """(n, coverage): the composite of ``features`` ``[*B, N, D]`` divided by sqrt(weight_sq), the
     composite's standard deviation for unit-variance iid features, where weight_sq >= ``v_min``
-    (> 0 when ``v_min`` is 0), and ``fill`` ``[*B, C, H, W, D]`` elsewhere; coverage
+    (> 0 when ``v_min`` is not positive), and ``fill`` ``[*B, C, H, W, D]`` elsewhere; coverage
     ``[*B, C, H, W, 1]`` is 1 where the composite was used, else 0. Without gradients. On the C++
     backend one pass from the kernel's tile sums to the images (``csrc/noise_cpu.cpp``); the same
     bits as ``composite_features`` followed by the torch chain below, which other backends run.
-    ``check_values=False`` skips the scan of ``features`` for non-finite values."""
+    ``check_values=False`` skips the scan of ``features`` for non-finite values (on the C++
+    backend; ``composite_features`` always scans)."""
     p = prepared
+    ck.check_tensor("features", features, finite=False)
+    ck.check_tensor("fill", fill, finite=False)
     images = p.batch + (p.n_cameras, p.height, p.width)
     D = features.shape[-1]
     if features.shape != p.batch + (p.n, D) or fill.shape != images + (D,):
@@ -153,8 +156,9 @@ def normalised_features(
             f"features, fill: expected {list(p.batch + (p.n,))} + [D] and {list(images)} + [D], got "
             f"{list(features.shape)} and {list(fill.shape)}"
         )
+    ck.check_same({"means2d": p.projection.means2d, "features": features})
     with torch.no_grad():
-        if resolve_backend(p.settings.backend, p.projection.means2d.device) != "cpp":
+        if resolve_backend(p.settings.backend, p.projection.means2d.device) != "cpp":  # checks features always
             out = composite_features(p, features, outputs=("rgb", "weight_sq"))
             V = out.weight_sq
             covered = V >= v_min if v_min > 0 else V > 0
@@ -163,13 +167,13 @@ def normalised_features(
         if check_values:
             ck.check_values({"features": features}, None, None)
         I = p.n_cameras * int(torch.Size(p.batch).numel())
-        feats = features.to(p.projection.means2d)[..., None, :, :].expand(p.batch + (p.n_cameras, p.n, D))
+        feats = features[..., None, :, :].expand(p.batch + (p.n_cameras, p.n, D))
         proj, bins = p.projection, p.bins
         splats = _flat(proj.means2d, proj.conics, p.opacities, feats, proj.depths)
         feat, _, _, wsq, _ = _cpp_forward(splats, bins, p.settings.blend, (True, False, True))
         n, coverage = load_extension().noise_finish(
             feat, wsq, fill.to(feat).reshape(I, p.height, p.width, D).contiguous(), bins.tiles_x, bins.tiles_y,
-            bins.tile_size, p.height, p.width, float(v_min),
+            bins.tile_size, p.height, p.width, float(v_min) if v_min > 0 else 0.0,  # 0: V > 0, as above
         )  # fmt: skip
     return n.reshape(images + (D,)), coverage.reshape(images + (1,))
 

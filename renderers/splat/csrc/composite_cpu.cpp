@@ -61,7 +61,7 @@ struct Shapes {
     const double floor_o = amin * std::exp(-1e-3);
     constexpr double kBig = double(1 << 30);
     auto to_int = [](double v) { return int32_t(v >= -kBig ? (v <= kBig ? v : kBig) : -kBig); };  // NaN: -2^30
-    at::parallel_for(0, G, 512, [&](int64_t g0, int64_t g1) {  // both threads from 1024 Gaussians
+    at::parallel_for(0, G, 512, [&](int64_t g0, int64_t g1) {  // both threads above 512 Gaussians
       for (int64_t g = g0; g < g1; ++g) {
         Shape& r = of[g];
         const double o = opac[g];
