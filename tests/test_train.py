@@ -682,3 +682,24 @@ def test_run_outputs_are_written_while_the_folder_lock_is_held(prior, tmp_path, 
     assert held == dict.fromkeys(("checkpoint", "scene.ply", "turntable", "curves", "run.json"), True), held
     with FolderLock(out):  # and released at the end
         pass
+
+
+@pytest.mark.parametrize(("steps", "saved"), [(4, [2, 4]), (5, [2, 4, 5])])
+def test_a_run_saves_each_checkpoint_once(prior, tmp_path, monkeypatch, steps, saved):
+    """Every checkpoint_every steps, and at the end unless the last step was just saved (the same
+    state twice cost an fsync'ed write); the file holds the last step either way."""
+    import gdbench.train.run as run_mod
+    from gdbench.train.checkpoint import checkpoint_path
+
+    seen = []
+    save = run_mod.save_checkpoint
+
+    def counted(state, ctx, path):
+        seen.append(state.step)
+        return save(state, ctx, path)
+
+    monkeypatch.setattr(run_mod, "save_checkpoint", counted)
+    cfg = tiny("gd", steps=steps, out=tmp_path / "run")  # checkpoint_every=2
+    train(cfg, prior)
+    assert seen == saved
+    assert torch.load(checkpoint_path(cfg), weights_only=False)["step"] == steps

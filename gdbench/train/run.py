@@ -190,8 +190,8 @@ def train(
         resumed_from = state.step if read else None
         setup_s = time.perf_counter() - t_start
         last = min(cfg.steps, stop_at) if stop_at is not None else cfg.steps
-        _loop(state, ctx, ckpt, last)
-        save_checkpoint(state, ctx, ckpt)
+        if _loop(state, ctx, ckpt, last) != state.step:  # the loop saved this step already, or not
+            save_checkpoint(state, ctx, ckpt)
         paths: dict[str, Path] = {"checkpoint": ckpt}
         # a run found finished (figures drawn later, scores made again) keeps its provenance: the
         # commit, versions and threads that trained it, and its timings
@@ -220,10 +220,10 @@ PROVENANCE = ("commit", "utc", "versions", "threads", "device", "timings", "resu
 written again."""
 
 
-def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
-    """Steps until ``last``. A stop signal (Ctrl-C, SIGTERM, SIGHUP) is deferred to the end of the
-    step it lands in, so the checkpoint saved then holds a whole step, and the run resumes exactly
-    where it stopped."""
+def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> int | None:
+    """Steps until ``last``; returns the step of the last checkpoint it saved (None if none). A stop
+    signal (Ctrl-C, SIGTERM, SIGHUP) is deferred to the end of the step it lands in, so the
+    checkpoint saved then holds a whole step, and the run resumes exactly where it stopped."""
     cfg = ctx.cfg
     scalars = None
     if cfg.log_dir is not None:
@@ -231,7 +231,7 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
 
         scalars = ScalarLog(cfg, ctx, run_id(cfg))
     bar = _progress(cfg, state.step, last)
-    interrupted = []
+    interrupted, saved = [], None
     with defer_stop_signals(interrupted):
         try:
             while state.step < last and not interrupted:
@@ -244,6 +244,7 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
                     scalars.step(state, m, last)
                 if state.step % cfg.checkpoint_every == 0 and not interrupted:
                     save_checkpoint(state, ctx, ckpt)
+                    saved = state.step
         finally:
             if bar is not None:
                 bar.close()
@@ -252,6 +253,7 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> None:
     if interrupted:
         save_checkpoint(state, ctx, ckpt)
         raise RunInterrupted.at(interrupted[0], state.step, cfg.steps, ckpt)
+    return saved
 
 
 @contextlib.contextmanager
