@@ -173,7 +173,7 @@ def normalised_features(
         feat, _, _, wsq, _ = _cpp_forward(splats, bins, p.settings.blend, (True, False, True))
         n, coverage = load_extension().noise_finish(
             feat, wsq, fill.to(feat).reshape(I, p.height, p.width, D).contiguous(), bins.tiles_x, bins.tiles_y,
-            bins.tile_size, p.height, p.width, float(v_min) if v_min > 0 else 0.0,  # 0: V > 0, as above
+            bins.tile_size, p.height, p.width, float(v_min),
         )  # fmt: skip
     return n.reshape(images + (D,)), coverage.reshape(images + (1,))
 

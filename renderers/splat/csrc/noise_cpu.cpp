@@ -2,7 +2,7 @@
 // tile layout to the unit-variance noise image in one pass, instead of laying features and
 // weights out as images and normalising them in a chain of small torch operations. Per pixel u
 // with V(u) = sum_i w_i^2:
-//   covered = V >= v_min  (V > 0 when v_min is 0)
+//   covered = V >= v_min  (V > 0 when v_min is not positive, NaN included)
 //   n(u)    = feat(u) / sqrt(V(u))  where covered, else the iid draw at u
 // in the scalar type of the inputs (float: v_min rounded to float, as torch compares a float
 // tensor with a Python number). The square roots are at::sqrt's, over the tile layout: torch's
@@ -31,7 +31,7 @@ void finish_impl(const scalar_t* feat, const scalar_t* wsq, const scalar_t* root
       for (int64_t x = 0; x < W; ++x) {
         const int64_t q = (row_tiles + x / ts) * area + py + x % ts, o = r * W + x;
         const scalar_t v = wsq[q];
-        const bool covered = strict ? v > v_min : v >= v_min;
+        const bool covered = strict ? v > scalar_t(0) : v >= v_min;
         const scalar_t s = root[q];
         for (int64_t d = 0; d < D; ++d) out[o * D + d] = covered ? feat[q * D + d] / s : iid[o * D + d];
         cover[o] = covered ? scalar_t(1) : scalar_t(0);
@@ -64,7 +64,7 @@ std::vector<torch::Tensor> noise_finish(const torch::Tensor& feat, const torch::
     finish_impl<scalar_t>(feat.data_ptr<scalar_t>(), wsq.data_ptr<scalar_t>(), root.data_ptr<scalar_t>(),
                           iid.data_ptr<scalar_t>(),
                           out.data_ptr<scalar_t>(), cover.data_ptr<scalar_t>(), I, height, width, D, tiles_x,
-                          tiles_y, ts, scalar_t(v_min), v_min == 0);
+                          tiles_y, ts, scalar_t(v_min), !(v_min > 0));
   });
   return {out, cover};
 }
