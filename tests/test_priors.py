@@ -303,6 +303,51 @@ def test_fov_levels_and_bank_for_training():
         p.denoise(torch.zeros(1, 4, 4, 3), torch.tensor([1.0]), p.encode("a pair"), fovy=torch.tensor([0.0]))
 
 
+def test_zoom_levels_are_shared_by_the_priors_of_one_bank(monkeypatch):
+    """A sweep builds one prior per cell: the next prior of the same bank data must zoom nothing
+    and answer bit for bit as a prior that zoomed its own levels (the oracle: the same query with
+    the process's cache cleared); a bank that differs in one value, or in its background, gets
+    levels of its own; the oldest source beyond two is dropped with its levels."""
+    from gdbench.priors import empirical
+
+    calls = []
+    real = empirical.zoom_images
+    monkeypatch.setattr(empirical, "zoom_images", lambda *a, **k: calls.append(1) or real(*a, **k))
+    g = torch.Generator().manual_seed(3)
+    imgs = torch.rand(6, 8, 8, 3, generator=g)
+    x = torch.rand(1, 8, 8, 3, generator=g) * 2 - 1
+    kw = dict(sigma=torch.tensor([3.0]), fovy=torch.tensor([41.0]))  # every view weighs in
+
+    def answer(images, background=(1.0, 1.0, 1.0), fovy=41.0):
+        bank = _bank(images.clone())
+        bank = dataclasses.replace(bank, config=dataclasses.replace(bank.config, background=background))
+        p = EmpiricalPrior(view_mode="none", banks={"a pair": bank})
+        return p.denoise(x, cond=p.encode("a pair"), **kw | {"fovy": torch.tensor([fovy])})
+
+    empirical.clear_level_cache()
+    first = answer(imgs)
+    assert len(calls) == 1
+    again = answer(imgs)  # another prior, another Bank object, the same data
+    assert len(calls) == 1 and torch.equal(again, first)
+    empirical.clear_level_cache()
+    assert torch.equal(answer(imgs), first) and len(calls) == 2  # the oracle: zoomed afresh
+
+    other = imgs.clone()
+    other[2, 4, 4, 1] += 0.25
+    changed = answer(other)
+    assert len(calls) == 3 and not torch.equal(changed, first)
+    empirical.clear_level_cache()
+    assert torch.equal(answer(other), changed)  # its own levels, not the first bank's
+    white = answer(imgs, fovy=80.0)  # wider than the bank's 70 degrees: the zoom shows the background
+    grey = answer(imgs, background=(0.5, 0.5, 0.5), fovy=80.0)
+    assert len(calls) == 6 and not torch.equal(grey, white)
+
+    answer(other)  # three sources: imgs (white, grey) and other; at most two are kept
+    assert len(empirical._SOURCES) == 2 and all(k[0] in empirical._SOURCES for k in empirical._LEVELS)
+    empirical.clear_level_cache()
+    assert not empirical._LEVELS and not empirical._SOURCES
+
+
 def test_front_bias_is_a_log_prior_on_the_bank_views():
     """At a huge sigma the posterior mean is the prior mean: sum_i pi_i y_i with
     pi_i proportional to exp(kappa cos azimuth_i)."""

@@ -10,6 +10,9 @@ cell's cell.json). Beside it, in the same run:
   alternating with this one over ``--rounds``, so the ratio compares two versions in one phase of
   the machine; and whether both wrote the same scene and scores (a speed change must not change
   results).
+- The next cell of a sweep: a two-cell sweep of the prompt (gd, then sjc-gs) in one process, and
+  the second cell's own time (cells.csv's ``cell_s``: set-up, steps and scores; the process's
+  start-up, the validation and the tables are paid once per sweep), with the peer's the same way.
 - COLMAP consistency of the cell's scene at the sweep's settings (100 views at 256 px, exhaustive
   matching): its time (target: at most 6 s).
 - A cold first run: ``gdbench generate`` of 1 step with an empty bank cache against the same with
@@ -75,6 +78,22 @@ def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None) -> di
     return row
 
 
+def next_cell(root: Path, out: Path, steps: int) -> dict:
+    """The second cell of a two-cell sweep of one prompt (gd, then sjc-gs) from checkout ``root``:
+    its ``cell_s`` from cells.csv (a column every checkout writes), and its row."""
+    import csv
+
+    cmd = [sys.executable, "-m", "gdbench.cli", "sweep", "--prompts", PROMPT, "--presets", "gd", "sjc-gs",
+           "--seeds", "0", "--steps", str(steps), "--no-colmap", "--out", str(out)]  # fmt: skip
+    shutil.rmtree(out, ignore_errors=True)
+    p = subprocess.run(cmd, cwd=root, capture_output=True, text=True)
+    if p.returncode != 0:
+        raise RuntimeError(f"sweep in {root} failed ({p.returncode}):\n{p.stderr[-3000:]}")
+    with open(out / "cells.csv", newline="") as f:
+        row = next(r for r in csv.DictReader(f) if r["preset"] == "sjc-gs")
+    return {"seconds": float(row["cell_s"]), "row": row}
+
+
 def colmap_time(scene_ply: Path) -> list[dict]:
     """COLMAP consistency of one scene as a sweep scores it, and the time of each of its stages."""
     from ..metrics.colmap_consistency import SHARES, score_scene
@@ -132,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=1000, help="training steps of the cell (default 1000)")
     ap.add_argument("--rounds", type=int, default=2, help="timed cells of each checkout, alternating (default 2)")
     ap.add_argument("--peer", type=Path, default=None, help="another checkout to time the same cell from")
+    ap.add_argument("--skip-next-cell", action="store_true", help="leave out the next cell of a two-cell sweep")
     ap.add_argument("--skip-colmap", action="store_true", help="leave out the COLMAP timing")
     ap.add_argument("--skip-cold", action="store_true", help="leave out the cold first run")
     args = ap.parse_args(argv)
@@ -171,6 +191,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append({"what": f"the same cell from --peer {args.peer} (commit {checkout_commit(args.peer)})",
                          "seconds": peer, "ratio": peer / wall, "target_ratio": TARGET_RATIO,
                          "met": peer / wall >= TARGET_RATIO, "same_scene": same, "same_scores": same_row})  # fmt: skip
+        if not args.skip_next_cell:
+            rows.extend(next_cells(checkouts, tmp, args.steps, args.rounds))
         if not args.skip_colmap:
             print("bm_cell: COLMAP on the cell's scene", flush=True)
             cell = tmp / "this0" / "cells" / "easy" / PROMPT.replace(" ", "_") / "gd" / "seed0"
@@ -186,6 +208,26 @@ def main(argv: list[str] | None = None) -> int:
     write_csv(rows, args.out)
     write_json({"environment": environment(), "rows": rows}, args.out.with_name(args.out.stem + "_summary.json"))
     return 0
+
+
+def next_cells(checkouts: dict[str, Path], tmp: Path, steps: int, rounds: int) -> list[dict]:
+    """The next cell of a sweep from each checkout, alternating over ``rounds``: medians, the ratio
+    against the peer, and whether both scored it alike."""
+    print(f"bm_cell: the next cell of a two-cell sweep, {rounds} round(s)", flush=True)
+    got: dict[str, list[dict]] = {k: [] for k in checkouts}
+    for r in range(rounds):
+        for name, root in checkouts.items():
+            got[name].append(next_cell(root, tmp / f"pair-{name}{r}", steps))
+            print(f"  round {r + 1}: {name} {got[name][-1]['seconds']:.2f} s", flush=True)
+    this = statistics.median(x["seconds"] for x in got["this"])
+    rows = [{"what": f"the next cell of a sweep: sjc-gs after gd on the same prompt in one process ({steps} steps; "
+             f"its set-up, steps and scores), median of {rounds}", "seconds": this}]  # fmt: skip
+    if "peer" in got:
+        peer = statistics.median(x["seconds"] for x in got["peer"])
+        keys = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters", "gaussians")
+        same = all(x["row"][k] == got["this"][0]["row"][k] for x in got["peer"] + got["this"] for k in keys)
+        rows.append({"what": "  the same from the peer", "seconds": peer, "speed-up": peer / this, "same_scores": same})
+    return rows
 
 
 def checkout_commit(root: Path) -> str:
@@ -204,6 +246,8 @@ def line(r: dict) -> str:
         text += f" (target <= {r['target_s']:.3g} s) -> {'met' if r['met'] else 'NOT met'}"
         if "note" in r:
             text += f"; {r['note']}"
+    elif "speed-up" in r:
+        text += f"; this checkout is {r['speed-up']:.2f}x faster; same scores: {r['same_scores']}"
     elif "share" in r:
         text += f" ({100 * r['share']:.0f}%)"
     return text

@@ -10,7 +10,9 @@ exactly (pi_i uniform by default). The posterior is taken at the query's camera:
   at fovy f, zoomed to f about the principal point (``assets/zoom.py``: a change of field of view
   at one camera position is an exact zoom of a pinhole image). Zoomed banks are cached per
   ``fov_step`` degrees (the query's fov is rounded to that grid: at 0.5 degrees the zoom is off by
-  at most 0.22 px at the edge of a 64 px image);
+  at most 0.22 px at the edge of a 64 px image), and shared by the priors of one process whose
+  conditions hold the same bank data (a sweep builds one prior per cell: its next cell of the
+  prompt zooms nothing);
 - view-dependent prompting (``view_mode``): the posterior runs over the bank images of the
   camera's view range only: DreamFusion/3DFuse buckets (front |az| < 45, back |az| > 135,
   side otherwise, overhead when elevation > 60), or a window of +-``window_deg`` around the
@@ -76,6 +78,65 @@ class _Level:
     depth: Tensor | None
 
 
+@dataclass(eq=False)
+class _Source:
+    """The data a zoomed level is made from (a condition's images, depth, alpha, field of view and
+    background): levels made from one source serve every condition that holds the same data."""
+
+    images: Tensor
+    depth: Tensor
+    alpha: Tensor | None
+    fovy: float
+    background: tuple[float, float, float]
+
+    def holds(self, cond: EmpiricalCond) -> bool:
+        """Whether ``cond`` holds this data, value for value (the same tensors, or equal ones)."""
+        if self.fovy != cond.fovy or self.background != cond.background:
+            return False
+        pairs = ((self.images, cond.images), (self.depth, cond.depth), (self.alpha, cond.alpha))
+        return all(_same_data(a, b) for a, b in pairs)
+
+
+def _same_data(a: Tensor | None, b: Tensor | None) -> bool:
+    if a is None or b is None:
+        return a is b
+    if a is b:
+        return True
+    return a.shape == b.shape and a.dtype == b.dtype and a.device == b.device and torch.equal(a, b)
+
+
+_SOURCES: list[_Source] = []
+"""The bank data of the process's most recent conditions (at most ``_MAX_SOURCES``, newest last)."""
+_MAX_SOURCES = 2
+_LEVELS: OrderedDict[tuple, _Level] = OrderedDict()
+"""Zoomed levels by (source, H, W, fovy), least recently used first, for every prior of the process."""
+
+
+def _source_for(cond: EmpiricalCond) -> _Source:
+    """The registered source holding ``cond``'s data, or a new one (the oldest beyond
+    ``_MAX_SOURCES`` is dropped with its levels). Data are compared only with a source of the same
+    field of view and background, so a process's first condition costs no comparison."""
+    for src in reversed(_SOURCES):
+        if src.holds(cond):
+            _SOURCES.remove(src)
+            _SOURCES.append(src)
+            return src
+    src = _Source(cond.images, cond.depth, cond.alpha, cond.fovy, tuple(cond.background))
+    _SOURCES.append(src)
+    while len(_SOURCES) > _MAX_SOURCES:
+        old = _SOURCES.pop(0)
+        for key in [k for k in _LEVELS if k[0] is old]:
+            del _LEVELS[key]
+    return src
+
+
+def clear_level_cache() -> None:
+    """Frees the process's zoomed levels and the bank data they were made from (they outlive the
+    priors that made them, so that the next prior of the same bank finds them)."""
+    _SOURCES.clear()
+    _LEVELS.clear()
+
+
 def bucket(azimuth: Tensor, elevation: Tensor) -> Tensor:
     """0 front, 1 side, 2 back, 3 overhead (DreamFusion's view-dependent prompt buckets)."""
     a = (azimuth + 180.0) % 360.0 - 180.0
@@ -131,7 +192,7 @@ class EmpiricalPrior:
         self.sigmas = ve_sigmas_from_betas().float()
         self.fov_step = fov_step
         self.cache_bytes = cache_bytes
-        self._levels: OrderedDict[tuple, _Level] = OrderedDict()
+        self._sources: dict[int, tuple[EmpiricalCond, _Source]] = {}
 
     def encode(self, prompt: str) -> EmpiricalCond:
         """The condition of the caption nearest to ``prompt``; a prompt that contradicts that
@@ -238,12 +299,19 @@ class EmpiricalPrior:
         return out.to(device=x.device, dtype=x.dtype).reshape(B, H, W, 3)
 
     def _level(self, cond: EmpiricalCond, H: int, W: int, fovy: float | None, with_depth: bool) -> _Level:
-        """The bank zoomed to ``fovy`` at H x W, flattened (LRU cache of at most ``cache_bytes``: all 61
-        levels of the default 64 px bank take 1.1 GB, of three variants 3.2 GB)."""
-        key = (cond.caption, id(cond.images), H, W, fovy)
-        level = self._levels.get(key)
+        """The bank zoomed to ``fovy`` at H x W, flattened (the process's LRU cache, kept to this
+        prior's ``cache_bytes``: all 61 levels of the default 64 px bank take 1.1 GB, of three
+        variants 3.2 GB)."""
+        held = self._sources.get(id(cond))
+        if held is None or held[0] is not cond:  # the condition itself is kept, so its id stays its own
+            held = (cond, _source_for(cond))
+            self._sources[id(cond)] = held
+            while len(self._sources) > 4:  # a caller that encodes per query: keep the recent ones only
+                self._sources.pop(next(iter(self._sources)))
+        key = (held[1], H, W, fovy)
+        level = _LEVELS.get(key)
         if level is not None and (level.depth is not None or not with_depth):
-            self._levels.move_to_end(key)
+            _LEVELS.move_to_end(key)
             return level
         src = cond.fovy
         dst = src if fovy is None else fovy
@@ -257,10 +325,11 @@ class EmpiricalPrior:
             Z = torch.where(za[..., 1] > 1e-6, za[..., 0] / za[..., 1].clamp_min(1e-6), torch.zeros_like(za[..., 0]))
             Z = Z.reshape(V, -1).float().contiguous()
         level = _Level(images.reshape(V, -1).float().contiguous(), Z)
-        self._levels[key] = level
+        _LEVELS[key] = level
+        _LEVELS.move_to_end(key)
         size = lambda lv: lv.images.nbytes + (lv.depth.nbytes if lv.depth is not None else 0)  # noqa: E731
-        while len(self._levels) > 1 and sum(size(v) for v in self._levels.values()) > self.cache_bytes:
-            self._levels.popitem(last=False)
+        while len(_LEVELS) > 1 and sum(size(v) for v in _LEVELS.values()) > self.cache_bytes:
+            _LEVELS.popitem(last=False)
         return level
 
 
