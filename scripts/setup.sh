@@ -90,7 +90,7 @@ fi
 # gdbench process then compiled its modules from source, about 0.1 s of each command and sweep
 # cell. compileall writes it regardless and skips what is up to date (0.06 s); a source edited
 # later is compiled in memory again until the next set-up (Python checks each file's mtime).
-.venv/bin/python -m compileall -q gdbench renderers >/dev/null \
+.venv/bin/python -m compileall -q gdbench renderers \
   || echo "setup: warning: could not compile gdbench's bytecode; its commands start about 0.1 s slower"
 
 # The assets' image banks take 16-45 s each on the first run of a prompt: build them once, in the

@@ -1,4 +1,5 @@
 import os
+import sys
 
 import pytest
 import torch
@@ -6,6 +7,16 @@ import torch
 from tests._util import require_cpp
 
 torch.set_num_threads(int(os.environ.get("GDBENCH_TEST_THREADS", "2")))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_zoom_levels():
+    """The empirical prior's zoomed levels outlive its priors (a sweep's next cell finds them):
+    each test file starts without those of the files before it, and their memory is freed."""
+    yield
+    empirical = sys.modules.get("gdbench.priors.empirical")
+    if empirical is not None:
+        empirical.clear_level_cache()
 
 
 @pytest.fixture

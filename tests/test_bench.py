@@ -306,7 +306,8 @@ def test_bm_cell_breaks_a_cell_down_and_compares_a_peer_checkout(tmp_path):
     assert peer["same_scene"] == "True" and peer["same_scores"] == "True" and float(peer["ratio"]) > 0
     # the next cell of a two-cell sweep (sjc-gs after gd): from both checkouts, scored alike
     i = next(i for i, r in enumerate(rows) if r["what"].startswith("the next cell of a sweep"))
-    assert 0 < float(rows[i]["seconds"]) < wall and rows[i + 1]["same_scores"] == "True"
+    assert 0 < float(rows[i]["seconds"]) < wall and float(rows[i + 1]["ratio"]) > 0
+    assert rows[i + 1]["same_scene"] == "True" and rows[i + 1]["same_scores"] == "True"
     assert any("matrix product" in r["what"] and float(r["gflops"]) > 0 for r in rows)
 
 

@@ -306,8 +306,9 @@ def test_fov_levels_and_bank_for_training():
 def test_zoom_levels_are_shared_by_the_priors_of_one_bank(monkeypatch):
     """A sweep builds one prior per cell: the next prior of the same bank data must zoom nothing
     and answer bit for bit as a prior that zoomed its own levels (the oracle: the same query with
-    the process's cache cleared); a bank that differs in one value, or in its background, gets
-    levels of its own; the oldest source beyond two is dropped with its levels."""
+    the process's cache cleared); a bank that differs in one value (images or depth), or in its
+    background, gets levels of its own; depth added to a level made without it is its own bank's;
+    the oldest source beyond two goes with its levels, and a live prior of it finds its data again."""
     from gdbench.priors import empirical
 
     calls = []
@@ -315,14 +316,21 @@ def test_zoom_levels_are_shared_by_the_priors_of_one_bank(monkeypatch):
     monkeypatch.setattr(empirical, "zoom_images", lambda *a, **k: calls.append(1) or real(*a, **k))
     g = torch.Generator().manual_seed(3)
     imgs = torch.rand(6, 8, 8, 3, generator=g)
+    depth = 1 + torch.rand(6, 8, 8, generator=g)
     x = torch.rand(1, 8, 8, 3, generator=g) * 2 - 1
-    kw = dict(sigma=torch.tensor([3.0]), fovy=torch.tensor([41.0]))  # every view weighs in
+    zq = 1 + torch.rand(1, 8, 8, generator=g)
 
-    def answer(images, background=(1.0, 1.0, 1.0), fovy=41.0):
-        bank = _bank(images.clone())
+    def prior(images, background=(1.0, 1.0, 1.0), d=depth):
+        bank = _bank(images.clone(), depth=d.clone())
         bank = dataclasses.replace(bank, config=dataclasses.replace(bank.config, background=background))
-        p = EmpiricalPrior(view_mode="none", banks={"a pair": bank})
-        return p.denoise(x, cond=p.encode("a pair"), **kw | {"fovy": torch.tensor([fovy])})
+        return EmpiricalPrior(view_mode="none", depth_weight=0.5, banks={"a pair": bank})
+
+    def ask(p, fovy=41.0, with_depth=False, cond=None):  # sigma 3: every view weighs in
+        kw = dict(fovy=torch.tensor([fovy]), depth=zq if with_depth else None)
+        return p.denoise(x, torch.tensor([3.0]), cond or p.encode("a pair"), **kw)
+
+    def answer(images, background=(1.0, 1.0, 1.0), fovy=41.0, d=depth, with_depth=False):
+        return ask(prior(images, background, d), fovy, with_depth)
 
     empirical.clear_level_cache()
     first = answer(imgs)
@@ -342,8 +350,30 @@ def test_zoom_levels_are_shared_by_the_priors_of_one_bank(monkeypatch):
     grey = answer(imgs, background=(0.5, 0.5, 0.5), fovy=80.0)
     assert len(calls) == 6 and not torch.equal(grey, white)
 
-    answer(other)  # three sources: imgs (white, grey) and other; at most two are kept
+    # depth: added to a level made without it, and a bank that differs in depth alone
+    empirical.clear_level_cache()
+    want = answer(imgs, with_depth=True)
+    deep = depth.clone()
+    deep[1, 3, 3] += 0.5
+    want_deep = answer(imgs, d=deep, with_depth=True)
+    assert not torch.equal(want_deep, want)
+    empirical.clear_level_cache()
+    answer(imgs)
+    assert torch.equal(answer(imgs, with_depth=True), want)
+    assert torch.equal(answer(imgs, d=deep, with_depth=True), want_deep)
+
+    # a third source drops the oldest with its levels; a live prior of it looks its data up again
+    empirical.clear_level_cache()
+    kept = prior(imgs)
+    cond = kept.encode("a pair")  # one condition for the prior's life, as a trainer keeps it
+    ask(kept, cond=cond)
+    answer(other)
+    answer(imgs, background=(0.5, 0.5, 0.5))
     assert len(empirical._SOURCES) == 2 and all(k[0] in empirical._SOURCES for k in empirical._LEVELS)
+    n = len(calls)
+    assert torch.equal(ask(kept, cond=cond), first) and len(calls) == n + 1
+    assert all(k[0] in empirical._SOURCES for k in empirical._LEVELS)
+    assert torch.equal(answer(imgs), first) and len(calls) == n + 1  # the data found again
     empirical.clear_level_cache()
     assert not empirical._LEVELS and not empirical._SOURCES
 

@@ -91,7 +91,8 @@ def next_cell(root: Path, out: Path, steps: int) -> dict:
         raise RuntimeError(f"sweep in {root} failed ({p.returncode}):\n{p.stderr[-3000:]}")
     with open(out / "cells.csv", newline="") as f:
         row = next(r for r in csv.DictReader(f) if r["preset"] == "sjc-gs")
-    return {"seconds": float(row["cell_s"]), "row": row}
+    scene = out / "cells" / "easy" / PROMPT.replace(" ", "_") / "sjc-gs" / "seed0" / "scene.ply"
+    return {"seconds": float(row["cell_s"]), "row": row, "scene": scene.read_bytes()}
 
 
 def colmap_time(scene_ply: Path) -> list[dict]:
@@ -225,8 +226,11 @@ def next_cells(checkouts: dict[str, Path], tmp: Path, steps: int, rounds: int) -
     if "peer" in got:
         peer = statistics.median(x["seconds"] for x in got["peer"])
         keys = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters", "gaussians")
-        same = all(x["row"][k] == got["this"][0]["row"][k] for x in got["peer"] + got["this"] for k in keys)
-        rows.append({"what": "  the same from the peer", "seconds": peer, "speed-up": peer / this, "same_scores": same})
+        ref = got["this"][0]
+        same = all(x["row"][k] == ref["row"][k] for x in got["peer"] + got["this"] for k in keys)
+        same_scene = all(x["scene"] == ref["scene"] for x in got["peer"] + got["this"])
+        rows.append({"what": "  the same from the peer", "seconds": peer, "ratio": peer / this,
+                     "same_scene": same_scene, "same_scores": same})  # fmt: skip
     return rows
 
 
@@ -240,14 +244,14 @@ def line(r: dict) -> str:
         return f"{r['what']}: {r['gflops']:.0f}"
     text = f"{r['what']}: {r['seconds']:.3g} s"
     if "ratio" in r:
-        text += f"; this checkout is {r['ratio']:.2f}x faster (target {r['target_ratio']}x) -> "
-        text += f"{'met' if r['met'] else 'NOT met'}; same scene: {r['same_scene']}, same scores: {r['same_scores']}"
+        text += f"; this checkout is {r['ratio']:.2f}x faster"
+        if "target_ratio" in r:
+            text += f" (target {r['target_ratio']}x) -> {'met' if r['met'] else 'NOT met'}"
+        text += f"; same scene: {r['same_scene']}, same scores: {r['same_scores']}"
     elif "target_s" in r:
         text += f" (target <= {r['target_s']:.3g} s) -> {'met' if r['met'] else 'NOT met'}"
         if "note" in r:
             text += f"; {r['note']}"
-    elif "speed-up" in r:
-        text += f"; this checkout is {r['speed-up']:.2f}x faster; same scores: {r['same_scores']}"
     elif "share" in r:
         text += f" ({100 * r['share']:.0f}%)"
     return text

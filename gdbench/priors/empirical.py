@@ -91,10 +91,14 @@ class _Source:
 
     def holds(self, cond: EmpiricalCond) -> bool:
         """Whether ``cond`` holds this data, value for value (the same tensors, or equal ones)."""
-        if self.fovy != cond.fovy or self.background != cond.background:
+        if self.fovy != cond.fovy or self.background != _background(cond):
             return False
         pairs = ((self.images, cond.images), (self.depth, cond.depth), (self.alpha, cond.alpha))
         return all(_same_data(a, b) for a, b in pairs)
+
+
+def _background(cond: EmpiricalCond) -> tuple[float, ...]:
+    return tuple(float(c) for c in _array(cond.background))
 
 
 def _same_data(a: Tensor | None, b: Tensor | None) -> bool:
@@ -106,7 +110,9 @@ def _same_data(a: Tensor | None, b: Tensor | None) -> bool:
 
 
 _SOURCES: list[_Source] = []
-"""The bank data of the process's most recent conditions (at most ``_MAX_SOURCES``, newest last)."""
+"""The bank data of the process's most recent conditions (at most ``_MAX_SOURCES``, newest last).
+A condition's tensors are not to be edited in place: the levels made from them would not follow
+(as before, when a prior kept its levels by the condition's tensor)."""
 _MAX_SOURCES = 2
 _LEVELS: OrderedDict[tuple, _Level] = OrderedDict()
 """Zoomed levels by (source, H, W, fovy), least recently used first, for every prior of the process."""
@@ -121,7 +127,7 @@ def _source_for(cond: EmpiricalCond) -> _Source:
             _SOURCES.remove(src)
             _SOURCES.append(src)
             return src
-    src = _Source(cond.images, cond.depth, cond.alpha, cond.fovy, tuple(cond.background))
+    src = _Source(cond.images, cond.depth, cond.alpha, cond.fovy, _background(cond))
     _SOURCES.append(src)
     while len(_SOURCES) > _MAX_SOURCES:
         old = _SOURCES.pop(0)
@@ -302,12 +308,14 @@ class EmpiricalPrior:
         """The bank zoomed to ``fovy`` at H x W, flattened (the process's LRU cache, kept to this
         prior's ``cache_bytes``: all 61 levels of the default 64 px bank take 1.1 GB, of three
         variants 3.2 GB)."""
-        held = self._sources.get(id(cond))
-        if held is None or held[0] is not cond:  # the condition itself is kept, so its id stays its own
+        held = self._sources.pop(id(cond), None)
+        # the condition itself is kept, so its id stays its own; a source dropped from the process's
+        # list (by other banks' conditions since) is looked up again, as its levels went with it
+        if held is None or held[0] is not cond or held[1] not in _SOURCES:
             held = (cond, _source_for(cond))
-            self._sources[id(cond)] = held
-            while len(self._sources) > 4:  # a caller that encodes per query: keep the recent ones only
-                self._sources.pop(next(iter(self._sources)))
+        self._sources[id(cond)] = held  # most recent last
+        while len(self._sources) > 4:  # a caller that encodes per query: keep the recent ones only
+            self._sources.pop(next(iter(self._sources)))
         key = (held[1], H, W, fovy)
         level = _LEVELS.get(key)
         if level is not None and (level.depth is not None or not with_depth):
