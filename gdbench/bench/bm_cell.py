@@ -48,10 +48,10 @@ TARGET_COLD_S = 5.0
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None) -> dict:
-    """Wall time of one-cell ``gdbench sweep`` from checkout ``root`` in a fresh process, with the
-    phases the sweep and the cell record (where the checkout writes them)."""
-    cmd = [sys.executable, "-m", "gdbench.cli", "sweep", "--prompts", PROMPT, "--presets", "gd", "--seeds", "0",
+def run_sweep(root: Path, out: Path, presets: tuple[str, ...], steps: int, env: dict | None = None) -> float:
+    """Wall time of ``gdbench sweep`` of the prompt with ``presets`` (seed 0, no COLMAP) from
+    checkout ``root`` in a fresh process, into a fresh ``out``."""
+    cmd = [sys.executable, "-m", "gdbench.cli", "sweep", "--prompts", PROMPT, "--presets", *presets, "--seeds", "0",
            "--steps", str(steps), "--no-colmap", "--out", str(out)]  # fmt: skip
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
@@ -59,7 +59,19 @@ def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None) -> di
     wall = time.perf_counter() - t0
     if p.returncode != 0:
         raise RuntimeError(f"sweep in {root} failed ({p.returncode}):\n{p.stderr[-3000:]}")
-    cell = out / "cells" / "easy" / PROMPT.replace(" ", "_") / "gd" / "seed0"
+    return wall
+
+
+def cell_dir(out: Path, preset: str) -> Path:
+    """The folder of the prompt's seed-0 cell of ``preset`` in a sweep written to ``out``."""
+    return out / "cells" / "easy" / PROMPT.replace(" ", "_") / preset / "seed0"
+
+
+def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None) -> dict:
+    """Wall time of one-cell ``gdbench sweep`` from checkout ``root`` in a fresh process, with the
+    phases the sweep and the cell record (where the checkout writes them)."""
+    wall = run_sweep(root, out, ("gd",), steps, env)
+    cell = cell_dir(out, "gd")
     blob = json.loads((cell / "cell.json").read_text())
     row = {"wall_s": wall, "row": blob["row"], "scene": (cell / "scene.ply").read_bytes()}
     sw = out / "timings.json"
@@ -83,15 +95,10 @@ def next_cell(root: Path, out: Path, steps: int) -> dict:
     its ``cell_s`` from cells.csv (a column every checkout writes), and its row."""
     import csv
 
-    cmd = [sys.executable, "-m", "gdbench.cli", "sweep", "--prompts", PROMPT, "--presets", "gd", "sjc-gs",
-           "--seeds", "0", "--steps", str(steps), "--no-colmap", "--out", str(out)]  # fmt: skip
-    shutil.rmtree(out, ignore_errors=True)
-    p = subprocess.run(cmd, cwd=root, capture_output=True, text=True)
-    if p.returncode != 0:
-        raise RuntimeError(f"sweep in {root} failed ({p.returncode}):\n{p.stderr[-3000:]}")
+    run_sweep(root, out, ("gd", "sjc-gs"), steps)
     with open(out / "cells.csv", newline="") as f:
         row = next(r for r in csv.DictReader(f) if r["preset"] == "sjc-gs")
-    scene = out / "cells" / "easy" / PROMPT.replace(" ", "_") / "sjc-gs" / "seed0" / "scene.ply"
+    scene = cell_dir(out, "sjc-gs") / "scene.ply"
     return {"seconds": float(row["cell_s"]), "row": row, "scene": scene.read_bytes()}
 
 
@@ -196,8 +203,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.extend(next_cells(checkouts, tmp, args.steps, args.rounds))
         if not args.skip_colmap:
             print("bm_cell: COLMAP on the cell's scene", flush=True)
-            cell = tmp / "this0" / "cells" / "easy" / PROMPT.replace(" ", "_") / "gd" / "seed0"
-            rows.extend(colmap_time(cell / "scene.ply"))
+            rows.extend(colmap_time(cell_dir(tmp / "this0", "gd") / "scene.ply"))
         if not args.skip_cold:
             print("bm_cell: cold first run", flush=True)
             rows.append(cold_first_run(tmp))
