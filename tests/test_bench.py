@@ -188,6 +188,66 @@ def test_train_benchmark_denoise_row():
     assert "bank of 360" in row["what"] and row["seconds"] > 0 and row["met"] == (row["seconds"] <= row["target_s"])
 
 
+def test_kernel_clock_times_each_extension_call_passes_results_through_and_restores():
+    import time
+
+    from gdbench.bench.common import kernel_clock
+    from renderers.splat import rasterize
+    from renderers.splat._ext import load_extension
+
+    ext = load_extension()
+    if ext is None:
+        pytest.skip("the C++ extension is not built here")
+    names = ("project_forward", "bin_tiles", "composite_forward", "composite_backward")
+    originals = {n: getattr(ext, n) for n in names}
+    c = random_cloud(400, seed=3)
+    cams = bm_render._camera(48, "cpu")
+
+    def render_and_backward():
+        means = c["means"].clone().requires_grad_(True)
+        out = rasterize(means, c["quats"], c["scales"], c["opacities"], c["colors"], cams.viewmats, cams.Ks, 48, 48)
+        (out.rgb * torch.linspace(0, 1, 3)).sum().backward()
+        return out.rgb.detach(), means.grad
+
+    rgb, grad = render_and_backward()
+    assert rgb.std() > 0.01  # the cloud is in view
+    t0 = time.perf_counter()
+    with kernel_clock() as clock:
+        rgb_c, grad_c = render_and_backward()
+    wall = time.perf_counter() - t0
+    assert torch.equal(rgb_c, rgb) and torch.equal(grad_c, grad)  # the wrappers change nothing
+    # one CPU render and its backward: one projection, binning and composite each way
+    calls = {n: v[1] for n, v in clock.items() if v[1]}
+    assert calls == {"project_forward": 1, "bin_tiles": 1, "composite_forward": 1, "composite_backward": 1,
+                     "project_backward": 1}  # fmt: skip
+    assert all(0 < clock[n][0] for n in calls) and sum(v[0] for v in clock.values()) <= wall
+    assert all(getattr(ext, n) is f for n, f in originals.items())  # put back
+    with pytest.raises(ZeroDivisionError), kernel_clock():
+        1 / 0
+    assert all(getattr(ext, n) is f for n, f in originals.items())  # put back after an error too
+
+
+def test_train_benchmark_times_each_steps_kernels_apart_from_the_outputs(tmp_path):
+    from gdbench.bench import bm_train
+    from gdbench.train import run as run_module
+    from gdbench.train.config import preset
+
+    step_fn = run_module.train_step
+    with bm_train.kernels_per_step() as (per, inside):
+        r = run_module.train(preset("gd", out=tmp_path, steps=4, progress=False), resume=False)
+    assert run_module.train_step is step_fn and len(inside) == 4 == len(r.state.history)
+    # a gd step composites the scene and its structured noise and backpropagates the scene only;
+    # the outputs' turntable renders after the steps are not counted
+    calls = {n: v[1] for n, v in per.items()}
+    assert calls["composite_forward"] == 2 * 4 and calls["composite_backward"] == 4
+    steps = [h["seconds"] for h in r.state.history]
+    assert all(0 < k < s for k, s in zip(inside, steps))
+    assert sum(inside) == pytest.approx(sum(v[0] for v in per.values()))
+    rows = bm_train.kernel_rows(per, inside, sorted(steps)[2])
+    assert rows[0]["seconds"] == pytest.approx(sum(sorted(inside)[1:3]) / 2)  # the median of four
+    assert "composite_forward (2 calls a step" in " ".join(r["what"] for r in rows)
+
+
 # ------------------------------------------------------------------ peers and stability
 def test_peer_sweep_reports_each_peer_against_splat_in_the_same_run(tmp_path):
     pytest.importorskip("gsplat")

@@ -2,7 +2,9 @@
 against the 360-image bank, and the default generation (`make demo`): its wall time (target: at
 most 2 minutes on the 2-core machine) and the median training step over the run (target:
 4 ms; with its 10th and 90th percentiles) with the shares of the render (forward and update:
-backward, Adam, densification), the structured noise and the prior, and the machine's float32
+backward, Adam, densification), the structured noise and the prior, the step's time inside the
+renderer's C++ kernels (the floor of any change outside them, with each kernel's share), and the
+machine's float32
 matrix product just before and after the run (the shared machine's phase moves every time here
 by up to 2x); and the training step with the empirical and the learned prior side by side (target
 for the learned prior with classifier-free guidance: 40 ms).
@@ -15,11 +17,13 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
 
-from .common import environment, timeit, write_csv, write_json
+from .common import environment, kernel_clock, timeit, write_csv, write_json
 
 TARGET_DENOISE_S = 0.005
 TARGET_RUN_S = 120.0
@@ -81,14 +85,63 @@ def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -
     return rows
 
 
+@contextmanager
+def kernels_per_step() -> Iterator[tuple[dict[str, list], list[float]]]:
+    """Time inside the renderer's C++ kernels (``common.kernel_clock``) of each training step that
+    ``train.run.train`` takes in the block: yields ({kernel: [seconds, calls]} summed over those
+    steps only, [seconds inside the kernels, per step]). No change to the Python and torch work
+    around the kernels can make a step faster than its time inside them (torch's own kernels,
+    such as the prior's matrix-vector product and Adam, come on top)."""
+    from ..train import run as run_module
+
+    per: dict[str, list] = {}
+    inside: list[float] = []
+    step_fn = run_module.train_step
+    with kernel_clock() as clock:
+
+        def step(*args, **kwargs):
+            before = {n: tuple(v) for n, v in clock.items()}
+            try:
+                return step_fn(*args, **kwargs)
+            finally:
+                for n, (s0, c0) in before.items():
+                    entry = per.setdefault(n, [0.0, 0])
+                    entry[0] += clock[n][0] - s0
+                    entry[1] += clock[n][1] - c0
+                inside.append(sum(clock[n][0] - s0 for n, (s0, _) in before.items()))
+
+        run_module.train_step = step
+        try:
+            yield per, inside
+        finally:
+            run_module.train_step = step_fn
+
+
+def kernel_rows(per: dict[str, list], inside: list[float], step: float) -> list[dict]:
+    """Rows of the steps' time inside the kernels: the median per step and its share of the median
+    step ``step``, then each kernel's mean per step."""
+    n = len(inside)
+    k = statistics.median(inside)
+    rows = [{"what": f"  of which inside the C++ kernels (median of {n} steps; the floor)", "seconds": k,
+             "share": k / step}]  # fmt: skip
+    for name, (seconds, calls) in sorted(per.items(), key=lambda kv: -kv[1][0]):
+        if calls:
+            rows.append({"what": f"    kernel {name} ({calls / n:g} calls a step, mean)", "seconds": seconds / n,
+                         "share": seconds / n / step})  # fmt: skip
+    return rows
+
+
 def default_run(out: Path) -> list[dict]:
+    from ..priors.empirical import clear_level_cache
     from ..train.config import preset
     from ..train.run import train
     from .roofline import peak_gflops
 
+    clear_level_cache()  # the prior's zoom levels as a fresh process (make demo) meets them, not prior_steps' ones
     before = peak_gflops()
     t0 = time.perf_counter()
-    r = train(preset("gd", out=out, progress=False), resume=False, overwrite=True)
+    with kernels_per_step() as (per, inside):
+        r = train(preset("gd", out=out, progress=False), resume=False, overwrite=True)
     s = time.perf_counter() - t0
     after = peak_gflops()
     hist = r.state.history
@@ -129,7 +182,7 @@ def default_run(out: Path) -> list[dict]:
              "t_prior": "prior (denoiser)", "t_update": "update (backward, Adam, densify)"}  # fmt: skip
     for p in PARTS:
         rows.append({"what": f"  of which {names[p]} (median)", "seconds": shares[p], "share": shares[p] / step})
-    return rows
+    return rows + kernel_rows(per, inside, step)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,7 +9,8 @@ import platform
 import resource
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import torch
 
@@ -59,6 +60,43 @@ def timeit(
         sync(device)
         times.append(time.perf_counter() - t0)
     return {"median_s": statistics.median(times), "min_s": min(times), "repeats": len(times)}
+
+
+@contextmanager
+def kernel_clock() -> Iterator[dict[str, list]]:
+    """Wall seconds and calls of each function of the renderer's C++ extension while the block
+    runs: yields ``{name: [seconds, calls]}``, filled as calls return. Every caller looks the
+    extension's functions up at call time (``load_extension().f``), so each is swapped for a
+    timed wrapper that passes arguments and results through, and put back on exit. The time
+    inside them is the floor of any change to the Python and torch work around them."""
+    from renderers.splat._ext import extension_status, load_extension
+
+    module = load_extension()
+    if module is None:
+        raise RuntimeError(f"kernel_clock: the C++ extension is not available ({extension_status()})")
+    totals: dict[str, list] = {}
+    originals = {n: f for n in dir(module) if not n.startswith("_") and callable(f := getattr(module, n))}
+
+    def timed(name: str, f: Callable) -> Callable:
+        entry = totals.setdefault(name, [0.0, 0])
+
+        def call(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                entry[0] += time.perf_counter() - t0
+                entry[1] += 1
+
+        return call
+
+    try:
+        for name, f in originals.items():
+            setattr(module, name, timed(name, f))
+        yield totals
+    finally:
+        for name, f in originals.items():
+            setattr(module, name, f)
 
 
 def random_cloud(n: int, *, seed: int = 0, radius: float = 0.5, dtype=torch.float32) -> dict[str, torch.Tensor]:
