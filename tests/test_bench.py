@@ -248,6 +248,25 @@ def test_train_benchmark_times_each_steps_kernels_apart_from_the_outputs(tmp_pat
     assert "composite_forward (2 calls a step" in " ".join(r["what"] for r in rows)
 
 
+def test_train_benchmark_says_why_it_has_no_kernel_floor(monkeypatch):
+    import math
+
+    from gdbench.bench import bm_train
+    from gdbench.train import run as run_module
+    from renderers.splat import _ext
+
+    # steps whose kernels are not the extension's (CUDA, or the torch path): entries, no calls
+    (row,) = bm_train.kernel_rows({"composite_forward": [0.0, 0]}, [0.0, 0.0], 0.01)
+    assert "not measured, the steps called none of its kernels" in row["what"] and math.isnan(row["seconds"])
+    step_fn = run_module.train_step
+    monkeypatch.setattr(_ext, "load_extension", lambda verbose=False: None)  # not built here
+    with bm_train.kernels_per_step() as (per, inside):
+        assert run_module.train_step is step_fn  # the steps run untimed
+    assert per == {} and inside == []
+    (row,) = bm_train.kernel_rows(per, inside, 0.01)
+    assert "not measured, the C++ extension is not available" in row["what"] and math.isnan(row["seconds"])
+
+
 # ------------------------------------------------------------------ peers and stability
 def test_peer_sweep_reports_each_peer_against_splat_in_the_same_run(tmp_path):
     pytest.importorskip("gsplat")

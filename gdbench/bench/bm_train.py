@@ -91,11 +91,17 @@ def kernels_per_step() -> Iterator[tuple[dict[str, list], list[float]]]:
     ``train.run.train`` takes in the block: yields ({kernel: [seconds, calls]} summed over those
     steps only, [seconds inside the kernels, per step]). No change to the Python and torch work
     around the kernels can make a step faster than its time inside them (torch's own kernels,
-    such as the prior's matrix-vector product and Adam, come on top)."""
+    such as the prior's matrix-vector product and Adam, come on top). Without the extension (not
+    built here) both stay empty and the steps run untimed."""
+    from renderers.splat._ext import load_extension
+
     from ..train import run as run_module
 
     per: dict[str, list] = {}
     inside: list[float] = []
+    if load_extension() is None:
+        yield per, inside
+        return
     step_fn = run_module.train_step
     with kernel_clock() as clock:
 
@@ -119,8 +125,15 @@ def kernels_per_step() -> Iterator[tuple[dict[str, list], list[float]]]:
 
 def kernel_rows(per: dict[str, list], inside: list[float], step: float) -> list[dict]:
     """Rows of the steps' time inside the kernels: the median per step and its share of the median
-    step ``step``, then each kernel's mean per step."""
+    step ``step``, then each kernel's mean per step; one row saying why when there is nothing to
+    report (no extension, or steps on another device that call none of its kernels)."""
+    from renderers.splat._ext import extension_status
+
     n = len(inside)
+    if not any(calls for _, calls in per.values()):
+        why = "the C++ extension is not available" if not per else "the steps called none of its kernels"
+        detail = f" ({extension_status()})" if not per else ""
+        return [{"what": f"  of which inside the C++ kernels: not measured, {why}{detail}", "seconds": float("nan")}]
     k = statistics.median(inside)
     rows = [{"what": f"  of which inside the C++ kernels (median of {n} steps; the floor)", "seconds": k,
              "share": k / step}]  # fmt: skip
@@ -205,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
             tail = f" ({100 * r['share']:.0f}% of the step)"
         elif "gflops" in r:
             print(f"{r['what']}: {r['gflops']:.0f}")
+            continue
+        if r["seconds"] != r["seconds"]:  # a row that says why it holds no figure
+            print(r["what"])
             continue
         if "p10_s" in r:
             tail += f"; p10 {r['p10_s']:.4g} s, p90 {r['p90_s']:.4g} s"
