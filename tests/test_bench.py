@@ -188,22 +188,25 @@ def test_train_benchmark_denoise_row():
     assert "bank of 360" in row["what"] and row["seconds"] > 0 and row["met"] == (row["seconds"] <= row["target_s"])
 
 
+def _public(ext) -> dict:
+    return {n: getattr(ext, n) for n in dir(ext) if not n.startswith("_")}
+
+
 def test_kernel_clock_times_each_extension_call_passes_results_through_and_restores():
     import time
 
     from gdbench.bench.common import kernel_clock
-    from renderers.splat import rasterize
-    from renderers.splat._ext import load_extension
 
-    ext = load_extension()
-    if ext is None:
-        pytest.skip("the C++ extension is not built here")
-    names = ("project_forward", "bin_tiles", "composite_forward", "composite_backward")
-    originals = {n: getattr(ext, n) for n in names}
+    from ._util import require_cpp
+
+    ext = require_cpp()
+    originals = _public(ext)
     c = random_cloud(400, seed=3)
     cams = bm_render._camera(48, "cpu")
 
     def render_and_backward():
+        from renderers.splat import rasterize
+
         means = c["means"].clone().requires_grad_(True)
         out = rasterize(means, c["quats"], c["scales"], c["opacities"], c["colors"], cams.viewmats, cams.Ks, 48, 48)
         (out.rgb * torch.linspace(0, 1, 3)).sum().backward()
@@ -214,6 +217,8 @@ def test_kernel_clock_times_each_extension_call_passes_results_through_and_resto
     t0 = time.perf_counter()
     with kernel_clock() as clock:
         rgb_c, grad_c = render_and_backward()
+        with pytest.raises(RuntimeError, match="already running"), kernel_clock():
+            pass
     wall = time.perf_counter() - t0
     assert torch.equal(rgb_c, rgb) and torch.equal(grad_c, grad)  # the wrappers change nothing
     # one CPU render and its backward: one projection, binning and composite each way
@@ -221,10 +226,12 @@ def test_kernel_clock_times_each_extension_call_passes_results_through_and_resto
     assert calls == {"project_forward": 1, "bin_tiles": 1, "composite_forward": 1, "composite_backward": 1,
                      "project_backward": 1}  # fmt: skip
     assert all(0 < clock[n][0] for n in calls) and sum(v[0] for v in clock.values()) <= wall
-    assert all(getattr(ext, n) is f for n, f in originals.items())  # put back
+    assert _public(ext) == originals  # every function put back
     with pytest.raises(ZeroDivisionError), kernel_clock():
         1 / 0
-    assert all(getattr(ext, n) is f for n, f in originals.items())  # put back after an error too
+    assert _public(ext) == originals  # put back after an error too
+    with kernel_clock():  # and a new clock may start
+        pass
 
 
 def test_train_benchmark_times_each_steps_kernels_apart_from_the_outputs(tmp_path):
@@ -232,6 +239,9 @@ def test_train_benchmark_times_each_steps_kernels_apart_from_the_outputs(tmp_pat
     from gdbench.train import run as run_module
     from gdbench.train.config import preset
 
+    from ._util import require_cpp
+
+    originals = _public(require_cpp())
     step_fn = run_module.train_step
     with bm_train.kernels_per_step() as (per, inside):
         r = run_module.train(preset("gd", out=tmp_path, steps=4, progress=False), resume=False)
@@ -242,10 +252,18 @@ def test_train_benchmark_times_each_steps_kernels_apart_from_the_outputs(tmp_pat
     assert calls["composite_forward"] == 2 * 4 and calls["composite_backward"] == 4
     steps = [h["seconds"] for h in r.state.history]
     assert all(0 < k < s for k, s in zip(inside, steps))
-    assert sum(inside) == pytest.approx(sum(v[0] for v in per.values()))
-    rows = bm_train.kernel_rows(per, inside, sorted(steps)[2])
-    assert rows[0]["seconds"] == pytest.approx(sum(sorted(inside)[1:3]) / 2)  # the median of four
-    assert "composite_forward (2 calls a step" in " ".join(r["what"] for r in rows)
+    step = sorted(steps)[2]
+    rows = bm_train.kernel_rows(per, inside, step)
+    floor = rows[0]
+    assert floor["seconds"] == pytest.approx(sum(sorted(inside)[1:3]) / 2)  # the median of four
+    assert floor["share"] == pytest.approx(floor["seconds"] / step)
+    row = next(r for r in rows if "composite_forward" in r["what"])
+    assert "(2 calls a step" in row["what"] and row["seconds"] == pytest.approx(per["composite_forward"][0] / 4)
+    assert "composite_backward (1 call a step" in " ".join(r["what"] for r in rows)
+    # an error in the block puts the trainer's step and the extension back
+    with pytest.raises(ZeroDivisionError), bm_train.kernels_per_step():
+        1 / 0
+    assert run_module.train_step is step_fn and _public(require_cpp()) == originals
 
 
 def test_train_benchmark_says_why_it_has_no_kernel_floor(monkeypatch):
@@ -255,16 +273,44 @@ def test_train_benchmark_says_why_it_has_no_kernel_floor(monkeypatch):
     from gdbench.train import run as run_module
     from renderers.splat import _ext
 
+    def why(per, inside):
+        (row,) = bm_train.kernel_rows(per, inside, 0.01)
+        assert math.isnan(row["seconds"])
+        return row["what"].split("not measured, ")[1]
+
     # steps whose kernels are not the extension's (CUDA, or the torch path): entries, no calls
-    (row,) = bm_train.kernel_rows({"composite_forward": [0.0, 0]}, [0.0, 0.0], 0.01)
-    assert "not measured, the steps called none of its kernels" in row["what"] and math.isnan(row["seconds"])
+    assert why({"composite_forward": [0.0, 0]}, [0.0, 0.0]) == "the steps called none of its kernels"
+    assert why({}, []) == "no training step ran"  # a finished run resumed: nothing to time
     step_fn = run_module.train_step
     monkeypatch.setattr(_ext, "load_extension", lambda verbose=False: None)  # not built here
     with bm_train.kernels_per_step() as (per, inside):
         assert run_module.train_step is step_fn  # the steps run untimed
-    assert per == {} and inside == []
-    (row,) = bm_train.kernel_rows(per, inside, 0.01)
-    assert "not measured, the C++ extension is not available" in row["what"] and math.isnan(row["seconds"])
+    assert per is None and inside == []
+    assert why(per, inside).startswith("the C++ extension is not available")
+
+
+def test_cell_kernels_script_counts_a_cells_steps_kernels(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    from ._util import require_cpp
+
+    require_cpp()
+    path = Path(__file__).parents[1] / "scripts" / "cell_kernels.py"
+    spec = importlib.util.spec_from_file_location("cell_kernels", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "ck.csv"
+    assert module.main(["--rounds", "1", "--steps", "3", "--out", str(out)]) == 0
+    rows = {r["kernel"]: r for r in csv.DictReader(out.open())}
+    # three gd steps: the scene's and the noise's composites, the scene's backward; the scores'
+    # renders after the steps are not counted
+    assert int(rows["composite_forward"]["calls"]) == 6 and int(rows["composite_backward"]["calls"]) == 3
+    r = rows["composite_forward"]
+    assert 0 < float(r["kernels_s"]) < float(r["train_steps_s"]) < float(r["cell_s"])
+    assert json.loads((tmp_path / "ck_summary.json").read_text())["environment"]["commit"]
+    with pytest.raises(SystemExit):
+        module.main(["--rounds", "0"])
 
 
 # ------------------------------------------------------------------ peers and stability

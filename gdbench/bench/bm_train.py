@@ -86,13 +86,13 @@ def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -
 
 
 @contextmanager
-def kernels_per_step() -> Iterator[tuple[dict[str, list], list[float]]]:
+def kernels_per_step() -> Iterator[tuple[dict[str, list] | None, list[float]]]:
     """Time inside the renderer's C++ kernels (``common.kernel_clock``) of each training step that
     ``train.run.train`` takes in the block: yields ({kernel: [seconds, calls]} summed over those
     steps only, [seconds inside the kernels, per step]). No change to the Python and torch work
     around the kernels can make a step faster than its time inside them (torch's own kernels,
     such as the prior's matrix-vector product and Adam, come on top). Without the extension (not
-    built here) both stay empty and the steps run untimed."""
+    built here) it yields (None, []) and the steps run untimed. For one thread (``kernel_clock``)."""
     from renderers.splat._ext import load_extension
 
     from ..train import run as run_module
@@ -100,7 +100,7 @@ def kernels_per_step() -> Iterator[tuple[dict[str, list], list[float]]]:
     per: dict[str, list] = {}
     inside: list[float] = []
     if load_extension() is None:
-        yield per, inside
+        yield None, inside
         return
     step_fn = run_module.train_step
     with kernel_clock() as clock:
@@ -123,23 +123,30 @@ def kernels_per_step() -> Iterator[tuple[dict[str, list], list[float]]]:
             run_module.train_step = step_fn
 
 
-def kernel_rows(per: dict[str, list], inside: list[float], step: float) -> list[dict]:
-    """Rows of the steps' time inside the kernels: the median per step and its share of the median
-    step ``step``, then each kernel's mean per step; one row saying why when there is nothing to
-    report (no extension, or steps on another device that call none of its kernels)."""
+def kernel_rows(per: dict[str, list] | None, inside: list[float], step: float) -> list[dict]:
+    """Rows of the steps' time inside the kernels (``kernels_per_step``'s): the median per step and
+    its share of the median step ``step``, then each kernel's mean per step (means: they add up to
+    more than the median); one row saying why when there is nothing to report (no extension, no
+    steps, or steps on another device that call none of its kernels)."""
     from renderers.splat._ext import extension_status
 
     n = len(inside)
-    if not any(calls for _, calls in per.values()):
-        why = "the C++ extension is not available" if not per else "the steps called none of its kernels"
-        detail = f" ({extension_status()})" if not per else ""
-        return [{"what": f"  of which inside the C++ kernels: not measured, {why}{detail}", "seconds": float("nan")}]
+    why = None
+    if per is None:
+        why = f"the C++ extension is not available ({extension_status()})"
+    elif not n:
+        why = "no training step ran"
+    elif not any(calls for _, calls in per.values()):
+        why = "the steps called none of its kernels"
+    if why:
+        return [{"what": f"  of which inside the C++ kernels: not measured, {why}", "seconds": float("nan")}]
     k = statistics.median(inside)
     rows = [{"what": f"  of which inside the C++ kernels (median of {n} steps; the floor)", "seconds": k,
              "share": k / step}]  # fmt: skip
     for name, (seconds, calls) in sorted(per.items(), key=lambda kv: -kv[1][0]):
         if calls:
-            rows.append({"what": f"    kernel {name} ({calls / n:g} calls a step, mean)", "seconds": seconds / n,
+            a_step = f"{calls / n:g} call{'' if calls == n else 's'} a step"
+            rows.append({"what": f"    kernel {name} ({a_step}, mean)", "seconds": seconds / n,
                          "share": seconds / n / step})  # fmt: skip
     return rows
 

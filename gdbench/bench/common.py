@@ -68,18 +68,26 @@ def kernel_clock() -> Iterator[dict[str, list]]:
     runs: yields ``{name: [seconds, calls]}``, filled as calls return. Every caller looks the
     extension's functions up at call time (``load_extension().f``), so each is swapped for a
     timed wrapper that passes arguments and results through, and put back on exit. The time
-    inside them is the floor of any change to the Python and torch work around them."""
+    inside them is the floor of any change to the Python and torch work around them.
+
+    One clock at a time (a second one raises), for one thread: calls from other threads are
+    counted too."""
+    import functools
+
     from renderers.splat._ext import extension_status, load_extension
 
     module = load_extension()
     if module is None:
         raise RuntimeError(f"kernel_clock: the C++ extension is not available ({extension_status()})")
+    if _CLOCK_OPEN:
+        raise RuntimeError("kernel_clock: a clock is already running; clocks do not nest")
     totals: dict[str, list] = {}
     originals = {n: f for n in dir(module) if not n.startswith("_") and callable(f := getattr(module, n))}
 
     def timed(name: str, f: Callable) -> Callable:
         entry = totals.setdefault(name, [0.0, 0])
 
+        @functools.wraps(f)
         def call(*args, **kwargs):
             t0 = time.perf_counter()
             try:
@@ -90,6 +98,7 @@ def kernel_clock() -> Iterator[dict[str, list]]:
 
         return call
 
+    _CLOCK_OPEN.append(True)
     try:
         for name, f in originals.items():
             setattr(module, name, timed(name, f))
@@ -97,6 +106,11 @@ def kernel_clock() -> Iterator[dict[str, list]]:
     finally:
         for name, f in originals.items():
             setattr(module, name, f)
+        _CLOCK_OPEN.clear()
+
+
+_CLOCK_OPEN: list[bool] = []
+"""Non-empty while a ``kernel_clock`` runs."""
 
 
 def random_cloud(n: int, *, seed: int = 0, radius: float = 0.5, dtype=torch.float32) -> dict[str, torch.Tensor]:
