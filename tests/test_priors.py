@@ -602,3 +602,17 @@ def test_colour_categories_of_the_basic_terms_and_of_known_names():
     known = {"crimson": "red", "scarlet": "red", "azure": "blue", "navy blue": "blue", "lavender": "purple"}
     known |= {"lime green": "green", "chocolate": "brown", "charcoal": "black", "magenta": "pink"}
     assert {k: cat(k) for k in known} == known
+
+
+def test_palette_category_over_distinct_colours_equals_every_face_its_own():
+    import numpy as np
+
+    from gdbench.priors import prompt_check as pc
+
+    pc._palette_category.cache_clear()
+    for caption in ("a yellow duck", "a hamburger"):
+        lab = pc.palette(caption)[0]
+        got = pc._palette_category(caption)
+        assert len(np.unique(lab, axis=0)) < len(lab) // 4  # faces share colours: the distinct ones are fewer
+        np.testing.assert_array_equal(got, pc.category(lab))  # the oracle: each face on its own
+        assert len(set(got.tolist())) >= 2 and not got.flags.writeable

@@ -134,9 +134,13 @@ def category(lab: np.ndarray) -> np.ndarray:
 
 @functools.cache
 def _palette_category(caption: str) -> np.ndarray:
-    """``category`` of every colour of the asset's palette (35 ms a call on the duck's faces, once
-    per asset and process instead of once per colour asked about)."""
-    out = category(palette(caption)[0])
+    """``category`` of every colour of the asset's palette, once per asset and process instead of
+    once per colour asked about: computed on its distinct colours (the duck's 163,840 faces have
+    4,723) and spread back: the same values in half the time (57-74 ms -> 30-39 ms)."""
+    lab = np.ascontiguousarray(palette(caption)[0])
+    rows = lab.view(np.dtype((np.void, lab.itemsize * lab.shape[1]))).ravel()  # a colour's bytes as one key
+    _, first, where = np.unique(rows, return_index=True, return_inverse=True)
+    out = category(lab[first])[where.ravel()]
     out.flags.writeable = False  # shared by every call
     return out
 
