@@ -616,3 +616,20 @@ def test_palette_category_over_distinct_colours_equals_every_face_its_own():
         assert len(np.unique(lab, axis=0)) < len(lab) // 4  # faces share colours: the distinct ones are fewer
         np.testing.assert_array_equal(got, pc.category(lab))  # the oracle: each face on its own
         assert len(set(got.tolist())) >= 2 and not got.flags.writeable
+
+
+def test_encode_maps_the_bank_to_minus_one_one_as_images_times_two_minus_one():
+    from gdbench.assets.bank import load_bank
+    from gdbench.priors.empirical import EmpiricalPrior
+
+    bank = load_bank("a yellow duck", EmpiricalPrior().bank_config)
+    expected = bank.images * 2 - 1  # the oracle: the plain expression's bits
+    prior = EmpiricalPrior()
+    cond = prior.encode("a yellow duck")
+    assert torch.equal(cond.images, expected)
+    # the bank is left as it was: a second encode gives the same images, in a tensor of its own
+    again = prior.encode("a yellow duck").images
+    assert torch.equal(again, expected) and again.data_ptr() != cond.images.data_ptr()
+    for name in ("depth", "azimuth", "elevation", "alpha"):
+        assert torch.equal(getattr(cond, name), getattr(bank, name))
+    assert torch.equal(cond.variant, torch.zeros(len(bank)))

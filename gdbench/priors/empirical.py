@@ -210,10 +210,14 @@ class EmpiricalPrior:
         bank = self._banks.get(caption) or load_bank(caption, self.bank_config)
         self._banks[caption] = bank
         banks = [bank] + [load_bank(caption, bank.config, variant=v) for v in range(1, self.variants)]
-        cat = lambda name: torch.cat([getattr(b, name) for b in banks])  # noqa: E731
+
+        def cat(name: str) -> Tensor:  # one bank's own tensors as they are (a condition's are read-only)
+            parts = [getattr(b, name) for b in banks]
+            return torch.cat(parts) if len(parts) > 1 else parts[0]
+
         return EmpiricalCond(
             caption,
-            cat("images") * 2 - 1,
+            cat("images").mul(2).sub_(1),  # the values of images * 2 - 1, in one new tensor (70 MB) instead of three
             cat("depth"),
             cat("azimuth"),
             cat("elevation"),
