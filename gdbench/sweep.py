@@ -243,7 +243,7 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
         "translation_dir_err_deg": get(col, "translation_dir_err_deg"),
         "cell_s": time.perf_counter() - t0,
         "run_id": run_info.get("run_id"),  # the hash of the config that changes the result
-        "threads": run_info.get("threads"),  # results depend on the thread count (reduction order)
+        "threads": run_info.get("threads"),  # results may depend on it (reduction order; 1 and 2 agree)
         "device": run_info.get("device", "cpu"),  # and on the device, by float rounding
         "train_commit": run_info.get("commit", "unknown"),
         "score_commit": code_commit(),

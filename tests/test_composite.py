@@ -140,6 +140,28 @@ def test_cpp_and_torch_compositors_agree(dtype, cpp_extension):
             torch.testing.assert_close(a.double() / scale, b / scale, rtol=0, atol=6e-5)
 
 
+def test_backward_sums_the_same_on_one_and_two_threads(cpp_extension):
+    """The C++ backward cuts each Gaussian's gradient sum into max(2, threads) chunks of tiles:
+    one thread sums as two do, so a sweep's one-thread workers and a two-thread run agree bit for
+    bit (the previous rule, one chunk per thread, fails this)."""
+    gs = random_gaussians(3000, seed=7)
+    cams = ring_cameras(2, 64, 64)
+    names = ("rgb", "alpha", "depth")
+    keys = ("means", "quats", "scales", "opacities", "colors")
+    grads, before = {}, torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            params = [gs[k].clone().requires_grad_(True) for k in keys]
+            out = rasterize(*params, cams.viewmats, cams.Ks, 64, 64, outputs=names, backend="cpp")
+            grads[threads] = torch.autograd.grad(cotangent_loss(out, names), params)
+    finally:
+        torch.set_num_threads(before)
+    assert float(out.alpha.detach().mean()) > 0.2  # the cloud covers many of the 2 x 16 tiles
+    for k, a, b in zip(keys, grads[1], grads[2]):
+        assert float(a.abs().max()) > 0 and torch.equal(a, b), k
+
+
 def test_chunk_budget_does_not_change_the_image():
     gs = random_gaussians(300, seed=2)
     cams = ring_cameras(2, 40, 40)

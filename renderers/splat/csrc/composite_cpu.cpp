@@ -14,7 +14,8 @@
 // blocks of one vector (8 floats or 4 doubles of a row; simd.h), with their powers and
 // exponentials computed four blocks at a time, to a block kernel, branch-free vector code in
 // both passes. The backward sums gradients per Gaussian in per-lane partial sums, then in one
-// buffer per chunk of tiles, and adds the chunks in order: deterministic for a thread count.
+// buffer per chunk of tiles, and adds the chunks in order: deterministic for a thread count,
+// and the same on one thread as on two (max(2, threads) chunks).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -424,9 +425,12 @@ void backward_impl(const torch::Tensor& means2d, const torch::Tensor& conics, co
   const scalar_t* gW = g_wsq.numel() ? g_wsq.data_ptr<scalar_t>() : nullptr;
   // Gradients are summed per Gaussian in one buffer per chunk of tiles (rows of W: mean 2,
   // conic 3, opacity, depth, features D), then the chunks are added in order: deterministic for
-  // a given thread count, and no per-pair arrays or scatter.
+  // a given thread count, and no per-pair arrays or scatter. At least two chunks, so that one
+  // thread sums as two do (a sweep's one-thread workers and a two-thread run agree bit for bit);
+  // the second chunk costs one thread a buffer of n_gauss x W and its addition.
   const int64_t n_gauss = means2d.size(0), W = 7 + D;
-  const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n_tiles));
+  const int64_t threads = std::max<int64_t>(at::get_num_threads(), 2);
+  const int64_t n_chunks = std::max<int64_t>(1, std::min<int64_t>(threads, n_tiles));
   std::unique_ptr<scalar_t[]> sums(new scalar_t[n_chunks * n_gauss * W]);
 
   const Shapes<scalar_t> shapes(pm, pc, po, n_gauss, amin_);
