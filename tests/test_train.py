@@ -703,3 +703,26 @@ def test_a_run_saves_each_checkpoint_once(prior, tmp_path, monkeypatch, steps, s
     train(cfg, prior)
     assert seen == saved
     assert torch.load(checkpoint_path(cfg), weights_only=False)["step"] == steps
+
+
+def test_one_thread_trains_the_two_thread_run_bit_for_bit(tmp_path):
+    """The empirical prior's run on one thread (a sweep's worker on two cores) gives the two-thread
+    run's parameters: the compositor's backward sums in at least two chunks, and nothing else of
+    a step groups its sums by thread count (docs/conventions.md). 32 px: four tiles per view."""
+    from gdbench.train.trainer import init_state, make_context, train_step
+
+    cfg = preset("gd", steps=20, resolution=32, init_points=600, out=tmp_path, progress=False)
+    ctx = make_context(cfg)
+    params, before = {}, torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            state = init_state(ctx)
+            for _ in range(20):
+                train_step(state, ctx)
+            params[threads] = {k: v.detach() for k, v in state.params.items()}
+    finally:
+        torch.set_num_threads(before)
+    assert params[1]["means"].shape[0] != 600  # densification ran
+    for k in params[1]:
+        assert torch.equal(params[1][k], params[2][k]), k
