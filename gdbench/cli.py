@@ -101,8 +101,9 @@ class Render:
     """The up axis of the scene file: +z for gdbench's runs, -y for Inria/COLMAP captures and
     `gdbench export`'s default, +y."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
-    """Where the frames are rendered: cpu (the C++ compositor), cuda (the pure-torch renderer on
-    the GPU) or auto (cuda when torch sees one)."""
+    """Where the frames are rendered: cpu (the C++ compositor), cuda (gsplat's CUDA kernels with
+    gdbench's conventions, or the torch path where they cannot run) or auto (cuda when torch sees
+    one)."""
 
 
 def run_generate(cmd: Generate) -> dict:

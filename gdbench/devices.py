@@ -1,9 +1,12 @@
 """Where tensors live: ``resolve_device`` turns a ``--device`` choice into a ``torch.device``.
 
 'cpu' is the reference everywhere (the C++ compositor, results that reproduce bit for bit);
-'cuda' runs the pure-torch renderer on the GPU; 'auto' is CUDA when torch sees one. Random draws
-stay on the CPU's generators on every device (``gdbench.rand``), so a run on CUDA draws the same
-views, noise levels and noise as the same run on the CPU and differs only by float rounding.
+'cuda' renders on the GPU with gsplat's CUDA kernels (``renderers.splat.gsplat_backend``; the
+torch path for what they cannot give, such as structured noise's weights, or where they do not
+build); 'auto' is CUDA when torch sees one. Random draws stay on the CPU's generators on every
+device (``gdbench.rand``), so a run on CUDA draws the same views, noise levels and noise as the
+same run on the CPU; its results differ by float rounding and by gsplat's alpha clamp, and
+follow the CPU's in distribution (docs/renderer.md, "On a GPU").
 """
 
 from __future__ import annotations

@@ -1,18 +1,24 @@
 #!/usr/bin/env bash
 # The GPU checks behind docs/renderer.md "On a GPU", in one call on a bare NVIDIA machine that has
-# python3 with a CUDA torch but no network (how they were run for the docs):
-#   - wheels of what it lacks in .whl/ (tyro, docstring-parser, typeguard, plyfile, gsplat==1.5.3,
-#     diffusers, importlib_metadata: `pip download --no-deps --only-binary=:all: --python-version 3.12
-#     --platform manylinux_2_17_x86_64 -d .whl NAME`),
-#   - the image banks a run reads in .devcache/banks/ (built here by pyrender, which that machine
-#     lacks; xz-compressed to travel),
-# then `bash scripts/gpu_check.sh OUT`. Stages run in order of need, each under its own time limit,
-# and their results are packed into OUT/gpu_results.tgz after every stage.
+# python3 with a CUDA torch but no network (how they were run for the docs). Prepare on a CPU
+# machine with the project set up (scripts/gpu_prepare.sh does both):
+#   - wheels of what that machine lacks in .whl/ (tyro, docstring-parser, typeguard, plyfile,
+#     trimesh, gsplat==1.5.3, diffusers, importlib_metadata: `pip download --no-deps
+#     --only-binary=:all: --python-version 3.12 --platform manylinux_2_17_x86_64 -d .whl NAME`),
+#   - the cache a run reads in .devcache/ (the duck's image bank, built here by pyrender, which
+#     that machine lacks, xz-compressed to travel; the tiny SD tokenizer's vocabulary),
+#   - optionally the compiled kernels of an earlier call in .devbuild/ (gsplat's and the C++
+#     compositor's torch-extension folders, as this script packs them into OUT/builds.tar),
+# then `bash scripts/gpu_check.sh OUT [SEEDS]`. The builds run first, then the tests and the
+# paired runs side by side, then the benchmark alone (its timings undisturbed); results are
+# packed into OUT/gpu_results.tgz after every stage.
 set -u
 OUT=${1:-gpu_results}
+SEEDS=${2:-8}
 mkdir -p "$OUT/r"
 R=$OUT/r
 export PYTHONUNBUFFERED=1 GDBENCH_CACHE=$PWD/.devcache TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=16
+export TORCH_EXTENSIONS_DIR=/tmp/torch_extensions
 stamp() { echo "== $(date +%T) $*" | tee -a "$R/stages.log"; }
 pack() { tar -czf "$OUT/gpu_results.tgz" -C "$R" . 2>/dev/null; }
 
@@ -23,38 +29,38 @@ if [ -d .whl ]; then
 else
   export PYTHONPATH=$PWD
 fi
-python3 -c "import glob, lzma, shutil; [shutil.copyfileobj(lzma.open(f), open(f[:-3], 'wb')) for f in glob.glob('.devcache/banks/*.xz')]"
+python3 -c "import glob, lzma, shutil; [shutil.copyfileobj(lzma.open(f), open(f[:-3], 'wb')) for f in glob.glob('.devcache/**/*.xz', recursive=True)]"
+[ -f .devbuild/builds.tar ] && mkdir -p "$TORCH_EXTENSIONS_DIR" && tar -xf .devbuild/builds.tar -C "$TORCH_EXTENSIONS_DIR"
 { nvidia-smi; nproc; python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))"; git rev-parse HEAD; git status --short; } > "$R/machine.txt" 2>&1
-# gsplat compiles its CUDA kernels on first use: in the background while the rest runs
-(timeout 300 python3 -c "import time; t = time.time(); from gsplat.cuda._backend import _C; print('gsplat kernels:', _C is not None, round(time.time() - t, 1), 's')" > "$R/gsplat_build.log" 2>&1; echo "rc $?" >> "$R/gsplat_build.log") &
-GS=$!
 
-stamp "C++ extension"
-timeout 120 python3 -c "import time; t = time.time(); from renderers.splat._ext import load_extension; print('extension:', load_extension() is not None, round(time.time() - t, 1), 's')" > "$R/ext.log" 2>&1
-
-stamp "pytest -m cuda"
-timeout 170 python3 -m pytest -q -m cuda tests/test_device.py -p no:cacheprovider -rs > "$R/pytest_cuda.log" 2>&1
-tail -3 "$R/pytest_cuda.log"
+stamp "builds: gsplat's CUDA kernels and the C++ extension, side by side"
+(timeout 240 python3 -c "import time; t = time.time(); from gsplat.cuda._backend import _C; print('gsplat kernels:', _C is not None, round(time.time() - t, 1), 's')" > "$R/gsplat_build.log" 2>&1; echo "rc $?" >> "$R/gsplat_build.log") &
+timeout 240 python3 -c "import time; t = time.time(); from renderers.splat._ext import load_extension; print('extension:', load_extension() is not None, round(time.time() - t, 1), 's')" > "$R/ext.log" 2>&1
+wait
+cat "$R/gsplat_build.log" "$R/ext.log"
+(cd "$TORCH_EXTENSIONS_DIR" && tar -cf "$OUT/builds.tar" --exclude='*.o' --exclude='*.ninja*' . 2>/dev/null)
 pack
 
-stamp "wait for gsplat (its build would load the CPU timings)"
-wait $GS
-cat "$R/gsplat_build.log"
-stamp "generate on cuda and on cpu"
-for dev in cuda cpu; do
-  t0=$(date +%s.%N)
-  timeout 110 python3 -c 'import sys; from gdbench.cli import entrypoint; sys.argv[0] = "gdbench"; entrypoint()' \
-    generate "a yellow duck" --steps 1000 --device $dev --out "runs/gpu_$dev" --no-progress > "$R/generate_$dev.log" 2>&1
-  echo "rc $? wall $(python3 -c "print(round($(date +%s.%N) - $t0, 2))") s" >> "$R/generate_$dev.log"
-  cp "runs/gpu_$dev/run.json" "$R/run_$dev.json" 2>/dev/null
-  cp "runs/gpu_$dev/turntable_sheet.png" "$R/turntable_sheet_$dev.png" 2>/dev/null
+stamp "tests (-m cuda; the renderer selection with --device cuda) and $SEEDS paired runs, side by side"
+GDBENCH_TEST_THREADS=3 timeout 300 python3 -m pytest -q -m cuda tests/test_device.py tests/test_gsplat_backend.py \
+  -p no:cacheprovider -rs --timeout 200 > "$R/pytest_cuda.log" 2>&1 &
+GDBENCH_TEST_THREADS=3 timeout 300 python3 -m pytest -q --device cuda -m "not slow" tests/test_rasterize.py \
+  "tests/test_compare.py::test_every_backend_puts_a_gaussian_where_the_camera_projects_it" \
+  -p no:cacheprovider -rs --timeout 200 > "$R/pytest_device_cuda.log" 2>&1 &
+for s in $(seq 0 $((SEEDS - 1))); do
+  { OMP_NUM_THREADS=1 timeout 300 python3 -m gdbench.cli generate "a yellow duck" --seed "$s" --device cuda \
+      --out "runs/paired_$s" --no-progress > "$R/paired_$s.log" 2>&1; echo "rc $?" >> "$R/paired_$s.log"; } &
 done
+wait
+tail -3 "$R/pytest_cuda.log" "$R/pytest_device_cuda.log"
+for s in $(seq 0 $((SEEDS - 1))); do
+  cp "runs/paired_$s/scores.json" "$R/paired_${s}_scores.json" 2>/dev/null
+  cp "runs/paired_$s/run.json" "$R/paired_${s}_run.json" 2>/dev/null
+done
+cp runs/paired_0/turntable_sheet.png "$R/paired_0_turntable_sheet.png" 2>/dev/null
 pack
 
-stamp "bm_cuda agreement, speed, trainer"
-timeout 200 python3 -m gdbench.bench.bm_cuda --parts agreement,speed,trainer --out "$R/bm" > "$R/bm_cuda.log" 2>&1
-pack
-stamp "bm_cuda threads"
-timeout 70 python3 -m gdbench.bench.bm_cuda --parts threads --out "$R/bm_threads" > "$R/bm_threads.log" 2>&1
+stamp "bm_cuda agreement, speed, trainer (alone)"
+timeout 330 python3 -m gdbench.bench.bm_cuda --parts agreement,speed,trainer --out "$R/bm" > "$R/bm_cuda.log" 2>&1
 stamp done
 pack

@@ -7,6 +7,24 @@ import torch
 
 from gdbench.camera import Cameras, intrinsics, look_at
 
+TEST_DEVICE = torch.device("cpu")
+"""Where the renderer tests render: pytest's ``--device`` (tests/conftest.py sets it)."""
+
+
+def on_test_device(fn):
+    """``fn`` (``rasterize``'s signature) on TEST_DEVICE copies of its tensors, its outputs back on
+    the CPU; the copies are in the graph, so gradients reach the CPU inputs and the tests compare
+    with the same CPU oracles. On the CPU, ``fn`` itself."""
+
+    def wrapped(*args, **kwargs):
+        if TEST_DEVICE.type == "cpu":
+            return fn(*args, **kwargs)
+        move = lambda x: x.to(TEST_DEVICE) if isinstance(x, torch.Tensor) else x  # noqa: E731
+        out = fn(*map(move, args), **{k: move(v) for k, v in kwargs.items()})
+        return type(out)(*(x.cpu() if isinstance(x, torch.Tensor) else x for x in out))
+
+    return wrapped
+
 
 def random_gaussians(
     n: int,

@@ -9,6 +9,25 @@ from tests._util import require_cpp
 torch.set_num_threads(int(os.environ.get("GDBENCH_TEST_THREADS", "2")))
 
 
+def pytest_addoption(parser):
+    parser.addoption(
+        "--device",
+        default="cpu",
+        choices=("cpu", "cuda"),
+        help="where the renderer tests render (tests/test_rasterize.py and the backend fixture): "
+        "'cuda' runs them on CUDA copies of their inputs, compared with the same CPU oracles",
+    )
+
+
+def pytest_configure(config):
+    import tests._util
+
+    device = config.getoption("--device")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise pytest.UsageError("--device cuda: torch sees no CUDA device")
+    tests._util.TEST_DEVICE = torch.device(device)
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_zoom_levels():
     """The empirical prior's zoomed levels outlive its priors (a sweep's next cell finds them):
@@ -26,13 +45,18 @@ def cpp_extension():
 
 @pytest.fixture(params=["cpp", "torch"])
 def compositor(request) -> str:
-    """Both compositor backends of renderers.splat; 'cpp' drops out if it cannot build."""
+    """Both compositor backends of renderers.splat; 'cpp' drops out if it cannot build, and under
+    ``--device cuda`` (CPU tensors only)."""
+    import tests._util
+
     if request.param == "cpp":
+        if tests._util.TEST_DEVICE.type != "cpu":
+            pytest.skip("the C++ compositor runs on CPU tensors (--device cuda)")
         require_cpp()
     return request.param
 
 
-@pytest.fixture(params=["splat", "splat_torch", "gsplat_torch", "mitsuba_ellipsoids"])
+@pytest.fixture(params=["splat", "splat_torch", "gsplat_torch", "gsplat_cuda", "mitsuba_ellipsoids"])
 def backend(request):
     """Every registered backend with a rasterize-signature render function (gdbench/backends.py);
     skipped with the registry's reason where it cannot run here."""

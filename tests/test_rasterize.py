@@ -4,9 +4,12 @@ forward, gradients with random cotangents, batch shapes, named extreme cases, ba
 import pytest
 import torch
 
-from renderers.splat import OUTPUTS, rasterize
+from renderers.splat import OUTPUTS
+from renderers.splat import rasterize as _rasterize
 from renderers.splat.reference import rasterize_reference
-from tests._util import axis_camera, cotangent_loss, random_gaussians, ring_cameras
+from tests._util import axis_camera, cotangent_loss, on_test_device, random_gaussians, ring_cameras
+
+rasterize = on_test_device(_rasterize)  # pytest --device cuda: on CUDA copies (tests/conftest.py)
 
 IMAGES = ("rgb", "alpha", "depth", "weight_sq")
 PARAMS = ("means", "quats", "scales", "opacities", "colors")

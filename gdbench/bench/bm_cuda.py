@@ -6,16 +6,20 @@ speed), and the C++ compositor's scaling with CPU threads.
 
 Parts (``--parts``):
 - ``agreement``: every fixture scene and a random SH-3 scene, rendered by ``renderers.splat``
-  (torch compositor) on CUDA and by ``gsplat.rasterization`` (1.5.3, CUDA kernels, compiled by
-  gsplat on first use): max and mean absolute difference of rgb, alpha, expected depth and of
-  the gradients of one loss, with gsplat's alpha clamp (0.999) and with ours (0.99); and the same
-  renders on CUDA against the C++ compositor on the CPU (our own device consistency).
+  on CUDA (the torch path, and the 'gsplat' backend: our conventions on gsplat's kernels) and by
+  ``gsplat.rasterization`` (1.5.3, CUDA kernels, compiled by gsplat on first use): max and mean
+  absolute difference of rgb, alpha, expected depth and of the gradients of one loss, with
+  gsplat's alpha clamp (0.999) and with ours (0.99: the backend's opacity cap); each against the
+  C++ compositor on the CPU (our own device consistency).
 - ``speed``: forward and forward+backward at N in {10k, 100k, 1M} and 256, 512 px and 1080p,
-  medians with CUDA synchronisation and peak GPU memory, ours (torch path) against gsplat; a
-  profile of ours at 100k / 512 px (the kernels that take the time).
-- ``trainer``: the 64 px training step (the default gd run on the duck) on the CPU and on CUDA:
-  median step and its parts, and a profile of the CUDA steps; and how many of the speed part's
-  1M Gaussians each renderer draws (gsplat's radii > 0, our visible flags).
+  medians with CUDA synchronisation and peak GPU memory (``PATHS``: the gsplat backend, gsplat
+  itself, our torch path, the C++ compositor on the CPU's cores); a profile of the torch path at
+  100k / 512 px (the kernels that take the time).
+- ``trainer``: the training step of the default gd run on the duck (``TRAIN_CASES``): at 64 px
+  on the empirical and the learned prior, on the CPU and on CUDA with the gsplat backend (the
+  default there) and with the torch path; at 256 and 512 px on the tiny SD models; median step
+  and its parts, and a profile of the CUDA steps; and how many of the speed part's 1M Gaussians
+  each renderer draws (gsplat's radii > 0, our visible flags).
 - ``threads``: the C++ compositor (CPU) at 10k / 256 px and 100k / 512 px, forward and
   forward+backward, on 1, 2, 4, ... up to the machine's cores.
 
@@ -157,11 +161,14 @@ def agreement(out: Path, device: str) -> dict:
     rows = []
     ours = _ours_images  # (alpha_max, backend) -> the renderer as _gsplat's signature
     for name, (scene, cams) in _scenes().items():
-        cuda_g = _render_and_grad(ours(GSPLAT_ALPHA_MAX), scene, cams, device, 0)
         cpu = _render_and_grad(ours(GSPLAT_ALPHA_MAX, "cpp"), scene, cams, "cpu", 0)
+        cpu_default = _render_and_grad(ours(0.99, "cpp"), scene, cams, "cpu", 0)
+        cuda_g = _render_and_grad(ours(GSPLAT_ALPHA_MAX), scene, cams, device, 0)
         rows += _diff_rows(name, "ours cuda (torch) vs ours cpu (cpp)", cuda_g, cpu)
         try:
             ref = _render_and_grad(_gsplat, scene, cams, device, 0)
+            backend = _render_and_grad(ours(GSPLAT_ALPHA_MAX, "gsplat"), scene, cams, device, 0)
+            backend_default = _render_and_grad(ours(0.99, "gsplat"), scene, cams, device, 0)
         except Exception as e:  # gsplat missing, or its kernels failed to build
             rows.append({"scene": name, "pair": "gsplat", "quantity": f"unavailable: {type(e).__name__}: {e}"[:300]})
             continue
@@ -169,18 +176,32 @@ def agreement(out: Path, device: str) -> dict:
         rows += _diff_rows(
             name, "ours cuda (alpha_max 0.99) vs gsplat cuda", _render_and_grad(ours(0.99), scene, cams, device, 0), ref
         )
+        rows += _diff_rows(name, "gsplat backend vs ours cpu (cpp), alpha_max 0.999 both", backend, cpu)
+        rows += _diff_rows(name, "gsplat backend (opacity cap) vs ours cpu (cpp), alpha_max 0.99", backend_default,
+                           cpu_default)  # fmt: skip
     write_csv(rows, out / "agreement.csv")
     return {"rows": len(rows)}
 
 
+PATHS = ("ours_gsplat", "gsplat", "ours_torch", "cpu_cpp")
+"""The speed part's renderers: rasterize with backend 'gsplat' (our conventions on gsplat's
+kernels: the default on CUDA), gsplat.rasterization itself, our torch path on CUDA (10k and 100k
+at 256 and 512 px: beyond, it takes seconds a call; docs/results/cuda has its 2026-11-26 figures),
+and the C++ compositor on the machine's CPU cores."""
+
+
 def _speed_case(path: str, n: int, size: str, mode: str, device: str) -> dict:
+    if path == "cpu_cpp":
+        device = "cpu"
     w, h = SIZES[size]
     c = random_cloud(n, seed=0)
     args = {"means": c["means"], "quats": c["quats"], "scales": c["scales"], "opacities": c["opacities"],
             "colors": c["colors"], "sh_degree": None}  # fmt: skip
     args = {k: (v.to(device).requires_grad_(mode != "fwd") if torch.is_tensor(v) else v) for k, v in args.items()}
     cams = _camera(w, h, device)
-    render = _gsplat if path == "gsplat" else _ours_images(GSPLAT_ALPHA_MAX)
+    on_gpu = device != "cpu"
+    backend = {"ours_gsplat": "gsplat", "ours_torch": "torch", "cpu_cpp": "cpp"}
+    render = _gsplat if path == "gsplat" else _ours_images(GSPLAT_ALPHA_MAX, backend[path])
     cot = torch.randn(1, h, w, 3, generator=torch.Generator().manual_seed(1)).to(device)
 
     def fwd():
@@ -195,18 +216,21 @@ def _speed_case(path: str, n: int, size: str, mode: str, device: str) -> dict:
         ((rgb * cot).sum() + alpha.sum()).backward()
 
     fn = fwd if mode == "fwd" else fwd_bwd
-    torch.cuda.empty_cache()
-    torch.cuda.reset_peak_memory_stats()
-    base = torch.cuda.memory_allocated()
+    if on_gpu:
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated() if on_gpu else 0
     t0 = time.perf_counter()
     fn()
-    torch.cuda.synchronize()
+    if on_gpu:
+        torch.cuda.synchronize()
     first = time.perf_counter() - t0
     budget = 0.5 if first < 1 else 0.0
     t = timeit(fn, device=device, warmup=0 if first > 1 else 1, min_repeats=1 if first > 2 else 3, max_repeats=7,
                budget_s=budget)  # fmt: skip
+    peak = (torch.cuda.max_memory_allocated() - base) / 2**20 if on_gpu else None
     return {"median_ms": 1e3 * t["median_s"], "min_ms": 1e3 * t["min_s"], "first_ms": 1e3 * first,
-            "peak_mb": (torch.cuda.max_memory_allocated() - base) / 2**20}  # fmt: skip
+            "peak_mb": peak, "threads": torch.get_num_threads()}  # fmt: skip
 
 
 def speed(out: Path, device: str) -> dict:
@@ -214,7 +238,9 @@ def speed(out: Path, device: str) -> dict:
     for n in COUNTS:
         for size in SIZES:
             for mode in ("fwd", "fwd+bwd"):
-                for path in ("ours_torch", "gsplat"):
+                for path in PATHS:
+                    if path == "ours_torch" and (n > 100_000 or size == "1080p"):
+                        continue
                     row = {"path": path, "n": n, "size": size, "mode": mode}
                     try:
                         row |= _speed_case(path, n, size, mode, device)
@@ -248,32 +274,71 @@ def _profile(path: Path, device: str) -> None:
     path.write_text(prof.key_averages().table(sort_by="cuda_time_total", row_limit=40))
 
 
-def trainer(out: Path, device: str, steps: int = 40) -> dict:
+TRAIN_CASES = (
+    ("empirical", 64, "cpu", "auto"), ("empirical", 64, "cuda", "gsplat"), ("empirical", 64, "cuda", "torch"),
+    ("learned", 64, "cpu", "auto"), ("learned", 64, "cuda", "gsplat"), ("learned", 64, "cuda", "torch"),
+    ("sd-tiny", 256, "cpu", "auto"), ("sd-tiny", 256, "cuda", "gsplat"),
+    ("sd-tiny", 512, "cpu", "auto"), ("sd-tiny", 512, "cuda", "gsplat"),
+)  # fmt: skip
+"""(prior, resolution, device, renderer on CUDA) of the trainer part: the default gd run's step
+at 64 px on both CPU priors, and at 256 and 512 px on the tiny SD models (the SD code path)."""
+
+
+def _train_config(prior: str, resolution: int, device: str, out: Path):
+    from ..train.config import preset
+
+    kw = dict(prompt="a yellow duck", steps=1000, device=device, progress=False, out=out, resolution=resolution)
+    if prior == "sd-tiny":
+        kw |= dict(prior="sd", sd_model="tiny")
+    else:
+        kw["prior"] = prior
+    return preset("gd", **kw)
+
+
+def _renderer_on_cuda(name: str) -> None:
+    """'gsplat' (the default) or 'torch' for every render of the trainer on CUDA, through the
+    switch a user has (GDBENCH_NO_GSPLAT)."""
+    from renderers.splat.gsplat_backend import gsplat_status
+
+    if name == "torch":
+        os.environ["GDBENCH_NO_GSPLAT"] = "1"
+    else:
+        os.environ.pop("GDBENCH_NO_GSPLAT", None)
+    gsplat_status.cache_clear()
+
+
+def trainer(out: Path, device: str, steps: int = 20, warmup: int = 5) -> dict:
     from torch.profiler import ProfilerActivity, profile
 
-    from ..train.config import preset
     from ..train.trainer import init_state, make_context, train_step
 
     rows = []
     parts = ("t_views", "t_render", "t_noise", "t_prior", "t_update")
-    for dev in ("cpu", device):
-        cfg = preset("gd", prompt="a yellow duck", steps=1000, device=dev, progress=False, out=out / f"run_{dev}")
-        ctx = make_context(cfg)
-        state = init_state(ctx)
-        for _ in range(20):  # warm-up
-            train_step(state, ctx)
-        ms = [train_step(state, ctx) for _ in range(steps)]
-        rows.append(
-            {"device": dev, "step_ms": _median_ms(ms, "seconds"), **{k[2:] + "_ms": _median_ms(ms, k) for k in parts}}
-        )
-        print(rows[-1], flush=True)
-        if dev != "cpu":
-            with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-                for _ in range(10):
-                    train_step(state, ctx)
-            table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
-            (out / "trainer_profile.txt").write_text(table)
-    write_csv(rows, out / "trainer.csv")
+    for prior, res, dev, renderer in TRAIN_CASES:
+        dev = "cpu" if dev == "cpu" else device
+        row = {"prior": prior, "resolution": res, "device": dev, "renderer": renderer}
+        try:
+            _renderer_on_cuda(renderer)
+            ctx = make_context(_train_config(prior, res, dev, out / f"run_{prior}_{res}_{dev}_{renderer}"))
+            state = init_state(ctx)
+            for _ in range(warmup):
+                train_step(state, ctx)
+            ms = [train_step(state, ctx) for _ in range(steps)]
+            row |= {"step_ms": _median_ms(ms, "seconds"), **{k[2:] + "_ms": _median_ms(ms, k) for k in parts},
+                    "gaussians": int(state.params["means"].shape[0])}  # fmt: skip
+            if (prior, res, dev, renderer) == ("empirical", 64, device, "gsplat"):
+                with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+                    for _ in range(10):
+                        train_step(state, ctx)
+                table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
+                (out / "trainer_profile.txt").write_text(table)
+        except Exception as e:  # one case's failure (a missing model, gsplat) is its row, not the part's end
+            row["error"] = f"{type(e).__name__}: {e}"[:300]
+        finally:
+            _renderer_on_cuda("gsplat")
+        rows.append(row)
+        print(row, flush=True)
+        write_csv(rows, out / "trainer.csv")
     try:
         visible = _visible(device)
     except Exception as e:  # gsplat missing or not built: the step timings above stand

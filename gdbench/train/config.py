@@ -346,8 +346,9 @@ class TrainConfig:
     """Stop with an error after this many consecutive steps with non-finite gradients."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     """Where the scene, its renders and the noise live: cpu (the reference: the C++ compositor,
-    results reproduce bit for bit), cuda (the pure-torch renderer on the GPU; the same random draws,
-    results equal to float rounding; the empirical prior stays on the CPU) or auto (cuda when torch
+    results reproduce bit for bit), cuda (gsplat's CUDA kernels with
+    gdbench's conventions; the same random draws, results that follow the CPU's in distribution;
+    the empirical prior stays on the CPU) or auto (cuda when torch
     sees one)."""
 
     def __post_init__(self) -> None:

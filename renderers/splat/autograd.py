@@ -20,19 +20,29 @@ from ._ext import extension_status, load_extension
 from .bin_tiles import TileBins
 from .composite import BlendParams, Outputs, Splats, composite_backward, composite_forward, plan_chunks
 
-Backend = Literal["auto", "torch", "cpp"]
+Backend = Literal["auto", "torch", "cpp", "gsplat"]
+BACKENDS = ("auto", "torch", "cpp", "gsplat")
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """'auto' picks the C++ kernel on CPU when it is available, else torch."""
-    if backend not in ("auto", "torch", "cpp"):
-        raise ValueError(f"backend: expected 'auto', 'torch' or 'cpp', got {backend!r}")
+    """'auto' picks the C++ kernel on CPU when it is available, gsplat's CUDA kernels on CUDA when
+    they run there (``gsplat_backend``), else torch. The compositor stages treat 'gsplat' as
+    torch (they run for what gsplat cannot give, such as weight_sq)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     if backend == "torch":
         return "torch"
+    if backend == "gsplat" and device.type != "cuda":
+        raise ValueError(f"backend: 'gsplat' runs on CUDA tensors only, got tensors on {device}")
     if device.type != "cpu":
         if backend == "cpp":
             raise ValueError(f"backend: 'cpp' runs on CPU tensors only, got tensors on {device}")
-        return "torch"
+        from .gsplat_backend import gsplat_status
+
+        ok, why = gsplat_status() if device.type == "cuda" else (False, "not CUDA")
+        if backend == "gsplat" and not ok:
+            raise RuntimeError(f"backend: 'gsplat' is unavailable ({why})")
+        return "gsplat" if ok else "torch"
     if load_extension() is None:
         if backend == "cpp":
             raise RuntimeError(f"backend: the C++ compositor is unavailable ({extension_status()})")

@@ -15,6 +15,7 @@ from ._ext import load_extension
 from .autograd import _cpp_forward, _flat, composite, resolve_backend
 from .bin_tiles import TileBins, bin_tiles, bin_tiles_cpu
 from .composite import Splats, finish_images
+from .gsplat_backend import rasterize_gsplat, unsupported
 from .project import Projection, project, project_cpu, view_dirs
 from .settings import RasterSettings, resolve_settings
 from .sh import C0, eval_sh
@@ -261,8 +262,9 @@ def rasterize(
     backend's chunk budget and the compositor backend) are one ``RasterSettings`` (``settings``)
     or its fields as keywords, with the defaults of docs/renderer.md. Only the outputs named in
     ``outputs`` are computed (see ``OUTPUTS``). Images are [*B, C, H, W, ...]. The "cpp"
-    compositor (C++/OpenMP, CPU, with the C++ projection and binning) and the "torch" one (any
-    device) agree to float rounding (tested). ``check_values=False`` skips the value scans
+    compositor (C++/OpenMP, CPU, with the C++ projection and binning), the "torch" one (any
+    device) and "gsplat" (gsplat's CUDA kernels, the default on CUDA: ``gsplat_backend`` lists
+    what differs) agree to float rounding (tested). ``check_values=False`` skips the value scans
     (finite values, ranges, rigid cameras) for inputs the caller has checked (a training loop
     checks its parameters after every update); types and shapes are always checked.
     """
@@ -274,8 +276,15 @@ def rasterize(
         geometry = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
         ck.check_values(geometry | {"viewmats": viewmats, "Ks": Ks} | extra, scales, opacities)
     outputs = ck.check_outputs(outputs)
-    resolve_backend(s.backend, means.device)
     want = set(outputs)
+    if resolve_backend(s.backend, means.device) == "gsplat":
+        why = unsupported(s, want, means, colors, Ks, sh_degree)
+        if why is None:
+            return rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                                    sh_degree=sh_degree, background=background, want=want, settings=s,
+                                    batch=batch, n_cameras=C)  # fmt: skip
+        if s.backend == "gsplat":
+            raise ValueError(f"backend: 'gsplat' cannot {why}; use backend='torch' or 'auto' for this render")
     p = _prepare(means, quats, scales, opacities, viewmats, Ks, width, height, batch, C, N, s)
     feats = colors
     if sh_degree is not None and "rgb" in want:

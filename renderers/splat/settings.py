@@ -28,7 +28,8 @@ class RasterSettings:
     chunk_budget: int = 1 << 22
     """Elements of one compositing chunk of the torch backend (memory, not results)."""
     backend: str = "auto"
-    """Compositor: 'cpp' (C++/OpenMP, CPU), 'torch' (any device) or 'auto'."""
+    """Compositor: 'cpp' (C++/OpenMP, CPU), 'torch' (any device), 'gsplat' (gsplat's CUDA kernels)
+    or 'auto' (cpp on CPU, gsplat on CUDA where it runs, else torch)."""
 
     def __post_init__(self) -> None:
         ck.check_range("near_plane", self.near_plane, 0.0, float("inf"), lo_open=True)
@@ -41,8 +42,8 @@ class RasterSettings:
         ck.check_range("t_min", self.t_min, 0.0, 1.0)
         ck.check_size("tile_size", self.tile_size)
         ck.check_size("chunk_budget", self.chunk_budget)
-        if self.backend not in ("auto", "torch", "cpp"):
-            raise ValueError(f"backend: expected 'auto', 'torch' or 'cpp', got {self.backend!r}")
+        if self.backend not in ("auto", "torch", "cpp", "gsplat"):
+            raise ValueError(f"backend: expected 'auto', 'torch', 'cpp' or 'gsplat', got {self.backend!r}")
 
     @property
     def blend(self) -> BlendParams:
