@@ -8,15 +8,16 @@
 #   - the cache a run reads in .devcache/ (the duck's image bank, built here by pyrender, which
 #     that machine lacks, xz-compressed to travel; the tiny SD tokenizer's vocabulary),
 #   - optionally the compiled kernels of an earlier call in .devbuild/ (gsplat's and the C++
-#     compositor's torch-extension folders, as this script packs them into OUT/builds.tar),
+#     compositor's, as this script packs them into OUT/{gsplat,ext}_build.tar.xz),
 # then `bash scripts/gpu_check.sh OUT [SEEDS]`. The builds run first, then the tests and the
 # paired runs side by side, then the benchmark alone (its timings undisturbed); results are
 # packed into OUT/gpu_results.tgz after every stage.
 set -u
 OUT=${1:-gpu_results}
 SEEDS=${2:-8}
-mkdir -p "$OUT/r"
-R=$OUT/r
+R=${GPU_CHECK_WORK:-/tmp/gpu_check}  # every log and CSV; OUT gets gpu_results.tgz and the builds only
+mkdir -p "$OUT" "$R"
+OUT=$(cd "$OUT" && pwd)
 export PYTHONUNBUFFERED=1 GDBENCH_CACHE=$PWD/.devcache TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=16
 export TORCH_EXTENSIONS_DIR=/tmp/torch_extensions
 stamp() { echo "== $(date +%T) $*" | tee -a "$R/stages.log"; }
@@ -30,7 +31,9 @@ else
   export PYTHONPATH=$PWD
 fi
 python3 -c "import glob, lzma, shutil; [shutil.copyfileobj(lzma.open(f), open(f[:-3], 'wb')) for f in glob.glob('.devcache/**/*.xz', recursive=True)]"
-[ -f .devbuild/builds.tar ] && mkdir -p "$TORCH_EXTENSIONS_DIR" && tar -xf .devbuild/builds.tar -C "$TORCH_EXTENSIONS_DIR"
+mkdir -p "$TORCH_EXTENSIONS_DIR" .devcache
+[ -f .devbuild/gsplat_build.tar.xz ] && tar -xJf .devbuild/gsplat_build.tar.xz -C "$TORCH_EXTENSIONS_DIR"
+[ -f .devbuild/ext_build.tar.xz ] && tar -xJf .devbuild/ext_build.tar.xz -C .devcache
 { nvidia-smi; nproc; python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))"; git rev-parse HEAD; git status --short; } > "$R/machine.txt" 2>&1
 
 stamp "builds: gsplat's CUDA kernels and the C++ extension, side by side"
@@ -38,7 +41,8 @@ stamp "builds: gsplat's CUDA kernels and the C++ extension, side by side"
 timeout 240 python3 -c "import time; t = time.time(); from renderers.splat._ext import load_extension; print('extension:', load_extension() is not None, round(time.time() - t, 1), 's')" > "$R/ext.log" 2>&1
 wait
 cat "$R/gsplat_build.log" "$R/ext.log"
-(cd "$TORCH_EXTENSIONS_DIR" && tar -cf "$OUT/builds.tar" --exclude='*.o' --exclude='*.ninja*' . 2>/dev/null)
+tar -cJf "$OUT/gsplat_build.tar.xz" -C "$TORCH_EXTENSIONS_DIR" --exclude='*.o' --exclude='.ninja*' . 2>/dev/null
+tar -cJf "$OUT/ext_build.tar.xz" -C .devcache --exclude='*.o' --exclude='.ninja*' ext 2>/dev/null
 pack
 
 stamp "tests (-m cuda; the renderer selection with --device cuda) and $SEEDS paired runs, side by side"
@@ -64,3 +68,4 @@ stamp "bm_cuda agreement, speed, trainer (alone)"
 timeout 330 python3 -m gdbench.bench.bm_cuda --parts agreement,speed,trainer --out "$R/bm" > "$R/bm_cuda.log" 2>&1
 stamp done
 pack
+cat "$R/stages.log"; tail -5 "$R/bm_cuda.log"
