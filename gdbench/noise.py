@@ -169,11 +169,23 @@ class StructuredNoise:
         return float(self.coverage.float().mean())
 
 
+def _cpu_compositor() -> bool:
+    from renderers.splat._ext import load_extension
+
+    return load_extension() is not None
+
+
 class NoiseRenderer:
     """Renders a cloud's noise for cameras, reusing the projection when cameras repeat.
 
     The projection and tile lists of the cloud depend only on the cameras (the colours are
-    plain features), so they are cached per camera set (``cache_size`` most recent)."""
+    plain features), so they are cached per camera set (``cache_size`` most recent).
+
+    Cameras on a GPU: the noise is rendered by the C++ compositor on the CPU and copied to the
+    cameras' device (it has no gradients, and gsplat's kernels cannot give its weights, so the
+    alternative is the torch compositor there: launch-bound, 10 ms against 1 ms a 64 px step on
+    an H200 machine, docs/renderer.md "On a GPU"); the same bits as on the CPU. Without the C++
+    extension it renders on the cameras' device."""
 
     def __init__(self, cloud: NoiseCloud, *, v_min: float = 1e-6, cache_size: int = 4):
         if cloud.channels < 1 or len(cloud) < 1:
@@ -232,6 +244,9 @@ class NoiseRenderer:
             )
         if check_values and colors.numel() and not bool(torch.isfinite(colors).all()):
             raise ValueError("colors: expected finite values (NaN or infinity found)")  # before any draw
+        device = cams.viewmats.device
+        if device.type != "cpu" and _cpu_compositor():
+            cams = cams.to("cpu")
         with torch.no_grad():
             prepared = self._prepared(cams)
             shape = prepared.batch + (prepared.n_cameras, cams.height, cams.width, self.cloud.channels)
@@ -239,7 +254,7 @@ class NoiseRenderer:
             noise, coverage = normalised_features(
                 prepared, colors.to(cams.viewmats), iid, v_min=self.v_min, check_values=False
             )
-        return StructuredNoise(noise, coverage)
+        return StructuredNoise(noise.to(device), coverage.to(device))
 
 
 def structured_noise(

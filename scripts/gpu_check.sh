@@ -64,8 +64,8 @@ done
 cp runs/paired_0/turntable_sheet.png "$R/paired_0_turntable_sheet.png" 2>/dev/null
 pack
 
-stamp "bm_cuda agreement, speed, trainer (alone)"
-timeout 330 python3 -m gdbench.bench.bm_cuda --parts agreement,speed,trainer --out "$R/bm" > "$R/bm_cuda.log" 2>&1
+stamp "bm_cuda ${BM_PARTS:-agreement,speed,trainer} (alone)"
+timeout 330 python3 -m gdbench.bench.bm_cuda --parts "${BM_PARTS:-agreement,speed,trainer}" --out "$R/bm" > "$R/bm_cuda.log" 2>&1
 stamp done
 pack
 cat "$R/stages.log"; tail -5 "$R/bm_cuda.log"

@@ -19,7 +19,7 @@ def on_test_device(fn):
     def wrapped(*args, **kwargs):
         if TEST_DEVICE.type == "cpu":
             return fn(*args, **kwargs)
-        move = lambda x: x.to(TEST_DEVICE) if isinstance(x, torch.Tensor) else x  # noqa: E731
+        move = lambda x: x.to(TEST_DEVICE) if isinstance(x, torch.Tensor) and x.device.type == "cpu" else x  # noqa: E731
         out = fn(*map(move, args), **{k: move(v) for k, v in kwargs.items()})
         return type(out)(*(x.cpu() if isinstance(x, torch.Tensor) else x for x in out))
 
@@ -82,7 +82,7 @@ def cotangent_loss(out, names, seed: int = 0) -> torch.Tensor:
     for i, name in enumerate(names):
         x = getattr(out, name)
         g = torch.Generator().manual_seed(seed + i)
-        total = total + (x * torch.randn(x.shape, generator=g, dtype=torch.float64).to(x.dtype)).sum()
+        total = total + (x * torch.randn(x.shape, generator=g, dtype=torch.float64).to(x)).sum()
     return total
 
 

@@ -274,3 +274,23 @@ def test_a_two_cell_sweep_on_cuda(tmp_path):
     for a, b in zip(rows["cpu"], rows["cuda"]):
         assert b["device"] == "cuda" and a["device"] == "cpu"
         assert float(b["gt_psnr"]) == pytest.approx(float(a["gt_psnr"]), abs=1.0)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not CUDA, reason=NO_CUDA)
+def test_structured_noise_for_cuda_cameras_is_the_cpu_render_on_the_gpu():
+    """The noise has no gradients and gsplat cannot give its weights: for cameras on CUDA it is
+    rendered by the C++ compositor and copied over, the same bits as for the same cameras on the
+    CPU (and the same draws of the iid fill)."""
+    from gdbench.camera import SphericalPoses
+    from gdbench.noise import NoiseConfig, NoiseRenderer, make_noise_cloud
+
+    cloud = make_noise_cloud(NoiseConfig(n_gaussians=300, scale=0.05), 3, generator=torch.Generator().manual_seed(0))
+    colors = torch.randn(300, 3, generator=torch.Generator().manual_seed(1))
+    cams = SphericalPoses.orbit(2, radius=1.5, elevation=15.0).cameras(32, 32)
+    r = NoiseRenderer(cloud)
+    cpu = r.render(colors, cams, generator=torch.Generator().manual_seed(2))
+    gpu = r.render(colors.cuda(), cams.to("cuda"), generator=torch.Generator().manual_seed(2))
+    assert gpu.noise.device.type == "cuda" and gpu.coverage.device.type == "cuda"
+    assert float(cpu.coverage.mean()) > 0.3
+    assert torch.equal(gpu.noise.cpu(), cpu.noise) and torch.equal(gpu.coverage.cpu(), cpu.coverage)

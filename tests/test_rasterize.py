@@ -4,6 +4,7 @@ forward, gradients with random cotangents, batch shapes, named extreme cases, ba
 import pytest
 import torch
 
+import tests._util
 from renderers.splat import OUTPUTS
 from renderers.splat import rasterize as _rasterize
 from renderers.splat.reference import rasterize_reference
@@ -116,6 +117,9 @@ def test_same_input_same_output(compositor):
         out = rasterize(*params, cams.viewmats, cams.Ks, 40, 40, outputs=IMAGES, backend=compositor)
         runs.append((out.rgb, torch.autograd.grad(cotangent_loss(out, IMAGES), params)))
     assert torch.equal(runs[0][0], runs[1][0])
+    if tests._util.TEST_DEVICE.type == "cuda":  # the backward's scatter-adds are atomics there
+        assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-7) for a, b in zip(runs[0][1], runs[1][1]))
+        return
     assert all(torch.equal(a, b) for a, b in zip(runs[0][1], runs[1][1]))
 
 

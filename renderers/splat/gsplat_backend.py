@@ -13,7 +13,8 @@ What differs (docs/renderer.md, "On a GPU"): gsplat's kernels fix alpha_min at 1
 Gaussian's opacity at it before the kernel, with a straight-through gradient: exact where the
 clamp acts at a Gaussian's centre, within ``1 - alpha_max`` of alpha elsewhere on Gaussians
 more opaque than the cap, and the opacity's gradient is the unclamped one at the centre (ours
-is 0 there). Sums run in another order (and gsplat builds with fast math), and the backward
+is 0 there). Below alpha_max 0.99 that residual grows, and 'auto' takes the torch compositor.
+Sums run in another order (and gsplat builds with fast math), and the backward
 adds with atomics: results agree with the C++ compositor to float rounding, not to the bit, and
 CUDA gradients can differ between two identical calls.
 
@@ -35,6 +36,8 @@ GSPLAT_ALPHA_MIN = 1.0 / 255.0
 GSPLAT_ALPHA_MAX = 0.999
 GSPLAT_T_MIN = 1e-4
 GSPLAT_MAX_SH_DEGREE = 4
+CAP_MIN = 0.99
+"""The lowest alpha_max the opacity cap stands in for: its residual is below 1 - alpha_max."""
 
 
 @functools.cache
@@ -72,8 +75,10 @@ def unsupported(
         return f"render {means.dtype} (float32 only)"
     if settings.alpha_min != GSPLAT_ALPHA_MIN or settings.t_min != GSPLAT_T_MIN:
         return f"take alpha_min or t_min other than its fixed {GSPLAT_ALPHA_MIN:.6g} and {GSPLAT_T_MIN:g}"
-    if settings.alpha_max > GSPLAT_ALPHA_MAX:
-        return f"clamp alpha above its {GSPLAT_ALPHA_MAX}"
+    if not CAP_MIN <= settings.alpha_max <= GSPLAT_ALPHA_MAX:
+        return (
+            f"clamp alpha outside [{CAP_MIN}, {GSPLAT_ALPHA_MAX}] (its clamp, or the opacity cap within 0.01 of ours)"
+        )
     if sh_degree is not None and (colors.shape[-1] != 3 or sh_degree > GSPLAT_MAX_SH_DEGREE):
         return "evaluate SH other than 3 channels up to degree 4"
     if Ks.requires_grad and torch.is_grad_enabled():
