@@ -190,13 +190,14 @@ def test_densification_sees_the_same_screen_gradients_radii_and_visibility():
         out[backend] = r
     g, t = out["gsplat"], out["torch"]
     assert g.means2d.shape == t.means2d.shape == (2, 300, 2)
-    torch.testing.assert_close(g.means2d, t.means2d, rtol=1e-5, atol=1e-3)
-    scale = float(t.means2d.grad.abs().max())
-    assert scale > 0
-    assert float((g.means2d.grad - t.means2d.grad).abs().max()) <= 2e-3 * scale
     agree = (g.visible == t.visible).float().mean()
     assert agree >= 0.99, float(agree)  # the two opacity-aware radii may differ at the screen's edge
-    both = g.visible & t.visible
+    both = g.visible & t.visible  # gsplat leaves the culled ones' means2d unset
+    assert int(both.sum()) > 300
+    torch.testing.assert_close(g.means2d[both], t.means2d[both], rtol=1e-5, atol=1e-3)
+    scale = float(t.means2d.grad.abs().max())
+    assert scale > 0
+    assert float((g.means2d.grad - t.means2d.grad)[both].abs().max()) <= 2e-3 * scale
     torch.testing.assert_close(g.radii[both], t.radii[both], rtol=0.2, atol=1.0)
 
 
