@@ -56,7 +56,7 @@ for s in $(seq 0 $((SEEDS - 1))); do
       --out "runs/paired_$s" --no-progress > "$R/paired_$s.log" 2>&1; echo "rc $?" >> "$R/paired_$s.log"; } &
 done
 wait
-tail -3 "$R/pytest_cuda.log" "$R/pytest_device_cuda.log"
+tail -n 3 "$R/pytest_cuda.log" "$R/pytest_device_cuda.log"
 for s in $(seq 0 $((SEEDS - 1))); do
   cp "runs/paired_$s/scores.json" "$R/paired_${s}_scores.json" 2>/dev/null
   cp "runs/paired_$s/run.json" "$R/paired_${s}_run.json" 2>/dev/null
@@ -64,8 +64,8 @@ done
 cp runs/paired_0/turntable_sheet.png "$R/paired_0_turntable_sheet.png" 2>/dev/null
 pack
 
-stamp "bm_cuda ${BM_PARTS:-agreement,speed,trainer} (alone)"
-timeout 330 python3 -m gdbench.bench.bm_cuda --parts "${BM_PARTS:-agreement,speed,trainer}" --out "$R/bm" > "$R/bm_cuda.log" 2>&1
+stamp "bm_cuda ${BM_PARTS-agreement,speed,trainer} (alone)"
+timeout 330 python3 -m gdbench.bench.bm_cuda --parts "${BM_PARTS-agreement,speed,trainer}" --out "$R/bm" > "$R/bm_cuda.log" 2>&1
 stamp done
 pack
 cat "$R/stages.log"; tail -5 "$R/bm_cuda.log"

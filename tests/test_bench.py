@@ -452,3 +452,37 @@ def test_bm_cell_times_colmap_by_stage(tmp_path):
     assert all(r["seconds"] > 0 for r in rows[1:]) and sum(r["seconds"] for r in rows[1:]) <= total
     assert sum(r["seconds"] for r in rows[1:]) >= 0.9 * total  # the stages are the run, not a part of it
     assert rows[0]["registration_rate"] == 1.0 and rows[0]["met"] == (total <= bm_cell.TARGET_COLMAP_S)
+
+
+def test_paired_runs_script_reads_scores_and_gives_the_t_interval(tmp_path):
+    """scripts/paired_runs.py (the paired quality checks): per-seed differences read from two sets
+    of scores.json, and the mean's 95% interval equal to scipy's one-sample t interval."""
+    import csv
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from scipy.stats import ttest_1samp
+
+    spec = importlib.util.spec_from_file_location("paired", Path(__file__).parents[1] / "scripts" / "paired_runs.py")
+    paired = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(paired)
+    psnr = {"a": [28.1, 29.0, 27.5, 28.8], "b": [28.4, 28.7, 27.9, 29.3]}
+    for side, values in psnr.items():
+        for s, p in enumerate(values):
+            d = tmp_path / f"{side}{s}"
+            d.mkdir()
+            views = {"featureless_rate": 0.1 * s, "multi_face_rate": 0.0}
+            (d / "scores.json").write_text(json.dumps({"gt": {"psnr": p}, "gaussians": 100 + s, "views": views}))
+    out = tmp_path / "p.csv"
+    assert paired.main(["--a", str(tmp_path / "a{s}/scores.json"), "--b", str(tmp_path / "b{s}/scores.json"),
+                        "--seeds", "0-3", "--out", str(out)]) == 0  # fmt: skip
+    rows = list(csv.DictReader(open(out)))
+    summary = next(r for r in rows if r["seed"] == "mean b-a" and r["quantity"] == "gt_psnr")
+    diffs = [b - a for a, b in zip(psnr["a"], psnr["b"])]
+    ci = ttest_1samp(diffs, 0.0).confidence_interval(0.95)
+    assert float(summary["b_minus_a"]) == pytest.approx(sum(diffs) / 4)
+    assert (float(summary["ci_lo"]), float(summary["ci_hi"])) == pytest.approx((ci.low, ci.high))
+    assert [float(r["b_minus_a"]) for r in rows if r["quantity"] == "featureless_rate"][:4] == [0.0] * 4
+    with pytest.raises(SystemExit, match=r"--a/--b: no scores\.json"):
+        paired.main(["--a", str(tmp_path / "x{s}.json"), "--b", str(out), "--seeds", "0", "--out", str(out)])
