@@ -21,7 +21,6 @@ import torch
 from torch import Tensor
 
 _CV_TO_GL = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
-_CV_TO_MI = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64))
 
 
 def _numpy(x) -> np.ndarray:
@@ -184,23 +183,11 @@ class Cameras:
     def to_mitsuba(self) -> list[dict]:
         """Per camera: ``to_world`` [4, 4] (Mitsuba axes: x left, y up, z forward), the
         horizontal ``fov`` in degrees and the principal point offsets as fractions of the
-        image size (Mitsuba's ``principal_point_offset_x/y``)."""
-        c2w = torch.linalg.inv(self.viewmats.double()) @ _CV_TO_MI
-        out = []
-        for i in range(len(self)):
-            K = self.Ks[i].double()
-            out.append(
-                {
-                    "to_world": c2w[i],
-                    "fov": float(torch.rad2deg(2 * torch.atan(0.5 * self.width / K[0, 0]))),
-                    "fov_axis": "x",
-                    "principal_point_offset_x": float((K[0, 2] - self.width / 2) / self.width),
-                    "principal_point_offset_y": float((K[1, 2] - self.height / 2) / self.height),
-                    "width": self.width,
-                    "height": self.height,
-                }
-            )
-        return out
+        image size (Mitsuba's ``principal_point_offset_x/y``): the renderer's own conversion
+        (renderers never import gdbench)."""
+        from renderers.mitsuba._lib import mitsuba_cameras
+
+        return mitsuba_cameras(self.viewmats, self.Ks, self.width, self.height)
 
     def to_colmap(self) -> list[dict]:
         """Per camera: COLMAP's world-to-camera ``qvec`` (wxyz), ``tvec`` and PINHOLE ``params``

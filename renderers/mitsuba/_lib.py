@@ -52,8 +52,34 @@ def available() -> tuple[bool, str]:
         return False, str(e).splitlines()[0]
 
 
+def mitsuba_cameras(viewmats, Ks, width: int, height: int) -> list[dict]:
+    """Per camera of OpenCV world-to-camera ``viewmats`` [C, 4, 4] and ``Ks`` [C, 3, 3]:
+    ``to_world`` [4, 4] (Mitsuba axes: x left, y up, z forward), the horizontal ``fov`` in degrees
+    and the principal point offsets as fractions of the image size (Mitsuba's
+    ``principal_point_offset_x/y``). ``gdbench.camera.Cameras.to_mitsuba`` is this function."""
+    import torch
+
+    cv_to_mi = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64))
+    c2w = torch.linalg.inv(viewmats.double()) @ cv_to_mi
+    out = []
+    for i in range(viewmats.shape[0]):
+        K = Ks[i].double()
+        out.append(
+            {
+                "to_world": c2w[i],
+                "fov": float(torch.rad2deg(2 * torch.atan(0.5 * width / K[0, 0]))),
+                "fov_axis": "x",
+                "principal_point_offset_x": float((K[0, 2] - width / 2) / width),
+                "principal_point_offset_y": float((K[1, 2] - height / 2) / height),
+                "width": width,
+                "height": height,
+            }
+        )
+    return out
+
+
 def sensor_dict(mi, cam: dict, spp: int) -> dict:
-    """A Mitsuba perspective sensor from ``Cameras.to_mitsuba()`` entries (box filter)."""
+    """A Mitsuba perspective sensor from ``mitsuba_cameras`` entries (box filter)."""
     return {
         "type": "perspective",
         "fov": cam["fov"],

@@ -22,7 +22,7 @@ from torch import Tensor
 from renderers.splat import RenderOutput
 from renderers.splat.sh import C0
 
-from ._lib import import_mitsuba, sensor_dict
+from ._lib import import_mitsuba, mitsuba_cameras, sensor_dict
 
 
 def _scene(mi, cam: dict, n: int, k: int, spp: int, extent: float, max_depth: int):
@@ -75,7 +75,6 @@ def rasterize(
 ) -> RenderOutput:
     """Same call shape as ``renderers.splat.rasterize`` (no batch dims): rgb and alpha [C, H, W, *]."""
     mi, dr = import_mitsuba()
-    from gdbench.camera import Cameras  # the one place conventions are converted
 
     N = means.shape[0]
     if N == 0:  # Mitsuba cannot build an empty ellipsoids shape: the image is the background
@@ -93,7 +92,7 @@ def rasterize(
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     xyzw = torch.cat([q[:, 1:], q[:, :1]], 1)
     data = torch.cat([means, scales, xyzw], 1)  # the shape's (N, 10) layout
-    cams = Cameras(viewmats.float(), Ks.float(), width, height).to_mitsuba()
+    cams = mitsuba_cameras(viewmats.float(), Ks.float(), width, height)
     unit = torch.zeros(N, K, 3)
     unit[:, 0] = 0.5 / C0  # emission exactly 1: that render is alpha
     rgbs, alphas = [], []

@@ -40,7 +40,7 @@ from renderers.splat import RenderOutput
 from renderers.splat.composite import finish_images
 from renderers.splat.project import covariance_factor
 
-from ._lib import import_mitsuba, sensor_dict
+from ._lib import import_mitsuba, mitsuba_cameras, sensor_dict
 
 MAX_ANALYTIC = 32
 """Largest scene the analytic mode accepts (its Dr.Jit kernel is unrolled over the Gaussians)."""
@@ -218,7 +218,6 @@ def rasterize(
     if mode == "analytic" and N > MAX_ANALYTIC:
         raise ValueError(f"mode: 'analytic' is unrolled over Gaussians, at most {MAX_ANALYTIC}; got {N} (use 'grid')")
     mi, dr = import_mitsuba()
-    from gdbench.camera import Cameras
 
     cols = colors if sh_degree is None else (colors[:, 0, :] * 0.28209479177387814 + 0.5).clamp_min(0)
     lo, hi = scene_box(means, scales)
@@ -246,7 +245,7 @@ def rasterize(
 
         return render
 
-    cams = Cameras(viewmats.float(), Ks.float(), width, height).to_mitsuba()
+    cams = mitsuba_cameras(viewmats.float(), Ks.float(), width, height)
     want_alpha = "alpha" in outputs or background is not None
     rgbs, alphas = [], []
     colour_field = field_inputs(cols)  # built once, shared by the cameras
