@@ -9,7 +9,7 @@ setup:
 	@scripts/setup.sh
 
 demo: setup
-	$(PY) -m gdbench.cli generate "a yellow duck" --preset gd --out runs/duck
+	$(PY) -m gdbench.app.cli generate "a yellow duck" --preset gd --out runs/duck
 
 # the tests set up without the background build of the banks (scripts/setup.sh): they build what they need
 test:
@@ -27,7 +27,7 @@ test-all:
 
 bench:
 	@GDBENCH_PREBUILD=0 scripts/setup.sh
-	$(PY) -m gdbench.bench.bm_render --out bench_results/render.csv
+	$(PY) -m gdbench.refcheck.bm_render --out bench_results/render.csv
 
 lint: setup
 	$(PY) -m ruff check .

@@ -4,8 +4,8 @@ Importing this package is cheap: it loads torch and nothing heavy. Renderer back
 priors and scoring tools are imported where they are used.
 """
 
-from .camera import Cameras, SphericalPoses, look_at
-from .scene import GaussianScene
+from gdbench.core.camera import Cameras, SphericalPoses, look_at
+from gdbench.core.scene import GaussianScene
 
 __version__ = "0.1.0"
 __all__ = ["Cameras", "GaussianScene", "SphericalPoses", "__version__", "look_at"]

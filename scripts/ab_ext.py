@@ -42,7 +42,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gdbench.bench.bm_render import _camera, random_cloud  # noqa: E402
+from gdbench.refcheck.bm_render import _camera, random_cloud  # noqa: E402
 from renderers.splat import _ext, rasterize  # noqa: E402
 
 CASES = ((10000, 256), (3000, 64), (1000, 64))
@@ -70,7 +70,7 @@ def scene(n: int, dtype=torch.float32) -> dict:
 
 def noise_scene(dtype=torch.float32) -> dict:
     """The gd preset's noise cloud with one draw of colours (rendered with weight_sq)."""
-    from gdbench.noise import NoiseConfig, make_noise_cloud
+    from gdbench.mechanisms.noise import NoiseConfig, make_noise_cloud
 
     g = torch.Generator().manual_seed(0)
     c = make_noise_cloud(NoiseConfig(), 3, generator=g)

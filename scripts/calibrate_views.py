@@ -1,5 +1,5 @@
 """The view metrics' calibration table of docs/scoring.md: every 3D failure fixture of every
-asset (``gdbench/metrics/fixtures3d.py``) scored by ``score_views``, one row per (asset,
+asset (``gdbench/metrics/failures3d.py``) scored by ``score_views``, one row per (asset,
 fixture), and a sheet of the duck's fixtures.
 
     python scripts/calibrate_views.py --out docs/results/calibration \
@@ -20,7 +20,7 @@ METRICS = ("multi_face_rate", "featureless_rate", "instance_consistency", "major
 
 def main(argv: list[str] | None = None) -> int:
     from gdbench.assets.library import ASSETS
-    from gdbench.metrics.fixtures3d import KINDS
+    from gdbench.metrics.failures3d import KINDS
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for views.csv")
@@ -32,10 +32,10 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"--captions: unknown {unknown}; known: {sorted(ASSETS)}")
 
-    from gdbench.io import write_csv
-    from gdbench.metrics.fixtures3d import failure_scene
+    from gdbench.core.io import write_csv
+    from gdbench.core.provenance import code_commit
+    from gdbench.metrics.failures3d import failure_scene
     from gdbench.metrics.views import reference, render_turntable, score_views
-    from gdbench.provenance import code_commit
 
     commit = code_commit()
     rows, sheet = [], {}
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _sheet(views: dict, caption: str, path: Path) -> None:
-    from gdbench.plotting import pyplot, save
+    from gdbench.core.plotting import pyplot, save
 
     plt = pyplot()
     frames = (0, 6, 9, 18, 27)  # azimuths 0, 60, 90, 180, 270

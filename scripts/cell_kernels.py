@@ -25,8 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     from gdbench.bench.bm_train import kernels_per_step
     from gdbench.bench.common import environment, write_csv, write_json
     from gdbench.bench.roofline import peak_gflops
+    from gdbench.experiments.sweep import CellSpec, run_cell
     from gdbench.priors.empirical import clear_level_cache
-    from gdbench.sweep import CellSpec, run_cell
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench_results/cell_kernels.csv"))

@@ -29,9 +29,9 @@ FIXTURES = ("asset", "flicker", "floaters", "two-faced", "jittered")
 
 def image_sets(scenes: list[Path]) -> list[tuple[str, object]]:
     """(name, a function giving the uint8 views on the 100-view circle) per set."""
+    from gdbench.core.scene import GaussianScene
+    from gdbench.core.turntable import render_views, to_uint8
     from gdbench.metrics.colmap_consistency import asset_circle_images, circle_poses, fixture_circle_images
-    from gdbench.scene import GaussianScene
-    from gdbench.turntable import render_views, to_uint8
 
     cams = circle_poses(100).cameras(256, 256)
     sets = []
@@ -63,9 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     for root in args.scenes:
         if not root.is_dir():
             ap.error(f"--scenes: expected a folder, got {root}")
-    from gdbench.io import write_json
+    from gdbench.core.io import write_json
+    from gdbench.core.provenance import code_commit
     from gdbench.metrics.colmap_consistency import SHARES, circle_poses, score_images
-    from gdbench.provenance import code_commit
 
     commit = code_commit()
     cams = circle_poses(100).cameras(256, 256)

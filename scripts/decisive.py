@@ -60,7 +60,7 @@ class Block:
     """Overrides of every cell (under the groups')."""
 
     def __post_init__(self) -> None:
-        from gdbench.sweep import SETTINGS
+        from gdbench.experiments.sweep import SETTINGS
         from gdbench.train.config import PRESETS
 
         if not isinstance(self.colmap, bool) or not isinstance(self.steps, int) or self.steps < 1:
@@ -111,7 +111,7 @@ SEEDS = list(range(10))
 def run_blocks(blocks: list[Block], seeds: list[int], out: Path, args, rounds: int) -> dict[str, list[dict]]:
     """Each block's sweep into ``out/blocks/<name>``, the seeds in ``rounds`` rounds (every block
     gets its first seeds before any block its last); returns each block's rows."""
-    from gdbench.sweep import sweep
+    from gdbench.experiments.sweep import sweep
 
     rows: dict[str, list[dict]] = {}
     per = max(1, -(-len(seeds) // rounds))
@@ -136,7 +136,7 @@ def collect(out: Path, plain: list[tuple[Path, str]] = ()) -> list[dict]:
     gd-redraw-step of learned-v1."""
     import math
 
-    from gdbench.io import num, read_json
+    from gdbench.core.io import num, read_json
 
     rows = []
     for root, group in [(out / "blocks", None), *plain]:
@@ -170,10 +170,16 @@ def coupling(results: Path) -> None:
 
     import torch
 
-    from gdbench.camera import SphericalPoses
-    from gdbench.io import write_csv
-    from gdbench.priors.learned_eval import noise_source, render_views, source_noise, surface_coupling, warped_corr
-    from gdbench.provenance import code_commit
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.core.io import write_csv
+    from gdbench.core.provenance import code_commit
+    from gdbench.priors.learned.evaluation import (
+        noise_source,
+        render_views,
+        source_noise,
+        surface_coupling,
+        warped_corr,
+    )
 
     commit = code_commit()
     captions = PROMPTS[:3]
@@ -199,8 +205,8 @@ def coupling(results: Path) -> None:
 def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None:
     """Merged tables of every block (and plain sweeps: ``plain``) in one verdict table, Holm across
     all its claims, and each block's turntable grid."""
-    from gdbench.sweep import turntable_grid
-    from gdbench.sweep_tables import tables
+    from gdbench.experiments.sweep import turntable_grid
+    from gdbench.experiments.tables import tables
 
     rows = collect(out, plain)
     if not rows:
@@ -226,7 +232,7 @@ def readme_table(verdict_csv: Path, path: Path) -> Path:
     ``claims.across_prompts``)."""
     import csv
 
-    from gdbench.metrics.claims import label
+    from gdbench.experiments.claims import label
 
     def f(x: str) -> str:
         return "n/a" if x in ("", None) else f"{float(x):.2g}"

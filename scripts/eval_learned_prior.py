@@ -160,10 +160,10 @@ def main(argv=None) -> int:
     import matplotlib
 
     matplotlib.use("Agg")
+    from gdbench.core.provenance import code_commit
     from gdbench.priors.empirical import EmpiricalPrior, bank_config_for
-    from gdbench.priors.learned import LearnedPrior
-    from gdbench.priors.learned_data import load_dataset
-    from gdbench.priors.learned_eval import (
+    from gdbench.priors.learned.data import load_dataset
+    from gdbench.priors.learned.evaluation import (
         denoising_error,
         mechanism,
         off_grid,
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
         reference_set,
         sample_scores,
     )
-    from gdbench.provenance import code_commit
+    from gdbench.priors.learned.prior import LearnedPrior
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--uniform", default="uniform", help="the uniform model (name or path)")
@@ -192,7 +192,7 @@ def main(argv=None) -> int:
     a.figures.mkdir(parents=True, exist_ok=True)
     summary: dict = {"commit": commit, "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     models = {"uniform": a.uniform, "front": a.front}
-    from gdbench.priors.learned import load_model
+    from gdbench.priors.learned.prior import load_model
 
     summary["models"] = {k: {m: load_model(v)[1].get(m) for m in ("commit", "steps", "final_loss")}
                          for k, v in models.items()}  # fmt: skip
@@ -205,7 +205,7 @@ def main(argv=None) -> int:
         plot_losses(runs, a.figures / "learned_prior_loss.png")
 
     if "camera" in parts:
-        from gdbench.priors.learned_eval import camera_sensitivity
+        from gdbench.priors.learned.evaluation import camera_sensitivity
 
         rows = []
         for name, m in models.items():

@@ -52,7 +52,7 @@ GDBENCH_TEST_THREADS=3 timeout 300 python3 -m pytest -q --device cuda -m "not sl
   "tests/test_compare.py::test_every_backend_puts_a_gaussian_where_the_camera_projects_it" \
   -p no:cacheprovider -rs --timeout 200 > "$R/pytest_device_cuda.log" 2>&1 &
 for s in $(seq 0 $((SEEDS - 1))); do
-  { OMP_NUM_THREADS=1 timeout 300 python3 -m gdbench.cli generate "a yellow duck" --seed "$s" --device cuda \
+  { OMP_NUM_THREADS=1 timeout 300 python3 -m gdbench.app.cli generate "a yellow duck" --seed "$s" --device cuda \
       --out "runs/paired_$s" --no-progress > "$R/paired_$s.log" 2>&1; echo "rc $?" >> "$R/paired_$s.log"; } &
 done
 wait
@@ -60,12 +60,13 @@ tail -n 3 "$R/pytest_cuda.log" "$R/pytest_device_cuda.log"
 for s in $(seq 0 $((SEEDS - 1))); do
   cp "runs/paired_$s/scores.json" "$R/paired_${s}_scores.json" 2>/dev/null
   cp "runs/paired_$s/run.json" "$R/paired_${s}_run.json" 2>/dev/null
+  cp "runs/paired_$s/scene.ply" "$R/paired_${s}_scene.ply" 2>/dev/null  # to re-score on the CPU
 done
 cp runs/paired_0/turntable_sheet.png "$R/paired_0_turntable_sheet.png" 2>/dev/null
 pack
 
 stamp "bm_cuda ${BM_PARTS-agreement,speed,trainer} (alone)"
-timeout 330 python3 -m gdbench.bench.bm_cuda --parts "${BM_PARTS-agreement,speed,trainer}" --out "$R/bm" > "$R/bm_cuda.log" 2>&1
+timeout 330 python3 -m gdbench.refcheck.bm_cuda --parts "${BM_PARTS-agreement,speed,trainer}" --out "$R/bm" > "$R/bm_cuda.log" 2>&1
 stamp done
 pack
 cat "$R/stages.log"; tail -5 "$R/bm_cuda.log"

@@ -14,7 +14,7 @@ python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 -
   tyro==1.0.17 docstring-parser typeguard plyfile==1.1.5 trimesh==5.2.0 gsplat==1.5.3 diffusers==0.42.1 importlib_metadata
 export GDBENCH_CACHE=$PWD/.devcache
 tmp=$(mktemp -d)
-G=(.venv/bin/python -m gdbench.cli generate "a yellow duck" --no-progress)
+G=(.venv/bin/python -m gdbench.app.cli generate "a yellow duck" --no-progress)
 "${G[@]}" --steps 4 --out "$tmp/empirical" >/dev/null                                   # the 64 px bank, held-out views
 "${G[@]}" --steps 4 --resolution 16 --init-points 150 --out "$tmp/small" >/dev/null      # the zoomed 32 px bank of the tests
 "${G[@]}" --prior sd --sd-model tiny --steps 2 --resolution 32 --out "$tmp/sd" >/dev/null # the tokenizer's vocabulary

@@ -100,8 +100,8 @@ cache_root=${GDBENCH_CACHE:-$HOME/.cache/gdbench}
 asset_version=$(sed -n 's/^ASSET_VERSION = \([0-9]*\).*/\1/p' gdbench/assets/bank.py)
 if [ "${GDBENCH_PREBUILD:-1}" != 0 ] \
   && ! grep -q "\"asset_version\": ${asset_version}[,}]" "$cache_root/banks/prebuilt.json" 2>/dev/null \
-  && ! { command -v pgrep >/dev/null && pgrep -f "gdbench.cli cache build" >/dev/null; }; then
+  && ! { command -v pgrep >/dev/null && pgrep -f "gdbench.app.cli cache build" >/dev/null; }; then
   mkdir -p "$cache_root"
   echo "setup: building the assets' image banks in the background (low priority, about 4 minutes; log: $cache_root/prebuild.log)"
-  nohup nice -n 19 .venv/bin/python -m gdbench.cli cache build > "$cache_root/prebuild.log" 2>&1 < /dev/null &
+  nohup nice -n 19 .venv/bin/python -m gdbench.app.cli cache build > "$cache_root/prebuild.log" 2>&1 < /dev/null &
 fi

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 import torch
 
-from gdbench.camera import Cameras, intrinsics, look_at
+from gdbench.core.camera import Cameras, intrinsics, look_at
+from gdbench.mechanisms.noise import NoiseConfig
+from gdbench.train.config import DensifyConfig, preset
 
 TEST_DEVICE = torch.device("cpu")
 """Where the renderer tests render: pytest's ``--device`` (tests/conftest.py sets it)."""
@@ -13,15 +17,14 @@ TEST_DEVICE = torch.device("cpu")
 
 def on_test_device(fn):
     """``fn`` (``rasterize``'s signature) on TEST_DEVICE copies of its tensors, its outputs back on
-    the CPU; the copies are in the graph, so gradients reach the CPU inputs and the tests compare
+    the CPU (``refcheck.backends.on_device``): gradients reach the CPU inputs, and the tests compare
     with the same CPU oracles. On the CPU, ``fn`` itself."""
+    from gdbench.refcheck.backends import on_device
 
     def wrapped(*args, **kwargs):
         if TEST_DEVICE.type == "cpu":
             return fn(*args, **kwargs)
-        move = lambda x: x.to(TEST_DEVICE) if isinstance(x, torch.Tensor) and x.device.type == "cpu" else x  # noqa: E731
-        out = fn(*map(move, args), **{k: move(v) for k, v in kwargs.items()})
-        return type(out)(*(x.cpu() if isinstance(x, torch.Tensor) else x for x in out))
+        return on_device(fn, TEST_DEVICE)(*args, **kwargs)
 
     return wrapped
 
@@ -89,7 +92,7 @@ def cotangent_loss(out, names, seed: int = 0) -> torch.Tensor:
 def tiny_bank(caption: str = "a test blob", res: int = 16, azimuths: int = 8, elevations=(0.0, 20.0)):
     """A small image bank rendered with the splat renderer from the built-in demo scene."""
     from gdbench.assets.bank import Bank, BankConfig
-    from gdbench.builtin import demo_scene
+    from gdbench.core.builtin import demo_scene
     from renderers.splat import rasterize
 
     cfg = BankConfig(resolution=res, azimuths=azimuths, elevations=tuple(elevations))
@@ -141,8 +144,7 @@ def require_cpp():
 
 PACED_RUN = """
 import sys, time
-from tests.test_train import tiny, CAPTION
-from tests._util import tiny_bank
+from tests._util import CAPTION, tiny, tiny_bank
 from gdbench.priors.empirical import EmpiricalPrior
 import gdbench.train.run as run
 save = run.save_checkpoint
@@ -155,3 +157,73 @@ prior = EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
 """
 """The start of a script for a separate process: the test prior, and checkpoints paced so that a
 signal sent from the test lands mid-run; the script then trains (``run.train``)."""
+
+
+def import_edges(*packages: str) -> dict[str, set[str]]:
+    """Every module of the repository's ``packages`` and the modules of those packages it imports,
+    at the top or inside a function (a lazy import counts: it runs sooner or later)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    mods = {".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__"): p
+            for package in packages for p in (root / package).rglob("*.py")}  # fmt: skip
+    edges = {}
+    for name, path in mods.items():
+        pkg = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                base = ".".join(pkg.split(".")[: len(pkg.split(".")) - node.level + 1]) if node.level else ""
+                mod = ".".join(x for x in (base, node.module) if x)
+                found |= {m for m in [mod, *(f"{mod}.{a.name}" for a in node.names)] if m in mods}
+            elif isinstance(node, ast.Import):
+                found |= {a.name for a in node.names if a.name in mods}
+        edges[name] = found - {name}
+    return edges
+
+
+CAPTION = "a test blob"
+"""The caption of the tests' tiny bank (``tiny_bank``), the prompt of ``tiny`` configs."""
+
+TINY_DENSIFY = DensifyConfig(start_frac=0.1, every_frac=0.2, reset_frac=1 / 3, grad_threshold=1e-6, recover_steps=0)
+"""A schedule that scales down to a few steps: at 9 steps, densify at 2, 4 and 6, reset at 3 and 6."""
+
+
+def tiny(name="gd", tmp=None, **kw):
+    base = dict(
+        prompt=CAPTION,
+        steps=4,
+        resolution=16,
+        init_points=150,
+        checkpoint_every=2,
+        progress=False,
+        turntable_frames=2,
+        noise=NoiseConfig(n_gaussians=200, scale=0.05),
+        densify=TINY_DENSIFY,
+    )
+    base.update(kw)
+    if tmp is not None:
+        base["out"] = tmp
+    return preset(name, **base)
+
+
+def cli(monkeypatch, capsys, *argv):
+    """Run ``gdbench *argv`` in-process; returns (exit code, stdout, stderr)."""
+    from gdbench.app.cli import entrypoint
+
+    monkeypatch.setattr(sys, "argv", ["gdbench", *map(str, argv)])
+    monkeypatch.delenv("GDBENCH_DEBUG", raising=False)
+    code = 0
+    try:
+        entrypoint()
+    except SystemExit as e:
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def one_line(err: str) -> str:
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]

@@ -58,9 +58,9 @@ def compositor(request) -> str:
 
 @pytest.fixture(params=["splat", "splat_torch", "gsplat_torch", "gsplat_cuda", "mitsuba_ellipsoids"])
 def backend(request):
-    """Every registered backend with a rasterize-signature render function (gdbench/backends.py);
+    """Every registered backend with a rasterize-signature render function (gdbench/refcheck/backends.py);
     skipped with the registry's reason where it cannot run here."""
-    from gdbench.backends import get
+    from gdbench.refcheck.backends import get
 
     b = get(request.param)
     ok, why = b.available()

@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from gdbench.bench import bm_render
 from gdbench.bench.common import random_cloud, timeit
+from gdbench.refcheck import bm_render
 
 
 def test_quick_sweep_writes_rows_summary_and_plot(tmp_path):
@@ -330,7 +330,7 @@ def test_peer_sweep_reports_each_peer_against_splat_in_the_same_run(tmp_path):
 
 
 def test_stability_cases_agree_with_the_twin_and_flag_non_finite_renderers(tmp_path, monkeypatch):
-    from gdbench.bench import bm_stability as bs
+    from gdbench.refcheck import bm_stability as bs
 
     names = ["anisotropy 1e6", "grazing view: disc edge-on", "fovy 170 deg", "10k Gaussians on one pixel"]
     rows = bs.run(tmp_path / "stab.csv", ("splat", "splat_torch"), names, progress=False)
@@ -356,7 +356,7 @@ def test_stability_cases_agree_with_the_twin_and_flag_non_finite_renderers(tmp_p
 
 
 def test_pareto_flags_keep_exactly_the_non_dominated_runs():
-    from gdbench.bench.bm_error import pareto_flags
+    from gdbench.refcheck.bm_error import pareto_flags
 
     base = {"scene": "s", "quantity": "rgb", "against": "reference"}
     pts = [(1.0, 0.1), (2.0, 0.05), (3.0, 0.07), (0.5, 0.5), (2.0, 0.05), (4.0, float("nan"))]
@@ -367,7 +367,7 @@ def test_pareto_flags_keep_exactly_the_non_dominated_runs():
 
 
 def test_error_benchmark_writes_one_csv_with_skips(tmp_path):
-    from gdbench.bench import bm_error
+    from gdbench.refcheck import bm_error
 
     out = tmp_path / "err.csv"
     rows = bm_error.run(out, "isotropic", backends=["splat", "pyrender_points"], verbose=False)
@@ -385,7 +385,7 @@ def test_error_benchmark_writes_one_csv_with_skips(tmp_path):
 def test_bench_quick_runs_render_in_one_process_and_peers_as_asked(monkeypatch, tmp_path):
     import importlib
 
-    from gdbench.cli import Bench, run_bench
+    from gdbench.app.cli import Bench, run_bench
 
     seen = {}
 
@@ -396,7 +396,7 @@ def test_bench_quick_runs_render_in_one_process_and_peers_as_asked(monkeypatch, 
             return 0
 
     real = importlib.import_module
-    fake = lambda name: Fake if name.startswith("gdbench.bench") else real(name)  # noqa: E731
+    fake = lambda name: Fake if name.startswith(("gdbench.bench", "gdbench.refcheck.bm_")) else real(name)  # noqa: E731
     monkeypatch.setattr(importlib, "import_module", fake)
     run_bench(Bench("render", out=tmp_path, quick=True))
     assert "--quick" in seen["argv"] and "--inprocess" in seen["argv"]
@@ -442,7 +442,7 @@ def test_bm_cell_times_colmap_by_stage(tmp_path):
     (oracle: the calibration's asset, which registers every view)."""
     pytest.importorskip("pycolmap")
     from gdbench.bench import bm_cell
-    from gdbench.metrics.fixtures3d import failure_scene
+    from gdbench.metrics.failures3d import failure_scene
 
     ply = failure_scene("a yellow duck", "asset").save_ply(tmp_path / "scene.ply")
     rows = bm_cell.colmap_time(ply)

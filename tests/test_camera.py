@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from gdbench.camera import Cameras, SphericalPoses, intrinsics, look_at, rotmat_to_quat
+from gdbench.core.camera import Cameras, SphericalPoses, intrinsics, look_at, rotmat_to_quat
 
 
 def _cams(n=5, W=64, H=48, seed=0):
@@ -50,7 +50,7 @@ def test_spherical_angles():
 def test_spherical_cameras_in_closed_form_equal_look_at():
     """Oracle: look_at of the eyes in float64. Poses below 89 degrees of elevation take the
     closed form; a batch holding one at 89.5 takes look_at itself (same bits)."""
-    from gdbench.camera import spherical_to_eye
+    from gdbench.core.camera import spherical_to_eye
 
     g = torch.Generator().manual_seed(11)
     p = SphericalPoses.sample(500, generator=g, radius=(0.3, 4.0), elevation_range=(-88.9, 88.9))

@@ -1,4 +1,4 @@
-"""The paper's claims as paired comparisons (gdbench/metrics/claims.py): the verdict words against
+"""The paper's claims as paired comparisons (gdbench/experiments/claims.py): the verdict words against
 pairs built to give each, the statistics against independent oracles (enumerated sign flips,
 scipy's tests, Holm by hand, a power simulation), the reading across prompts, the Holm family
 and the arms' model sizes."""
@@ -16,7 +16,7 @@ def test_claims_verdict_from_paired_tests():
     own, too few pairs or a metric that cannot fail (or always fails) gives no verdict."""
     import numpy as np
 
-    from gdbench.metrics.claims import CLAIMS, evaluate, signed_rank_p
+    from gdbench.experiments.claims import CLAIMS, evaluate, signed_rank_p
 
     keys = [(p, s) for p in "abcdef" for s in (0, 1, 2)]
     rng = np.random.default_rng(0)
@@ -102,7 +102,7 @@ def test_the_statistics_against_independent_oracles():
     import numpy as np
     from scipy import stats
 
-    from gdbench.metrics.claims import bca_ci, equivalence_p, holm, pairs_for_power, signed_rank_p
+    from gdbench.experiments.claims import bca_ci, equivalence_p, holm, pairs_for_power, signed_rank_p
 
     rng = np.random.default_rng(1)
     d = rng.normal(1.0, 2.0, 400)
@@ -165,7 +165,7 @@ def test_claims_across_prompts_take_the_prompt_as_the_unit():
     import numpy as np
     from scipy import stats
 
-    from gdbench.metrics.claims import evaluate
+    from gdbench.experiments.claims import evaluate
 
     rng = np.random.default_rng(3)
     prompts = [f"p{i}" for i in range(6)]
@@ -208,7 +208,7 @@ def test_claims_across_prompts_take_the_prompt_as_the_unit():
 def test_the_verdict_reports_each_arms_model_size_and_flags_a_2x_gap():
     """Mean final Gaussian count per arm over the pairs (unpaired cells left out), and a flag when
     the arms differ by more than 2x (the growth, not only the ablation, then differs)."""
-    from gdbench.metrics.claims import CLAIMS, evaluate
+    from gdbench.experiments.claims import CLAIMS, evaluate
 
     keys = [(p, s) for p in "abc" for s in (0, 1)]
     rows = [dict(_row("gd", p, s, 0.2), gaussians=7000 + 100 * s) for p, s in keys]
@@ -228,7 +228,7 @@ def test_holm_family_holds_only_the_claims_a_test_decides():
     claim beside it keeps its raw p-value (Holm over a family of one)."""
     import numpy as np
 
-    from gdbench.metrics.claims import evaluate
+    from gdbench.experiments.claims import evaluate
 
     keys = [(p, s) for p in "abcdef" for s in (0, 1)]
     rng = np.random.default_rng(1)

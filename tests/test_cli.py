@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from gdbench.builtin import demo_scene
-from gdbench.camera import SphericalPoses
-from gdbench.cli import Demo, main
+from gdbench.app.cli import Demo, main
+from gdbench.core.builtin import demo_scene
+from gdbench.core.camera import SphericalPoses
 from renderers.splat import rasterize
+from tests._util import import_edges
 
 
 def test_demo_writes_turntable_that_matches_a_direct_render(tmp_path):
@@ -48,34 +49,12 @@ def test_import_is_cheap():
     assert out.stdout.strip() == ""
 
 
-def _imports(package: Path) -> dict[str, set[str]]:
-    """Every module of ``package`` and the package modules it imports, at the top or inside a
-    function (a lazy import closes a circle too)."""
-    import ast
-
-    mods = {".".join(p.relative_to(package.parent).with_suffix("").parts).removesuffix(".__init__"): p
-            for p in package.rglob("*.py")}  # fmt: skip
-    edges = {}
-    for name, path in mods.items():
-        pkg = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
-        found = set()
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom):
-                base = ".".join(pkg.split(".")[: len(pkg.split(".")) - node.level + 1]) if node.level else ""
-                mod = ".".join(x for x in (base, node.module) if x)
-                found |= {m for m in [mod, *(f"{mod}.{a.name}" for a in node.names)] if m in mods}
-            elif isinstance(node, ast.Import):
-                found |= {a.name for a in node.names if a.name in mods}
-        edges[name] = found - {name}
-    return edges
-
-
 def test_no_two_modules_import_each_other():
     """No import circle between two modules of the package (ply and scene, sweep and sweep_tables
     had one): each shared piece has one home. Checked on the source, lazy imports included; a
     module and its own package do not count."""
-    edges = _imports(Path(__file__).resolve().parents[1] / "gdbench")
-    assert len(edges) > 50 and "gdbench.ply" in edges["gdbench.scene"]  # the walk sees imports
+    edges = import_edges("gdbench")
+    assert len(edges) > 50 and "gdbench.core.ply" in edges["gdbench.core.scene"]  # the walk sees imports
     nested = lambda a, b: a.startswith(b + ".") or b.startswith(a + ".")  # noqa: E731
     circles = sorted(
         {tuple(sorted((a, b))) for a, bs in edges.items() for b in bs if a in edges[b] and not nested(a, b)}
@@ -84,8 +63,8 @@ def test_no_two_modules_import_each_other():
 
 
 def test_noise_preview_writes_figure_with_unit_variance(tmp_path, monkeypatch):
-    from gdbench import plotting
-    from gdbench.cli import Noise
+    from gdbench.app.cli import Noise
+    from gdbench.core import plotting
 
     inside, real = [], plotting.save
 
@@ -107,11 +86,11 @@ def test_noise_preview_writes_figure_with_unit_variance(tmp_path, monkeypatch):
 
 
 def test_generate_then_render(tmp_path):
-    from gdbench.cli import Generate, Render
-    from gdbench.scene import GaussianScene
+    from gdbench.app.cli import Generate, Render
+    from gdbench.core.scene import GaussianScene
 
     out = tmp_path / "duck"
-    from gdbench.cli import GenerateTrain
+    from gdbench.app.cli import GenerateTrain
 
     s = main(
         Generate("A Yellow Duck", out=out, score=False, progress=False, train=GenerateTrain(steps=3, resolution=16))
@@ -130,7 +109,7 @@ def test_generate_then_render(tmp_path):
 
 def test_render_bad_path(tmp_path):
 
-    from gdbench.cli import Render
+    from gdbench.app.cli import Render
 
     with pytest.raises(FileNotFoundError, match="run: no PLY"):
         main(Render(tmp_path / "nothing"))
@@ -145,7 +124,7 @@ def _help_text(command: str) -> str:
 
     import tyro
 
-    from gdbench.cli import COMMANDS
+    from gdbench.app.cli import COMMANDS
 
     buf, columns = io.StringIO(), os.environ.get("COLUMNS")
     os.environ["COLUMNS"] = "100"
@@ -204,7 +183,7 @@ def test_options_that_would_do_nothing_are_refused_naming_both(tmp_path):
     """An option that acts only under another setting is refused when that setting is off, with
     the option it needs named; nothing is written."""
 
-    from gdbench.cli import Generate, GenerateTrain, MethodOptions
+    from gdbench.app.cli import Generate, GenerateTrain, MethodOptions
 
     cases = [
         (dict(method=MethodOptions(noise_ou_beta=0.2)), r"--noise-ou-beta acts only with --noise-redraw ou "
@@ -237,7 +216,7 @@ def test_field_docs_read_from_each_file_once_are_the_docs_of_each_class():
     import inspect
     import itertools
 
-    from gdbench import cli
+    from gdbench.app import cli
     from gdbench.train import options
 
     def oracle(cls):
@@ -270,7 +249,7 @@ def test_plain_progress_lines_in_a_log():
     second)."""
     import io
 
-    from gdbench.progress import PlainProgress
+    from gdbench.core.progress import PlainProgress
 
     t = [0.0]
     buf = io.StringIO()
@@ -294,7 +273,7 @@ def test_plain_progress_lines_in_a_log():
 def test_stage_lines_count_only_the_stages_that_run(capsys, monkeypatch):
     """A score's stages in a log: one line per stage that runs, numbered out of those that run
     (a reused block drops its stages from the count), and one at the end."""
-    from gdbench.progress import Phases
+    from gdbench.core.progress import Phases
 
     monkeypatch.setenv("GDBENCH_PROGRESS", "plain")
     t = [0.0]
@@ -319,11 +298,11 @@ def test_help_reads_once_per_option():
     import os
     import re
 
-    from gdbench.cli import COMMANDS
+    from gdbench.app.cli import COMMANDS
 
     env = dict(os.environ, COLUMNS="100")  # the entry point's own output, once
     real = subprocess.run(
-        [sys.executable, "-m", "gdbench.cli", "generate", "--help"], capture_output=True, text=True, env=env
+        [sys.executable, "-m", "gdbench.app.cli", "generate", "--help"], capture_output=True, text=True, env=env
     ).stdout
     assert "--steps INT" in real and "{None" not in real and "--anneal, --no-anneal" in real
     for command in COMMANDS:
@@ -347,7 +326,7 @@ def test_generate_defaults_to_a_folder_named_after_the_prompt(tmp_path, monkeypa
     steps."""
 
     import gdbench.train.run as run_mod
-    from gdbench.cli import Generate, GenerateTrain
+    from gdbench.app.cli import Generate, GenerateTrain
 
     monkeypatch.chdir(tmp_path)
     small = GenerateTrain(steps=2, resolution=16)
@@ -371,7 +350,7 @@ def test_generate_config_reproduces_a_run(tmp_path):
     """--config run.json trains the same config again: same run id, bit-identical scene.ply on
     CPU; an option on the command line overrides the file; a YAML file of a few settings is
     applied to the preset."""
-    from gdbench.cli import Generate, GenerateTrain
+    from gdbench.app.cli import Generate, GenerateTrain
 
     a = tmp_path / "a"
     main(Generate("a corgi", preset="gd-no-vgs", out=a, score=False, progress=False,
@@ -398,8 +377,8 @@ def test_generate_config_reproduces_a_run(tmp_path):
 def test_sweep_config_file_gives_the_defaults(tmp_path, monkeypatch):
     """sweep --config grid.yaml: the file's options are the defaults, the command line overrides
     them, and the mapping a sweep writes (<out>/sweep.yaml) reads back to the same command."""
-    import gdbench.cli as cli
-    from gdbench.cli import sweep_from_mapping, sweep_mapping
+    import gdbench.app.cli as cli
+    from gdbench.app.cli import sweep_from_mapping, sweep_mapping
 
     grid = tmp_path / "grid.yaml"
     grid.write_text(
@@ -423,8 +402,8 @@ def test_sweep_config_file_gives_the_defaults(tmp_path, monkeypatch):
 
 def test_cache_list_and_clear(tmp_path, monkeypatch, capsys):
     """The cache's listing adds up the files on disk; clear removes gdbench's parts only."""
-    from gdbench import cache
-    from gdbench.cli import Cache
+    from gdbench.app.cli import Cache
+    from gdbench.core import cache
 
     monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
     (tmp_path / "c" / "banks").mkdir(parents=True)
@@ -452,8 +431,8 @@ def test_cache_build_leaves_nothing_for_a_first_run_to_render(tmp_path, monkeypa
     """After `gdbench cache build --prompts PROMPT` in an empty cache, a first run of the prompt and
     its scores render nothing with pyrender (oracle: pyrender's entry points raise), and the
     build of every asset writes the marker scripts/setup.sh looks for."""
-    from gdbench.assets.prebuild import PREBUILT
-    from gdbench.cli import Cache, Generate, GenerateTrain
+    from gdbench.app.cli import Cache, Generate, GenerateTrain
+    from gdbench.app.prebuild import PREBUILT
 
     monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
     assert main(Cache("build", prompts=("a yellow duck",)))["built"] == ["a yellow duck"]
@@ -480,7 +459,7 @@ def test_render_uses_the_runs_cameras_and_frames_any_ply(tmp_path):
     similarity applied to scene and orbit)."""
     import dataclasses
 
-    from gdbench.cli import Generate, GenerateTrain, Render
+    from gdbench.app.cli import Generate, GenerateTrain, Render
 
     out = tmp_path / "run"
     small = GenerateTrain(steps=3, resolution=16, turntable_frames=4, background=(0.2, 0.3, 0.4))
@@ -507,11 +486,11 @@ def test_log_dir_writes_tensorboard_scalars(tmp_path):
     PSNR of the written scene.ply's renders."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+    from gdbench.core.scene import GaussianScene
+    from gdbench.core.turntable import render_views
     from gdbench.metrics.gt import asset_views, heldout_poses, psnr
-    from gdbench.scene import GaussianScene
     from gdbench.train.config import preset
     from gdbench.train.run import train
-    from gdbench.turntable import render_views
 
     cfg = preset("gd", prompt="a yellow duck", out=tmp_path / "run", steps=6, resolution=16, progress=False,
                  log_every=2, checkpoint_every=3, log_dir=tmp_path / "tb")  # fmt: skip
@@ -539,7 +518,7 @@ def test_settings_files_are_typed_and_numbers_are_numbers(tmp_path, monkeypatch)
     file's preset, and a file's run folder is used when --out is not given."""
     import yaml
 
-    from gdbench.cli import Generate, Sweep, SweepTrain, _config_file, sweep_mapping
+    from gdbench.app.cli import Generate, Sweep, SweepTrain, _config_file, sweep_mapping
     from gdbench.train.config import config_from_dict, preset
     from gdbench.train.run import run_id
 
@@ -565,9 +544,9 @@ def test_sweep_grid_files_and_optional_parts_fail_in_one_line(tmp_path, monkeypa
     (every default), two --config, a missing file and an option of the wrong type each end in
     one line; a missing optional dependency's advice is one line too; clear refuses a cache
     folder that is the current one (GDBENCH_CACHE="" means unset)."""
-    import gdbench.cli as cli
-    from gdbench import cache
-    from gdbench.cli import error_line, sweep_from_mapping
+    import gdbench.app.cli as cli
+    from gdbench.app.cli import error_line, sweep_from_mapping
+    from gdbench.core import cache
 
     s = sweep_from_mapping({"overrides": {"noise": {"redraw": "ou"}, "densify.enabled": False}})
     assert s.method.overrides() == {"noise.redraw": "ou", "densify.enabled": False}
@@ -603,7 +582,7 @@ def test_the_program_exits_as_python_would_without_its_teardown():
         "atexit.register(lambda: print('exit handler ran', flush=True))\n"
         "pool = ThreadPoolExecutor(1)\n"  # a worker left waiting: Python's exit wakes it, so must program
         "pool.submit(lambda: None).result()\n"
-        "from gdbench import cli\n"
+        "from gdbench.app import cli\n"
         "sys.argv = ['gdbench', *sys.argv[1:]]\n"
         "real = cli.entrypoint if sys.argv[1:] != ['text'] else lambda: sys.exit('a text exit')\n"
         "def entrypoint():\n"
@@ -620,7 +599,7 @@ def test_the_program_exits_as_python_would_without_its_teardown():
                               timeout=120)  # fmt: skip
 
     ok = run("generate", "--help")
-    python = subprocess.run([sys.executable, "-m", "gdbench.cli", "generate", "--help"], capture_output=True,
+    python = subprocess.run([sys.executable, "-m", "gdbench.app.cli", "generate", "--help"], capture_output=True,
                             text=True, cwd=root, env=env)  # fmt: skip
     assert ok.returncode == 0 and "not reached" not in ok.stdout
     help_lines = python.stdout.splitlines()[1:]  # the first names the program as it was called

@@ -226,9 +226,9 @@ def test_a_share_process_without_pycolmap_says_so(tmp_path, monkeypatch):
 def test_score_scene_is_score_images_of_its_views(tmp_path):
     """score_scene passes its shares on; oracle: score_images of the same views, rendered apart,
     with one share and with two (every field but the seconds)."""
+    from gdbench.core.turntable import render_views, to_uint8
     from gdbench.metrics.colmap_consistency import score_scene
-    from gdbench.metrics.fixtures3d import failure_scene
-    from gdbench.turntable import render_views, to_uint8
+    from gdbench.metrics.failures3d import failure_scene
 
     scene = failure_scene("a yellow duck", "asset")
     cams = circle_poses(40).cameras(192, 192)

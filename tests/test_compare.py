@@ -2,9 +2,9 @@
 
 import pytest
 
-from gdbench.compare import BACKENDS, compare_scene, image_errors, run
-from gdbench.fixtures import fixture_names, load_fixture
-from gdbench.golden import load_golden
+from gdbench.refcheck.compare import BACKENDS, compare_scene, image_errors, run
+from gdbench.refcheck.golden import load_golden
+from gdbench.refcheck.scenes import fixture_names, load_fixture
 from tests._util import write_failure_images
 
 FIXTURES = fixture_names()
@@ -58,7 +58,7 @@ def test_harness_rows_tolerances_and_skips(tmp_path):
 
 
 def test_run_writes_report_and_lists_skips(tmp_path, monkeypatch):
-    import gdbench.compare as cmp
+    import gdbench.refcheck.compare as cmp
 
     monkeypatch.setattr(
         cmp, "available", lambda name: (False, "pretend it is missing") if name == "gsplat_torch" else (True, "")
@@ -100,7 +100,7 @@ def test_comparing_another_scene_into_the_same_folder_keeps_one_table_and_no_orp
     images = {p.name for p in tmp_path.glob("*.png")}
     assert images == {f"{n}_{k}.png" for n in (first, second) for k in ("errors", "pareto")} | {"mine_errors.png"}
     (tmp_path / "compare.json").write_text('{"rows": [')
-    import gdbench.compare as cmp
+    import gdbench.refcheck.compare as cmp
 
     monkeypatch.setattr(cmp, "compare_scene", lambda *a: pytest.fail("rendered before reading the broken table"))
     with pytest.raises(ValueError, match=r"compare\.json: .* is not valid JSON"):
@@ -116,7 +116,7 @@ def test_bad_scene_and_backend_names():
 
 
 def test_cli_compare(tmp_path, capsys):
-    from gdbench.cli import Compare, main
+    from gdbench.app.cli import Compare, main
 
     summary = main(Compare(scene="near_wide", out=tmp_path, backends=("splat",)))
     assert summary == {"near_wide": {"rows": 7, "skipped": 0}}
@@ -129,8 +129,8 @@ def test_every_backend_puts_a_gaussian_where_the_camera_projects_it(backend):
     registry names every renderer the compare harness and the benchmarks use."""
     import torch
 
-    from gdbench.backends import BACKENDS
-    from gdbench.camera import SphericalPoses
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.refcheck.backends import BACKENDS
 
     assert {"splat", "splat_torch", "gsplat_torch", "mitsuba_ellipsoids", "pyrender_points"} <= set(BACKENDS)
     assert backend.renders

@@ -122,7 +122,7 @@ def test_the_cli_refuses_a_densification_on_the_last_step(tmp_path):
 
     out = tmp_path / "r"
     argv = ["generate", "a yellow duck", "--steps", "800", "--densify-stop", "800", "--out", str(out)]
-    p = subprocess.run([sys.executable, "-m", "gdbench.cli", *argv], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-m", "gdbench.app.cli", *argv], capture_output=True, text=True)
     assert p.returncode == 2, p.stderr
     assert "gdbench generate: error: densify.stop (--densify-stop): 800" in p.stderr
     assert "800-step run" in p.stderr and "at most 799" in p.stderr and "Traceback" not in p.stderr
@@ -311,7 +311,7 @@ def test_densify_false_on_the_command_line_trains_without_densification(tmp_path
     densification flag beside it is refused as doing nothing."""
     import json
 
-    from gdbench.cli import Generate, GenerateTrain, MethodOptions, main
+    from gdbench.app.cli import Generate, GenerateTrain, MethodOptions, main
 
     out = tmp_path / "r"
     main(Generate("a yellow duck", out=out, score=False, progress=False, train=GenerateTrain(steps=40, resolution=16),

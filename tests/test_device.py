@@ -8,12 +8,10 @@ import json
 import pytest
 import torch
 
-from gdbench.devices import resolve_device
+from gdbench.core.devices import resolve_device
 from gdbench.priors.empirical import EmpiricalPrior
 from gdbench.train.run import run_id, train
-from tests._util import tiny_bank
-from tests.test_reliability import cli, one_line
-from tests.test_train import CAPTION, tiny
+from tests._util import CAPTION, cli, one_line, tiny, tiny_bank
 
 CUDA = torch.cuda.is_available()
 NO_CUDA = "needs a CUDA GPU (torch sees none)"
@@ -52,7 +50,7 @@ def test_cuda_without_a_gpu_is_one_line_before_any_work(argv, tmp_path, monkeypa
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "cache"))
     if argv[0] in ("render", "score"):
-        from gdbench.scene import sphere_init
+        from gdbench.core.scene import sphere_init
 
         (tmp_path / "RUN").mkdir()
         sphere_init(20, 0.3, 0.5, 0.8, generator=torch.Generator().manual_seed(0)).save_ply(tmp_path / "RUN/scene.ply")
@@ -67,7 +65,7 @@ def test_cuda_without_a_gpu_is_one_line_before_any_work(argv, tmp_path, monkeypa
 def test_a_run_json_config_leaves_the_device_to_the_command_line(tmp_path):
     """A run.json made on a GPU reproduces its run on a machine without one (--device chooses);
     a settings file's device is a setting like any other."""
-    from gdbench.cli import _config_file
+    from gdbench.app.cli import _config_file
     from gdbench.train.outputs import config_dict
 
     cfg = config_dict(tiny("gd", tmp_path / "run", device="cuda"))
@@ -80,12 +78,12 @@ def test_a_run_json_config_leaves_the_device_to_the_command_line(tmp_path):
 def test_ray_sweeps_on_cuda_are_refused_before_any_cell(tmp_path, monkeypatch):
     """Ray hides the GPUs from tasks that ask for none: a Ray sweep on CUDA would fail in every
     cell after the grid was accepted, so it is refused with the grid (a GPU is faked here)."""
-    import gdbench.devices
-    from gdbench.sweep import sweep
+    import gdbench.core.devices
+    from gdbench.experiments.sweep import sweep
 
-    real = gdbench.devices.resolve_device
+    real = gdbench.core.devices.resolve_device
     monkeypatch.setattr(
-        gdbench.devices,
+        gdbench.core.devices,
         "resolve_device",
         lambda name, what="device": torch.device("cuda") if name == "cuda" else real(name, what),
     )
@@ -120,8 +118,8 @@ def _both(cfg_kw: dict, prior, tmp_path, steps: int):
 @pytest.mark.parametrize("name", ["anisotropic", "crossing", "random_cloud_10k", "procedural", "subpixel"])
 def test_torch_renderer_on_cuda_matches_the_cpu(name):
     """Images and gradients of the torch compositor on CUDA against the C++ compositor on the CPU."""
-    from gdbench.bench.bm_cuda import GSPLAT_ALPHA_MAX, _ours_images, _render_and_grad
-    from gdbench.fixtures import load_fixture
+    from gdbench.refcheck.bm_cuda import GSPLAT_ALPHA_MAX, _ours_images, _render_and_grad
+    from gdbench.refcheck.scenes import load_fixture
 
     f = load_fixture(name)
     gpu = _render_and_grad(_ours_images(GSPLAT_ALPHA_MAX), f.scene, f.cameras, "cuda", 0)
@@ -190,7 +188,7 @@ def test_stable_diffusion_prior_on_cuda(dtype, mode, tmp_path):
     """The Stable Diffusion code path with the tiny offline models on CUDA, in both precisions and
     both modes: the prior, its VAE encoder in the graph (rgb) or the latent render, on one device."""
     pytest.importorskip("diffusers")
-    from gdbench.noise import NoiseConfig
+    from gdbench.mechanisms.noise import NoiseConfig
     from gdbench.train.config import preset
 
     cfg = preset("gd", prompt="a yellow duck", prior="sd", sd_model="tiny", sd_dtype=dtype, sd_mode=mode, steps=2,
@@ -244,7 +242,7 @@ def test_depth_conditioning_on_cuda(tmp_path):
     """Depth conditioning's renders (expected depth from gsplat's kernels) on CUDA: the tiny SD
     prior with its depth ControlNet trains, with the depth points on the GPU."""
     pytest.importorskip("diffusers")
-    from gdbench.noise import NoiseConfig
+    from gdbench.mechanisms.noise import NoiseConfig
     from gdbench.train.config import preset
     from gdbench.train.trainer import make_context
 
@@ -263,7 +261,7 @@ def test_depth_conditioning_on_cuda(tmp_path):
 def test_a_two_cell_sweep_on_cuda(tmp_path):
     """A sweep of two cells on CUDA: both cells train and score there, their rows say so, and
     their GT PSNR is close to the same cells on the CPU (a few steps: within 1 dB)."""
-    from gdbench.sweep import sweep
+    from gdbench.experiments.sweep import sweep
 
     tiny_cfg = {"resolution": 16, "init_points": 150, "checkpoint_every": 2, "turntable_frames": 2}
     rows = {}
@@ -282,8 +280,8 @@ def test_structured_noise_for_cuda_cameras_is_the_cpu_render_on_the_gpu():
     """The noise has no gradients and gsplat cannot give its weights: for cameras on CUDA it is
     rendered by the C++ compositor and copied over, the same bits as for the same cameras on the
     CPU (and the same draws of the iid fill)."""
-    from gdbench.camera import SphericalPoses
-    from gdbench.noise import NoiseConfig, NoiseRenderer, make_noise_cloud
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.mechanisms.noise import NoiseConfig, NoiseRenderer, make_noise_cloud
 
     cloud = make_noise_cloud(NoiseConfig(n_gaussians=300, scale=0.05), 3, generator=torch.Generator().manual_seed(0))
     colors = torch.randn(300, 3, generator=torch.Generator().manual_seed(1))

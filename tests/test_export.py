@@ -1,4 +1,4 @@
-"""gdbench.export: every format read back within its quantisation, checked once per format by a
+"""gdbench.app.export: every format read back within its quantisation, checked once per format by a
 reader written here (plyfile as the Inria loader uses it; a numpy struct for .splat; plyfile and
 bit arithmetic for the compressed PLY), byte-compared with gsplat 1.5.3's exporter, and the up-axis
 rotation checked by rendering.
@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 import torch
 
-from gdbench import export
-from gdbench.export import export_scene, load_scene, rotate_scene, up_rotation
-from gdbench.scene import GaussianScene, sphere_init
+from gdbench.app import export
+from gdbench.app.export import export_scene, load_scene, rotate_scene, up_rotation
+from gdbench.core.scene import GaussianScene, sphere_init
 from renderers.splat import rasterize
 from renderers.splat.project import quat_to_rotmat
 from renderers.splat.sh import C0, eval_sh, rgb_to_sh0
@@ -492,9 +492,9 @@ def test_export_command_names_files_and_round_trips(tmp_path, capsys):
     """``gdbench export``: default names beside the source per format and up axis, the file read
     back with its up axis equals the scene (float32 PLY: exactly), render reads a .splat; the
     source is never overwritten."""
-    from gdbench.builtin import demo_scene
-    from gdbench.cli import Render, main
-    from gdbench.commands import Export
+    from gdbench.app.cli import Render, main
+    from gdbench.app.commands import Export
+    from gdbench.core.builtin import demo_scene
 
     run = tmp_path / "run"
     run.mkdir()

@@ -1,4 +1,4 @@
-"""The learned prior (gdbench/priors/unet.py, learned*.py): the network, its training, the
+"""The learned prior (gdbench/priors/learned/unet.py, learned*.py): the network, its training, the
 Prior conventions shared with Stable Diffusion, and the shipped models against oracles."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from gdbench.priors.learned_data import DataConfig
-from gdbench.priors.learned_train import Batches, PriorTrainConfig, loss_of, save_weights, train_prior
-from gdbench.priors.unet import UNet, UNetConfig
+from gdbench.priors.learned.data import DataConfig
+from gdbench.priors.learned.training import Batches, PriorTrainConfig, loss_of, save_weights, train_prior
+from gdbench.priors.learned.unet import UNet, UNetConfig
 
 TINY = UNetConfig(size=16, widths=(16, 32), emb=32)
 TINY_DATA = DataConfig(views=3, resolution=32)
@@ -61,7 +61,7 @@ def test_camera_dropout_is_the_null_embedding():
 
 
 def _fake_data(n: int = 4000, seed: int = 0):
-    from gdbench.priors.learned_data import Dataset, captions
+    from gdbench.priors.learned.data import Dataset, captions
 
     g = torch.Generator().manual_seed(seed)
     return Dataset(
@@ -101,8 +101,8 @@ def test_batches_drop_rates_and_front_bias():
 def test_schedule_and_denoiser_match_stable_diffusion():
     """The learned prior's sigmas, tick snapping and VE conversion are Stable Diffusion's: the
     same ticks as the SD prior's scheduler, and D = x - sigma eps(x / sqrt(1 + sigma^2), t)."""
-    from gdbench.priors.learned import LearnedPrior
-    from gdbench.priors.stable_diffusion import StableDiffusionPrior
+    from gdbench.priors.learned.prior import LearnedPrior
+    from gdbench.priors.sd.prior import StableDiffusionPrior
 
     sd = StableDiffusionPrior.tiny(seed=0, controlnet=False, guidance_scale=1.0)
     prior = LearnedPrior(_random_weights(), guidance_scale=1.0, clip=False)
@@ -136,7 +136,7 @@ def test_guidance_is_classifier_free():
     """eps = eps_u + s (eps_c - eps_u), eps_u with every condition dropped, eps_c with the caption,
     the variant and the camera, each converted from the network's v."""
     from gdbench.priors import sd_abar
-    from gdbench.priors.learned import LearnedPrior
+    from gdbench.priors.learned.prior import LearnedPrior
 
     prior = LearnedPrior(_random_weights(perturb=True), guidance_scale=4.0)
     cond = prior.encode("a penguin")
@@ -155,7 +155,7 @@ def test_guidance_is_classifier_free():
 
 
 def test_view_modes():
-    from gdbench.priors.learned import LearnedPrior
+    from gdbench.priors.learned.prior import LearnedPrior
 
     path = _random_weights()
     az, el = torch.tensor([30.0, 100.0, -170.0, -60.0]), torch.tensor([5.0, 0.0, 20.0, -30.0])
@@ -170,7 +170,7 @@ def test_view_modes():
 
 
 def test_learned_prior_bad_input(tmp_path):
-    from gdbench.priors.learned import LearnedPrior
+    from gdbench.priors.learned.prior import LearnedPrior
 
     path = _random_weights()
     with pytest.raises(ValueError, match="variants"):
@@ -198,12 +198,12 @@ def test_train_config_for_learned_prior():
         preset("gd", prior="learned", depth_conditioning=True)
     with pytest.raises(ValueError, match="variants"):
         preset("gd", prior="learned", variants=2)
-    from gdbench.priors.learned import model_for_front_bias
+    from gdbench.priors.learned.prior import model_for_front_bias
 
     assert model_for_front_bias(0.0) == "uniform" and model_for_front_bias(2.0) == "front"
     with pytest.raises(ValueError, match="front_bias"):
         model_for_front_bias(1.0)
-    from gdbench.sweep import setting_overrides
+    from gdbench.experiments.sweep import setting_overrides
 
     assert setting_overrides("janus", "learned")["front_bias"] == 2.0
     assert setting_overrides("janus", None)["front_bias"] == 1.0
@@ -253,7 +253,7 @@ def test_ddim_sampler_reaches_the_data_distribution():
     and the ODE it discretises carries N(mu, v + sigma_max^2) to N(mu, v). The samples' standard
     deviation matches the scheme's own product at 30 steps (3%: 64 x 3072 values) and approaches
     sqrt(v) as the steps grow (300 steps: within 3%); the mean is mu."""
-    from gdbench.priors.learned import LearnedPrior
+    from gdbench.priors.learned.prior import LearnedPrior
 
     prior = LearnedPrior(_random_weights(), clip=False)
     mu, v = 0.2, 0.09
@@ -280,7 +280,7 @@ def test_warp_between_views_follows_the_geometry():
     """Warping an asset's render from a camera 30 degrees away with the true depth lands on the
     other render (the shading differs, the headlight moves with the camera); the same warp of an
     image shifted by 2 px lands 4x further; a camera warped onto itself is exact."""
-    from gdbench.priors.learned_eval import render_views, warp
+    from gdbench.priors.learned.evaluation import render_views, warp
 
     x0, z, cams = render_views("a yellow duck", torch.tensor([20.0, 50.0]), 15.0, 55.0, depth=True)
     wb, valid = warp(x0[1], z[0], cams[0], cams[1], z[1])
@@ -307,7 +307,7 @@ def test_tiny_training_lowers_the_loss_and_is_deterministic(tmp_path):
     predicts 0); two runs from one seed, one of them stopped and resumed, give the same weights."""
     from safetensors.torch import load_file
 
-    from gdbench.priors.learned_data import load_dataset, to_model_images
+    from gdbench.priors.learned.data import load_dataset, to_model_images
 
     cfg = _tiny_train(tmp_path / "a", 60)
     data = load_dataset(TINY_DATA, progress=False)
@@ -327,7 +327,7 @@ def test_tiny_training_lowers_the_loss_and_is_deterministic(tmp_path):
     a = load_file(tmp_path / "a" / "model.safetensors")
     b = load_file(tmp_path / "b" / "model.safetensors")
     assert all(torch.equal(a[k], b[k]) for k in a)
-    from gdbench.priors.learned_train import export_weights
+    from gdbench.priors.learned.training import export_weights
 
     exported = load_file(export_weights(tmp_path / "b"))  # the checkpoint's average: the same weights
     assert all(torch.equal(a[k], exported[k]) for k in a)
@@ -361,7 +361,7 @@ def test_v_prediction_converts_to_the_noise():
     """For x_t = sqrt(abar) x0 + sqrt(1 - abar) eps, the true v = sqrt(abar) eps - sqrt(1 - abar) x0
     converts back to eps exactly, and the training target is that v."""
     from gdbench.priors import sd_abar
-    from gdbench.priors.learned import LearnedPrior
+    from gdbench.priors.learned.prior import LearnedPrior
 
     prior = LearnedPrior(_random_weights())
     assert prior.unet.config.prediction == "v"
@@ -384,7 +384,7 @@ def test_v_prediction_converts_to_the_noise():
 def test_shipped_models_load():
     """Both shipped models load on a clean checkout with their provenance, are small, and know their
     conditions: the same noisy input denoised as two captions gives two different images."""
-    from gdbench.priors.learned import SHIPPED, WEIGHTS, LearnedPrior
+    from gdbench.priors.learned.prior import SHIPPED, WEIGHTS, LearnedPrior
 
     total = sum((WEIGHTS / f"{name}.safetensors").stat().st_size for name in SHIPPED)
     assert total < 20e6
@@ -405,9 +405,9 @@ def test_denoising_error_against_the_exact_posterior_mean():
     guidance: its own posterior mean) lies within a quarter of that distance of the exact one
     (measured 0.0055 over the six captions; docs/learned_prior.md). The training views are
     rendered here exactly as in the training set (1024 cameras of its seed, ~40 s)."""
-    from gdbench.priors.learned import LearnedPrior
-    from gdbench.priors.learned_data import render_subset, to_model_images
-    from gdbench.priors.learned_eval import exact_posterior_mean
+    from gdbench.priors.learned.data import render_subset, to_model_images
+    from gdbench.priors.learned.evaluation import exact_posterior_mean
+    from gdbench.priors.learned.prior import LearnedPrior
 
     prior = LearnedPrior("uniform", guidance_scale=1.0, view_mode="none")
     data = render_subset(DataConfig(), "a yellow duck", 0)
@@ -426,8 +426,8 @@ def test_denoising_error_against_the_exact_posterior_mean():
 
 def test_train_prior_command(tmp_path, capsys):
     """`gdbench train-prior` trains, writes its run folder, and its model serves `--prior learned`."""
-    from gdbench.cli import TrainPrior, main
-    from gdbench.priors.learned import LearnedPrior
+    from gdbench.app.cli import TrainPrior, main
+    from gdbench.priors.learned.prior import LearnedPrior
 
     out = main(TrainPrior(out=tmp_path / "p", steps=4, batch=4, size=16, views=2, resolution=32, threads=1,
                           progress=False))  # fmt: skip

@@ -4,7 +4,7 @@ splat-vs-Mitsuba error per fixture, and the message when the library is missing.
 import pytest
 import torch
 
-from gdbench.fixtures import fixture_names, load_fixture
+from gdbench.refcheck.scenes import fixture_names, load_fixture
 from renderers.mitsuba._lib import available
 from tests._util import write_failure_images
 
@@ -61,8 +61,8 @@ def test_ellipsoid_gradients_match_finite_differences(param):
 @pytest.mark.parametrize("name", fixture_names())
 def test_splat_vs_mitsuba_ellipsoids_error_does_not_grow(name, tmp_path):
     """The recorded splat-vs-ray-traced error (docs/references.md explains each) holds."""
-    from gdbench.compare import image_errors
-    from gdbench.golden import load_golden
+    from gdbench.refcheck.compare import image_errors
+    from gdbench.refcheck.golden import load_golden
     from renderers.splat import rasterize
 
     fx = load_fixture(name)
@@ -94,7 +94,7 @@ def test_missing_llvm_names_the_package(monkeypatch):
 
 # ------------------------------------------------------------------ emission-absorption volume
 def _pinhole(eye, target, fovy=0.5, size=9):
-    from gdbench.camera import Cameras
+    from gdbench.core.camera import Cameras
 
     return Cameras.from_look_at(torch.tensor([eye]), fovy, size, size, target=torch.tensor([target]))
 
@@ -115,7 +115,7 @@ def test_volume_alpha_follows_the_density_mapping(opacity, offset):
 
 
 def test_volume_converges_with_steps_resolution_and_spp():
-    from gdbench.compare import image_errors
+    from gdbench.refcheck.compare import image_errors
     from renderers.mitsuba.volume import rasterize
 
     fx = load_fixture("crossing")
@@ -169,8 +169,8 @@ def test_volume_gradient_matches_finite_differences(mode):
 @pytest.mark.parametrize("key", ["mitsuba_volume_analytic", "mitsuba_volume_grid"])
 @pytest.mark.parametrize("name", fixture_names())
 def test_splat_vs_volume_error_does_not_grow(name, key, tmp_path):
-    from gdbench.compare import image_errors
-    from gdbench.golden import load_golden
+    from gdbench.refcheck.compare import image_errors
+    from gdbench.refcheck.golden import load_golden
     from renderers.splat import rasterize
 
     fx = load_fixture(name)

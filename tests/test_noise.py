@@ -1,4 +1,4 @@
-"""Structured noise (gdbench/noise.py): statistical tests, each able to fail.
+"""Structured noise (gdbench/mechanisms/noise.py): statistical tests, each able to fail.
 
 Many independent draws are rendered at once as channels (colours [M, D] with D = draws),
 since channels are independent standard normals."""
@@ -9,8 +9,8 @@ import pytest
 import torch
 from scipy import stats
 
-from gdbench.camera import Cameras, SphericalPoses
-from gdbench.noise import (
+from gdbench.core.camera import Cameras, SphericalPoses
+from gdbench.mechanisms.noise import (
     NoiseCloud,
     NoiseConfig,
     NoiseRenderer,
@@ -223,7 +223,7 @@ def test_projection_is_reused_for_repeated_cameras():
 def _torch_chain(cloud, colors, cams, g, v_min):
     """The noise as composite_features' images and torch operations give it (the oracle of the
     C++ last pass, which must give the same bits)."""
-    from gdbench.rand import randn
+    from gdbench.core.rand import randn
     from renderers.splat import composite_features, prepare
 
     p = prepare(cloud.means, cloud.quats, cloud.scales, cloud.opacities, cams.viewmats, cams.Ks, cams.width,
@@ -315,7 +315,7 @@ def test_bad_input(build, match):
 def test_view_coupling_matches_empirical_correlation_of_two_views():
     """Theory (weights) against an independent estimate: many colour draws rendered in two views
     30 degrees apart, correlation of the noise at each pixel of view 0 and its best match in view 1."""
-    from gdbench.noise import view_coupling
+    from gdbench.mechanisms.noise import view_coupling
 
     cloud = make_noise_cloud(NoiseConfig(n_gaussians=400, scale=0.04), 1, generator=torch.Generator().manual_seed(3))
     poses = SphericalPoses(

@@ -117,8 +117,8 @@ def test_notebooks_are_stored_without_outputs(name):
 
 @pytest.fixture(scope="module")
 def small_results(tmp_path_factory):
-    from gdbench.bench import bm_error, bm_render, bm_stability
-    from gdbench.sweep_tables import tables
+    from gdbench.experiments.tables import tables
+    from gdbench.refcheck import bm_error, bm_render, bm_stability
 
     d = tmp_path_factory.mktemp("results")
     rows = bm_render.sweep(d / "peers.csv", quick=True, inprocess=True, paths=("splat", "gsplat_torch"))
@@ -176,7 +176,7 @@ def test_notebook_runs_on_the_shipped_results(name, monkeypatch, tmp_path):
         judged = _check_targets(text, SHIPPED)
         assert judged and "peers.csv: " in text and "render.csv: " in text  # both sweeps read, targets judged
     if name == "ablation":
-        from gdbench.io import num, read_csv
+        from gdbench.core.io import num, read_csv
 
         forest = json.loads(re.search(r"^FOREST_CHECK (.*)$", text, re.M).group(1))
         rows = read_csv(Path(forest["sweep"]) / "verdict.csv")

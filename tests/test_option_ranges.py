@@ -1,4 +1,4 @@
-"""The command line's declared option ranges (gdbench/constraints.py, docs/reliability.md): by
+"""The command line's declared option ranges (gdbench/core/constraints.py, docs/reliability.md): by
 property, any value of any numeric option of a command either works or ends in one line naming
 the flag, and every numeric field declares its range."""
 
@@ -10,9 +10,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from gdbench.priors.empirical import EmpiricalPrior
-from tests._util import tiny_bank
-from tests.test_reliability import one_line
-from tests.test_train import CAPTION
+from tests._util import CAPTION, one_line, tiny_bank
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +39,7 @@ def _value(v, integer: bool):
 
 def _numeric_flags(cls, exclude=()) -> dict[str, bool]:
     """flag -> whether it takes an int, for every numeric field of ``cls`` (from its declarations)."""
-    from gdbench.constraints import _declared, flag
+    from gdbench.core.constraints import _declared, flag
 
     return {flag(k): base is int for k, (base, _) in _declared(cls).items() if base is not None and k not in exclude}
 
@@ -53,8 +51,8 @@ def test_command_options_work_or_end_in_one_line_naming_the_flag(tmp_path_factor
     """Any value of any numeric option of `render`, `demo` and `noise` (the others small, so what
     is valid runs in a second): the command writes its output (exit 0) or ends with one line
     naming the flag (exit 2), before writing anything."""
-    from gdbench import cli
-    from gdbench.scene import sphere_init
+    from gdbench.app import cli
+    from gdbench.core.scene import sphere_init
 
     tmp = tmp_path_factory.mktemp(command)
     sphere_init(200, opacity=0.5, generator=torch.Generator().manual_seed(0)).save_ply(tmp / "s.ply")
@@ -83,7 +81,7 @@ def test_command_options_work_or_end_in_one_line_naming_the_flag(tmp_path_factor
 def test_training_options_work_or_end_in_one_line_naming_the_flag(prior, tmp_path_factory, data, request):
     """Any value of any numeric training option of `generate` (on the test prior, 2 steps): the
     run finishes (exit 0) or ends with one line naming the flag or the file (exit 2)."""
-    from gdbench.cli import entrypoint
+    from gdbench.app.cli import entrypoint
     from gdbench.priors import factory
     from gdbench.train.config import TrainConfig
 
@@ -136,9 +134,9 @@ def _run_cli(entrypoint, argv) -> tuple[int, str]:
 def test_every_numeric_option_declares_its_range():
     """A numeric field of a config or a command without a declared range must be listed here as
     free (any finite value is meaningful): a new field fails until someone decides."""
-    from gdbench import cli
-    from gdbench.constraints import _declared
-    from gdbench.noise import NoiseConfig
+    from gdbench.app import cli
+    from gdbench.core.constraints import _declared
+    from gdbench.mechanisms.noise import NoiseConfig
     from gdbench.train.config import DensifyConfig, TrainConfig
 
     free: set[tuple[str, str]] = set()  # none today: seeds too have a range (what manual_seed takes)

@@ -229,7 +229,7 @@ def test_prior_answers_at_the_query_fov_like_a_direct_render(fovy):
     if not ok:
         pytest.skip(f"pyrender unavailable: {why}")
     from gdbench.assets.bank import render_bank
-    from gdbench.camera import SphericalPoses
+    from gdbench.core.camera import SphericalPoses
     from gdbench.metrics.gt import asset_views
 
     cap = "a yellow duck"
@@ -261,7 +261,7 @@ def test_the_prior_shows_the_asset_at_its_true_size_from_the_trainers_distance(r
     if not ok:
         pytest.skip(f"pyrender unavailable: {why}")
     from gdbench.assets.bank import render_bank
-    from gdbench.camera import SphericalPoses
+    from gdbench.core.camera import SphericalPoses
     from gdbench.metrics.gt import asset_views
     from gdbench.priors.factory import make_prior
     from gdbench.train.config import preset

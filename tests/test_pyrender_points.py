@@ -4,7 +4,7 @@ projected means and depths: centres within 0.05 px, depths within 1e-5 relative.
 import pytest
 import torch
 
-from gdbench.camera import SphericalPoses
+from gdbench.core.camera import SphericalPoses
 from renderers.pyrender_points._lib import available
 from renderers.splat import rasterize
 from renderers.splat.project import project

@@ -1,4 +1,4 @@
-"""gdbench.rand: the C++ Philox4x32-10 + Box-Muller normals against Random123's known answers, a
+"""gdbench.core.rand: the C++ Philox4x32-10 + Box-Muller normals against Random123's known answers, a
 float64 Box-Muller of the same words, the normal law (KS, chi-square, tails, correlations), and
 the contract of torch.randn (explicit generator, same state same numbers)."""
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 from scipy import stats
 
-from gdbench import rand
-from gdbench.rand import randn
+from gdbench.core import rand
+from gdbench.core.rand import randn
 
 # Random123's kat_vectors for philox4x32_10: (counter, key, output)
 KAT = [

@@ -10,38 +10,17 @@ import sys
 import pytest
 import torch
 
-from gdbench.io import FolderBusy, FolderLock
+from gdbench.core.io import FolderBusy, FolderLock
+from gdbench.core.signals import RunInterrupted
 from gdbench.priors.empirical import EmpiricalPrior
 from gdbench.train.densify import PARAM_NAMES
-from gdbench.train.run import RunInterrupted, train
-from tests._util import PACED_RUN, tiny_bank
-from tests.test_train import CAPTION, tiny
+from gdbench.train.run import train
+from tests._util import CAPTION, PACED_RUN, cli, one_line, tiny, tiny_bank
 
 
 @pytest.fixture(scope="module")
 def prior():
     return EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
-
-
-def cli(monkeypatch, capsys, *argv):
-    """Run ``gdbench *argv`` in-process; returns (exit code, stdout, stderr)."""
-    from gdbench.cli import entrypoint
-
-    monkeypatch.setattr(sys, "argv", ["gdbench", *map(str, argv)])
-    monkeypatch.delenv("GDBENCH_DEBUG", raising=False)
-    code = 0
-    try:
-        entrypoint()
-    except SystemExit as e:
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def one_line(err: str) -> str:
-    lines = [line for line in err.strip().splitlines() if line.strip()]
-    assert len(lines) == 1 and "Traceback" not in err, err
-    return lines[0]
 
 
 # ------------------------------------------------------------------ 1. run folders
@@ -61,7 +40,7 @@ def test_a_second_process_is_refused_while_a_run_holds_the_folder(prior, tmp_pat
     import time
 
     code = (
-        "from gdbench.io import FolderLock; import time\n"
+        "from gdbench.core.io import FolderLock; import time\n"
         f"with FolderLock({str(tmp_path / 'run')!r}):\n    print('held', flush=True); time.sleep(30)"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
@@ -91,19 +70,19 @@ def test_a_finished_run_is_never_overwritten_without_the_flag(prior, tmp_path):
     assert not (out / "scene_turntable.gif").exists()
     run = json.loads((out / "run.json").read_text())
     assert run["seed"] == 1 and run["run_id"] and r.state.step == 2
-    from gdbench.io import sha256_file
+    from gdbench.core.io import sha256_file
 
     assert run["scene_sha256"] == sha256_file(out / "scene.ply")
     assert f"comment gdbench run {run['run_id']}".encode() in (out / "scene.ply").read_bytes()[:300]
 
 
 def test_scores_belong_to_the_scene_they_measured(prior, tmp_path, monkeypatch):
-    from gdbench.io import sha256_file
+    from gdbench.core.io import sha256_file
     from gdbench.metrics import run_scores
 
     out = tmp_path / "run"
     train(tiny("gd", out, steps=2), prior)
-    from gdbench.provenance import code_commit
+    from gdbench.core.provenance import code_commit
 
     sha = sha256_file(out / "scene.ply")
     made = {"params": {"views": 100, "size": 256, "background": [1.0, 1.0, 1.0]}, "commit": code_commit()}
@@ -136,7 +115,7 @@ def test_a_stop_signal_saves_a_checkpoint_and_resumes_exactly(prior, tmp_path, m
     """Ctrl-C, SIGTERM (timeout, kill, Slurm) and SIGHUP (a closed SSH session) landing mid-step:
     the step ends, a checkpoint is saved, RunInterrupted names the signal with exit code 128 + its
     number, and the same command resumes bit-identically."""
-    from gdbench.cli import error_line
+    from gdbench.app.cli import error_line
     from gdbench.train import run as run_mod
 
     signum = getattr(signal, sig)
@@ -156,7 +135,7 @@ def test_a_stop_signal_saves_a_checkpoint_and_resumes_exactly(prior, tmp_path, m
     assert error_line(e.value) == (str(e.value), 128 + signum)
     assert signal.getsignal(signum) == before  # the loop gives the handler back
     if sig == "SIGHUP":  # under nohup SIGHUP is ignored, and stays so: the run goes on
-        from gdbench.train.run import defer_stop_signals
+        from gdbench.core.signals import defer_stop_signals
 
         flag: list = []
         old = signal.signal(signal.SIGHUP, signal.SIG_IGN)
@@ -178,7 +157,7 @@ def test_a_stop_signal_saves_a_checkpoint_and_resumes_exactly(prior, tmp_path, m
 _TERM_SCRIPT = (
     PACED_RUN
     + """
-from gdbench.cli import run_reporting
+from gdbench.app.cli import run_reporting
 if sys.argv[2] == "before":  # the signal lands before training starts
     run_reporting("generate", lambda: (print("ready", flush=True), time.sleep(60)))
 cfg = tiny("gd", sys.argv[1], steps=60, checkpoint_every=3)
@@ -232,7 +211,7 @@ def test_a_full_disk_mid_checkpoint_keeps_the_last_one(prior, tmp_path, monkeypa
     """A full disk during torch.save, as an OSError or as torch reports it on a real disk (a
     RuntimeError "unexpected pos" whose context is the OSError): one OSError naming the
     checkpoint, the previous checkpoint intact, no temporary file left."""
-    from gdbench.cli import error_line
+    from gdbench.app.cli import error_line
 
     out = tmp_path / "run"
     train(tiny("gd", out, steps=4), prior, stop_at=2, write_outputs=False)
@@ -296,9 +275,9 @@ def test_a_really_full_disk_keeps_every_file_whole(prior, small_disk):
     end in one OSError naming the file; the previous checkpoint and GIF are intact; no partial
     or temporary file is left, and imageio's half-written file says nothing more (its __del__
     would retry the write and print a second traceback)."""
-    from gdbench.cli import error_line
-    from gdbench.scene import sphere_init
-    from gdbench.turntable import write_turntable
+    from gdbench.app.cli import error_line
+    from gdbench.core.scene import sphere_init
+    from gdbench.core.turntable import write_turntable
 
     out = small_disk / "run"
     train(tiny("gd", out, steps=6, checkpoint_every=2), prior, stop_at=2, write_outputs=False)
@@ -325,8 +304,8 @@ def test_images_are_written_atomically(tmp_path, monkeypatch):
     GIF and contact sheet as they were, no temporary file, and one OSError naming the file."""
     import imageio.v3 as iio
 
-    from gdbench.scene import sphere_init
-    from gdbench.turntable import write_turntable
+    from gdbench.core.scene import sphere_init
+    from gdbench.core.turntable import write_turntable
 
     scene = sphere_init(100, opacity=0.5, generator=torch.Generator().manual_seed(0))
     write_turntable(scene, tmp_path, frames=3, size=32, mp4=False)
@@ -367,8 +346,8 @@ def test_score_and_render_are_writers_that_take_the_lock(prior, tmp_path, monkey
 def test_score_refuses_a_folder_whose_files_come_from_two_runs(prior, tmp_path):
     """scene.ply's header names its run; run.json records the run and the scene's hash. A PLY of
     another run, or a PLY changed after the run, is refused naming both."""
+    from gdbench.core.scene import GaussianScene
     from gdbench.metrics.run_scores import score_run
-    from gdbench.scene import GaussianScene
 
     a, b = tmp_path / "a", tmp_path / "b"
     train(tiny("gd", a, steps=2), prior)
@@ -427,7 +406,7 @@ def test_an_unwritable_bank_cache_costs_the_cache_not_the_run(tmp_path, monkeypa
         (("noise", "--preview", "--out", "x.jpg"), r"out: expected a .png file or a folder"),
         (("sweep", "--prompts", "a yellow duck", "a spaceship", "--presets", "gd", "--no-colmap"), "a spaceship"),
         (("sweep", "--prompts", "a yellow duck", "A yellow duck!", "--presets", "gd"), "share the cell folder"),
-        # declared ranges (gdbench.constraints), refused before anything is built: the flag typed
+        # declared ranges (gdbench.core.constraints), refused before anything is built: the flag typed
         (("generate", "a yellow duck", "--out", "R", "--log-every", "0"), r"\(--log-every\): expected an int >= 1"),
         (("generate", "a yellow duck", "--out", "R", "--densify-every", "0"), r"\(--densify-every\): expected"),
         (("generate", "a yellow duck", "--out", "R", "--densify-reset-every", "0"), r"\(--densify-reset-every\)"),
@@ -449,7 +428,7 @@ def test_an_unwritable_bank_cache_costs_the_cache_not_the_run(tmp_path, monkeypa
 def test_bad_input_is_one_line_with_exit_code_2(monkeypatch, capsys, tmp_path, args, match):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "FILE").write_text("not a folder")
-    from gdbench.builtin import demo_scene
+    from gdbench.core.builtin import demo_scene
 
     demo_scene(20).save_ply(tmp_path / "PLY")
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
@@ -477,8 +456,8 @@ def test_well_formed_but_foreign_files_are_named_not_crashed_on(prior, tmp_path)
     """Files of the right format with the wrong content: a checkpoint of format 2 with no config
     or with parameters of wrong shapes, a run.json with a field of the wrong type, a cell.json
     without its row. Each is a ValueError naming the file, not a KeyError or AttributeError."""
+    from gdbench.experiments.sweep import CellSpec, _done
     from gdbench.metrics.run_scores import score_run
-    from gdbench.sweep import CellSpec, _done
     from gdbench.train.checkpoint import FORMAT, CheckpointError
 
     out = tmp_path / "run"
@@ -535,7 +514,7 @@ def test_a_diverged_run_and_a_dangling_out_are_one_line(prior, monkeypatch, caps
 def test_the_memory_estimate_names_the_flag_that_sizes_the_largest_buffer():
     """Without the empirical prior's bank, a huge resolution still names --resolution (its
     renders), and many views per step name --views-per-step."""
-    from gdbench.resources import generate_terms
+    from gdbench.app.resources import generate_terms
     from gdbench.train.config import TrainConfig
 
     def largest(**kw):
@@ -550,8 +529,8 @@ def test_the_sweeps_advice_names_what_it_has(prior, tmp_path, monkeypatch):
     """A cell folder holding a finished run of another config: the sweep (which has no
     --overwrite) says to delete that cell's folder. A prompt too long for a folder name is
     refused when the grid is checked."""
+    from gdbench.experiments.sweep import CellSpec, cell_name, run_cell
     from gdbench.priors import factory
-    from gdbench.sweep import CellSpec, cell_name, run_cell
 
     monkeypatch.setattr(factory, "make_prior", lambda cfg: prior)
     over = {"resolution": 16, "init_points": 150, "turntable_frames": 2}
@@ -571,7 +550,7 @@ def test_an_unreachable_ray_address_fails_within_its_timeout():
     import socket
     import time
 
-    from gdbench.sweep import check_ray_address
+    from gdbench.experiments.sweep import check_ray_address
 
     with socket.socket() as s:  # a port that was free a moment ago: nothing listens there
         s.bind(("127.0.0.1", 0))
@@ -602,12 +581,12 @@ def test_noise_preview_into_a_folder(monkeypatch, capsys, tmp_path):
 
 
 def test_generate_prints_the_matched_caption(prior, monkeypatch, capsys, tmp_path):
-    from gdbench.cli import Generate, main
+    from gdbench.app.cli import Generate, main
     from gdbench.train import run as run_mod
 
     real = run_mod.make_context
     monkeypatch.setattr(run_mod, "make_context", lambda cfg, p=None: real(cfg, prior))
-    from gdbench.cli import GenerateTrain
+    from gdbench.app.cli import GenerateTrain
 
     s = main(
         Generate(CAPTION, out=tmp_path / "r", score=False, progress=False, train=GenerateTrain(steps=2, resolution=16))
@@ -618,7 +597,7 @@ def test_generate_prints_the_matched_caption(prior, monkeypatch, capsys, tmp_pat
 
 
 def test_sweep_cell_names_stay_inside_out():
-    from gdbench.sweep import CellSpec, cell_name
+    from gdbench.experiments.sweep import CellSpec, cell_name
 
     assert cell_name("../../a yellow duck") == "a_yellow_duck"
     spec = CellSpec("../../a yellow duck", "gd", 0, 10, "/tmp/sweep")

@@ -6,7 +6,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gdbench.scene import GaussianScene, sphere_init
+from gdbench.core.scene import GaussianScene, sphere_init
 from renderers.splat.sh import C0
 
 
@@ -234,7 +234,7 @@ def test_any_ply_loads_exactly_or_is_refused_naming_the_file(
 @pytest.mark.parametrize(("value", "ok"), [(12.0, True), (-30.0, True), (12.5, False), (100.0, False), (-31.0, False)])
 def test_log_scale_range_is_checked_on_read(tmp_path, value, ok):
     """Log-scales above 12 lose float32 precision and above ~43 vanish (docs/reliability.md)."""
-    from gdbench.ply import LOG_SCALE_RANGE
+    from gdbench.core.ply import LOG_SCALE_RANGE
 
     assert LOG_SCALE_RANGE == (-30.0, 12.0)
     s = _scene(12, degree=0)

@@ -91,7 +91,7 @@ def test_cpp_sh_without_gradients_equals_the_float64_eval(degree, per_camera, co
     """The C++ SH colour (no-gradient path of rasterize, csrc/sh_cpu.cpp) against eval_sh in
     float64, batched over 2 scenes x 3 cameras, shared or per-camera coefficients, K > (degree+1)^2
     (the extra coefficients are ignored), and against the differentiable torch path."""
-    from gdbench.camera import SphericalPoses
+    from gdbench.core.camera import SphericalPoses
     from renderers.splat.project import view_dirs
     from renderers.splat.rasterize import sh_colors
 

@@ -1,5 +1,5 @@
 """The Stable Diffusion prior and 3DFuse's stages, offline, on tiny random-weight models built
-from configs (gdbench/priors/sd_tiny.py): the VE conversion against the scheduler, guidance,
+from configs (gdbench/priors/sd/tiny.py): the VE conversion against the scheduler, guidance,
 ControlNet, LoRA and textual inversion, saving and loading, the trainer on every preset, and
 the error for missing weights."""
 
@@ -12,14 +12,14 @@ pytest.importorskip("diffusers")
 pytest.importorskip("peft")
 
 from gdbench.priors import ve_sigmas_from_betas
-from gdbench.priors.stable_diffusion import StableDiffusionPrior
+from gdbench.priors.sd.prior import StableDiffusionPrior
 
 PROMPT = "a yellow duck"
 
 
 @pytest.fixture(scope="module")
 def parts():
-    from gdbench.priors.sd_tiny import tiny_components
+    from gdbench.priors.sd.tiny import tiny_components
 
     return {p: tiny_components(0, prediction_type=p) for p in ("epsilon", "v_prediction")}
 
@@ -111,7 +111,7 @@ def test_controlnet_conditions_only_through_its_zero_convolutions(parts):
 
 
 def test_lora_starts_as_identity_changes_the_output_and_lowers_its_loss(parts):
-    from gdbench.priors import sd_3dfuse as f
+    from gdbench.priors.sd import threedfuse as f
 
     prior = make(parts, guidance_scale=1.0, view_prompting=False)
     cond = prior.encode(PROMPT)
@@ -129,7 +129,7 @@ def test_lora_starts_as_identity_changes_the_output_and_lowers_its_loss(parts):
 
 
 def test_semantic_code_is_saved_and_loaded_with_the_run(parts, tmp_path):
-    from gdbench.priors.sd_3dfuse import SemanticCodeConfig, load_semantic_code, semantic_code
+    from gdbench.priors.sd.threedfuse import SemanticCodeConfig, load_semantic_code, semantic_code
 
     a = make(parts, guidance_scale=3.0, view_prompting=False)
     cfg = SemanticCodeConfig(size=64, sample_steps=4, ti_steps=20, ti_lr=0.05, lora_steps=20, lora_lr=3e-3)
@@ -162,7 +162,7 @@ def test_vae_encoding_is_differentiable(parts):
 
 
 def test_from_pretrained_loads_a_local_folder_and_names_missing_weights(parts, tmp_path):
-    from gdbench.priors.sd_tiny import save_tiny_model
+    from gdbench.priors.sd.tiny import save_tiny_model
 
     folder = save_tiny_model(tmp_path / "tiny-sd")
     loaded = StableDiffusionPrior.from_pretrained(folder, controlnet=folder / "controlnet", guidance_scale=1.0)
@@ -176,8 +176,8 @@ def test_from_pretrained_loads_a_local_folder_and_names_missing_weights(parts, t
 
 
 def test_depth_unprojection_inverts_the_projection():
-    from gdbench.camera import SphericalPoses
-    from gdbench.priors.sd_3dfuse import DepthUnprojection
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.priors.sd.threedfuse import DepthUnprojection
 
     cams = SphericalPoses.orbit(1, radius=1.2, elevation=20.0, fovy=50.0).cameras(16, 12)
     g = torch.Generator().manual_seed(12)
@@ -197,7 +197,7 @@ def test_depth_unprojection_inverts_the_projection():
 # ------------------------------------------------------------------ the trainer on the tiny prior
 def _two_sd_steps(out, **extra) -> dict:
     """TrainConfig fields for a 2-step run at 32 px on the tiny SD prior."""
-    from gdbench.noise import NoiseConfig
+    from gdbench.mechanisms.noise import NoiseConfig
 
     kw = dict(prompt=PROMPT, prior="sd", sd_guidance=7.5, steps=2, resolution=32, init_points=200)
     kw.update(progress=False, turntable_frames=2, out=out, noise=NoiseConfig(n_gaussians=200, scale=0.05))
@@ -234,7 +234,7 @@ def test_both_rendering_modes_with_depth_control_and_semantic_code(mode, tmp_pat
 def test_cli_generate_runs_the_sd_prior_and_does_not_score_it_against_an_asset(tmp_path):
     import json
 
-    from gdbench.cli import Generate, GenerateTrain, main
+    from gdbench.app.cli import Generate, GenerateTrain, main
 
     train = GenerateTrain(prior="sd", sd_guidance=7.5, steps=2, resolution=32)
     s = main(Generate(prompt=PROMPT, out=tmp_path, progress=False, train=train))

@@ -1,4 +1,4 @@
-"""Scores and sweeps (gdbench/metrics/run_scores.py, gdbench/sweep.py): ``gdbench score`` on a
+"""Scores and sweeps (gdbench/metrics/run_scores.py, gdbench/experiments/sweep.py): ``gdbench score`` on a
 run folder, the sweep's tables against its own cells, resumability, and the Ray executor
 against the local one (same seed, same cell)."""
 
@@ -12,9 +12,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gdbench.cli import Score, Sweep, main
+from gdbench.app.cli import Score, Sweep, main
+from gdbench.experiments.sweep import CellSpec, cell_config, run_cell, sweep
 from gdbench.metrics.run_scores import score_run
-from gdbench.sweep import CellSpec, cell_config, run_cell, sweep
 from gdbench.train.run import train
 
 PROMPT = "a yellow duck"
@@ -103,7 +103,7 @@ def test_seeds_give_different_cells_and_the_same_seed_the_same_cell(tiny_sweep, 
 
 def test_a_finished_sweep_skips_all_cells_and_an_interrupted_one_continues(tiny_sweep, monkeypatch):
     out, rows = tiny_sweep
-    import gdbench.sweep as sw
+    import gdbench.experiments.sweep as sw
 
     def boom(spec, **kw):
         raise AssertionError(f"cell {spec} should have been skipped")
@@ -127,11 +127,11 @@ def test_a_finished_sweep_skips_all_cells_and_an_interrupted_one_continues(tiny_
 
 def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep, monkeypatch):
     out, _ = tiny_sweep
-    import gdbench.sweep as sw
+    import gdbench.experiments.sweep as sw
 
     ran = []
     monkeypatch.setattr(sw, "run_cell", lambda s, **kw: ran.append(s) or {"preset": s.preset})
-    monkeypatch.setattr("gdbench.sweep_tables.tables", lambda rows, out, *a: {})
+    monkeypatch.setattr("gdbench.experiments.tables.tables", lambda rows, out, *a: {})
     sweep([PROMPT], ["gd"], [0], steps=6, out=out, colmap=False, overrides=TINY, progress=False)
     assert [s.steps for s in ran] == [6]
 
@@ -139,8 +139,8 @@ def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep,
 def test_a_running_sweep_writes_its_tables_on_a_clock_and_once_at_the_end(tmp_path, monkeypatch):
     """The tables are rewritten while cells finish only every TABLES_EVERY_S seconds (at 1000 cells
     each rewrite cost 5 s), always at the end, from every cell: the same files either way."""
-    from gdbench import sweep as sweep_module
-    from gdbench import sweep_tables
+    from gdbench.experiments import sweep as sweep_module
+    from gdbench.experiments import tables as sweep_tables
 
     calls = []
     real = sweep_tables.tables
@@ -188,7 +188,7 @@ def test_groups_cross_the_grid_and_claims_pair_within_a_group(tiny_sweep, tmp_pa
     sweep's gives its cells bit for bit; claims pair cells of one group only; the Janus failure
     rate is the featureless plus the multi-face rate (disjoint: featureless views never count a
     second face)."""
-    from gdbench.metrics.claims import evaluate
+    from gdbench.experiments.claims import evaluate
 
     _, plain = tiny_sweep
     groups = {"v1": {}, "v2": {"views_per_step": 2, "views_spread_deg": 10.0}}
@@ -255,7 +255,7 @@ def test_sweep_cli_prints_the_table(tmp_path, capsys):
 
 
 def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
-    from gdbench.cli import entrypoint
+    from gdbench.app.cli import entrypoint
 
     monkeypatch.delenv("GDBENCH_DEBUG", raising=False)
     monkeypatch.setattr("sys.argv", ["gdbench", "sweep", "--presets", "gd", "nope"])
@@ -270,7 +270,7 @@ def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
 
 
 def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
-    from gdbench.cli import MethodOptions, SweepTrain
+    from gdbench.app.cli import MethodOptions, SweepTrain
 
     opts = MethodOptions(noise_redraw="ou", noise_ratio="variance")
     train = SweepTrain(view_prompting="none", views_per_step=2)
@@ -331,7 +331,7 @@ def test_settings_dial_the_prior_and_pair_cells(tmp_path):
 
 
 def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():
-    from gdbench.sweep import CellSpec, inert_overrides
+    from gdbench.experiments.sweep import CellSpec, inert_overrides
 
     def specs(presets, overrides, group=""):
         return [CellSpec(PROMPT, p, 0, 10, "/tmp/never", overrides=overrides, group=group) for p in presets]
@@ -375,7 +375,7 @@ def _stub_colmap(monkeypatch, calls, registered=0):
 
 
 def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypatch, tmp_path, capsys):
-    from gdbench.provenance import code_commit
+    from gdbench.core.provenance import code_commit
 
     out, _ = tiny_sweep
     run = tmp_path / "run"
@@ -445,7 +445,7 @@ def test_a_cell_holds_only_what_the_sweep_asked_for(tiny_sweep, monkeypatch, tmp
     assert math.isnan(row["colmap_failure_rate"]) and math.isnan(row["registration_rate"])  # ... not in the row
     assert row["gt_psnr"] == rows[1]["gt_psnr"] and row["score_commit"] == row["train_commit"]
     assert "torch " in row["versions"] and "pycolmap " in row["versions"]  # the packages that made it
-    from gdbench.sweep_tables import commits
+    from gdbench.experiments.tables import commits
 
     assert "MIXED" not in commits([row, row])
     assert "MIXED package versions" in commits([row, dict(row, versions="torch 0")])
@@ -507,9 +507,9 @@ values = st.one_of(st.none(), st.just(float("nan")), st.just(0.0), st.just(1.0),
 def test_tables_from_any_mix_of_values_are_strict_and_numeric_with_the_right_verdict(
     tmp_path, monkeypatch, pairs, gaussians
 ):
-    from gdbench import sweep_tables
-    from gdbench.io import num, write_json
-    from gdbench.sweep_tables import tables
+    from gdbench.core.io import num, write_json
+    from gdbench.experiments import tables as sweep_tables
+    from gdbench.experiments.tables import tables
 
     monkeypatch.setattr(sweep_tables, "plot", lambda rows, path: path)  # the figure is not under test here
 
@@ -553,13 +553,14 @@ def test_the_code_name_follows_the_code_and_only_the_code(tmp_path, monkeypatch)
     files' hash names it."""
     import subprocess
 
-    from gdbench import provenance
+    from gdbench.core import provenance
 
     root = tmp_path / "repo"
     (root / "gdbench").mkdir(parents=True)
     (root / "renderers").mkdir()
     (root / "docs").mkdir()
-    src = root / "gdbench" / "provenance.py"
+    (root / "gdbench" / "core").mkdir()
+    src = root / "gdbench" / "core" / "provenance.py"
     src.write_text(open(provenance.__file__).read())
     (root / "gdbench" / "a.py").write_text("x = 1\n")
     (root / "docs" / "notes.md").write_text("notes\n")
@@ -599,7 +600,7 @@ def test_the_code_name_follows_the_code_and_only_the_code(tmp_path, monkeypatch)
 def test_turned_is_a_failure_only_where_the_front_is_defined_and_the_result_has_one():
     import math
 
-    from gdbench.sweep import turned_failure
+    from gdbench.experiments.sweep import turned_failure
 
     assert turned_failure({"turned_deg": 90.0, "featureless_rate": 0.0}, True) == 1.0
     assert turned_failure({"turned_deg": -45.0, "featureless_rate": 0.0}, True) == 0.0

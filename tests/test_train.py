@@ -8,42 +8,18 @@ import math
 import pytest
 import torch
 
-from gdbench.noise import NoiseConfig
+from gdbench.mechanisms.noise import NoiseConfig
 from gdbench.priors.empirical import EmpiricalPrior
 from gdbench.train.config import PRESETS, DensifyConfig, OptimConfig, TrainConfig, preset
 from gdbench.train.densify import PARAM_NAMES
 from gdbench.train.run import train
 from gdbench.train.trainer import TrainingDiverged, init_state, make_context, train_step
-from tests._util import PACED_RUN, tiny_bank
-
-CAPTION = "a test blob"
+from tests._util import CAPTION, PACED_RUN, tiny, tiny_bank
 
 
 @pytest.fixture(scope="module")
 def prior():
     return EmpiricalPrior(banks={CAPTION: tiny_bank(CAPTION)})
-
-
-TINY_DENSIFY = DensifyConfig(start_frac=0.1, every_frac=0.2, reset_frac=1 / 3, grad_threshold=1e-6, recover_steps=0)
-"""A schedule that scales down to a few steps: at 9 steps, densify at 2, 4 and 6, reset at 3 and 6."""
-
-
-def tiny(name="gd", tmp=None, **kw):
-    base = dict(
-        prompt=CAPTION,
-        steps=4,
-        resolution=16,
-        init_points=150,
-        checkpoint_every=2,
-        progress=False,
-        turntable_frames=2,
-        noise=NoiseConfig(n_gaussians=200, scale=0.05),
-        densify=TINY_DENSIFY,
-    )
-    base.update(kw)
-    if tmp is not None:
-        base["out"] = tmp
-    return preset(name, **base)
 
 
 def _params(state):
@@ -258,8 +234,8 @@ def test_non_finite_gradients_are_skipped_then_stop_the_run(prior, tmp_path, mon
 # -------------------------------------------------------------------- quality (slow)
 @pytest.mark.slow
 def test_short_duck_run_beats_the_initial_sphere_by_3db(tmp_path):
+    from gdbench.core.scene import sphere_init
     from gdbench.metrics.gt import asset_views, heldout_poses, score_against_asset
-    from gdbench.scene import sphere_init
 
     cfg = preset("gd", steps=600, out=tmp_path, progress=False, turntable_frames=4)
     r = train(cfg)
@@ -359,7 +335,7 @@ def test_presets_with_one_seed_draw_the_same_views_sigmas_and_iid_noise(prior, t
         n_gd = _noise_fields(ctx_gd, a, va, shape, update=True)[0]
         n_sjc = _noise_fields(ctx_sjc, b, vb, shape, update=True)[0]
         # gd: n = a n_s + sqrt(1 - a^2) n_iid, with n_iid the very field sjc-gs uses
-        from gdbench.noise import structured_amplitude
+        from gdbench.mechanisms.noise import structured_amplitude
 
         r = structured_amplitude(0.3, ctx_gd.cfg.noise.ratio_mode)  # the proportion at step 0
         ns = ctx_gd.noise.render(a.noise_colors, va.prior_cams, generator=torch.Generator())
@@ -452,7 +428,7 @@ def test_train_step_redraws_the_noise_colours_as_configured(prior, redraw):
     """What reaches the noise renderer, captured by wrapping it: with redraw 'run' every step
     renders the initial draw of the colours (drawn here on its own from the seed's stream); with
     'ou' (beta 0.2) successive steps' colours correlate sqrt(1 - beta); with 'step' they do not."""
-    from gdbench.noise import init_colors
+    from gdbench.mechanisms.noise import init_colors
     from gdbench.train.streams import make_streams
 
     cfg = tiny("gd", noise=NoiseConfig(n_gaussians=400, scale=0.05, redraw=redraw, ou_beta=0.2), steps=6)
@@ -555,7 +531,7 @@ def test_run_id_keeps_runs_made_before_a_field_was_added():
     """A field added later (views_spread_deg) is left out of the run's id at the value that behaves
     as the code did before it, so a finished run of the older code keeps its id (a sweep finds it
     finished instead of refusing to overwrite it); any other value changes the id."""
-    from gdbench.io import sha256_json
+    from gdbench.core.io import sha256_json
     from gdbench.train.checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
     from gdbench.train.run import config_dict, run_id
 
@@ -653,10 +629,10 @@ def test_run_outputs_are_written_while_the_folder_lock_is_held(prior, tmp_path, 
     written while the run holds its folder's lock: checked from inside each write, where taking
     the lock from another file handle must fail (a run that released it first could have its
     folder claimed by a second run halfway through)."""
+    import gdbench.core.turntable as turntable
     import gdbench.train.run as run_mod
-    import gdbench.turntable as turntable
-    from gdbench.io import FolderBusy, FolderLock
-    from gdbench.scene import GaussianScene
+    from gdbench.core.io import FolderBusy, FolderLock
+    from gdbench.core.scene import GaussianScene
 
     out = tmp_path / "run"
     held = {}

@@ -120,8 +120,25 @@ def test_the_seeded_backward_gives_x_backwards_bits_without_importing_sympy():
     assert torch.equal(w.grad, want) and want.abs().sum() > 0
     with pytest.raises(ValueError, match="grad: expected the shape of x"):
         _backward(a @ w.tanh(), seed.T)
-    code = "import sys; from tests.test_train import *; ctx = make_context(tiny(), EmpiricalPrior(banks={CAPTION: "
+    code = "import sys; from tests._util import CAPTION, tiny, tiny_bank; "
+    code += "from gdbench.priors.empirical import EmpiricalPrior; "
+    code += "from gdbench.train.trainer import init_state, make_context, train_step; "
+    code += "ctx = make_context(tiny(), EmpiricalPrior(banks={CAPTION: "
     code += "tiny_bank(CAPTION)})); st = init_state(ctx); [train_step(st, ctx) for _ in range(2)]; "
     code += "print('torch.fx.experimental.symbolic_shapes' in sys.modules, st.step)"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert run.returncode == 0 and run.stdout.split() == ["False", "2"], run.stderr[-2000:]
+
+
+def test_a_missing_private_api_is_one_line_naming_it(monkeypatch):
+    """gdbench.core.private: the private torch and Python functions gdbench calls are the real
+    ones where they exist, and a missing one raises one line naming it and what it was for."""
+    import threading
+
+    from gdbench.core import private
+
+    assert private.fused_adam_ is torch._fused_adam_ and private.shutdown_threads is threading._shutdown
+    monkeypatch.delattr(torch, "_fused_adam_")
+    stub = private._guarded(torch, "_fused_adam_", "the trainer's Adam step")
+    with pytest.raises(RuntimeError, match=r"torch\._fused_adam_ is missing in torch .* \(the trainer's Adam step\)"):
+        stub([], [])

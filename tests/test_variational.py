@@ -1,4 +1,4 @@
-"""Variational Gaussian splatting (gdbench/variational.py): jitter statistics, the gradient
+"""Variational Gaussian splatting (gdbench/mechanisms/variational.py): jitter statistics, the gradient
 identity of paper eq. 17, and the blurred mean render."""
 
 import itertools
@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy import stats
 
-from gdbench.variational import jitter, vp_level
+from gdbench.mechanisms.variational import jitter, vp_level
 from renderers.splat import rasterize
 from tests._util import axis_camera
 

@@ -1,4 +1,4 @@
-"""The browser viewer (gdbench/viewer.py, docs/viewer.md): what viser receives (covariances,
+"""The browser viewer (gdbench/app/viewer.py, docs/viewer.md): what viser receives (covariances,
 colours, turntable and training cameras) checked without a browser, and a slow end-to-end test
 that drives Debian's headless Chromium and compares its screenshot with our own render."""
 
@@ -14,11 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from gdbench.builtin import demo_scene
-from gdbench.camera import SphericalPoses
-from gdbench.scene import GaussianScene
-from gdbench.turntable import RUN_TURNTABLE, render_views_alpha
-from gdbench.viewer import (
+from gdbench.app.viewer import (
     NUDGE,
     import_viser,
     resolve_inputs,
@@ -28,6 +24,10 @@ from gdbench.viewer import (
     up_rotation,
     viser_pose,
 )
+from gdbench.core.builtin import demo_scene
+from gdbench.core.camera import SphericalPoses
+from gdbench.core.scene import GaussianScene
+from gdbench.core.turntable import RUN_TURNTABLE, render_views_alpha
 from renderers.splat.sh import C0
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -210,7 +210,7 @@ def test_training_frustums_are_the_runs_own_views_within_its_ranges():
 
 
 def test_inputs_run_folder_ply_and_errors(tmp_path):
-    from gdbench.io import sha256_file, write_json
+    from gdbench.core.io import sha256_file, write_json
 
     scene = _random_scene(8).to(dtype=torch.float32)
     ply = scene.save_ply(tmp_path / "scene.ply")
@@ -232,8 +232,8 @@ def test_inputs_run_folder_ply_and_errors(tmp_path):
 def test_a_ply_from_elsewhere_is_framed():
     """A scene off the origin and larger than a run's: the turntable orbits its bounds' centre at
     the distance that shows it whole (``framing``), and every view looks at that centre."""
-    from gdbench.framing import bounds, orbit_radius
-    from gdbench.viewer import framed_orbit
+    from gdbench.app.viewer import framed_orbit
+    from gdbench.core.framing import bounds, orbit_radius
 
     scene = _random_scene(200, scale=(0.01, 0.05))
     scene = GaussianScene(
@@ -260,10 +260,10 @@ def test_serve_without_a_browser(tmp_path):
     """The server side: a run folder gives the run's turntable frame count and its frustums; the
     slider and the checkbox drive them; a lone scene has the checkbox disabled."""
     pytest.importorskip("viser", reason="the viewer needs viser: pip install -e '.[view]' (or make setup)")
-    from gdbench.io import sha256_file, write_json
+    from gdbench.app.viewer import serve
+    from gdbench.core.io import sha256_file, write_json
     from gdbench.train.config import TrainConfig
     from gdbench.train.outputs import config_dict
-    from gdbench.viewer import serve
 
     scene = demo_scene(50)
     ply = scene.save_ply(tmp_path / "scene.ply")
@@ -399,7 +399,7 @@ def test_browser_screenshot_matches_our_render(tmp_path):
         pytest.skip(f"no browser at {CHROMIUM}: apt-get install chromium (scripts/setup.sh, make test-slow)")
     import imageio.v3 as iio
 
-    from gdbench.viewer import serve
+    from gdbench.app.viewer import serve
 
     scene = _test_scene()
     frames = 36

@@ -15,7 +15,7 @@ CAPTION = "a yellow duck"
 
 @pytest.fixture(scope="module")
 def scores():
-    from gdbench.metrics.fixtures3d import KINDS, failure_scene
+    from gdbench.metrics.failures3d import KINDS, failure_scene
     from gdbench.metrics.views import reference, score_scene
 
     ref = reference(CAPTION, variants=3)
@@ -132,12 +132,12 @@ def test_a_run_is_scored_on_its_own_background(tmp_path):
     import math
 
     from gdbench.assets.bank import BankConfig, load_bank
-    from gdbench.camera import SphericalPoses
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.core.scene import GaussianScene
+    from gdbench.core.turntable import render_views
     from gdbench.metrics.gt import asset_views, heldout_poses, psnr
     from gdbench.metrics.run_scores import score_run
-    from gdbench.scene import GaussianScene
     from gdbench.train.init import from_bank_depth
-    from gdbench.turntable import render_views
 
     bank = load_bank(CAPTION, BankConfig(resolution=64, azimuths=24, elevations=(0.0,)), verbose=False)
     s = from_bank_depth(bank, 20000, 0.95, generator=torch.Generator().manual_seed(0), views=24)
@@ -190,9 +190,9 @@ def test_fixtures_turn_and_mirror_gaussians_with_their_view_dependent_colour():
     """The oracle is the asset's own scene: turned by 90 degrees, its view from azimuth t is the
     asset's from t - 90; mirrored in x = 0, its view from azimuth a is the asset's from 180 - a
     flipped left to right. Both hold for orientations and SH colour (degree 2), not only means."""
-    from gdbench.camera import SphericalPoses
-    from gdbench.metrics.fixtures3d import _mirrored, failure_scene
-    from gdbench.turntable import render_views
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.core.turntable import render_views
+    from gdbench.metrics.failures3d import _mirrored, failure_scene
 
     asset = failure_scene(CAPTION, "asset")
     assert asset.sh_degree == 2 and float(asset.sh[:, 1:].abs().mean()) > 0.01  # the colour does depend on the view
@@ -246,10 +246,10 @@ def test_gt_score_renders_each_angle_once_with_the_bits_of_one_render_per_offset
     """Oracle: the score as it was written first, one render of the 12 held-out views per azimuth
     offset (72 renders of 12 views). Rendering each distinct angle once and gathering them must
     give the same PSNR, SSIM and offset, bit for bit, on a turned fixture (best offset not 0)."""
-    from gdbench.camera import SphericalPoses
-    from gdbench.metrics.fixtures3d import failure_scene
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.core.turntable import render_views
+    from gdbench.metrics.failures3d import failure_scene
     from gdbench.metrics.gt import asset_views, heldout_poses, psnr, score_against_asset, ssim
-    from gdbench.turntable import render_views
 
     scene = failure_scene(CAPTION, "turned-90", n=3000)
     poses = heldout_poses(12)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..camera import SphericalPoses
+from gdbench.core.camera import SphericalPoses
 
 ASSET_VERSION = 3  # bump when the meshes or the lighting change: old caches are then ignored
 
@@ -95,7 +95,7 @@ class Bank:
 
 
 def cache_dir() -> Path:
-    from ..cache import root
+    from gdbench.core.cache import root
 
     return root() / "banks"
 
@@ -110,9 +110,8 @@ def bank_key(caption: str, config: BankConfig, variant: int = 0) -> str:
 
 def render_bank(caption: str, config: BankConfig, variant: int = 0) -> Bank:
     """Render the bank of ``caption`` (procedural variant ``variant``), without the cache."""
+    from gdbench.assets.library import build
     from renderers.pyrender_points.mesh import render_mesh
-
-    from .library import build
 
     mesh = build(caption, variant)
     poses = config.poses()
@@ -139,7 +138,7 @@ def render_bank(caption: str, config: BankConfig, variant: int = 0) -> Bank:
 
 def load_bank(caption: str, config: BankConfig | None = None, *, variant: int = 0, verbose: bool = True) -> Bank:
     """The bank of ``caption`` (variant ``variant``), from the cache or rendered (and cached atomically)."""
-    from .library import ASSETS
+    from gdbench.assets.library import ASSETS
 
     config = config or BankConfig()
     if caption not in ASSETS:
@@ -172,7 +171,7 @@ def _cache_write(path: Path, bank: Bank, verbose: bool) -> None:
 
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray], what: str) -> None:
-    from ..io import atomic_write
+    from gdbench.core.io import atomic_write
 
     try:
         atomic_write(path, lambda f: np.savez(f, **arrays))

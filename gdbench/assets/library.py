@@ -8,7 +8,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
-from . import shapes as S
+from gdbench.assets import shapes as S
 
 WHITE, BLACK = (0.96, 0.96, 0.94), (0.05, 0.05, 0.06)
 

@@ -36,7 +36,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .common import environment, write_csv, write_json
+from gdbench.bench.common import environment, write_csv, write_json
 
 PROMPT = "a yellow duck"
 TARGET_CELL_S = 14.2 / 2.5
@@ -48,10 +48,19 @@ TARGET_COLD_S = 5.0
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def cli_module(root: Path) -> str | None:
+    """The command line's module in checkout ``root`` (it moved to gdbench/app/ on 2026-11-27: a
+    peer checkout from before has gdbench/cli.py), or None when ``root`` holds no gdbench."""
+    for module in ("gdbench.app.cli", "gdbench.cli"):
+        if (root / Path(*module.split("."))).with_suffix(".py").is_file():
+            return module
+    return None
+
+
 def run_sweep(root: Path, out: Path, presets: tuple[str, ...], steps: int, env: dict | None = None) -> float:
     """Wall time of ``gdbench sweep`` of the prompt with ``presets`` (seed 0, no COLMAP) from
     checkout ``root`` in a fresh process, into a fresh ``out``."""
-    cmd = [sys.executable, "-m", "gdbench.cli", "sweep", "--prompts", PROMPT, "--presets", *presets, "--seeds", "0",
+    cmd = [sys.executable, "-m", cli_module(root), "sweep", "--prompts", PROMPT, "--presets", *presets, "--seeds", "0",
            "--steps", str(steps), "--no-colmap", "--out", str(out)]  # fmt: skip
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
@@ -104,8 +113,8 @@ def next_cell(root: Path, out: Path, steps: int) -> dict:
 
 def colmap_time(scene_ply: Path) -> list[dict]:
     """COLMAP consistency of one scene as a sweep scores it, and the time of each of its stages."""
-    from ..metrics.colmap_consistency import SHARES, score_scene
-    from ..scene import GaussianScene
+    from gdbench.core.scene import GaussianScene
+    from gdbench.metrics.colmap_consistency import SHARES, score_scene
 
     scene = GaussianScene.load_ply(scene_ply)
     marks: list[tuple[str, float]] = []
@@ -127,7 +136,7 @@ def colmap_time(scene_ply: Path) -> list[dict]:
 
 def cold_first_run(tmp: Path) -> dict:
     """``generate --steps 1`` with an empty bank cache minus the same with the cache filled."""
-    from ..cache import root
+    from gdbench.core.cache import root
 
     cold = tmp / "cold_cache"
     cold.mkdir(parents=True, exist_ok=True)
@@ -136,7 +145,7 @@ def cold_first_run(tmp: Path) -> dict:
 
     def run(cache: Path, out: Path) -> float:
         env = os.environ | {"GDBENCH_CACHE": str(cache)}
-        cmd = [sys.executable, "-m", "gdbench.cli", "generate", PROMPT, "--steps", "1", "--out", str(out),
+        cmd = [sys.executable, "-m", "gdbench.app.cli", "generate", PROMPT, "--steps", "1", "--out", str(out),
                "--no-progress", "--overwrite"]  # fmt: skip
         t0 = time.perf_counter()
         p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env)
@@ -165,9 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.steps < 1 or args.rounds < 1:
         ap.error(f"--steps and --rounds: expected at least 1, got {args.steps} and {args.rounds}")
-    if args.peer is not None and not (args.peer / "gdbench" / "cli.py").is_file():
-        ap.error(f"--peer: expected a gdbench checkout (a folder with gdbench/cli.py), got {args.peer}")
-    from .roofline import peak_gflops
+    if args.peer is not None and cli_module(args.peer) is None:
+        ap.error(f"--peer: expected a gdbench checkout (gdbench/app/cli.py or, before 2026-11-27, gdbench/cli.py), "
+                 f"got {args.peer}")  # fmt: skip
+    from gdbench.bench.roofline import peak_gflops
 
     before = peak_gflops()
     rows: list[dict] = []

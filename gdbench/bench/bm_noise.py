@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from .common import environment, random_cloud, write_csv, write_json
+from gdbench.bench.common import environment, random_cloud, write_csv, write_json
 
 TARGET_SHARE_128 = 0.30
 
@@ -43,10 +43,15 @@ def interleaved(a, b, *, budget_s: float, warmup: int = 3, min_repeats: int = 7)
 
 
 def measure(res: int, *, scene_n: int = 4096, seed: int = 0, budget_s: float = 3.0, config=None) -> dict:
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.mechanisms.noise import (
+        NoiseConfig,
+        NoiseRenderer,
+        autocorrelation_length,
+        init_colors,
+        make_noise_cloud,
+    )
     from renderers.splat import rasterize
-
-    from ..camera import SphericalPoses
-    from ..noise import NoiseConfig, NoiseRenderer, autocorrelation_length, init_colors, make_noise_cloud
 
     cfg = config or NoiseConfig()
     cloud = make_noise_cloud(cfg, 3, generator=torch.Generator().manual_seed(seed))
@@ -92,7 +97,7 @@ def measure(res: int, *, scene_n: int = 4096, seed: int = 0, budget_s: float = 3
 
 
 def plot(rows: list[dict], path: Path) -> Path:
-    from ..plotting import pyplot, save
+    from gdbench.core.plotting import pyplot, save
 
     plt = pyplot()
 
@@ -110,7 +115,7 @@ def plot(rows: list[dict], path: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..noise import NoiseConfig
+    from gdbench.mechanisms.noise import NoiseConfig
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench_results/noise.csv"))

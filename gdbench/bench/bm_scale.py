@@ -15,14 +15,14 @@ from pathlib import Path
 
 import torch
 
-from .common import environment, peak_rss_mb, random_cloud, rss_mb, timeit, write_csv, write_json
+from gdbench.bench.common import environment, peak_rss_mb, random_cloud, rss_mb, timeit, write_csv, write_json
 
 TARGETS = {"fwd_s": 1.0, "peak_rss_mb": 1536.0}
 CASE = {"n": 1_000_000, "width": 1920, "height": 1080, "sh_degree": 3}
 
 
 def run(mode: str, n: int = CASE["n"], width: int = CASE["width"], height: int = CASE["height"]) -> dict:
-    from gdbench.camera import SphericalPoses
+    from gdbench.core.camera import SphericalPoses
     from renderers.splat import rasterize
 
     base = rss_mb()

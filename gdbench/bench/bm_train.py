@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from .common import environment, kernel_clock, timeit, write_csv, write_json
+from gdbench.bench.common import environment, kernel_clock, timeit, write_csv, write_json
 
 TARGET_DENOISE_S = 0.005
 TARGET_RUN_S = 120.0
@@ -33,7 +33,7 @@ PARTS = ("t_views", "t_render", "t_noise", "t_prior", "t_update")
 
 
 def denoise_time(view_mode: str = "window") -> dict:
-    from ..priors.empirical import EmpiricalPrior
+    from gdbench.priors.empirical import EmpiricalPrior
 
     prior = EmpiricalPrior(view_mode=view_mode)
     cond = prior.encode("a yellow duck")
@@ -54,8 +54,8 @@ def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -
     (classifier-free guidance: two network evaluations per view; target 40 ms), measured in one
     process in alternating blocks of steps (an A/B: the machine's phase moves both alike), after
     ``warmup`` steps of each (the empirical prior's zoom levels fill its cache as they are met)."""
-    from ..train.config import preset
-    from ..train.trainer import init_state, make_context, train_step
+    from gdbench.train.config import preset
+    from gdbench.train.trainer import init_state, make_context, train_step
 
     runs = {}
     for name in ("empirical", "learned"):
@@ -93,9 +93,8 @@ def kernels_per_step() -> Iterator[tuple[dict[str, list] | None, list[float]]]:
     around the kernels can make a step faster than its time inside them (torch's own kernels,
     such as the prior's matrix-vector product and Adam, come on top). Without the extension (not
     built here) it yields (None, []) and the steps run untimed. For one thread (``kernel_clock``)."""
+    from gdbench.train import run as run_module
     from renderers.splat._ext import load_extension
-
-    from ..train import run as run_module
 
     per: dict[str, list] = {}
     inside: list[float] = []
@@ -152,10 +151,10 @@ def kernel_rows(per: dict[str, list] | None, inside: list[float], step: float) -
 
 
 def default_run(out: Path) -> list[dict]:
-    from ..priors.empirical import clear_level_cache
-    from ..train.config import preset
-    from ..train.run import train
-    from .roofline import peak_gflops
+    from gdbench.bench.roofline import peak_gflops
+    from gdbench.priors.empirical import clear_level_cache
+    from gdbench.train.config import preset
+    from gdbench.train.run import train
 
     clear_level_cache()  # the prior's zoom levels as a fresh process (make demo) meets them, not prior_steps' ones
     before = peak_gflops()
@@ -210,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("bench_results/train.csv"))
     ap.add_argument("--skip-run", action="store_true", help="only time the denoiser and the priors' steps")
     args = ap.parse_args(argv)
-    from .roofline import peak_gflops
+    from gdbench.bench.roofline import peak_gflops
 
     rows = [denoise_time("window"), denoise_time("none")]
     rows.append({"what": "machine: float32 matrix product (GFLOP/s)", "seconds": float("nan"), "gflops": peak_gflops()})

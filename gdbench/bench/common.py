@@ -1,5 +1,5 @@
 """Shared pieces of the benchmarks: timing with warm-up and synchronisation, peak memory,
-scene generators; CSV/JSON writing is ``gdbench.io``'s (re-exported here)."""
+scene generators; CSV/JSON writing is ``gdbench.core.io``'s (re-exported here)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from contextlib import contextmanager
 
 import torch
 
-from ..io import read_csv, write_csv, write_json  # noqa: F401  (the benchmarks' writers)
+from gdbench.core.io import read_csv, write_csv, write_json  # noqa: F401  (the benchmarks' writers)
 
 
 def sync(device: torch.device | str) -> None:
@@ -131,7 +131,7 @@ def random_cloud(n: int, *, seed: int = 0, radius: float = 0.5, dtype=torch.floa
 
 
 def environment() -> dict[str, object]:
-    from ..provenance import code_commit
+    from gdbench.core.provenance import code_commit
 
     return {
         "commit": code_commit(),

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..camera import Cameras, SphericalPoses
+from gdbench.core.camera import Cameras, SphericalPoses
 
 THREADS = 1
 """COLMAP's own threads in every call. One makes a scene's score reproducible: with two, the same
@@ -158,8 +158,8 @@ def _reconstruct(
     PINHOLE intrinsics held fixed (the largest model); extraction and matching in ``shares``."""
     from PIL import Image
 
-    from ..io import captured_output
-    from ._colmap_share import extract, match, reader_options
+    from gdbench.core.io import captured_output
+    from gdbench.metrics._colmap_share import extract, match, reader_options
 
     pycolmap = _import_pycolmap()
     phase = phase or (lambda name: None)
@@ -402,7 +402,7 @@ def score_scene(
     (``log``, ``phase``, ``shares``: as ``score_images``). The share processes start after the
     render: started before it, their import of pycolmap slowed the two-thread render by more than
     it hid (views and features 4.07 s against 3.63 s, medians of four, the duck cell's scene)."""
-    from ..turntable import render_views, to_uint8
+    from gdbench.core.turntable import render_views, to_uint8
 
     _check_shares(shares)
     cams = circle_poses(views, **pose_kw).cameras(size, size)
@@ -421,9 +421,8 @@ def asset_circle_images(
     random angle (uniform +-``jitter_deg``) about +Z, which no single scene renders (the failures
     a scene can show are ``fixture_circle_images``').
     """
+    from gdbench.assets.library import build
     from renderers.pyrender_points.mesh import render_mesh
-
-    from ..assets.library import build
 
     if mode not in ("consistent", "jittered"):
         raise ValueError(f"mode: expected 'consistent' or 'jittered', got {mode!r}")
@@ -450,8 +449,8 @@ def fixture_circle_images(caption: str, cams: Cameras, kind: str, *, seed: int =
     ``two-faced`` are the fixtures of those names; ``flicker`` is the asset with every
     Gaussian's colour jittered by a random +-``flicker`` per channel anew in each view (the
     view-to-view colour inconsistency a scene's unconstrained view-dependent colour shows)."""
-    from ..turntable import render_views, to_uint8
-    from .fixtures3d import failure_scene, flicker_colors
+    from gdbench.core.turntable import render_views, to_uint8
+    from gdbench.metrics.failures3d import failure_scene, flicker_colors
 
     if kind not in FIXTURES:
         raise ValueError(f"kind: expected one of {FIXTURES}, got {kind!r}")

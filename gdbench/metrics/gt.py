@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..camera import SphericalPoses
-from ..scene import GaussianScene
+from gdbench.core.camera import SphericalPoses
+from gdbench.core.scene import GaussianScene
 
 
 @dataclass(frozen=True)
@@ -69,12 +69,11 @@ def asset_views(
 ) -> torch.Tensor:
     """The asset (procedural variant ``variant``) rendered by pyrender at ``poses``: [C, H, W, 3] in
     [0, 1]; cached on disk beside the banks (the same bits: a render takes 1-2 s with the mesh)."""
-    from ..assets.bank import cached_arrays
+    from gdbench.assets.bank import cached_arrays
 
     def build() -> dict:
+        from gdbench.assets.library import build
         from renderers.pyrender_points.mesh import render_mesh
-
-        from ..assets.library import build
 
         cams = poses.cameras(size, size)
         pose_gl, K = cams.to_opengl()
@@ -102,7 +101,7 @@ def score_against_asset(
 
     ``reference`` (the asset views) can be passed to score many scenes against one rendering.
     """
-    from ..turntable import render_views
+    from gdbench.core.turntable import render_views
 
     poses = heldout_poses(n_views)
     ref = reference if reference is not None else asset_views(caption, poses, size, background, variant)

@@ -6,7 +6,7 @@
   relative-rotation angles (the headline), translation-direction error.
 
 Every block records how it was made (``made``: its parameters, the commit, the UTC time, its
-seconds; ``gdbench.provenance``). A block of an earlier ``scores.json`` is reused only when the
+seconds; ``gdbench.core.provenance``). A block of an earlier ``scores.json`` is reused only when the
 scene (its SHA-256), the block's parameters and the code all match (``provenance.same_code``:
 the same commit, and for a tree with edits the same edits); the report marks it "reused".
 Blocks that do not match are recomputed when asked for and dropped otherwise, so nothing made
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import torch
 
-from ..io import jsonable, num, read_json, sha256_file, write_json
-from ..scene import GaussianScene
+from gdbench.core.io import jsonable, num, read_json, sha256_file, write_json
+from gdbench.core.scene import GaussianScene
 
 BLOCKS = ("gt", "views", "colmap")
 """The blocks of scores.json; ``gt`` and ``views`` are made together (the view metrics pick the
@@ -32,7 +32,7 @@ variant the GT PSNR is measured against)."""
 def previous_scores(run: Path, scene_sha: str) -> dict:
     """The blocks of ``run/scores.json`` still valid for the scene with hash ``scene_sha``: made
     on that scene by this code (``provenance.same_code``); others are stale and left out."""
-    from ..provenance import same_code
+    from gdbench.core.provenance import same_code
 
     path = run / "scores.json"
     if not path.is_file():
@@ -71,8 +71,8 @@ def score_run(
     COLMAP's own output goes to the run folder's colmap.log; ``progress`` reports each stage.
     ``device``: where the scene is rendered ('cpu', 'cuda' or 'auto'); the images are compared on
     the CPU, and a score does not depend on the device beyond float rounding."""
-    from ..devices import resolve_device
-    from ..io import FolderLock
+    from gdbench.core.devices import resolve_device
+    from gdbench.core.io import FolderLock
 
     dev = resolve_device(device, "device (--device)")
     run = Path(run)
@@ -86,7 +86,7 @@ def one_run(run: Path) -> tuple[dict, str]:
     """(run.json's content, scene.ply's SHA-256), checked to belong to one run: the PLY header's
     ``gdbench run <id>`` and the scene's hash must be those run.json records (a folder whose
     files come from two runs is refused, naming both)."""
-    from ..ply import header_comments
+    from gdbench.core.ply import header_comments
 
     ply = run / "scene.ply"
     if not ply.is_file():
@@ -133,7 +133,7 @@ def _check_run_json(info: dict, path: Path) -> None:
 def _score_run(
     run: Path, *, gt: bool, colmap: bool, views: int, size: int, progress: bool = False, device: torch.device
 ) -> dict:
-    from ..progress import Phases
+    from gdbench.core.progress import Phases
 
     ply = run / "scene.ply"
     info, scene_sha = one_run(run)
@@ -163,7 +163,7 @@ def _score_run(
 
 def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size, bg, run, phases) -> None:
     """The asked-for score blocks into ``blocks``: reused from ``previous`` where they match."""
-    from ..provenance import made
+    from gdbench.core.provenance import made
 
     config = info.get("config", {})
     if want_gt:
@@ -174,8 +174,8 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
             reused += ["gt", "views"]
             phases.total -= 1  # nothing to report there
         else:
-            from .gt import score_against_asset
-            from .views import score_scene as view_scores
+            from gdbench.metrics.gt import score_against_asset
+            from gdbench.metrics.views import score_scene as view_scores
 
             phases.start("ground truth and view metrics")
             t0 = time.perf_counter()
@@ -199,7 +199,7 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
             reused.append("colmap")
             phases.total -= 4
         else:
-            from .colmap_consistency import score_scene
+            from gdbench.metrics.colmap_consistency import score_scene
 
             t0 = time.perf_counter()
             log = run / "colmap.log"  # COLMAP's own lines, not the console's

@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from ..camera import SphericalPoses
+from gdbench.core.camera import SphericalPoses
 
 ELEVATION, FOVY, SIZE, FRAMES = 20.0, 55.0, 64, 36
 
@@ -111,7 +111,7 @@ def reference(caption: str, variants: int = 1, size: int = SIZE, background=(1.0
     """The caption's views on the elevation-20 ring (72 azimuths, fovy 55), every variant, on
     ``background``: an image bank of that one ring, rendered by pyrender and cached like the
     prior's banks."""
-    from ..assets.bank import BankConfig, load_bank
+    from gdbench.assets.bank import BankConfig, load_bank
 
     if variants < 1:
         raise ValueError(f"variants: expected at least 1, got {variants}")
@@ -316,7 +316,7 @@ def render_turntable(
 ) -> tuple[Tensor, Tensor]:
     """(images [F, H, W, 3], alpha [F, H, W]) of a GaussianScene at the metric's views (on the CPU,
     wherever the scene is)."""
-    from ..turntable import render_views_alpha
+    from gdbench.core.turntable import render_views_alpha
 
     return render_views_alpha(scene, turntable_poses(frames).cameras(size, size), background)
 
@@ -337,9 +337,8 @@ def fixture_views(caption: str, mode: str, *, frames: int = FRAMES, size: int = 
 
     import numpy as np
 
+    from gdbench.assets.library import build
     from renderers.pyrender_points.mesh import render_mesh
-
-    from ..assets.library import build
 
     modes = ("asset", "jittered")
     if mode not in modes:

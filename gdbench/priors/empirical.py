@@ -39,12 +39,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..assets.bank import Bank, BankConfig, load_bank
-from ..assets.library import ASSETS
-from ..assets.zoom import zoom_images
-from . import ve_sigmas_from_betas
-from .prompt_check import contradiction
-from .text import CaptionMatcher
+from gdbench.assets.bank import Bank, BankConfig, load_bank
+from gdbench.assets.library import ASSETS
+from gdbench.assets.zoom import zoom_images
+from gdbench.priors import ve_sigmas_from_betas
+from gdbench.priors.prompt_check import contradiction
+from gdbench.priors.text import CaptionMatcher
 
 ViewMode = Literal["none", "buckets", "window"]
 
@@ -184,7 +184,7 @@ class EmpiricalPrior:
         if not (math.isfinite(front_bias) and front_bias >= 0):
             raise ValueError(f"front_bias: expected kappa >= 0, got {front_bias}")
         self.front_bias = front_bias
-        from ..assets.library import VARIANTS
+        from gdbench.assets.library import VARIANTS
 
         if not 1 <= variants <= VARIANTS:
             raise ValueError(f"variants: expected 1..{VARIANTS} procedural variants per caption, got {variants}")

@@ -15,7 +15,7 @@ def make_prior(cfg):
     if cfg.prior == "sd":
         return make_sd_prior(cfg)
     if cfg.prior == "learned":
-        from .learned import LearnedPrior, model_for_front_bias
+        from gdbench.priors.learned.prior import LearnedPrior, model_for_front_bias
 
         model = model_for_front_bias(cfg.front_bias) if cfg.learned_model == "auto" else cfg.learned_model
         prior = LearnedPrior(
@@ -28,7 +28,7 @@ def make_prior(cfg):
         )
         prior.check_cameras(cfg.camera_radius, cfg.background, cfg.fovy_range, cfg.elevation_range)
         return prior
-    from .empirical import EmpiricalPrior, bank_config_for
+    from gdbench.priors.empirical import EmpiricalPrior, bank_config_for
 
     return EmpiricalPrior(
         view_mode=cfg.view_prompting,
@@ -46,7 +46,7 @@ def _device(cfg) -> torch.device | None:
     """Where a network prior (learned, SD) runs: on the trainer's device when that is a GPU, else
     on CUDA when torch sees one (None: the prior's own choice; the renders stay on the CPU and the
     prior moves its inputs and outputs). The empirical prior's bank stays in host memory."""
-    from ..devices import resolve_device
+    from gdbench.core.devices import resolve_device
 
     dev = resolve_device(cfg.device, "device (--device)")
     return dev if dev.type != "cpu" else None
@@ -54,8 +54,8 @@ def _device(cfg) -> torch.device | None:
 
 def make_sd_prior(cfg):
     """The Stable Diffusion prior of a config, with its semantic code (made or reloaded)."""
-    from .sd_3dfuse import SemanticCodeConfig, load_semantic_code, semantic_code
-    from .stable_diffusion import StableDiffusionPrior
+    from gdbench.priors.sd.prior import StableDiffusionPrior
+    from gdbench.priors.sd.threedfuse import SemanticCodeConfig, load_semantic_code, semantic_code
 
     kw = dict(
         guidance_scale=cfg.sd_guidance,

@@ -56,7 +56,7 @@ def colour_lexicon() -> dict[tuple[str, ...], tuple[float, float, float]]:
     """Colour names (as word tuples, longest first) -> sRGB in [0, 1], from matplotlib's CSS4 and
     XKCD tables (names with '/' or digits left out; XKCD's survey names win over CSS4's where both
     exist: CSS "lavender" is nearly white), as ``colour_names`` keeps them."""
-    from .colour_names import parse
+    from gdbench.priors.colour_names import parse
 
     out = {tuple(name.replace("'", "").split()): _rgb(value) for name, value in parse().items()}
     return dict(sorted(out.items(), key=lambda kv: -len(kv[0])))
@@ -81,10 +81,10 @@ def _lab(rgb: np.ndarray) -> np.ndarray:
 def palette(caption: str) -> tuple[np.ndarray, np.ndarray]:
     """(CIELAB colours [F, 3], area weights [F] summing to 1) of the asset's surface (variant 0),
     cached on disk beside the banks (building the mesh takes 1-1.5 s with trimesh's import)."""
-    from ..assets.bank import cached_arrays
+    from gdbench.assets.bank import cached_arrays
 
     def build() -> dict[str, np.ndarray]:
-        from ..assets.library import build
+        from gdbench.assets.library import build
 
         mesh = build(caption)
         rgb = mesh.visual.face_colors[:, :3].astype(np.float64) / 255
@@ -102,7 +102,7 @@ survey centroids)."""
 
 @functools.cache
 def _basic_lab() -> np.ndarray:
-    from .colour_names import parse
+    from gdbench.priors.colour_names import parse
 
     table = parse()  # XKCD's values for these names (they are all in its table)
     return _lab(np.array([_rgb(table[b]) for b in BASIC]))

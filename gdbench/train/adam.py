@@ -5,7 +5,7 @@ torch.optim's optimizers wrap ``__init__``, ``state_dict`` and ``load_state_dict
 imports torch._dynamo on first use: 1.3-1.9 s of every training process on 2 cores, for a
 compiler the trainer never calls, and torch.optim's ``step`` is about 1 ms of Python and checks
 per training step for 6 kernel calls of ~10 us. This class calls the same fused kernel on the
-same tensors (``torch._fused_adam_``), so its parameters and moments are torch's bit for bit,
+same tensors (``torch._fused_adam_``, through ``core.private``), so its parameters and moments are torch's bit for bit,
 and its ``state_dict`` is torch's format: checkpoints written by either load into the other
 (tests/test_update.py checks both against ``torch.optim.Adam(fused=True)``).
 
@@ -18,6 +18,8 @@ import collections
 
 import torch
 from torch import Tensor
+
+from gdbench.core.private import foreach_add_, fused_adam_
 
 OPTIONS = {
     "betas": (0.9, 0.999),
@@ -61,13 +63,13 @@ class Adam:
             todo.append((g, p, st))
         if not todo:
             return
-        torch._foreach_add_([st["step"] for _, _, st in todo], 1)
+        foreach_add_([st["step"] for _, _, st in todo], 1)
         with torch.no_grad():
             for g, p, st in todo:
                 b1, b2 = g["betas"]
-                torch._fused_adam_([p], [p.grad], [st["exp_avg"]], [st["exp_avg_sq"]], [], [st["step"]],
-                                   amsgrad=False, lr=g["lr"], beta1=b1, beta2=b2, weight_decay=g["weight_decay"],
-                                   eps=g["eps"], maximize=False, grad_scale=None, found_inf=None)  # fmt: skip
+                fused_adam_([p], [p.grad], [st["exp_avg"]], [st["exp_avg_sq"]], [], [st["step"]],
+                            amsgrad=False, lr=g["lr"], beta1=b1, beta2=b2, weight_decay=g["weight_decay"],
+                            eps=g["eps"], maximize=False, grad_scale=None, found_inf=None)  # fmt: skip
 
     def state_dict(self) -> dict:
         """torch.optim's format: state by parameter index, groups with indices for parameters."""

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from .streams import make_streams, set_stream_states
+from gdbench.train.streams import make_streams, set_stream_states
 
 RESUME_IGNORES = frozenset(
     {"out", "progress", "checkpoint_every", "log_every", "turntable_frames", "log_dir", "device"}
@@ -35,7 +35,7 @@ class CheckpointError(ValueError):
 def save_blob(blob: dict, path: Path) -> Path:
     """Atomic (``io.atomic_write``): written to a temporary file in the same folder, then renamed
     over ``path``; a full disk raises an OSError naming ``path``."""
-    from ..io import atomic_write
+    from gdbench.core.io import atomic_write
 
     return atomic_write(path, lambda f: torch.save({"format": FORMAT} | blob, f))
 
@@ -82,7 +82,7 @@ def checkpoint_path(cfg) -> Path:
 
 def save_checkpoint(state, ctx, path: Path) -> Path:
     """Atomic (temporary file + rename); tensors and plain data only."""
-    from .outputs import config_dict
+    from gdbench.train.outputs import config_dict
 
     return save_blob(
         {
@@ -103,10 +103,10 @@ def save_checkpoint(state, ctx, path: Path) -> Path:
 
 def load_checkpoint(path: Path, ctx):
     """The ``TrainState`` saved at ``path``, after checking it belongs to ``ctx``'s config."""
-    from .densify import DensifyState
-    from .outputs import config_dict
-    from .state import TrainState
-    from .trainer import _optimizer
+    from gdbench.train.densify import DensifyState
+    from gdbench.train.outputs import config_dict
+    from gdbench.train.state import TrainState
+    from gdbench.train.trainer import _optimizer
 
     blob = load_blob(path)
     saved = blob.get("config")
@@ -174,7 +174,7 @@ def _check_state(params, opt, dens, noise_colors, ctx) -> None:
 
 def _check_params(params) -> None:
     """The saved parameters: tensors of one Gaussian count with the trainer's shapes."""
-    from .densify import PARAM_NAMES
+    from gdbench.train.densify import PARAM_NAMES
 
     if not isinstance(params, dict) or set(params) != set(PARAM_NAMES):
         found = sorted(params) if isinstance(params, dict) else type(params).__name__

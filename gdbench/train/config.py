@@ -15,8 +15,8 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
-from ..constraints import AtLeast, Between, Positive, Range, Seed, check_fields
-from ..noise import NoiseConfig
+from gdbench.core.constraints import AtLeast, Between, Positive, Range, Seed, check_fields
+from gdbench.mechanisms.noise import NoiseConfig
 
 
 @dataclass(frozen=True)
@@ -352,7 +352,7 @@ class TrainConfig:
     sees one)."""
 
     def __post_init__(self) -> None:
-        check_fields(self)  # every field against its declared type and range (gdbench.constraints)
+        check_fields(self)  # every field against its declared type and range (gdbench.core.constraints)
         if not self.sigma_min < self.sigma_max:
             raise ValueError(f"sigma_min (--sigma-min): expected < sigma_max ({self.sigma_max}), got {self.sigma_min}")
         for name in ("fovy_range", "azimuth_range", "elevation_range"):

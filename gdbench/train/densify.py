@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .config import DensifyConfig, DensifySchedule
+from gdbench.train.config import DensifyConfig, DensifySchedule
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh", "sh_rest")
 """The trainer's parameters: ``sh`` is the base colour (SH band 0, [N, 1, D]) and ``sh_rest`` the

@@ -9,14 +9,14 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from ..noise import NoiseState, advance_colors, mix, ratio_schedule
-from ..rand import randn
-from ..variational import jitter
-from .densify import sh_coeffs
+from gdbench.core.rand import randn
+from gdbench.mechanisms.noise import NoiseState, advance_colors, mix, ratio_schedule
+from gdbench.mechanisms.variational import jitter
+from gdbench.train.densify import sh_coeffs
 
 if TYPE_CHECKING:
-    from .state import Context, TrainState
-    from .views import Views
+    from gdbench.train.state import Context, TrainState
+    from gdbench.train.views import Views
 
 
 def render_for_prior(ctx: Context, state: TrainState, views: Views):

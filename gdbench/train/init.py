@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..scene import GaussianScene, sphere_init
+from gdbench.core.scene import GaussianScene, sphere_init
 
 
 def from_points(points: torch.Tensor, colors: torch.Tensor, n: int, opacity: float, *, generator) -> GaussianScene:

@@ -17,7 +17,7 @@ import typing
 from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Annotated, Literal, Optional
 
-from .config import PRESETS, TrainConfig
+from gdbench.train.config import PRESETS, TrainConfig
 
 NESTED = ("noise", "optim", "densify")
 
@@ -168,7 +168,7 @@ def method_options():
 
 def flag(key: str) -> str:
     """The command-line option of an override key ('noise.ou_beta' -> '--noise-ou-beta')."""
-    from ..constraints import flag as _flag
+    from gdbench.core.constraints import flag as _flag
 
     return _flag(key)
 

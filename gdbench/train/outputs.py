@@ -6,7 +6,7 @@ import dataclasses
 import platform
 from pathlib import Path
 
-from .config import TrainConfig
+from gdbench.train.config import TrainConfig
 
 
 def config_dict(cfg: TrainConfig) -> dict:
@@ -43,7 +43,7 @@ def package_versions() -> dict[str, str]:
 def write_curves(history: list[dict], path: Path, schedule=None) -> Path:
     """The training curves; with ``schedule`` (a ``DensifySchedule``), densification steps are
     marked by thin grey lines and opacity resets by dashed red ones."""
-    from ..plotting import pyplot, save
+    from gdbench.core.plotting import pyplot, save
 
     plt = pyplot()
 

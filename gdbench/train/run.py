@@ -10,20 +10,18 @@ run id (a hash of the config) and the scene's hash, ``scene.ply`` the run id in 
 
 from __future__ import annotations
 
-import contextlib
-import signal
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ..io import FolderLock, check_folder, read_json, sha256_file, sha256_json, write_json
-from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
-from .config import TrainConfig
-from .outputs import config_dict, package_versions, write_curves
-from .trainer import Context, TrainState, init_state, make_context, train_step
+from gdbench.core.io import FolderLock, check_folder, read_json, sha256_file, sha256_json, write_json
+from gdbench.core.signals import RunInterrupted, defer_stop_signals
+from gdbench.train.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from gdbench.train.config import TrainConfig
+from gdbench.train.outputs import config_dict, package_versions, write_curves
+from gdbench.train.trainer import Context, TrainState, init_state, make_context, train_step
 
 RUN_OUTPUTS = (
     "run.json",
@@ -41,33 +39,6 @@ RUN_OUTPUTS = (
 )
 """What a run and the commands that write into its folder (``score``, ``render``) put there
 (removed before an overwrite)."""
-
-
-STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
-"""What ends a run cleanly: Ctrl-C (SIGINT), ``timeout``/``kill``/Slurm (SIGTERM) and a closed
-terminal or SSH session (SIGHUP)."""
-
-
-class RunInterrupted(RuntimeError):
-    """A stop signal (``STOP_SIGNALS``) during training: the checkpoint was saved first.
-    ``exit_code`` is the shell's 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM,
-    129 for SIGHUP)."""
-
-    def __init__(self, message: str, signum: int = signal.SIGINT):
-        super().__init__(message)
-        self.signum = int(signum)
-
-    @property
-    def exit_code(self) -> int:
-        return 128 + self.signum
-
-    @classmethod
-    def at(cls, signum: int, step: int, steps: int, ckpt: Path) -> RunInterrupted:
-        return cls(
-            f"interrupted by {signal.Signals(signum).name} at step {step} of {steps}; checkpoint saved to {ckpt}; "
-            "run the same command again to resume",
-            signum,
-        )
 
 
 @dataclass
@@ -122,7 +93,7 @@ class RunResult:
 def run_id(cfg: TrainConfig) -> str:
     """A short hash of everything in the config that changes the result (fields added later are
     left out at the value that behaves as before them: ``ADDED_AT_DEFAULT``)."""
-    from .checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
+    from gdbench.train.checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
 
     return sha256_json(
         {
@@ -227,7 +198,7 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> int | None:
     cfg = ctx.cfg
     scalars = None
     if cfg.log_dir is not None:
-        from .tblog import ScalarLog
+        from gdbench.train.tblog import ScalarLog
 
         scalars = ScalarLog(cfg, ctx, run_id(cfg))
     bar = _progress(cfg, state.step, last)
@@ -256,28 +227,10 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> int | None:
     return saved
 
 
-@contextlib.contextmanager
-def defer_stop_signals(flag: list):
-    """While active, each of ``STOP_SIGNALS`` appends its number to ``flag`` instead of stopping
-    the process (main thread only; elsewhere signals cannot be caught and nothing changes)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {}
-    for s in STOP_SIGNALS:
-        if signal.getsignal(s) is not signal.SIG_IGN:  # nohup's ignored SIGHUP stays ignored
-            previous[s] = signal.signal(s, lambda signum, _frame: flag.append(signum))
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-
-
 def _progress(cfg: TrainConfig, start: int, last: int):
     if not cfg.progress:
         return None
-    from ..progress import progress
+    from gdbench.core.progress import progress
 
     return progress(last, f"{cfg.preset} '{cfg.prompt}'", "step", initial=start)
 
@@ -303,8 +256,8 @@ def write_run_outputs(
     bank and initial state or checkpoint), ``train_steps_s`` and ``outputs_s`` (these outputs).
     ``made``: the run.json of an earlier call that finished this run, whose ``PROVENANCE`` fields
     are kept."""
-    from ..provenance import code_commit, utc_now
-    from ..turntable import RUN_TURNTABLE, write_turntable
+    from gdbench.core.provenance import code_commit, utc_now
+    from gdbench.core.turntable import RUN_TURNTABLE, write_turntable
 
     cfg = ctx.cfg
     rid = run_id(cfg)

@@ -11,12 +11,12 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..noise import NoiseRenderer
-from ..scene import GaussianScene
-from .adam import Adam
-from .config import TrainConfig
-from .densify import PARAM_NAMES, SCENE_NAMES, DensifyState, DensifyStrategy, sh_coeffs
-from .streams import set_stream_states, stream_states
+from gdbench.core.scene import GaussianScene
+from gdbench.mechanisms.noise import NoiseRenderer
+from gdbench.train.adam import Adam
+from gdbench.train.config import TrainConfig
+from gdbench.train.densify import PARAM_NAMES, SCENE_NAMES, DensifyState, DensifyStrategy, sh_coeffs
+from gdbench.train.streams import set_stream_states, stream_states
 
 Mode = Literal["rgb", "sd-rgb", "sd-latent"]
 
@@ -73,9 +73,8 @@ class TrainState:
         p = {k: self.params[k].detach().cpu() for k in PARAM_NAMES}
         sh = sh_coeffs(p)
         if sh.shape[-1] == 4:  # latent-mode features: colours by the linear latent preview
+            from gdbench.priors.sd.prior import latent_to_rgb
             from renderers.splat.sh import C0
-
-            from ..priors.stable_diffusion import latent_to_rgb
 
             sh = ((latent_to_rgb(sh[:, 0]) - 0.5) / C0)[:, None]
         return GaussianScene(*(p[k] for k in SCENE_NAMES), sh)

@@ -50,7 +50,7 @@ class ScalarLog:
     def psnr(self, state) -> float:
         """PSNR (dB) of the current scene against the asset at the held-out views, aligned (the
         asset's views rendered once per run)."""
-        from ..metrics.gt import asset_views, heldout_poses, score_against_asset
+        from gdbench.metrics.gt import asset_views, heldout_poses, score_against_asset
 
         bg = self.cfg.background
         if self._ref is None:

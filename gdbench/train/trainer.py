@@ -27,16 +27,16 @@ import time
 import torch
 from torch import Tensor
 
-from ..noise import NoiseRenderer, init_colors, make_noise_cloud
-from .adam import Adam
-from .config import TrainConfig
-from .densify import PARAM_NAMES, SCENE_NAMES, DensifyStrategy
-from .distill import distill, render_for_prior
-from .init import initial_scene, scene_extent
-from .state import Context, Mode, TrainState
-from .streams import make_streams
-from .update import TrainingDiverged, apply_update
-from .views import Views, sample_views
+from gdbench.mechanisms.noise import NoiseRenderer, init_colors, make_noise_cloud
+from gdbench.train.adam import Adam
+from gdbench.train.config import TrainConfig
+from gdbench.train.densify import PARAM_NAMES, SCENE_NAMES, DensifyStrategy
+from gdbench.train.distill import distill, render_for_prior
+from gdbench.train.init import initial_scene, scene_extent
+from gdbench.train.state import Context, Mode, TrainState
+from gdbench.train.streams import make_streams
+from gdbench.train.update import TrainingDiverged, apply_update
+from gdbench.train.views import Views, sample_views
 
 __all__ = [
     "Context",
@@ -54,8 +54,8 @@ __all__ = [
 
 
 def make_context(cfg: TrainConfig, prior=None) -> Context:
-    from ..devices import resolve_device
-    from ..priors.factory import make_prior
+    from gdbench.core.devices import resolve_device
+    from gdbench.priors.factory import make_prior
 
     device = resolve_device(cfg.device, "device (--device)")
     prior = make_prior(cfg) if prior is None else prior

@@ -9,13 +9,14 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from .config import TrainConfig
-from .densify import PARAM_NAMES
-from .init import SPHERE_RADIUS
+from gdbench.core.private import non_finite_check_
+from gdbench.train.config import TrainConfig
+from gdbench.train.densify import PARAM_NAMES
+from gdbench.train.init import SPHERE_RADIUS
 
 if TYPE_CHECKING:
-    from .state import Context, TrainState
-    from .views import Views
+    from gdbench.train.state import Context, TrainState
+    from gdbench.train.views import Views
 
 
 class TrainingDiverged(RuntimeError):
@@ -108,5 +109,5 @@ def _all_finite(tensors: list[Tensor]) -> bool:
         return True
     found = torch.zeros((), device=tensors[0].device)
     with torch.no_grad():
-        torch._amp_foreach_non_finite_check_and_unscale_([t.detach() for t in tensors], found, _ONE.to(found))
+        non_finite_check_([t.detach() for t in tensors], found, _ONE.to(found))
     return not bool(found)

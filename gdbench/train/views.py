@@ -10,10 +10,10 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..camera import Cameras, SphericalPoses
+from gdbench.core.camera import Cameras, SphericalPoses
 
 if TYPE_CHECKING:
-    from .state import Context, TrainState
+    from gdbench.train.state import Context, TrainState
 
 
 @dataclass(frozen=True)

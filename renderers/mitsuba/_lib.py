@@ -56,7 +56,7 @@ def mitsuba_cameras(viewmats, Ks, width: int, height: int) -> list[dict]:
     """Per camera of OpenCV world-to-camera ``viewmats`` [C, 4, 4] and ``Ks`` [C, 3, 3]:
     ``to_world`` [4, 4] (Mitsuba axes: x left, y up, z forward), the horizontal ``fov`` in degrees
     and the principal point offsets as fractions of the image size (Mitsuba's
-    ``principal_point_offset_x/y``). ``gdbench.camera.Cameras.to_mitsuba`` is this function."""
+    ``principal_point_offset_x/y``). ``gdbench.core.camera.Cameras.to_mitsuba`` is this function."""
     import torch
 
     cv_to_mi = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64))

@@ -1,7 +1,7 @@
 """Render vertex-coloured meshes with pyrender: rgb, camera-space depth z and coverage.
 
 Cameras come in as OpenGL camera-to-world poses and pinhole intrinsics (pixels, top-left
-origin, as ``gdbench.camera.Cameras.to_opengl`` gives them). Lighting: ambient plus a
+origin, as ``gdbench.core.camera.Cameras.to_opengl`` gives them). Lighting: ambient plus a
 headlight, so shading depends on the view like a real capture but the colours stay
 recognisable. ``supersample`` renders at that factor and box-filters down (antialiasing).
 """

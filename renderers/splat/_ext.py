@@ -2,7 +2,7 @@
 the projection and tile binning (``csrc/project_cpu.cpp``), the SH colour without gradients
 (``csrc/sh_cpu.cpp``) and, for the empirical prior's image bank, the separable zoom of
 ``gdbench.assets.zoom`` and the squared distances of ``gdbench.priors.empirical``
-(``csrc/bank_cpu.cpp``), and the training step's normal draws (``gdbench.rand``,
+(``csrc/bank_cpu.cpp``), and the training step's normal draws (``gdbench.core.rand``,
 ``csrc/normal_cpu.cpp``).
 
 The built module lives in one file, ``<cache>/gdbench_splat_cpu_<hash of the sources>.so``
@@ -84,7 +84,7 @@ def _cpu_tag() -> str:
 def build_dir() -> Path:
     import torch
 
-    root = Path(os.environ.get("GDBENCH_CACHE") or Path.home() / ".cache" / "gdbench") / "ext"  # as gdbench.cache
+    root = Path(os.environ.get("GDBENCH_CACHE") or Path.home() / ".cache" / "gdbench") / "ext"  # as gdbench.core.cache
     py = f"py{sys.version_info.major}{sys.version_info.minor}"
     return root / f"torch{torch.__version__.split('+')[0]}-{py}-{_cpu_tag()}"
 

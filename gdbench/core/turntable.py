@@ -1,0 +1,163 @@
+"""Turntables: render a scene from an orbit and write a GIF, an MP4 and a contact sheet."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gdbench.core.camera import Cameras, SphericalPoses
+from gdbench.core.scene import GaussianScene
+
+RUN_TURNTABLE = {"radius": 1.3, "elevation": 15.0, "fovy": 45.0}
+"""The orbit of a training run's turntable (``train.run``; ``cfg.turntable_frames`` frames) and of
+the browser viewer's turntable views (``gdbench.app.viewer``)."""
+
+
+@dataclass
+class TurntableResult:
+    frames: np.ndarray
+    """[F, H, W, 3] uint8."""
+    seconds_per_frame: list[float]
+    paths: dict[str, Path]
+
+
+def render_views_alpha(
+    scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render cameras in batches without gradients, on the scene's device; returns (rgb [C, H, W, 3]
+    in [0, 1], alpha [C, H, W]) on the CPU, where outputs and scores are made."""
+    from renderers.splat import rasterize
+
+    bg = torch.as_tensor(background, dtype=scene.means.dtype, device=scene.means.device)
+    rgb, alpha = [], []
+    with torch.no_grad():
+        for i in range(0, len(cams), batch):
+            c = cams[i : i + batch].to(scene.means.device)
+            r = rasterize(
+                **scene.render_args(),
+                viewmats=c.viewmats,
+                Ks=c.Ks,
+                width=c.width,
+                height=c.height,
+                background=bg,
+                outputs=("rgb", "alpha"),
+                **kwargs,
+            )
+            rgb.append(r.rgb.clamp(0, 1).cpu())
+            alpha.append(r.alpha[..., 0].cpu())
+    return torch.cat(rgb), torch.cat(alpha)
+
+
+def render_views(
+    scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
+) -> torch.Tensor:
+    """Render cameras in batches without gradients; returns [C, H, W, 3] in [0, 1], on the CPU."""
+    return render_views_alpha(scene, cams, background, batch, **kwargs)[0]
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    return (images.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def contact_sheet(frames: np.ndarray, columns: int = 6) -> np.ndarray:
+    """Tile [F, H, W, 3] frames into one image, ``columns`` per row (white padding)."""
+    f, h, w, c = frames.shape
+    columns = max(1, min(columns, f))
+    rows = (f + columns - 1) // columns
+    sheet = np.full((rows * h, columns * w, c), 255, dtype=np.uint8)
+    for i in range(f):
+        r, col = divmod(i, columns)
+        sheet[r * h : (r + 1) * h, col * w : (col + 1) * w] = frames[i]
+    return sheet
+
+
+def write_turntable(
+    scene: GaussianScene,
+    out_dir: str | Path,
+    *,
+    frames: int = 36,
+    size: int = 256,
+    radius: float = 1.3,
+    elevation: float = 20.0,
+    fovy: float = 45.0,
+    background=(1.0, 1.0, 1.0),
+    fps: int = 12,
+    mp4: bool = True,
+    stem: str = "turntable",
+) -> TurntableResult:
+    """Render ``frames`` views on a circle and write ``{stem}.gif``, ``.mp4`` and ``_sheet.png``."""
+    import imageio.v3 as iio
+
+    from gdbench.core.io import atomic_path
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cams = SphericalPoses.orbit(frames, radius=radius, elevation=elevation, fovy=fovy).cameras(size, size)
+    times, imgs = [], []
+    for i in range(frames):
+        t0 = time.perf_counter()
+        imgs.append(render_views(scene, cams[i], background=background))
+        times.append(time.perf_counter() - t0)
+    arr = to_uint8(torch.cat(imgs))
+    paths = {"gif": out_dir / f"{stem}.gif", "sheet": out_dir / f"{stem}_sheet.png"}
+    with atomic_path(paths["gif"]) as tmp:
+        iio.imwrite(tmp, arr, duration=1000 / fps, loop=0)
+    with atomic_path(paths["sheet"]) as tmp:
+        iio.imwrite(tmp, contact_sheet(arr[:: max(1, frames // 12)][:12]))
+    if mp4:
+        try:
+            with atomic_path(out_dir / f"{stem}.mp4") as tmp:
+                iio.imwrite(tmp, arr, fps=fps, codec="libx264", plugin="pyav")
+            paths["mp4"] = out_dir / f"{stem}.mp4"
+        except OSError:  # a full disk is the run's error, not a missing codec
+            raise
+        except Exception as e:  # pyav missing or without x264: the GIF is still there
+            print(f"note: MP4 not written ({type(e).__name__}: {e}); install `av` for MP4 output")
+    return TurntableResult(arr, times, paths)
+
+
+def demo(out: Path, *, frames: int = 36, size: int = 256, gaussians: int = 3000, seed: int = 0) -> dict:
+    """``gdbench demo``: the built-in scene as a turntable; writes summary.json and prints timings."""
+    import platform
+    import time
+
+    from gdbench.core.builtin import demo_scene
+    from renderers.splat._ext import extension_status
+
+    out = Path(out)
+    t0 = time.perf_counter()
+    scene = demo_scene(gaussians, seed=seed)
+    res = write_turntable(scene, out, frames=frames, size=size)
+    total = time.perf_counter() - t0
+    ply = scene.save_ply(out / "scene.ply")
+    per = sorted(res.seconds_per_frame)
+    summary = {
+        "command": "demo",
+        "config": {"out": str(out), "frames": frames, "size": size, "gaussians": gaussians, "seed": seed},
+        "gaussians": len(scene),
+        "frames": frames,
+        "resolution": [size, size],
+        "first_frame_s": res.seconds_per_frame[0],
+        "median_frame_s": per[len(per) // 2],
+        "fps_median": 1.0 / per[len(per) // 2],
+        "total_s": total,
+        "compositor": extension_status(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "machine": platform.machine(),
+        "outputs": {k: str(v) for k, v in res.paths.items()} | {"ply": str(ply)},
+    }
+    from gdbench.core.io import write_json
+
+    write_json(summary, out / "summary.json")
+    print(f"gdbench demo: {len(scene)} Gaussians, {frames} frames at {size}x{size}")
+    print(f"  first frame {summary['first_frame_s'] * 1e3:8.1f} ms (includes loading the compositor)")
+    print(f"  median      {summary['median_frame_s'] * 1e3:8.1f} ms  ({summary['fps_median']:.1f} frames/s)")
+    print(f"  total       {total:8.2f} s   compositor: {summary['compositor']}")
+    for k, v in summary["outputs"].items():
+        print(f"  {k:5s} -> {v}")
+    return summary

@@ -1,0 +1,2 @@
+"""The experiment: sweeps of cells (``sweep``), their tables (``tables``) and the paper's claims
+as verdicts (``claims``)."""

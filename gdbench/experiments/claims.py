@@ -1,0 +1,431 @@
+"""The paper's claims as paired comparisons a statistician would sign.
+
+Each claim says preset ``a`` scores lower than preset ``b`` on a metric where lower is better.
+Over the (prompt, seed) pairs that both presets ran in one setting, the paired differences
+d = metric(a) - metric(b) give:
+
+- the mean difference with a **BCa** 95% interval (``scipy.stats.bootstrap``, 10,000 resamples
+  of the pairs, a fixed seed; the percentile interval where BCa is undefined, e.g. all
+  differences equal);
+- a **Wilcoxon signed-rank** two-sided p-value (zero differences dropped: ``zero_method
+  "wilcox"``; exact, ties at mid-ranks, up to 16 non-zero differences, scipy's normal
+  approximation beyond), and the same p-value **Holm**-adjusted
+  across the claims of the table that a test decides (``evaluate``'s rows; a row not measured,
+  not testable because neither arm fails or both always fail, or with too few pairs, is no
+  hypothesis tested and stays out of the family; a row whose failures are rarer than the
+  margin stays in it, since its test can still decide);
+- an **equivalence** test of the mean against the claim's margin m (``MARGINS``: the smallest
+  effect that would matter, with its reason): two one-sided paired t-tests of mean(d) > -m and
+  mean(d) < m (TOST), p = the larger of the two. Not signed-rank tests: those test a location
+  shift, and on rates that are 0 in most pairs they passed pairs whose mean difference was
+  outside the margin (0.072 against +-0.05 in the decisive sweep's first read);
+- the **pairs needed** for 80% power at a two-sided 5% level, from the observed mean and
+  standard deviation of d (normal approximation, divided by the Wilcoxon test's asymptotic
+  relative efficiency 3/pi);
+- the mean difference **per prompt** (``by_prompt``), so that one prompt cannot carry a pooled
+  verdict unseen;
+- the same claim **across prompts** (``across_prompts``): the per-prompt mean differences as G
+  observations, their mean with a t interval, a two-sided t p-value Holm-adjusted over the same
+  family, and ``verdict_prompts`` in the same words. The pairs' verdict is about the prompts that
+  ran (seeds are the random unit; pairs of one prompt are independent given it); this one is
+  about prompts beyond them, where the pairs of one prompt are correlated and G, not the pair
+  count, is the sample size (6 prompts: an effect must be large and shared to pass Holm).
+
+The verdict words, checked in this order:
+
+- **not measured**: no pair has the metric in both arms (not scored, or nothing to score);
+- **not testable here (neither preset fails)**: the metric is 0 in every pair: the mechanism
+  had nothing to fix in this setting, which is no evidence either way;
+- **not testable here (both always fail)**: the metric sits at its failure value in every pair
+  of both arms (COLMAP registers nothing in either, so its failure rate is 1.0 throughout): the
+  metric cannot see a difference, which is no evidence either way;
+- **too few pairs (n < 6)**: fewer than ``MIN_PAIRS`` pairs: below six, even pairs that all
+  agree are not significant (the exact two-sided signed-rank p is 2^(1-n) >= 0.0625);
+- **holds** / **does not hold**: the Holm-adjusted p-value is below 0.05 (with at least six
+  non-tied pairs) and the BCa interval of the mean difference lies below 0 (the claim holds) or
+  above 0 (the opposite holds); a significant rank test whose mean interval covers 0 (a skewed
+  sample: the median moves one way, the mean not) decides nothing and goes on to the words below;
+- **not testable here (baseline fails < m)**: not significant, and both arms' means are surely
+  under the margin m (their one-sided 95% t upper bounds over the pairs): every metric here is
+  a failure measure of at least 0, so no reduction could reach m and the equivalence test says
+  nothing about the mechanism (a setting where the failure is too rare to test the claim). A
+  treated arm that fails more than m is not hidden here: the equivalence test can then fail,
+  and the row reads undecided or does not hold;
+- **no effect beyond +-m**: the equivalence test's p is below 0.05 and the BCa 95% interval
+  lies within +-m (so a reader checks it in the table): a null result with the power to say so
+  (a tie in every pair counts here: the presets do the same);
+- **too few non-tied pairs (k < 6)**: the pairs are enough but fewer than six differ, so the
+  signed-rank test cannot reach 5%;
+- **undecided**: none of the above: more pairs are needed (see the power column).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from gdbench.core.io import num
+
+
+@dataclass(frozen=True)
+class Claim:
+    text: str
+    a: str
+    b: str
+    metric: str
+    """A row key; lower is better."""
+    fails_at: float | None = None
+    """The metric's value in a cell where the failure always happens (a rate's 1.0), or None
+    where it has no such value."""
+
+
+CLAIMS = (
+    Claim("structured noise reduces multi-face failures", "gd", "gd-no-sn", "multi_face_rate", 1.0),
+    Claim("structured noise reduces multi-face failures", "gd-no-vgs", "sjc-gs", "multi_face_rate", 1.0),
+    Claim("structured noise reduces Janus failures (no face or a second)", "gd", "gd-no-sn", "janus_failure_rate", 1.0),
+    Claim(
+        "the shared source, not the noise's texture, cuts Janus failures",
+        "gd",
+        "gd-redraw-step",
+        "janus_failure_rate",
+        1.0,
+    ),
+    Claim("structured noise reduces instance inconsistency", "gd", "gd-no-sn", "instance_inconsistency"),
+    Claim("structured noise reduces instance inconsistency", "gd-no-vgs", "sjc-gs", "instance_inconsistency"),
+    Claim("variational Gaussians reduce floaters", "gd", "gd-no-vgs", "floaters"),
+    Claim("variational Gaussians reduce floaters", "gd-no-sn", "sjc-gs", "floaters"),
+    Claim("gd is more consistent than SJC on COLMAP (failure rate)", "gd", "sjc-gs", "colmap_failure_rate", 1.0),
+    Claim("gd is more consistent than SDS on COLMAP (failure rate)", "gd", "sds-gs", "colmap_failure_rate", 1.0),
+    Claim("structured noise makes results more COLMAP-consistent", "gd", "gd-no-sn", "colmap_failure_rate", 1.0),
+    Claim("variational Gaussians make results more COLMAP-consistent", "gd", "gd-no-vgs", "colmap_failure_rate", 1.0),
+)
+"""The paper's claims (section 4) in the ablation's terms. COLMAP's are read on its failure rate
+(adjacent views unregistered or off the true relative rotation by more than 5 degrees), which
+every cell has: Var(theta) is defined only over registered views, so cells that register fewer
+than three drop out of it and the pairs left are a selection; it stays in the summary (mean and
+median) with no verdict of its own. gd against SJC differs in two factors (structured noise and
+variational Gaussians); the last two claims read each factor on its own, where the sweep ran
+COLMAP for gd-no-sn and gd-no-vgs."""
+
+
+MIN_PAIRS = 6
+"""Fewest pairs (and non-tied pairs) a difference is read from (module docstring)."""
+
+ALPHA = 0.05
+
+MARGINS = {
+    "multi_face_rate": (0.05, "one view in twenty of the turntable"),
+    "janus_failure_rate": (0.05, "one view in twenty of the turntable"),
+    "instance_inconsistency": (0.05, "one view in twenty of the turntable"),
+    "colmap_failure_rate": (0.05, "one view in twenty of COLMAP's circle"),
+    "floaters": (0.01, "a tenth of the 40-floater 3D fixtures' 0.08-0.15 (every other fixture 0.000)"),
+}
+"""Equivalence margin of each metric: the smallest difference that would matter, and why."""
+
+
+def bca_ci(d: np.ndarray, *, level: float = 0.95, n: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """BCa bootstrap interval of the mean of ``d`` (percentile where BCa is undefined: a
+    constant sample, or a jackknife without spread); (NaN, NaN) for no data."""
+    from scipy import stats
+
+    d = np.asarray(d, dtype=np.float64)
+    if d.size == 0:
+        return math.nan, math.nan
+    if d.size == 1 or np.all(d == d[0]):
+        return float(d[0]), float(d[0])
+    for method in ("BCa", "percentile"):
+        with warnings.catch_warnings(), np.errstate(all="ignore"):  # BCa warns where it is undefined
+            warnings.simplefilter("ignore")
+            ci = stats.bootstrap(
+                (d,), np.mean, confidence_level=level, n_resamples=n, method=method, rng=np.random.default_rng(seed)
+            ).confidence_interval
+        lo, hi = float(ci.low), float(ci.high)
+        if math.isfinite(lo) and math.isfinite(hi):
+            return lo, hi
+    return math.nan, math.nan
+
+
+ROUND = 12
+"""Decimals the differences are rounded to before ranking: float noise (0.3 - 0.2 against 0.1)
+would otherwise break ties and give near-zero differences a rank."""
+
+EXACT_UP_TO = 16
+"""Non-zero differences up to which the signed-rank p is exact (every sign pattern enumerated, ties
+at their mid-ranks): scipy falls back to the normal approximation wherever zeros or ties occur,
+which gave five agreeing pairs p = 0.043 (exact: 0.0625)."""
+
+
+def signed_rank_p(d: np.ndarray, alternative: str = "two-sided") -> float:
+    """Wilcoxon signed-rank p-value of ``d`` (zeros dropped; exact up to ``EXACT_UP_TO`` non-zero
+    differences, scipy's otherwise); 1 when nothing differs."""
+    from scipy import stats
+
+    d = np.round(np.asarray(d, dtype=np.float64), ROUND)  # 0.3 - 0.2 and 0.1 tie
+    d = d[d != 0]
+    if d.size == 0:
+        return 1.0
+    if d.size > EXACT_UP_TO:
+        return float(stats.wilcoxon(d, zero_method="wilcox", alternative=alternative).pvalue)
+    ranks = stats.rankdata(np.abs(d))
+    signs = (np.arange(2**d.size)[:, None] >> np.arange(d.size)) & 1  # every sign pattern
+    w = signs @ ranks  # W+ of each pattern (the observed one among them)
+    obs, centre, eps = float(ranks[d > 0].sum()), float(ranks.sum()) / 2, 1e-9
+    if alternative == "greater":
+        return float(np.mean(w >= obs - eps))
+    if alternative == "less":
+        return float(np.mean(w <= obs + eps))
+    return float(np.mean(np.abs(w - centre) >= abs(obs - centre) - eps))
+
+
+def equivalence_p(d: np.ndarray, margin: float) -> float:
+    """TOST with two one-sided paired t-tests: H0 |mean effect| >= margin; small p says the mean
+    effect lies within +-margin. Differences without spread: 0 inside the margin, 1 outside;
+    NaN under two pairs."""
+    from scipy import stats
+
+    d = np.asarray(d, dtype=np.float64)
+    if d.size < 2:
+        return math.nan
+    mean, se = float(d.mean()), float(d.std(ddof=1)) / math.sqrt(d.size)
+    if np.all(d == d[0]):  # no spread (the std of equal floats can be 1e-17, not 0)
+        return 0.0 if abs(mean) < margin else 1.0
+    t = stats.t(d.size - 1)
+    return float(max(t.sf((mean + margin) / se), t.cdf((mean - margin) / se)))
+
+
+def holm(p: list[float]) -> list[float]:
+    """Holm's step-down adjustment of the p-values ``p`` (NaN entries are left out and stay NaN)."""
+    idx = [i for i, x in enumerate(p) if x == x]
+    order = sorted(idx, key=lambda i: p[i])
+    m, out, running = len(order), [math.nan] * len(p), 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        out[i] = running
+    return out
+
+
+def pairs_for_power(d: np.ndarray, power: float = 0.8, alpha: float = ALPHA) -> float:
+    """Pairs a two-sided level-``alpha`` signed-rank test needs for ``power`` against the
+    observed mean effect, from its mean and standard deviation (normal approximation over the
+    Wilcoxon test's efficiency 3/pi); inf where the observed mean is 0, NaN under 2 pairs."""
+    from scipy import stats
+
+    d = np.asarray(d, dtype=np.float64)
+    if d.size < 2:
+        return math.nan
+    mean, sd = float(d.mean()), float(d.std(ddof=1))
+    if mean == 0:
+        return math.inf
+    z = stats.norm.ppf(1 - alpha / 2) + stats.norm.ppf(power)
+    return float(math.ceil((z * sd / abs(mean)) ** 2 / (3 / math.pi))) if np.any(d != d[0]) else float(MIN_PAIRS)
+
+
+def untested(baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str | None:
+    """Why a claim's pairs admit no test (its verdict words), or None: such a row is left out of
+    the Holm family, which holds only the claims a test decides."""
+    if baseline.size == 0:
+        return "not measured"
+    if np.all(baseline == 0) and np.all(treated == 0):
+        return "not testable here (neither preset fails)"
+    if fails_at is not None and np.all(baseline == fails_at) and np.all(treated == fails_at):
+        return "not testable here (both always fail)"
+    if baseline.size < MIN_PAIRS:
+        return f"too few pairs (n < {MIN_PAIRS})"
+    return None
+
+
+def upper_bound(x: np.ndarray, level: float = 0.95) -> float:
+    """One-sided upper confidence bound of the mean of ``x`` (t, over the pairs); the mean itself
+    for fewer than two values or no spread."""
+    from scipy import stats
+
+    x = np.asarray(x, dtype=np.float64)
+    if x.size < 2 or not np.any(x != x[0]):
+        return float(x.mean()) if x.size else math.nan
+    return float(x.mean() + stats.t(x.size - 1).ppf(level) * x.std(ddof=1) / math.sqrt(x.size))
+
+
+def verdict(row: dict, *, baseline: np.ndarray, treated: np.ndarray, fails_at: float | None) -> str:
+    """The verdict words of one claim's row (module docstring: the words and their order)."""
+    why = untested(baseline, treated, fails_at)
+    if why is not None:
+        return why
+    significant = row["p_holm"] < ALPHA and row["nonzero_pairs"] >= MIN_PAIRS  # (exact p: k < 6 cannot)
+    if significant and (row["ci_high"] < 0 or row["ci_low"] > 0):
+        return "holds" if row["ci_high"] < 0 else "does not hold"
+    # (significant ranks with a mean interval over 0: the mean may still be bounded by the margin)
+    if upper_bound(baseline) < row["margin"] and upper_bound(treated) < row["margin"]:  # no reduction could reach it
+        return f"not testable here (baseline fails < {row['margin']:g})"
+    if row["p_equivalence"] < ALPHA and -row["margin"] < row["ci_low"] <= row["ci_high"] < row["margin"]:
+        return f"no effect beyond +-{row['margin']:g}"
+    if row["nonzero_pairs"] < MIN_PAIRS:
+        return f"too few non-tied pairs (k < {MIN_PAIRS})"
+    return "undecided"
+
+
+SIZE_RATIO_LIMIT = 2.0
+"""Paired arms whose mean Gaussian counts differ by more than this factor are flagged: the size of
+the model, not only what the claim ablates, then differs between them (docs/training.md)."""
+
+
+def _sizes(rows: list[dict], c: Claim, keys: list) -> dict:
+    """Mean final Gaussian count of each arm over the pairs, their ratio (larger / smaller) and
+    whether it exceeds ``SIZE_RATIO_LIMIT``."""
+
+    def mean(preset: str) -> float:
+        n = {(r["prompt"], r["seed"]): num(r.get("gaussians")) for r in rows if r["preset"] == preset}
+        vals = [float(n[k]) for k in keys if k in n and n[k] == n[k]]
+        return float(np.mean(vals)) if vals else math.nan
+
+    ga, gb = mean(c.a), mean(c.b)
+    ratio = max(ga, gb) / min(ga, gb) if ga > 0 and gb > 0 else math.nan
+    return {
+        "gaussians_a": ga,
+        "gaussians_b": gb,
+        "size_ratio": ratio,
+        "size_confounded": bool(ratio > SIZE_RATIO_LIMIT),
+    }
+
+
+def _applies(claim: Claim, rows: list[dict], setting: str) -> bool:
+    """Instance consistency is only defined where the bank holds several variants; the Janus
+    failure (a second face or none) only where view prompting is off (the janus setting), since
+    with a view window a featureless result is a blur, not a pose ambiguity."""
+    if claim.metric == "janus_failure_rate":
+        return setting == "janus"
+    if claim.metric != "instance_inconsistency":
+        return True
+    return setting == "instance" or any(int(r.get("variants", 1) or 1) > 1 for r in rows)
+
+
+def where(row: dict) -> tuple[str, str]:
+    """(group, setting) of a sweep row: the cells a claim pairs within (group '' when the sweep
+    had none; setting 'easy' when a row has none)."""
+    return row.get("group") or "", row.get("setting") or "easy"
+
+
+def label(row: dict) -> str:
+    """Where a row belongs, as tables print it: its setting, after its group when it has one."""
+    group, setting = where(row)
+    return f"{group} / {setting}" if group else setting
+
+
+def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
+    """One result per (group, setting, claim) whose two presets ran there (instance claims only
+    where the prior held several variants); p-values Holm-adjusted across the claims a test
+    decides in the whole table (rows not measured, not testable or with too few pairs have no
+    adjusted p)."""
+    out, arms = [], []
+    for group, setting in dict.fromkeys(where(r) for r in rows):
+        sel = [r for r in rows if where(r) == (group, setting)]
+        ran = {r["preset"] for r in sel}
+        for c in claims:
+            if not {c.a, c.b} <= ran or not _applies(c, sel, setting):
+                continue
+            va = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.a}
+            vb = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.b}
+            keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
+            a = np.array([va[k] for k in keys], dtype=np.float64)
+            b = np.array([vb[k] for k in keys], dtype=np.float64)
+            d = a - b
+            lo, hi = bca_ci(d)
+            margin, why = MARGINS.get(c.metric, (math.nan, "no margin stated"))
+            out.append(
+                {
+                    "group": group,
+                    "setting": setting,
+                    "claim": c.text,
+                    "a": c.a,
+                    "b": c.b,
+                    "metric": c.metric,
+                    "pairs": len(keys),
+                    "nonzero_pairs": int((d != 0).sum()),
+                    "mean_a": float(a.mean()) if keys else math.nan,
+                    "mean_b": float(b.mean()) if keys else math.nan,
+                    "mean_diff": float(d.mean()) if keys else math.nan,
+                    "ci_low": lo,
+                    "ci_high": hi,
+                    "a_better_pairs": int((d < 0).sum()),
+                    "p_value": signed_rank_p(d) if keys else math.nan,
+                    "p_holm": math.nan,
+                    "margin": margin,
+                    "margin_reason": why,
+                    "p_equivalence": equivalence_p(d, margin) if keys and margin == margin else math.nan,
+                    "pairs_for_80pct_power": pairs_for_power(d),
+                    **across_prompts(keys, d, margin),
+                    "by_prompt": by_prompt(keys, d),
+                    **_sizes(sel, c, keys),
+                }
+            )
+            arms.append((b, a, c.fails_at))
+    family = [r["p_value"] if untested(b, a, f) is None else math.nan for r, (b, a, f) in zip(out, arms)]
+    for row, p in zip(out, holm(family)):
+        row["p_holm"] = p
+    family = [r["p_prompts"] if f == f and r["prompts"] >= MIN_PROMPTS else math.nan for r, f in zip(out, family)]
+    for row, p in zip(out, holm(family)):
+        row["p_prompts_holm"] = p
+    for row, (b, a, fails_at) in zip(out, arms):
+        row["verdict"] = verdict(row, baseline=b, treated=a, fails_at=fails_at)
+        row["verdict_prompts"] = verdict_prompts(row)
+    return out
+
+
+MIN_PROMPTS = 3
+"""Fewest prompts a difference across prompts is read from."""
+
+
+def across_prompts(keys: list[tuple], d: np.ndarray, margin: float) -> dict:
+    """The claim with the prompt as the unit: the mean of the per-prompt mean differences, its
+    t interval and two-sided t p-value over the G prompts (G - 1 degrees of freedom), and the
+    t-TOST p against the margin. Pairs of one prompt share its asset and caption, so across
+    prompts they are not independent; this is the reading for prompts beyond the ones run."""
+    from scipy import stats
+
+    pm = np.array([np.mean(v) for v in per_prompt(keys, d).values()], dtype=np.float64)
+    nan = {"prompts": len(pm), "prompt_mean_diff": math.nan, "prompt_ci_low": math.nan, "prompt_ci_high": math.nan,
+           "p_prompts": math.nan, "p_prompts_holm": math.nan, "p_prompts_equivalence": math.nan}  # fmt: skip
+    if len(pm) < 2:
+        return nan | ({"prompt_mean_diff": float(pm.mean())} if len(pm) else {})
+    mean, se = float(pm.mean()), float(pm.std(ddof=1)) / math.sqrt(len(pm))
+    t = stats.t(len(pm) - 1)
+    if np.all(pm == pm[0]):  # every prompt moved alike: the exact sign-flip p over the prompts
+        p, lo, hi = (1.0 if mean == 0 else 2.0 / 2 ** len(pm)), mean, mean
+    else:
+        p = float(2 * t.sf(abs(mean) / se))
+        lo, hi = mean - t.ppf(0.975) * se, mean + t.ppf(0.975) * se
+    return nan | {"prompt_mean_diff": mean, "prompt_ci_low": float(lo), "prompt_ci_high": float(hi), "p_prompts": p,
+                  "p_prompts_equivalence": equivalence_p(pm, margin) if margin == margin else math.nan}  # fmt: skip
+
+
+def verdict_prompts(row: dict) -> str:
+    """The verdict words with the prompt as the unit (``across_prompts``; Holm over the same
+    family): the pairs' words where they admit no test, the failure is too rare or fewer than six
+    pairs differ; otherwise holds / does not hold, no effect beyond +-m (t-TOST and the interval
+    inside the margin), too few prompts, or undecided."""
+    words = row["verdict"]
+    if words.startswith(("not measured", "not testable", "too few pairs")) or row["nonzero_pairs"] < MIN_PAIRS:
+        return words  # (k < 6 non-tied pairs: a t test over their prompt means would be far too liberal)
+    if row["prompts"] < MIN_PROMPTS:
+        return f"too few prompts (G < {MIN_PROMPTS})"
+    if row["p_prompts_holm"] < ALPHA:
+        return "holds" if row["prompt_mean_diff"] < 0 else "does not hold"
+    m = row["margin"]
+    if row["p_prompts_equivalence"] < ALPHA and -m < row["prompt_ci_low"] <= row["prompt_ci_high"] < m:
+        return f"no effect beyond +-{m:g}"
+    return "undecided"
+
+
+def per_prompt(keys: list[tuple], d: np.ndarray) -> dict[str, list[float]]:
+    """The differences ``d`` of the (prompt, seed) pairs ``keys``, grouped by prompt (first-seen order)."""
+    per: dict[str, list[float]] = {}
+    for (prompt, _seed), x in zip(keys, d):
+        per.setdefault(prompt, []).append(float(x))
+    return per
+
+
+def by_prompt(keys: list[tuple], d: np.ndarray) -> str:
+    """The mean difference per prompt with its pair count, e.g. 'a corgi -0.05 (3); a duck 0 (3)'."""
+    return "; ".join(f"{p} {np.mean(v):+.3g} ({len(v)})" for p, v in per_prompt(keys, d).items())

@@ -1,0 +1,562 @@
+"""``gdbench sweep``: train and score every (setting, prompt, preset, seed) cell; write the
+ablation's tables (``sweep_tables.py``): per-cell rows, per-preset summaries and the verdict on
+the paper's claims with bootstrap confidence intervals.
+
+Settings (``SETTINGS``) dial the embedded prior's ambiguity: ``easy`` (the presets' own +-45
+degree view window, one variant), ``janus`` (no view prompting and a front-heavy bank: the
+multi-face mechanism) and ``instance`` (three procedural variants per caption). Cells pair by
+(prompt, seed): every preset sees the same views and noise levels (``train/streams.py``).
+
+Resumable: each cell lives in ``out/cells/<setting>/<prompt>/<preset>/seed<k>``; a finished cell
+(its ``cell.json`` matching its spec) is skipped, and an interrupted one resumes from its
+training checkpoint. The whole grid is validated before the first cell. Executors are
+pluggable: ``local`` (a process pool, default one worker, since one training already uses both
+cores here) or ``ray`` (``--address`` of a cluster, or a local instance when empty).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+SETTINGS: dict[str, dict] = {
+    "easy": {},
+    "janus": {"view_prompting": "none", "front_bias": 1.0},
+    "instance": {"variants": 3},
+}
+"""Ambiguity settings: overrides of every preset in the setting (docs/scoring.md)."""
+
+LEARNED_SETTINGS: dict[str, dict] = {"janus": {"front_bias": 2.0}}
+"""What changes in a setting under --prior learned: the janus setting takes the shipped model
+trained on front-heavy views (kappa 2; the learned prior has no kappa-1 model)."""
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    prompt: str
+    preset: str
+    seed: int
+    steps: int
+    out: str
+    colmap: bool = True
+    colmap_views: int = 100
+    overrides: dict = field(default_factory=dict)
+    setting: str = "easy"
+    group: str = ""
+    """A named set of overrides the sweep crosses with everything else ('' when it has none)."""
+
+    @property
+    def dir(self) -> Path:
+        base = Path(self.out) / "cells" / self.group if self.group else Path(self.out) / "cells"
+        return base / self.setting / cell_name(self.prompt) / self.preset / f"seed{self.seed}"
+
+
+TABLES_EVERY_S = 300.0
+"""Seconds between the tables a running sweep rewrites (and always once at its end): rewriting
+them after every cell cost 2 s per cell at 100 cells and 5 s at 1000 (each claim's 10,000
+bootstrap resamples and the figure of every cell; quiet machine), in the main process beside the
+workers: about an hour of one core over the 1020-cell decisive sweep."""
+
+
+def cell_name(prompt: str) -> str:
+    """A prompt as a cell's folder name (``io.prompt_slug``)."""
+    from gdbench.core.io import prompt_slug
+
+    return prompt_slug(prompt, "prompts")
+
+
+def validate_grid(
+    prompts: list[str], presets: list[str], seeds: list[int], specs: list[CellSpec], executor: str = "local"
+) -> None:
+    """Everything a sweep could fail on, checked before the first cell trains: presets, repeated
+    entries, cell folders two prompts would share, prompts no asset matches (or that contradict
+    it), and each cell's config and device (Ray's tasks get no GPU)."""
+    from gdbench.assets.library import ASSETS
+    from gdbench.priors.prompt_check import contradiction
+    from gdbench.priors.text import CaptionMatcher
+    from gdbench.train.config import PRESETS
+
+    bad = [p for p in presets if p not in PRESETS]
+    if bad:
+        raise ValueError(f"presets: unknown {bad}; expected names from {sorted(PRESETS)}")
+    if not prompts or not presets or not seeds:
+        raise ValueError("prompts, presets, seeds: expected at least one of each")
+    for name, items in (("presets", presets), ("seeds", seeds)):
+        if len(set(items)) != len(items):
+            raise ValueError(f"{name}: {sorted({x for x in items if items.count(x) > 1})} listed more than once")
+    from gdbench.core.devices import resolve_device
+
+    configs = [cell_config(spec) for spec in specs]  # a bad override raises here, naming the setting
+    for device in sorted({cfg.device for cfg in configs}):  # before any bank or palette
+        if resolve_device(device, "device (--device)").type == "cuda" and executor == "ray":
+            raise ValueError(
+                "device: Ray runs a sweep's cells as tasks without a GPU (it hides the GPUs from them); "
+                "use --executor local with --device cuda"
+            )
+    names: dict[str, str] = {}
+    for pr in prompts:
+        n = cell_name(pr)
+        if n in names:
+            raise ValueError(
+                f"prompts: {names[n]!r} and {pr!r} would share the cell folder {n!r}; list each prompt once"
+            )
+        names[n] = pr
+    matcher = CaptionMatcher(sorted(ASSETS))
+    for pr in prompts:
+        caption, sim = matcher.match_scored(pr)
+        why = contradiction(pr, caption, matcher)
+        if why is not None:
+            raise ValueError(f"prompts: {pr!r} matched {caption!r} (cosine {sim:.2f}): {why}")
+
+
+def inert_overrides(specs: list[CellSpec]) -> list[str]:
+    """Options of the sweep (its overrides and its groups') that do nothing in some of the cells
+    given them, one line each (naming the cells' presets, groups and settings); an option that
+    does nothing in every cell given it raises ValueError."""
+    from gdbench.experiments.claims import label
+    from gdbench.train.options import inert_options
+
+    given: dict[str, int] = {}
+    where: dict[str, list[tuple[str, str, str]]] = {}
+    why: dict[str, str] = {}
+    for spec in specs:
+        cfg = cell_config(spec)
+        for key in spec.overrides:
+            given[key] = given.get(key, 0) + 1
+            for line in inert_options(cfg, [key]):
+                where.setdefault(key, []).append((spec.preset, spec.group, spec.setting))
+                why[key] = line
+    lines = []
+    for key, cells in where.items():
+        if len(cells) == given[key]:
+            raise ValueError(f"{why[key]}, in every cell of the sweep: drop the option, or set the one it needs")
+        names = sorted({f"{p} ({label({'group': g, 'setting': s})})" for p, g, s in cells})
+        opt, rest = why[key].split(" ", 1)
+        lines.append(f"{opt} does nothing in {', '.join(names)}: it {rest}")
+    return lines
+
+
+def cell_config(spec: CellSpec):
+    """The TrainConfig of a cell: the preset, its setting's overrides, then the sweep's."""
+    from gdbench.train.config import preset
+
+    return preset(
+        spec.preset,
+        prompt=spec.prompt,
+        steps=spec.steps,
+        seed=spec.seed,
+        out=spec.dir,
+        progress=False,
+        **(setting_overrides(spec.setting, spec.overrides.get("prior")) | spec.overrides),
+    )
+
+
+def prior_name(cfg) -> str:
+    """The prior of a config as a table names it: 'empirical', 'sd', or 'learned:<model>' (the
+    shipped model 'auto' resolves to, or the model's path)."""
+    if cfg.prior != "learned":
+        return cfg.prior
+    from gdbench.priors.learned.prior import model_for_front_bias
+
+    return "learned:" + (model_for_front_bias(cfg.front_bias) if cfg.learned_model == "auto" else cfg.learned_model)
+
+
+def setting_overrides(setting: str, prior: str | None) -> dict:
+    """The overrides of an ambiguity setting for a prior ('empirical' when None)."""
+    return SETTINGS[setting] | (LEARNED_SETTINGS.get(setting, {}) if prior == "learned" else {})
+
+
+def turned_failure(views: dict, front_defined: bool) -> float:
+    """1.0 when a result is turned by more than 45 degrees, 0.0 when not; NaN where that is no
+    failure: view prompting does not define the front, or the result has none to turn (mostly
+    featureless views: a blob's turn is arbitrary), or the views were not scored."""
+    from gdbench.core.io import num
+
+    if not front_defined or "turned_deg" not in views or not num(views.get("featureless_rate")) <= 0.5:
+        return math.nan
+    return float(abs(num(views["turned_deg"])) > 45)
+
+
+def run_cell(spec: CellSpec, figures: bool = False) -> dict:
+    """Train (or resume) and score one cell; writes and returns its row. ``figures``: also the
+    run's turntable and curves (``train.run.train``); cell.json records the cell's timings."""
+    from gdbench.core.io import num, read_json, write_json
+    from gdbench.core.provenance import code_commit
+    from gdbench.metrics.run_scores import score_run
+    from gdbench.train.checkpoint import CheckpointError
+    from gdbench.train.run import train
+
+    t0 = time.perf_counter()
+    cfg = cell_config(spec)
+    try:
+        r = train(cfg, figures=figures)
+    except (CheckpointError, FileExistsError) as e:  # the sweep has no --overwrite: say what to delete
+        raise CheckpointError(
+            f"{str(e).split(';')[0]}; delete {spec.dir} to retrain this cell, or sweep into another --out"
+        ) from None
+    train_s = sum(h["seconds"] for h in r.state.history)
+    t_score = time.perf_counter()
+    scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views, device=cfg.device)
+    t_scored = time.perf_counter()
+    run_info = read_json(spec.dir / "run.json", what="run.json")
+    front_defined = cfg.view_prompting != "none"
+    # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
+    col = scores.get("colmap", {}) if spec.colmap else {}
+    views, gt = scores.get("views", {}), scores.get("gt", {})
+    get = lambda block, key: num(block.get(key))  # noqa: E731  (null in a file: NaN)
+    row = {
+        "group": spec.group,
+        "setting": spec.setting,
+        "prompt": spec.prompt,
+        "preset": spec.preset,
+        "seed": spec.seed,
+        "variants": cfg.variants,
+        "prior": prior_name(cfg),
+        "views_per_step": cfg.views_per_step,
+        "views_spread_deg": math.nan if cfg.views_spread_deg is None else cfg.views_spread_deg,
+        "iterations": r.state.step,
+        "train_time_s": train_s,
+        "gaussians": scores["gaussians"],
+        "gt_psnr": get(gt, "psnr"),
+        "gt_ssim": get(gt, "ssim"),
+        "gt_offset_deg": get(gt, "offset_deg"),
+        "gt_psnr_unaligned": get(gt, "psnr_unaligned"),
+        "multi_face_rate": get(views, "multi_face_rate"),
+        "featureless_rate": get(views, "featureless_rate"),
+        # views with no face or a second one (disjoint: a featureless view is never multi-faced)
+        "janus_failure_rate": get(views, "featureless_rate") + get(views, "multi_face_rate"),
+        "front_share": get(views, "front_share"),
+        "instance_inconsistency": 1.0 - get(views, "instance_consistency"),
+        "majority_variant": int(views.get("majority_variant", -1)),
+        "floaters": get(views, "floaters"),
+        "turned_deg": get(views, "turned_deg"),
+        "turned": turned_failure(views, front_defined),
+        "registration_rate": get(col, "registration_rate"),
+        "var_theta_deg2": get(col, "var_theta_deg2"),
+        "colmap_failure_rate": get(col, "failure_rate"),
+        "translation_dir_err_deg": get(col, "translation_dir_err_deg"),
+        "cell_s": time.perf_counter() - t0,
+        "run_id": run_info.get("run_id"),  # the hash of the config that changes the result
+        "threads": run_info.get("threads"),  # results may depend on it (reduction order; 1 and 2 agree)
+        "device": run_info.get("device", "cpu"),  # and on the device, by float rounding
+        "train_commit": run_info.get("commit", "unknown"),
+        "score_commit": code_commit(),
+        "versions": "; ".join(f"{k} {v}" for k, v in run_info.get("versions", {}).items()),
+    }
+    # run.json's timings are this call's only if it finished the run (a run found finished keeps
+    # those of the call that trained it)
+    made = run_info.get("timings", {}) if r.resumed_from is None or r.resumed_from < cfg.steps else {}
+    timings = {  # where this call's time went (a resumed or finished run trains little or nothing)
+        "train_call_s": t_score - t0,
+        "setup_s": made.get("setup_s"),
+        "steps_s": sum(h["seconds"] for h in r.state.history[r.resumed_from or 0 :]),  # this call's
+        "outputs_s": made.get("outputs_s"),
+        "score_s": t_scored - t_score,
+        "score_blocks_s": {k: v["made"].get("seconds") for k, v in scores.items()  # made in this call
+                           if isinstance(v, dict) and "made" in v and k not in scores.get("reused", [])},
+        "cell_s": time.perf_counter() - t0,
+    }  # fmt: skip
+    write_json({"spec": asdict(spec), "row": row, "timings": timings}, spec.dir / "cell.json")
+    return row
+
+
+def _done(spec: CellSpec, figures: bool = False) -> dict | None:
+    """The row of a cell finished with this spec and scored by this code (with its figures, when
+    ``figures``); None otherwise (the cell is then scored again: its training resumes, or is found
+    finished, from its folder)."""
+    from gdbench.core.io import read_json
+    from gdbench.core.provenance import same_code
+
+    p = spec.dir / "cell.json"
+    if not p.is_file() or (figures and not (spec.dir / "turntable.gif").is_file()):
+        return None
+    blob = read_json(p, what="cell.json")
+    row = blob.get("row")
+    if not isinstance(row, dict):
+        raise ValueError(f"cell.json: {p} holds no 'row' object; delete it to score the cell again")
+    if blob.get("spec") != json.loads(json.dumps(asdict(spec))) or not same_code(row.get("score_commit")):
+        return None
+    return {k: math.nan if v is None else v for k, v in row.items()}  # null: a missing number
+
+
+def sweep(
+    prompts: list[str],
+    presets: list[str],
+    seeds: list[int],
+    *,
+    steps: int = 2000,
+    out: str | Path = "runs/sweep",
+    executor: Literal["local", "ray"] = "local",
+    address: str = "",
+    workers: int = 1,
+    colmap: bool = True,
+    colmap_views: int = 100,
+    overrides: dict | None = None,
+    progress: bool = True,
+    settings: list[str] | None = None,
+    setting_presets: dict[str, list[str]] | None = None,
+    colmap_presets: list[str] | None = None,
+    colmap_settings: list[str] | None = None,
+    groups: dict[str, dict] | None = None,
+    on_valid=None,
+    figures: bool = False,
+) -> list[dict]:
+    """Train and score the grid groups x settings x prompts x presets x seeds; returns the rows.
+
+    ``setting_presets`` restricts the presets of a setting (default: all ``presets``);
+    ``colmap_presets`` and ``colmap_settings`` restrict COLMAP scoring (default: every cell, when
+    ``colmap``). ``groups`` names sets of overrides applied on top of ``overrides`` (a factor the
+    ambiguity settings do not cover: the prior, views per step); each group's cells live in
+    ``out/cells/<group>/`` and claims pair within a group (default: one unnamed group).
+    ``on_valid()``, if given, is called once the grid is validated, before any cell runs.
+    ``figures``: each cell also writes its turntable and training curves (what ``turntable_grid``
+    reads), and the sweep ablation.png; off, only what the tables need (a finished sweep run again
+    with ``figures`` draws them without training). ``out/timings.json`` records where the call's
+    time went (validation, cells, tables)."""
+    from gdbench.experiments.claims import label
+    from gdbench.experiments.tables import tables
+
+    out = Path(out)
+    settings = list(settings or ["easy"])
+    bad = [s for s in settings if s not in SETTINGS]
+    if bad or len(set(settings)) != len(settings):
+        raise ValueError(f"settings: expected distinct names from {sorted(SETTINGS)}, got {settings}")
+    per = {s: list((setting_presets or {}).get(s, presets)) for s in settings}
+    groups = dict(groups or {"": {}})
+    bad = [g for g in groups if not re.fullmatch(r"[a-z][a-z0-9_.-]*", g)] if list(groups) != [""] else []
+    if bad or not groups:
+        raise ValueError(
+            f"groups: expected names of a lower-case letter, then letters, digits, '_', '-' or '.', got {bad}"
+        )
+    for s, ps in per.items():
+        if not set(ps) <= set(presets):
+            raise ValueError(f"setting_presets: {s} lists presets outside --presets: {sorted(set(ps) - set(presets))}")
+    # seeds outermost: a sweep cut short still has every (setting, prompt, preset) for its first seeds
+    specs = [
+        CellSpec(
+            pr,
+            p,
+            sd,
+            steps,
+            str(out),
+            colmap
+            and (colmap_presets is None or p in colmap_presets)
+            and (colmap_settings is None or st in colmap_settings),
+            colmap_views,
+            dict(overrides or {}) | gov,
+            st,
+            g,
+        )
+        for sd in seeds
+        for g, gov in groups.items()
+        for st in settings
+        for pr in prompts
+        for p in per[st]
+    ]
+    t_start = time.perf_counter()
+    validate_grid(prompts, presets, seeds, specs, executor)
+    t_valid = time.perf_counter()
+    if executor == "ray" and address:
+        check_ray_address(address)
+    for line in inert_overrides(specs):
+        print(f"sweep: note: {line}", file=sys.stderr)
+    if on_valid is not None:
+        on_valid()
+    rows: dict[int, dict] = {}
+    todo = []
+    for i, spec in enumerate(specs):
+        done = _done(spec, figures)
+        if done is not None:
+            rows[i] = done
+        else:
+            todo.append(i)
+    if progress:
+        print(f"sweep: {len(specs)} cells, {len(rows)} already finished, {len(todo)} to run ({executor})")
+    from gdbench.core.progress import progress as progress_bar
+
+    bar = progress_bar(len(todo), "sweep", "cell", disable=not progress or not todo)
+    written = time.monotonic()
+    tables_s = 0.0
+    t_cells = time.perf_counter()
+    try:
+        for i, row in _execute([specs[i] for i in todo], executor, address, workers, figures):
+            rows[todo[i]] = row
+            if time.monotonic() - written >= TABLES_EVERY_S:  # a look at a long sweep's tables
+                t0 = time.perf_counter()
+                tables([rows[k] for k in sorted(rows)], out, figures)
+                tables_s += time.perf_counter() - t0
+                written = time.monotonic()
+            if bar is not None:
+                bar.write(
+                    f"  done {label(row)} {row['prompt']!r} "
+                    f"{row['preset']} seed {row['seed']}: "
+                    f"PSNR {row['gt_psnr']:.2f}, multi-face {row['multi_face_rate']:.2f}, "
+                    f"floaters {row['floaters']:.3f}, Var {row['var_theta_deg2']:.3g} ({row['cell_s']:.0f} s)"
+                )
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    t_end = time.perf_counter()
+    cells_s = t_end - t_cells - tables_s  # without the periodic rewrites of the tables
+    ordered = [rows[k] for k in sorted(rows)]
+    tables(ordered, out, figures)
+    tables_s += time.perf_counter() - t_end
+    from gdbench.core.io import write_json
+    from gdbench.core.provenance import code_commit
+
+    timings = {"commit": code_commit(), "cells": len(specs), "ran": len(todo), "workers": workers,
+               "validate_s": t_valid - t_start, "cells_s": cells_s, "tables_s": tables_s,
+               "sweep_s": time.perf_counter() - t_start}  # fmt: skip
+    write_json(timings, out / "timings.json")
+    return ordered
+
+
+def _worker_threads(threads: int) -> None:
+    """A local worker's start: torch (and the OpenMP compositor) on ``threads`` threads."""
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+RAY_CONNECT_TIMEOUT = 10.0
+"""Seconds a Ray cluster's address may take to accept a connection before the sweep gives up."""
+
+
+def check_ray_address(address: str, timeout: float = RAY_CONNECT_TIMEOUT) -> None:
+    """A cluster address (``host:port`` or ``ray://host:port``; ``auto`` finds a local one) must
+    accept a TCP connection within ``timeout`` seconds: ``ray.init`` itself waits for minutes on an
+    address nobody answers."""
+    import socket
+
+    if address in ("auto", "local"):
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not (port.isascii() and port.isdigit() and 0 < int(port) < 65536):
+        raise ValueError(f"address: expected HOST:PORT or ray://HOST:PORT (or 'auto'), got {address!r}")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise ValueError(
+            f"address: nothing answers at {host}:{port} within {timeout:g} s ({e.strerror or e}); start the cluster "
+            "(ray start --head) or leave --address empty for a local Ray instance"
+        ) from None
+
+
+def _execute(specs: list[CellSpec], executor: str, address: str, workers: int, figures: bool = False):
+    """Yield (index, row) as cells finish."""
+    import functools
+
+    cell = functools.partial(run_cell, figures=figures)  # picklable: a module function and a bool
+    if executor == "local":
+        if workers <= 1:
+            for i, s in enumerate(specs):
+                yield i, cell(s)
+            return
+        import multiprocessing
+        import os
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # fresh interpreters (not forks of one that ran OpenMP), each on its share of the cores:
+        # two-thread workers on two cores spin-wait for each other (measured 10x slower steps)
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        ctx = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_threads, initargs=(threads,))
+        try:
+            futs = {pool.submit(cell, s): i for i, s in enumerate(specs)}
+            for f in as_completed(futs):
+                yield futs[f], f.result()
+        finally:  # a stop signal or an error: queued cells are cancelled, not run to the end
+            pool.shutdown(wait=True, cancel_futures=True)
+        return
+    if executor == "ray":
+        try:
+            import ray
+        except ImportError as e:
+            raise ImportError("executor='ray' needs Ray: pip install 'ray[default]'") from e
+        started = not ray.is_initialized()
+        if started:
+            ray.init(
+                address=address or None,
+                include_dashboard=False,
+                num_cpus=None if address else max(workers, 1),
+                log_to_driver=False,
+            )
+        try:
+            remote = ray.remote(run_cell)
+            refs = {remote.remote(s, figures): i for i, s in enumerate(specs)}
+            pending = list(refs)
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                yield refs[ready[0]], ray.get(ready[0])
+        finally:
+            if started:
+                ray.shutdown()
+        return
+    raise ValueError(f"executor: expected 'local' or 'ray', got {executor!r}")
+
+
+def turntable_grid(
+    out: Path | list[Path], prompt: str | None, seed: int = 0, frames: int = 6, setting: str | None = None,
+    group: str | None = None, path: Path | None = None,
+) -> Path | None:  # fmt: skip
+    """One figure of turntables (``frames`` evenly spaced views from each cell's turntable.gif), a
+    row per cell of ``seed``: for ``prompt``, one per (group, setting, preset); with ``prompt``
+    None, one per (group, prompt, preset) of ``setting``; ``group`` keeps one group's cells.
+    ``out`` may be several sweep folders (their cells in one figure, by setting, group, prompt and
+    preset), saved at ``path`` (default: the first folder). None when no cell has one."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from gdbench.core.plotting import pyplot, save
+    from gdbench.train.config import PRESETS
+
+    roots = [Path(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
+
+    def parts(root: Path, gif: Path) -> tuple[str, str, str, str]:
+        """(group, setting, prompt folder, preset) of a cell's gif under root/cells."""
+        rel = gif.relative_to(root / "cells").parts  # [group/]setting/prompt/preset/seedK/turntable.gif
+        return ("" if len(rel) == 5 else rel[0], *rel[-5:-2])
+
+    def keep(root: Path, gif: Path) -> bool:
+        g, st, pr, _ = parts(root, gif)
+        return ((group is None or g == group) and (prompt is None or pr == cell_name(prompt))
+                and (prompt is not None or setting is None or st == setting))  # fmt: skip
+
+    def order(cell: tuple[Path, Path]) -> tuple:
+        g, st, pr, preset_ = parts(*cell)
+        st_i = list(SETTINGS).index(st) if st in SETTINGS else 99
+        key = (g, pr if prompt is None else "", st_i, list(PRESETS).index(preset_) if preset_ in PRESETS else 99)
+        return (st_i, *key) if len(roots) > 1 else key  # several sweeps: by setting first
+
+    found = ((root, g) for root in roots for g in (root / "cells").rglob(f"seed{seed}/turntable.gif"))
+    cells = sorted((c for c in found if keep(*c)), key=order)
+    if not cells:
+        return None
+    plt = pyplot()
+    height = 1.7 * len(cells) + 0.5  # inches: the title's half inch above the first row
+    fig, axes = plt.subplots(len(cells), 1, figsize=(1.6 * frames, height), squeeze=False)
+    fig.subplots_adjust(top=1 - 0.6 / height, bottom=0.1 / height)
+    for ax, (root, gif) in zip(axes[:, 0], cells):
+        video = iio.imread(gif)
+        pick = np.linspace(0, len(video), frames, endpoint=False).astype(int)
+        ax.imshow(np.concatenate([video[i][..., :3] for i in pick], 1))
+        g, setting_, folder, preset = parts(root, gif)
+        text = f"{setting_}: {preset}" if prompt is not None else f"{folder.replace('_', ' ')}: {preset}"
+        ax.set_title(f"{g} / {text}" if g else text, loc="left", fontsize=8, pad=2)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    tail = "" if group is None else f"_{group or 'ungrouped'}"
+    if prompt is not None:
+        fig.suptitle(f"'{prompt}', seed {seed}: turntables per setting and preset", fontsize=9, y=1 - 0.1 / height)
+        return save(fig, path or roots[0] / f"turntables_{cell_name(prompt)}{tail}.png", dpi=90)
+    fig.suptitle(
+        f"{setting or 'all settings'}, seed {seed}: turntables per prompt and preset", fontsize=9, y=1 - 0.1 / height
+    )
+    return save(fig, path or roots[0] / f"turntables_{setting or 'all'}{tail}.png", dpi=90)

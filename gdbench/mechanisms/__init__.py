@@ -1,0 +1,2 @@
+"""The paper's two mechanisms, usable without the trainer: structured noise (``noise``) and
+variational Gaussians (``variational``)."""

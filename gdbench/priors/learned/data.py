@@ -1,0 +1,195 @@
+"""The learned prior's training data: the procedural assets rendered at random continuous cameras.
+
+Every caption of ``assets/library.py`` and each of its procedural variants is rendered by pyrender
+(as the image banks are) at ``views`` cameras drawn as the trainer draws its own: azimuth uniform
+over the turn, elevation and vertical field of view uniform in the trainer's ranges, on a sphere of
+the trainer's radius, white background, 64 px. The set is uniform in azimuth; the front bias of a
+model is a sampling weight over its views (``view_weights``: view i drawn with probability
+proportional to exp(kappa cos azimuth_i)), so both shipped models learn from the same renders.
+
+Data sets are cached as .npz under ``$GDBENCH_CACHE/learned_data``, keyed by a hash of the settings
+and the asset code version (about 12 KB per view: 221 MB for the default 18 x 1024 views, rendered
+in about 11 minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    views: int = 1024
+    """Cameras per (caption, variant)."""
+    resolution: int = 64
+    """Rendered width and height (a 32 px model sees them box-filtered to its size)."""
+    seed: int = 0
+    """Seed of the cameras."""
+    radius: float = 1.0
+    """Camera distance (the trainer's --camera-radius)."""
+    fovy_range: tuple[float, float] = (40.0, 70.0)
+    elevation_range: tuple[float, float] = (-45.0, 45.0)
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if self.views < 1:
+            raise ValueError(f"views: expected at least one camera per asset, got {self.views}")
+        if self.resolution < 8:
+            raise ValueError(f"resolution: expected at least 8 px, got {self.resolution}")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    images: torch.Tensor
+    """[N, H, W, 3] uint8."""
+    caption: torch.Tensor
+    """[N] index into ``captions``."""
+    variant: torch.Tensor
+    """[N] procedural variant."""
+    azimuth: torch.Tensor
+    """[N] degrees in [-180, 180)."""
+    elevation: torch.Tensor
+    fovy: torch.Tensor
+    captions: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+
+def captions() -> tuple[str, ...]:
+    """The captions a learned prior knows, in the order of its class embedding."""
+    from gdbench.assets.library import ASSETS
+
+    return tuple(sorted(ASSETS))
+
+
+def data_dir() -> Path:
+    from gdbench.assets.bank import cache_dir
+
+    return cache_dir().parent / "learned_data"
+
+
+def data_key(config: DataConfig) -> str:
+    from gdbench.assets.bank import ASSET_VERSION
+    from gdbench.assets.library import VARIANTS
+
+    key = {"config": asdict(config), "asset_version": ASSET_VERSION, "captions": captions(), "variants": VARIANTS}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def render_dataset(config: DataConfig, *, progress: bool = True) -> Dataset:
+    """Render the data set (no cache). Each (caption, variant) draws its cameras from its own
+    generator, seeded from ``config.seed`` and its index, so a set is the same whatever renders first
+    (and ``render_subset`` gives one part of it alone)."""
+    from gdbench.assets.library import VARIANTS
+
+    caps = captions()
+    from gdbench.core.progress import progress as progress_bar
+
+    total = len(caps) * VARIANTS * config.views
+    bar = progress_bar(total, "rendering the learned prior's data", "view", disable=not progress)
+    parts = [render_subset(config, c, v, bar=bar) for c in caps for v in range(VARIANTS)]
+    if bar is not None:
+        bar.close()
+    fields = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
+    return Dataset(**{k: torch.cat([getattr(p, k) for p in parts]) for k in fields}, captions=caps)
+
+
+def render_subset(config: DataConfig, caption: str, variant: int, *, bar=None) -> Dataset:
+    """The views of one (caption, variant) of the data set of ``config``, exactly as in it."""
+    from gdbench.assets.library import VARIANTS, build
+    from gdbench.core.camera import SphericalPoses
+    from renderers.pyrender_points.mesh import render_mesh
+
+    caps = captions()
+    if caption not in caps:
+        raise ValueError(f"caption: unknown asset {caption!r}; known: {list(caps)}")
+    c = caps.index(caption)
+    g = torch.Generator().manual_seed(config.seed * 1000 + c * VARIANTS + variant)
+    poses = SphericalPoses.sample(
+        config.views,
+        generator=g,
+        radius=config.radius,
+        fovy_range=config.fovy_range,
+        elevation_range=config.elevation_range,
+    )
+    R = config.resolution
+    pose_gl, K = poses.cameras(R, R).to_opengl()
+    mesh = build(caption, variant)
+    images = []
+    chunk = 128  # one pyrender context per chunk keeps a progress bar moving
+    for i in range(0, config.views, chunk):
+        rgb, _, _ = render_mesh(
+            mesh,
+            pose_gl[i : i + chunk].double().numpy(),
+            K[i : i + chunk].double().numpy(),
+            R,
+            R,
+            background=config.background,
+        )
+        images.append(torch.from_numpy(np.round(rgb * 255).astype(np.uint8)))
+        if bar is not None:
+            bar.update(len(rgb))
+    n = config.views
+    return Dataset(
+        torch.cat(images),
+        torch.full((n,), c, dtype=torch.int64),
+        torch.full((n,), variant, dtype=torch.int64),
+        poses.azimuth.float(),
+        poses.elevation.float(),
+        poses.fovy.float(),
+        caps,
+    )
+
+
+def load_dataset(config: DataConfig | None = None, *, progress: bool = True) -> Dataset:
+    """The data set of ``config``, from the cache or rendered and cached atomically."""
+    from gdbench.core.io import atomic_write
+
+    config = config or DataConfig()
+    path = data_dir() / f"views-{data_key(config)}.npz"
+    fields = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                return Dataset(**{k: torch.from_numpy(z[k]) for k in fields}, captions=captions())
+        except Exception as e:  # a corrupt cache entry is rebuilt, never trusted
+            print(f"learned-prior data cache {path} unreadable ({type(e).__name__}); rebuilding")
+    t0 = time.perf_counter()
+    data = render_dataset(config, progress=progress)
+    print(f"rendered {len(data)} views at {config.resolution} px in {time.perf_counter() - t0:.0f} s -> {path}")
+    try:
+        atomic_write(path, lambda f: np.savez(f, **{k: getattr(data, k).numpy() for k in fields}))
+    except OSError as e:
+        print(f"GDBENCH_CACHE: cannot write {path.parent} ({e.strerror or e}); the data is rendered again next time")
+    return data
+
+
+def view_weights(azimuth: torch.Tensor, front_bias: float) -> torch.Tensor:
+    """Sampling weights of views at ``azimuth`` (degrees): exp(kappa cos azimuth), normalised;
+    kappa = 0 is uniform."""
+    if not (math.isfinite(front_bias) and front_bias >= 0):
+        raise ValueError(f"front_bias: expected kappa >= 0, got {front_bias}")
+    w = torch.exp(front_bias * torch.cos(torch.deg2rad(azimuth.double())))
+    return w / w.sum()
+
+
+def to_model_images(images: torch.Tensor, size: int) -> torch.Tensor:
+    """uint8 [N, H, W, 3] (or float in [0, 1]) -> float [N, 3, size, size] in [-1, 1], box-filtered
+    when ``size`` divides H (the 64 px renders seen by a 32 px model)."""
+    x = images.float() / 255.0 if images.dtype == torch.uint8 else images.float()
+    x = x.permute(0, 3, 1, 2)
+    H = x.shape[-1]
+    if H != size:
+        if H % size:
+            raise ValueError(f"size: expected a divisor of the {H} px images, got {size}")
+        x = torch.nn.functional.avg_pool2d(x, H // size)
+    return x * 2 - 1

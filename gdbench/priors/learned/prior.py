@@ -1,0 +1,323 @@
+"""The learned prior: a small diffusion model of the procedural assets, as a ``Prior``.
+
+Where the empirical prior is the exact posterior over stored images (an oracle that snaps to
+its neighbours), this one is a network (``unet.py``) trained on the assets' renders at random
+continuous cameras (``learned_train.py``): it generalises between cameras, turns the noise it is
+given into content and inherits the biases of its data, as Stable Diffusion does, while every
+result still has a ground truth.
+
+Conventions are Stable Diffusion's (``stable_diffusion.py``), so the trainer's SJC and SDS paths
+serve it unchanged: the VE denoiser of a VP epsilon model on SD's scaled-linear schedule,
+
+    sigma_t = sqrt((1 - abar_t) / abar_t),   D(x; sigma) = x - sigma eps(x / sqrt(1 + sigma^2), t),
+
+sigma snapped to the nearest tick (in log sigma) and classifier-free guidance
+eps = eps_u + s (eps_c - eps_u), where eps_u drops every condition. The estimate is clipped to
+[-1, 1], where the images live (DDPM's clipped x0; ``clip=False`` leaves it as is): at sigma 10
+an error of 0.03 in epsilon's MSE is an error of 3 in x0's. The model works at its own
+size (32 px for the shipped ones): a trainer rendering at ``factor`` times that hands it the
+render box-filtered by ``factor`` (``encode_images``, differentiable), as Stable Diffusion sees
+latents 8 times smaller than its images.
+
+Conditions: the caption (matched from the prompt as the empirical prior does), the variant
+(variant 0, or dropped when the trainer asks for the caption's ``variants`` = 3: the instance
+setting) and the camera (azimuth, elevation, fovy): given as is with ``view_mode`` 'window',
+snapped to the centre of DreamFusion's bucket (front 0, sides +-90, back 180 degrees) with
+'buckets', dropped with 'none'. Depth is not an input (no ControlNet role).
+
+Shipped models (``weights/``): 'uniform' (views uniform in azimuth) and 'front' (views drawn with
+probability proportional to exp(2 cos azimuth)); a path to any ``model.safetensors`` written by
+``gdbench train-prior`` works too.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from gdbench.priors import sd_abar, ve_sigmas_from_betas
+
+WEIGHTS = Path(__file__).parent / "weights"
+SHIPPED = {"uniform": 0.0, "front": 2.0}
+"""The shipped models and the front bias kappa of their training data."""
+
+
+@dataclass(frozen=True)
+class LearnedCond:
+    caption: str
+    caption_index: int
+    variant_index: int
+    """A variant, or the model's null variant (the caption's variants mixed)."""
+    similarity: float = 1.0
+
+
+def model_path(model: str | Path) -> Path:
+    """The weights file of a shipped model name or a path (a file or a run folder)."""
+    if str(model) in SHIPPED:
+        path = WEIGHTS / f"{model}.safetensors"
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"learned_model: the shipped weights {path} are missing from this checkout; "
+                "train them with `gdbench train-prior` (docs/learned_prior.md)"
+            )
+        return path
+    path = Path(model)
+    if path.is_dir():
+        path = path / "model.safetensors"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"learned_model: expected {sorted(SHIPPED)} or a model.safetensors written by `gdbench train-prior`, "
+            f"got {model!s}"
+        )
+    return path
+
+
+def model_for_front_bias(front_bias: float) -> str:
+    """The shipped model trained with front bias ``front_bias`` (exactly), or ValueError."""
+    for name, kappa in SHIPPED.items():
+        if abs(front_bias - kappa) < 1e-9:
+            return name
+    raise ValueError(
+        f"front_bias: the learned prior ships models trained at kappa {sorted(SHIPPED.values())}, not "
+        f"{front_bias:g}; train one with `gdbench train-prior --front-bias {front_bias:g}` and pass its folder "
+        "as --learned-model"
+    )
+
+
+def load_model(model: str | Path, device: torch.device | str = "cpu"):
+    """(UNet in float32 eval mode, metadata dict) of a shipped name or a weights path."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    from gdbench.priors.learned.unet import UNet, UNetConfig
+
+    path = model_path(model)
+    with safe_open(str(path), framework="pt") as f:
+        meta = dict(f.metadata() or {})
+    if "unet" not in meta:
+        raise ValueError(f"learned_model: {path} has no 'unet' settings in its metadata (not written by train-prior)")
+    cfg = json.loads(meta["unet"])
+    cfg["widths"] = tuple(cfg["widths"])
+    cfg.setdefault("prediction", "epsilon")  # models written before v prediction
+    cfg.setdefault("coords", False)  # ... and before coordinates
+    net = UNet(UNetConfig(**cfg))
+    net.load_state_dict({k: v.float() for k, v in load_file(str(path)).items()})
+    return net.to(device).eval().requires_grad_(False), meta
+
+
+class LearnedPrior:
+    channels = 3
+
+    def __init__(
+        self,
+        model: str | Path = "uniform",
+        *,
+        guidance_scale: float = 3.0,
+        view_mode: str = "window",
+        variants: int = 1,
+        resolution: int | None = None,
+        device: str | torch.device | None = None,
+        threshold: float = 0.5,
+        clip: bool = True,
+    ):
+        from gdbench.assets.library import VARIANTS
+        from gdbench.priors.text import CaptionMatcher
+
+        if guidance_scale < 1:
+            raise ValueError(f"guidance_scale: expected >= 1 (1 is no guidance), got {guidance_scale}")
+        if view_mode not in ("none", "buckets", "window"):
+            raise ValueError(f"view_mode: expected 'none', 'buckets' or 'window', got {view_mode!r}")
+        if variants not in (1, VARIANTS):
+            raise ValueError(
+                f"variants: the learned prior knows one variant (1) or the caption's {VARIANTS} mixed ({VARIANTS}), "
+                f"got {variants}"
+            )
+        self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.unet, self.meta = load_model(model, self.device)
+        self.size = self.unet.config.size
+        resolution = resolution or self.size
+        if resolution % self.size:
+            raise ValueError(
+                f"resolution: the learned prior works at {self.size} px; expected a multiple, got {resolution}"
+            )
+        self.factor = resolution // self.size
+        self.encode_images = self._pool if self.factor > 1 else None
+        self.guidance_scale = guidance_scale
+        self.clip = clip
+        self.view_mode = view_mode
+        self.variants = variants
+        from gdbench.priors.learned.data import captions
+
+        self.captions = captions()
+        known = json.loads(self.meta.get("captions", "null")) or list(self.captions)
+        if list(known) != list(self.captions) or self.unet.config.captions != len(self.captions):
+            raise ValueError(
+                f"learned_model: {model} was trained on the captions {known}, this code has {list(self.captions)}; "
+                "retrain it with `gdbench train-prior`"
+            )
+        self.matcher = CaptionMatcher(list(self.captions), threshold)
+        self.front_bias = float(json.loads(self.meta.get("train", "{}")).get("front_bias", 0.0))
+        """kappa of the model's training views (from its metadata)."""
+        self.abar = sd_abar()
+        self.sigmas = ve_sigmas_from_betas().float()
+
+    def check_cameras(self, radius: float, background, fovy_range, elevation_range) -> None:
+        """ValueError naming the trainer's setting the model was not trained for: another camera
+        distance or background (the model would draw the object at its training size and on its
+        training background), or fields of view or elevations outside its training ranges."""
+        data = json.loads(self.meta.get("train", "{}")).get("data")
+        if not data:
+            return
+        if abs(float(data["radius"]) - float(radius)) > 1e-6:
+            raise ValueError(
+                f"camera_radius: the learned model was trained at distance {data['radius']}, the training cameras "
+                f"are at {radius}; train a model at that distance (train-prior) or use --prior empirical"
+            )
+        if any(abs(float(a) - float(b)) > 1e-6 for a, b in zip(data["background"], background)):
+            raise ValueError(
+                f"background: the learned model was trained on {tuple(data['background'])}, got {tuple(background)}"
+            )
+        for name, have, want in (("fovy_range", data["fovy_range"], fovy_range),
+                                 ("elevation_range", data["elevation_range"], elevation_range)):  # fmt: skip
+            if want[0] < have[0] - 1e-6 or want[1] > have[1] + 1e-6:
+                raise ValueError(
+                    f"{name}: the learned model saw {tuple(have)} degrees in training; expected a range inside it, "
+                    f"got {tuple(want)}"
+                )
+
+    def _pool(self, rgb: Tensor) -> Tensor:
+        """Renders [B, H, W, 3] -> the model's input [B, H/f, W/f, 3]: the f x f box filter."""
+        x = torch.nn.functional.avg_pool2d(rgb.permute(0, 3, 1, 2), self.factor)
+        return x.permute(0, 2, 3, 1)
+
+    def encode(self, prompt: str) -> LearnedCond:
+        from gdbench.priors.prompt_check import contradiction
+
+        caption, similarity = self.matcher.match_scored(prompt)
+        why = contradiction(prompt, caption, self.matcher)
+        if why is not None:
+            raise ValueError(f"prompt: {prompt!r} matched {caption!r} (cosine {similarity:.2f}): {why}")
+        variant = 0 if self.variants == 1 else self.unet.config.variants
+        return LearnedCond(caption, self.captions.index(caption), variant, similarity)
+
+    def bank(self, cond) -> None:
+        """The learned prior has no image bank."""
+        return None
+
+    def timestep(self, sigma: Tensor) -> Tensor:
+        """Index of the tick nearest to each sigma (in log sigma), [B] long."""
+        from gdbench.priors import nearest_tick
+
+        return nearest_tick(self.sigmas, sigma)
+
+    def camera(self, azimuth: Tensor | None, elevation: Tensor | None, fovy: Tensor | None, B: int) -> Tensor | None:
+        """[B, 3] (azimuth, elevation, fovy) the model is conditioned on, or None (dropped)."""
+        if self.view_mode == "none" or azimuth is None:
+            return None
+        az = torch.as_tensor(azimuth, dtype=torch.float32).reshape(-1).expand(B).cpu()
+        el = torch.zeros(B) if elevation is None else torch.as_tensor(elevation, dtype=torch.float32).reshape(-1)
+        fv = torch.full((B,), 55.0) if fovy is None else torch.as_tensor(fovy, dtype=torch.float32).reshape(-1)
+        if self.view_mode == "buckets":
+            a = (az + 180.0) % 360.0 - 180.0
+            az = torch.where(a.abs() < 45, 0.0, torch.where(a.abs() > 135, 180.0, torch.sign(a) * 90.0))
+        return torch.stack([az, el.cpu().expand(B), fv.cpu().expand(B)], 1)
+
+    @torch.no_grad()
+    def eps(self, x_t: Tensor, t: Tensor, cond: LearnedCond, camera: Tensor | None, *, guided: bool = True) -> Tensor:
+        """Guided epsilon [B, 3, h, w] for DDPM inputs x_t [B, 3, h, w] at ticks t [B]."""
+        B = x_t.shape[0]
+        c = self.unet.config
+        cap = torch.full((B,), cond.caption_index, device=self.device)
+        var = torch.full((B,), cond.variant_index, device=self.device)
+        cam = camera.to(self.device) if camera is not None else None
+        if self.guidance_scale == 1 or not guided:
+            return self._to_eps(self.unet(x_t, self.unet.embedding(t, cap, var, cam)), x_t, t)
+        null_cap, null_var = torch.full_like(cap, c.captions), torch.full_like(var, c.variants)
+        tt = torch.cat([t, t])
+        emb = self.unet.embedding(
+            tt,
+            torch.cat([null_cap, cap]),
+            torch.cat([null_var, var]),
+            None if cam is None else torch.cat([cam, cam]),
+            None
+            if cam is None
+            else torch.cat([torch.ones(B, dtype=torch.bool), torch.zeros(B, dtype=torch.bool)]).to(self.device),
+        )
+        eu, ec = self._to_eps(self.unet(torch.cat([x_t, x_t]), emb), torch.cat([x_t, x_t]), tt).chunk(2)
+        return eu + self.guidance_scale * (ec - eu)
+
+    def _to_eps(self, out: Tensor, x_t: Tensor, t: Tensor) -> Tensor:
+        """The network's output as epsilon (v models: eps = sqrt(abar) v + sqrt(1 - abar) x_t, as the
+        SD prior converts v-prediction models)."""
+        if self.unet.config.prediction == "epsilon":
+            return out
+        a = self.abar.to(x_t.device)[t].to(x_t.dtype)[:, None, None, None]
+        return a.sqrt() * out + (1 - a).sqrt() * x_t
+
+    @torch.no_grad()
+    def denoise(
+        self,
+        x: Tensor,
+        sigma: Tensor,
+        cond: LearnedCond,
+        *,
+        azimuth: Tensor | None = None,
+        elevation: Tensor | None = None,
+        depth: Tensor | None = None,
+        fovy: Tensor | None = None,
+    ) -> Tensor:
+        """x0 estimate [B, h, w, 3] of noisy images x [B, h, w, 3] (h = w = the model's size) at
+        noise levels sigma [B]. ``depth`` is ignored (the learned prior has no depth input)."""
+        if x.dim() != 4 or x.shape[-1] != 3:
+            raise ValueError(f"x: expected shape [B, H, W, 3], got {list(x.shape)}")
+        B, H, W, _ = x.shape
+        if (H, W) != (self.size, self.size):
+            raise ValueError(f"x: the learned prior works at {self.size} x {self.size} px, got {H} x {W}")
+        t = self.timestep(torch.as_tensor(sigma).reshape(-1).expand(B))
+        s = self.sigmas[t].to(self.device)[:, None, None, None]
+        xc = x.permute(0, 3, 1, 2).to(self.device, torch.float32)
+        e = self.eps(xc / torch.sqrt(1 + s * s), t.to(self.device), cond, self.camera(azimuth, elevation, fovy, B))
+        D = xc - s * e
+        if self.clip:  # the images live in [-1, 1]: the projection can only bring the estimate closer
+            D = D.clamp(-1, 1)
+        return D.permute(0, 2, 3, 1).to(x.device, x.dtype)
+
+    @torch.no_grad()
+    def sample(
+        self,
+        cond: LearnedCond,
+        camera: Tensor | None,
+        *,
+        generator: torch.Generator,
+        steps: int = 30,
+        n: int = 1,
+    ) -> Tensor:
+        """n images [n, size, size, 3] in [-1, 1] by deterministic DDIM in the VE form
+        (x <- D + (sigma_next / sigma)(x - D)), from sigma_max to 0; ``camera`` [3] or [n, 3]
+        (azimuth, elevation, fovy) with this prior's view mode, or None (the camera dropped)."""
+        ticks = torch.linspace(len(self.sigmas) - 1, 0, steps).round().long()
+        sig = self.sigmas[ticks].tolist() + [0.0]
+        x = torch.randn(n, self.size, self.size, 3, generator=generator) * sig[0]
+        cam = None if camera is None else torch.as_tensor(camera, dtype=torch.float32).reshape(-1, 3).expand(n, 3)
+        mode = self.view_mode
+        if cam is None:
+            self.view_mode = "none"
+        try:
+            for s, s_next in itertools.pairwise(sig):
+                D = self.denoise(
+                    x,
+                    torch.full((n,), s),
+                    cond,
+                    azimuth=None if cam is None else cam[:, 0],
+                    elevation=None if cam is None else cam[:, 1],
+                    fovy=None if cam is None else cam[:, 2],
+                )
+                x = D + (s_next / s) * (x - D)
+        finally:
+            self.view_mode = mode
+        return x.clamp(-1, 1)
