@@ -1,4 +1,4 @@
-"""A scored cell's time inside the renderer's C++ kernels (issue 32; docs/cell_cost.md, "The
+"""A scored cell's time inside the renderer's C++ kernels (issue 32; docs/log/2026-11-26_cell_cost.md, "The
 step's floor"): the bm_cell cell (1000 gd steps on "a yellow duck", scored without COLMAP) run in
 this process ``--rounds`` times, each from an empty zoom-level cache, with each training step's
 time inside the kernels (``bench.bm_train.kernels_per_step``). Writes one CSV row per round and

@@ -1,4 +1,4 @@
-"""COLMAP consistency in shares against one thread (issue 32; docs/cell_cost.md, "COLMAP in two
+"""COLMAP consistency in shares against one thread (issue 32; docs/log/2026-11-26_cell_cost.md, "COLMAP in two
 shares"): both on the same images of the calibration fixtures and of trained scenes, resumable.
 
     python scripts/colmap_agreement.py --scenes runs/sweep/cells/easy --out docs/results/colmap_shares.csv

@@ -37,7 +37,7 @@ from gdbench.core.camera import Cameras, SphericalPoses
 THREADS = 1
 """COLMAP's own threads in every call. One makes a scene's score reproducible: with two, the same
 scene's Var(theta) read 1.9-2.5 and once 7.6 over seven runs (SIFT extraction, matching and the
-mapper each change the result when COLMAP threads them; measured in docs/cell_cost.md)."""
+mapper each change the result when COLMAP threads them; measured in docs/log/2026-11-26_cell_cost.md)."""
 
 SHARES = 2
 """Feature extraction and matching run as this many fixed shares side by side, the first in this
@@ -56,7 +56,7 @@ cores (the shares are fixed, not the machine's; another CPU or pycolmap build ma
 differently, as one thread may). Two shares took a scene's score from 10.4-12.2 s to 7.6-7.9 s
 in one slow phase, on a machine otherwise idle: a sweep with as many workers as cores runs two
 COLMAP processes per cell in these stages and gains little. The agreement with one thread on the
-calibration fixtures and trained scenes is in docs/cell_cost.md."""
+calibration fixtures and trained scenes is in docs/log/2026-11-26_cell_cost.md."""
 
 MAX_SHARES = 16
 """The most shares ``score_images`` takes (each beyond the first is a process)."""
