@@ -611,18 +611,13 @@ def test_turned_is_a_failure_only_where_the_front_is_defined_and_the_result_has_
 
 
 def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeypatch):
-    """scripts/decisive.py: two blocks in two rounds of seeds give every cell once (the second
-    round skips the first's), ``collect`` reads back exactly the cells the sweeps returned, and
-    ``report`` writes one verdict table over both blocks' groups."""
+    """gdbench.experiments.decisive: two blocks in two rounds of seeds give every cell once (the
+    second round skips the first's), ``collect`` reads back exactly the cells the sweeps returned,
+    and ``report`` writes one verdict table over both blocks' groups."""
     import argparse
-    import importlib.util
-    import sys
-    from pathlib import Path
 
-    spec = importlib.util.spec_from_file_location("decisive", Path(__file__).parents[1] / "scripts" / "decisive.py")
-    dec = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "decisive", dec)  # (its dataclasses look their module up)
-    spec.loader.exec_module(dec)
+    from gdbench.experiments import decisive as dec
+
     tiny = dict(TINY)
     blocks = [
         dec.Block("a", ["empirical-v1"], ["easy"], ["gd", "gd-no-sn"], steps=4, prompts=[PROMPT], overrides=tiny),
