@@ -629,9 +629,9 @@ def entrypoint() -> None:
 
 def program() -> None:
     """The ``gdbench`` command and ``python -m gdbench.app.cli``: ``entrypoint``, then the process
-    ends without Python's teardown of its modules, which took 0.4 s of every command once torch
-    was imported (``import torch`` and exit: 0.43 s; with ``os._exit`` 0.03 s), 3% of a sweep
-    cell. What an exit owes still happens, in the order Python does it: ``threading._shutdown``
+    ends without Python's teardown of its modules, most of the exit's time once torch is imported
+    (docs/log/2026-11-26_cell_cost.md, "The command's exit"). What an exit owes still happens,
+    in the order Python does it: ``threading._shutdown``
     (executors' exit hooks, then the threads that are not daemons joined), the exit handlers
     (logging's flush, the finalizers of temporary folders, multiprocessing), both streams flushed
     (a failed flush exits 120, as Python does), and the exit code is the one ``sys.exit`` gives.

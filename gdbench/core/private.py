@@ -5,7 +5,7 @@ change or vanish in a release: a missing one raises one line naming it, the vers
 what it was for, instead of an AttributeError deep in a training step.
 
 - ``fused_adam_`` and ``foreach_add_``: torch.optim.Adam(fused=True)'s kernel and its step count,
-  without torch.optim's import of torch._dynamo (1.3-1.9 s of a training process; train/adam.py).
+  without torch.optim's import of torch._dynamo (seconds of a training process; train/adam.py).
 - ``non_finite_check_``: one kernel over all gradients for non-finite values (torch's GradScaler
   check; train/update.py).
 - ``shutdown_threads`` and ``run_exit_functions``: Python's own first exit steps, for a process

@@ -3,9 +3,8 @@
 ``randn(shape, generator=g)`` is ``torch.randn`` with the same contract (an explicit generator,
 the same numbers for the same generator state), faster on CPU: it takes one 63-bit key from
 ``g`` and fills the tensor with the C++ extension's counter-based Philox4x32-10 and Box-Muller
-(``renderers/splat/csrc/normal_cpu.cpp``). torch's CPU generator (mt19937) costs ~4 ns a value
-here, ~0.3 ms of a 64 px training step's 7.5; the extension's fill ~2.6 ns a value on one thread,
-on both threads from 16k values (the step: 0.973x in an in-process A/B).
+(``renderers/splat/csrc/normal_cpu.cpp``), which is cheaper per value than torch's CPU generator
+(mt19937) and fills large tensors on every thread (docs/performance.md).
 
 The numbers differ from torch.randn's for the same seed. A CUDA generator, a CPU without the
 extension (``GDBENCH_SPLAT_BACKEND=torch`` or no compiler) and dtypes other than float32 and

@@ -183,9 +183,9 @@ class NoiseRenderer:
 
     Cameras on a GPU: the noise is rendered by the C++ compositor on the CPU and copied to the
     cameras' device (it has no gradients, and gsplat's kernels cannot give its weights, so the
-    alternative is the torch compositor there: launch-bound, 10 ms against 1 ms a 64 px step on
-    an H200 machine, docs/renderer.md "On a GPU"); the same bits as on the CPU. Without the C++
-    extension it renders on the cameras' device."""
+    alternative is the torch compositor there, launch-bound and slower: docs/renderer.md, "On a
+    GPU"); the same bits as on the CPU. Without the C++ extension it renders on the cameras'
+    device."""
 
     def __init__(self, cloud: NoiseCloud, *, v_min: float = 1e-6, cache_size: int = 4):
         if cloud.channels < 1 or len(cloud) < 1:

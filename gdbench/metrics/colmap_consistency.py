@@ -53,10 +53,10 @@ as sets (tested; a few pairs list them in another order), and the verification's
 differ from one thread's with that order and the pairs each share saw before: the verified
 geometries are another draw than one thread's, the same in every run and whatever the number of
 cores (the shares are fixed, not the machine's; another CPU or pycolmap build may round
-differently, as one thread may). Two shares took a scene's score from 10.4-12.2 s to 7.6-7.9 s
-in one slow phase, on a machine otherwise idle: a sweep with as many workers as cores runs two
-COLMAP processes per cell in these stages and gains little. The agreement with one thread on the
-calibration fixtures and trained scenes is in docs/log/2026-11-26_cell_cost.md."""
+differently, as one thread may). Shares pay on an otherwise idle machine; a sweep with as many
+workers as cores runs two COLMAP processes per cell in these stages and gains little. Their
+timings and their agreement with one thread on the calibration fixtures and trained scenes are in
+docs/log/2026-11-26_cell_cost.md."""
 
 MAX_SHARES = 16
 """The most shares ``score_images`` takes (each beyond the first is a process)."""
@@ -291,7 +291,7 @@ class _Helpers:
 def _extraction_shares(names: list[str], shares: int) -> list[list[str]]:
     """The views each share extracts: every ``shares``-th from view k. How long a view takes
     depends on its content and neighbouring views are alike, so contiguous halves of the circle
-    are uneven (1.9 and 2.9 s on one scene); which share extracts a view leaves its rows as they
+    would be uneven in time; which share extracts a view leaves its rows as they
     are. No empty share: extract_features given no names reads every image in the folder."""
     return [v for v in (names[k::shares] for k in range(shares)) if v]
 
@@ -401,7 +401,7 @@ def score_scene(
     """Render a GaussianScene on the circle (on ``background``, a run's own) and score it
     (``log``, ``phase``, ``shares``: as ``score_images``). The share processes start after the
     render: started before it, their import of pycolmap slowed the two-thread render by more than
-    it hid (views and features 4.07 s against 3.63 s, medians of four, the duck cell's scene)."""
+    it hid (docs/log/2026-11-26_cell_cost.md)."""
     from gdbench.core.turntable import render_views, to_uint8
 
     _check_shares(shares)

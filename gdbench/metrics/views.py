@@ -242,7 +242,7 @@ def _detached(alpha: Tensor, dilate: int) -> float:
     """The share of opacity outside the largest connected piece of each view's silhouette. Equal,
     bit for bit, to scipy.ndimage's label (4-connected), sum by label (per-label float64 sums in
     raster order), the first largest piece and binary_dilation by the cross (nothing outside the
-    image), without importing scipy: scipy.ndimage's import costs about 0.3 s of every scoring
+    image), without importing scipy: scipy.ndimage's import is a slow part of every scoring
     process, and nothing else there needs scipy."""
     import numpy as np
 
@@ -284,7 +284,7 @@ def _components(mask):
     hooks the larger root of every pair of touching runs (a run and one in the next row) to the
     smaller and flattens the trees by pointer jumping, so a long snake or spiral costs a few rounds
     (2 up to 1024 px; 6 for 1024 px noise), not its length; the work per round grows with the runs
-    (about 2x faster than scipy on the metric's silhouettes, 5-25x slower on 1024 px noise)."""
+    (faster than scipy on the metric's silhouettes, slower on large noise images)."""
     import numpy as np
 
     W = mask.shape[-1]

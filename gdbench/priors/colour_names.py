@@ -1,7 +1,7 @@
 """The colour-name lexicon of ``prompt_check``, as data: matplotlib's CSS4 table merged with its
 XKCD survey table (XKCD's value wins where a name is in both; names with '/' or digits left out),
 ``name=#rrggbb`` entries separated by ';'. Kept here so that checking a prompt does not import
-matplotlib (0.15 s of every sweep process); tests/test_priors.py checks it against matplotlib's
+matplotlib (a slow import in every sweep process); tests/test_priors.py checks it against matplotlib's
 tables. Regenerate with ``python -m gdbench.priors.colour_names`` after a matplotlib update.
 """
 

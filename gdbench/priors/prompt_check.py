@@ -80,7 +80,7 @@ def _lab(rgb: np.ndarray) -> np.ndarray:
 @functools.cache
 def palette(caption: str) -> tuple[np.ndarray, np.ndarray]:
     """(CIELAB colours [F, 3], area weights [F] summing to 1) of the asset's surface (variant 0),
-    cached on disk beside the banks (building the mesh takes 1-1.5 s with trimesh's import)."""
+    cached on disk beside the banks (building the mesh needs trimesh's slow import)."""
     from gdbench.assets.bank import cached_arrays
 
     def build() -> dict[str, np.ndarray]:
@@ -136,7 +136,7 @@ def category(lab: np.ndarray) -> np.ndarray:
 def _palette_category(caption: str) -> np.ndarray:
     """``category`` of every colour of the asset's palette, once per asset and process instead of
     once per colour asked about: computed on its distinct colours (the duck's 163,840 faces have
-    4,723) and spread back: the same values in half the time (57-74 ms -> 30-39 ms)."""
+    4,723) and spread back: the same values, for a fraction of the work."""
     lab = np.ascontiguousarray(palette(caption)[0])
     rows = lab.view(np.dtype((np.void, lab.itemsize * lab.shape[1]))).ravel()  # a colour's bytes as one key
     _, first, where = np.unique(rows, return_index=True, return_inverse=True)

@@ -2,9 +2,9 @@
 torch.optim.
 
 torch.optim's optimizers wrap ``__init__``, ``state_dict`` and ``load_state_dict`` in a guard that
-imports torch._dynamo on first use: 1.3-1.9 s of every training process on 2 cores, for a
-compiler the trainer never calls, and torch.optim's ``step`` is about 1 ms of Python and checks
-per training step for 6 kernel calls of ~10 us. This class calls the same fused kernel on the
+imports torch._dynamo on first use (seconds of every training process, for a compiler the trainer
+never calls), and torch.optim's ``step`` spends far longer in Python and checks than its few
+kernel calls take (docs/log/2026-11-26_cell_cost.md). This class calls the same fused kernel on the
 same tensors (``torch._fused_adam_``, through ``core.private``), so its parameters and moments are torch's bit for bit,
 and its ``state_dict`` is torch's format: checkpoints written by either load into the other
 (tests/test_update.py checks both against ``torch.optim.Adam(fused=True)``).

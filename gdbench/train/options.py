@@ -24,8 +24,8 @@ NESTED = ("noise", "optim", "densify")
 
 @functools.cache
 def _module_tree(path: str) -> ast.Module:
-    """A source file parsed once (``inspect.getsource`` parses a class's whole file on every call:
-    0.1 s of every gdbench command for the fourteen classes whose field docs are its help)."""
+    """A source file parsed once (``inspect.getsource`` parses a class's whole file on every call,
+    once for each class whose field docs are the command line's help)."""
     with open(path, encoding="utf-8") as f:
         return ast.parse(f.read(), path)
 

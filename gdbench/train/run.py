@@ -144,7 +144,8 @@ def train(
     resumed run gives the same result as an uninterrupted one.
 
     ``figures=False`` writes only scene.ply and run.json of the outputs (no turntable or curves:
-    what a sweep's scores and tables need; about 2 s less a run at 64 px).
+    what a sweep's scores and tables need, and the turntable renders are a sizeable share of a
+    short run).
     """
     t_start = time.perf_counter()
     out = check_folder(cfg.out)  # before the bank is built: a file or a dangling link is refused

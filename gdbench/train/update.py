@@ -78,7 +78,7 @@ def apply_update(state: TrainState, ctx: Context, views: Views, out, x: Tensor, 
 class _Seed(torch.autograd.Function):
     """A scalar whose backward hands ``grad`` to ``x`` as it is: ``_Seed.apply(x, grad).backward()``
     is ``x.backward(grad)`` (the same bits reach x's graph), without torch's check of a given
-    gradient's shape, whose first call imports sympy (0.4 s of every training process)."""
+    gradient's shape, whose first call imports sympy (a slow import in every training process)."""
 
     @staticmethod
     def forward(ctx, x: Tensor, grad: Tensor) -> Tensor:  # type: ignore[override]

@@ -154,7 +154,7 @@ def check_cameras(viewmats: Tensor, Ks: Tensor, tol: float = 1e-3) -> None:
     if not viewmats.numel():
         return
     # in float64 numpy on the host: a few small arrays, where torch's per-operation cost made this
-    # check 0.33 ms of every render (no graph, no scalar-from-grad warnings)
+    # check a fraction of a millisecond of every render (no graph, no scalar-from-grad warnings)
     viewmats = viewmats.detach().cpu().double().numpy()
     Ks = Ks.detach().cpu().double().numpy()
     f = np.stack([Ks[..., 0, 0], Ks[..., 1, 1]], -1)

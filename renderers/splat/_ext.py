@@ -47,17 +47,16 @@ CFLAGS = ["-O3", "-fopenmp", "-march=native", "-ffp-contract=off", "-fno-trappin
 """Built for the CPU it runs on; no automatic fused multiply-add contraction: the compiler could
 contract one expression differently where it is inlined into the forward and into the backward,
 which must agree on every alpha. The kernels fuse explicitly instead (simd.h ``fmadd``: the exp's
-polynomial, the power, the forward's blends; 0.92-0.94x the forward, 0.97x the backward).
+polynomial, the power, the forward's blends), which is also faster.
 ``-fno-trapping-math`` only tells the compiler that no floating-point exception is trapped
 (none is: torch never enables traps), so it may evaluate both sides of a comparison-select;
 without it GCC 12 vectorised none of the compositor's loops that hold a select (the clamp in
 fast_exp, the branch-free forward), and with it they run as 8-wide vectors: the same operations
-in the same order, bit-identical outputs and gradients (checked in float32 and float64), 10k
-Gaussians at 256 px forward 2.2x faster.
+in the same order, bit-identical outputs and gradients (checked in float32 and float64), and
+about twice as fast (docs/renderer.md, "Compositor backends").
 ``-fno-math-errno``: sqrt and friends need not set errno (nothing reads it), so GCC vectorises
-the compositor's per-row ellipse spans (a scalar sqrt, ceil and floor per row before, ~9% of the
-forward's samples); the same values (sqrt is correctly rounded either way), the same bits
-checked by scripts/ab_ext.py, 0.81-0.95x the time of the 64 px and 256 px cases."""
+the compositor's per-row ellipse spans (a scalar sqrt, ceil and floor per row otherwise); the
+same values (sqrt is correctly rounded either way), the same bits checked by scripts/ab_ext.py."""
 
 
 def module_name() -> str:
