@@ -194,12 +194,19 @@ def trainer_at(rev: str):
     import importlib.util
 
     tmp = Path(tempfile.mkdtemp(prefix="trainer-ab-"))
+    tiers = subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", f"{rev}:gdbench/core/__init__.py"],
+                           capture_output=True)  # fmt: skip
+    if tiers.returncode != 0:
+        raise SystemExit(f"--trainer: {rev} predates the package in tiers (a5ace9c): its trainer imports modules "
+                         "that moved; A/B two revisions of one layout")  # fmt: skip
     files = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", rev, "gdbench/train/"],
                            check=True, capture_output=True, text=True).stdout.split()  # fmt: skip
     for f in files:
         if f.endswith(".py"):
             src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{f}"], check=True, capture_output=True)
-            (tmp / Path(f).name).write_bytes(src.stdout)
+            # its own modules from the copy: the imports are absolute (gdbench.train.x)
+            text = src.stdout.decode().replace("gdbench.train.", "gdbench.train_ab.")
+            (tmp / Path(f).name).write_text(text)
     name = "gdbench.train_ab"
     spec = importlib.util.spec_from_file_location(name, tmp / "__init__.py", submodule_search_locations=[str(tmp)])
     pkg = importlib.util.module_from_spec(spec)

@@ -472,7 +472,7 @@ def test_paired_runs_script_reads_scores_and_gives_the_t_interval(tmp_path):
         for s, p in enumerate(values):
             d = tmp_path / f"{side}{s}"
             d.mkdir()
-            views = {"featureless_rate": 0.1 * s, "multi_face_rate": 0.0}
+            views = {"featureless_rate": 0.1 * s + (0.05 if side == "b" else 0.0), "multi_face_rate": 0.0}
             (d / "scores.json").write_text(json.dumps({"gt": {"psnr": p}, "gaussians": 100 + s, "views": views}))
     out = tmp_path / "p.csv"
     assert paired.main(["--a", str(tmp_path / "a{s}/scores.json"), "--b", str(tmp_path / "b{s}/scores.json"),
@@ -483,6 +483,6 @@ def test_paired_runs_script_reads_scores_and_gives_the_t_interval(tmp_path):
     ci = ttest_1samp(diffs, 0.0).confidence_interval(0.95)
     assert float(summary["b_minus_a"]) == pytest.approx(sum(diffs) / 4)
     assert (float(summary["ci_lo"]), float(summary["ci_hi"])) == pytest.approx((ci.low, ci.high))
-    assert [float(r["b_minus_a"]) for r in rows if r["quantity"] == "featureless_rate"][:4] == [0.0] * 4
+    assert [float(r["b_minus_a"]) for r in rows if r["quantity"] == "featureless_rate"][:4] == pytest.approx([0.05] * 4)
     with pytest.raises(SystemExit, match=r"--a/--b: no scores\.json"):
         paired.main(["--a", str(tmp_path / "x{s}.json"), "--b", str(out), "--seeds", "0", "--out", str(out)])

@@ -130,9 +130,9 @@ class Bench:
     degree 3 at 1920x1080 (time and peak memory); cell: one scored 1000-step sweep cell in a fresh
     process and its phases, COLMAP on its scene, a cold first run (the module gdbench.bench.bm_cell
     run with a peer checkout compares two versions of the code in one run); cuda: on a GPU, the
-    torch renderer on CUDA against gsplat's CUDA rasterizer (agreement, speed), the training step
-    on both devices, and the C++ compositor's scaling with CPU threads (only that part without a
-    GPU)."""
+    renderer on CUDA (the gsplat backend, the torch path) against gsplat itself and the C++
+    compositor (agreement, speed), the training step on both devices, and the C++ compositor's
+    scaling with CPU threads (only that part without a GPU)."""
 
     which: tyro.conf.Positional[
         Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell", "cuda"]

@@ -1,5 +1,5 @@
 """``gdbench sweep``: train and score every (setting, prompt, preset, seed) cell; write the
-ablation's tables (``sweep_tables.py``): per-cell rows, per-preset summaries and the verdict on
+ablation's tables (``experiments/tables.py``): per-cell rows, per-preset summaries and the verdict on
 the paper's claims with bootstrap confidence intervals.
 
 Settings (``SETTINGS``) dial the embedded prior's ambiguity: ``easy`` (the presets' own +-45

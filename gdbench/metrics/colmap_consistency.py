@@ -444,7 +444,7 @@ FIXTURES = ("asset", "flicker", "floaters", "two-faced")
 
 
 def fixture_circle_images(caption: str, cams: Cameras, kind: str, *, seed: int = 0, flicker: float = 0.2) -> np.ndarray:
-    """Calibration images of a 3D failure fixture (``metrics/fixtures3d.py``) on the circle,
+    """Calibration images of a 3D failure fixture (``metrics/failures3d.py``) on the circle,
     rendered by gdbench's splatting renderer, uint8 [K, H, W, 3]: ``asset``, ``floaters`` and
     ``two-faced`` are the fixtures of those names; ``flicker`` is the asset with every
     Gaussian's colour jittered by a random +-``flicker`` per channel anew in each view (the

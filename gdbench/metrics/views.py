@@ -332,7 +332,7 @@ def score_scene(
 def fixture_views(caption: str, mode: str, *, frames: int = FRAMES, size: int = SIZE, seed: int = 0):
     """Per-frame views with an exact answer, rendered by pyrender: (images, alpha). ``asset``:
     the asset itself; ``jittered``: each view turned by a random +-30 degrees, which no single
-    scene renders (the failure fixtures that a scene can show are ``fixtures3d``)."""
+    scene renders (the failure fixtures that a scene can show are ``failures3d``)."""
     import math
 
     import numpy as np

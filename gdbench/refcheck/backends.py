@@ -54,7 +54,7 @@ def _splat(backend: str) -> Callable:
 
 def on_device(fn: Callable, device) -> Callable:
     """``fn`` (``rasterize``'s signature) on ``device`` copies of its CPU tensors, its outputs back on
-    the first argument's device; the copies are in the graph, so gradients reach the callers'
+    the first tensor argument's device; the copies are in the graph, so gradients reach the callers'
     tensors (the ``gsplat_cuda`` backend; ``pytest --device cuda``'s renderer tests)."""
 
     def wrapped(*args, **kwargs):
@@ -62,7 +62,7 @@ def on_device(fn: Callable, device) -> Callable:
 
         from renderers.splat import RenderOutput
 
-        home = args[0].device
+        home = next(x.device for x in (*args, *kwargs.values()) if isinstance(x, torch.Tensor))
         move = lambda x: x.to(device) if isinstance(x, torch.Tensor) and x.device.type == "cpu" else x  # noqa: E731
         out = fn(*map(move, args), **{k: move(v) for k, v in kwargs.items()})
         return RenderOutput(*(x.to(home) if x is not None else None for x in out))

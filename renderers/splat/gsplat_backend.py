@@ -1,12 +1,15 @@
 """The 'gsplat' backend: ``rasterize`` on CUDA tensors through gsplat's CUDA kernels
 (``gsplat.rasterization``, 1.5.3), with this renderer's conventions.
 
-What maps one to one: activated inputs, wxyz quaternions (a zero quaternion is the identity here,
-so it is replaced before gsplat normalises it), the near and far plane, eps2d (the same low-pass
-dilation, classic mode, no compensation), SH along the camera-to-mean direction with the same
-+0.5 and clamp at 0, expected depth (sum w z / alpha, 0 where alpha is 0), the background blended
-with the final transmittance, per-camera colours and batch dimensions, ``means2d`` in the graph
-(``retain_grad()`` gives densification its screen-space gradients), ``radii`` and ``visible``.
+What maps one to one: activated inputs, wxyz quaternions (one of norm up to ``QUAT_EPS`` is the
+identity here, so it is replaced before gsplat normalises it), the near and far plane, eps2d (the
+same low-pass dilation, classic mode, no compensation), SH along the camera-to-mean direction
+with the same +0.5 and clamp at 0, expected depth (sum w z / alpha, 0 where alpha is 0), the
+background blended with the final transmittance, per-camera colours and batch dimensions, and
+``means2d`` in the graph (``retain_grad()`` gives densification its screen-space gradients). Not
+quite: gsplat rounds ``radii`` up to whole pixels, so its ``visible`` can include a few more
+Gaussians at the image's edge than ours; ``means2d`` is 0 for culled Gaussians (ours: their
+projection); its tiles are 16 px whatever ``tile_size`` says (results do not depend on them).
 
 What differs (docs/renderer.md, "On a GPU"): gsplat's kernels fix alpha_min at 1/255, t_min at
 1e-4 and clamp alpha at 0.999. A smaller ``alpha_max`` (ours: 0.99) is applied by capping each
@@ -31,6 +34,8 @@ import os
 
 import torch
 from torch import Tensor
+
+from .project import QUAT_EPS
 
 GSPLAT_ALPHA_MIN = 1.0 / 255.0
 GSPLAT_ALPHA_MAX = 0.999
@@ -119,7 +124,7 @@ def rasterize_gsplat(
 
     norm = quats.norm(dim=-1, keepdim=True)
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
-    quats = torch.where(norm > 0, quats, identity)
+    quats = torch.where(norm > QUAT_EPS, quats, identity)  # as ``project.normalize_quats``
     opacities = cap_opacities(opacities, settings.alpha_max)
     depth = "depth" in want
     images = bool(want & {"rgb", "alpha", "depth"})
@@ -148,7 +153,7 @@ def rasterize_gsplat(
         eps2d=settings.eps2d,
         sh_degree=sh_degree,
         packed=False,
-        tile_size=settings.tile_size,
+        tile_size=16,  # results do not depend on the tiles; gsplat's kernels launch tile_size^2 threads
         backgrounds=bg,
         render_mode=mode,
         rasterize_mode="classic",
@@ -162,10 +167,12 @@ def rasterize_gsplat(
         if "alpha" in want:
             out["alpha"] = alpha
     radii = meta["radii"]  # [*B, C, N, 2] int32 (gsplat 1.5)
+    visible = (radii > 0).all(-1)
     if "radii" in want:
         out["radii"] = radii.to(means.dtype)
     if "visible" in want:
-        out["visible"] = (radii > 0).all(-1)
-    if "means2d" in want:
-        out["means2d"] = meta["means2d"]
+        out["visible"] = visible
+    if "means2d" in want:  # gsplat leaves culled Gaussians' entries unset: 0 there, in the graph
+        m2d = meta["means2d"]
+        out["means2d"] = torch.where(visible[..., None], m2d, torch.zeros((), dtype=m2d.dtype, device=m2d.device))
     return RenderOutput(**out)

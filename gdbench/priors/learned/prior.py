@@ -2,11 +2,11 @@
 
 Where the empirical prior is the exact posterior over stored images (an oracle that snaps to
 its neighbours), this one is a network (``unet.py``) trained on the assets' renders at random
-continuous cameras (``learned_train.py``): it generalises between cameras, turns the noise it is
+continuous cameras (``training.py``): it generalises between cameras, turns the noise it is
 given into content and inherits the biases of its data, as Stable Diffusion does, while every
 result still has a ground truth.
 
-Conventions are Stable Diffusion's (``stable_diffusion.py``), so the trainer's SJC and SDS paths
+Conventions are Stable Diffusion's (``priors/sd/prior.py``), so the trainer's SJC and SDS paths
 serve it unchanged: the VE denoiser of a VP epsilon model on SD's scaled-linear schedule,
 
     sigma_t = sqrt((1 - abar_t) / abar_t),   D(x; sigma) = x - sigma eps(x / sqrt(1 + sigma^2), t),

@@ -122,7 +122,7 @@ class StableDiffusionPrior:
     ) -> StableDiffusionPrior:
         """Load SD 1.x/2.x from a local diffusers folder or a repo id already in the Hugging
         Face cache (offline). ``controlnet``: a depth ControlNet folder; ``lora``: adapters
-        saved by ``sd_3dfuse.SemanticCode``."""
+        saved by ``threedfuse.SemanticCode``."""
         from diffusers import AutoencoderKL, ControlNetModel, DDPMScheduler, UNet2DConditionModel
         from transformers import CLIPTextModel, CLIPTokenizer
 
@@ -153,7 +153,7 @@ class StableDiffusionPrior:
 
     @classmethod
     def tiny(cls, seed: int = 0, *, prediction_type: str = "epsilon", controlnet: bool = True, **kw):
-        """The tiny random-weight prior of ``sd_tiny`` (tests, smoke runs)."""
+        """The tiny random-weight prior of ``priors/sd/tiny.py`` (tests, smoke runs)."""
         from gdbench.priors.sd.tiny import tiny_components
 
         c = tiny_components(seed, prediction_type=prediction_type)
