@@ -9,7 +9,8 @@ import torch
 
 from gdbench.core.camera import Cameras, intrinsics, look_at
 from gdbench.mechanisms.noise import NoiseConfig
-from gdbench.train.config import DensifyConfig, preset
+from gdbench.train.config import preset
+from gdbench.train.densify import DensifyConfig
 
 TEST_DEVICE = torch.device("cpu")
 """Where the renderer tests render: pytest's ``--device`` (tests/conftest.py sets it)."""

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gdbench.priors.empirical import EmpiricalPrior
-from gdbench.train.config import DensifyConfig, TrainConfig, preset
-from gdbench.train.densify import PARAM_NAMES, DensifyStrategy
+from gdbench.train.config import TrainConfig, preset
+from gdbench.train.densify import PARAM_NAMES, DensifyConfig, DensifyStrategy
 from gdbench.train.run import train
 from gdbench.train.trainer import init_state, make_context, train_step
 from tests._util import tiny_bank

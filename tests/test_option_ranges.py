@@ -137,7 +137,8 @@ def test_every_numeric_option_declares_its_range():
     from gdbench.app import cli
     from gdbench.core.constraints import _declared
     from gdbench.mechanisms.noise import NoiseConfig
-    from gdbench.train.config import DensifyConfig, TrainConfig
+    from gdbench.train.config import TrainConfig
+    from gdbench.train.densify import DensifyConfig
 
     free: set[tuple[str, str]] = set()  # none today: seeds too have a range (what manual_seed takes)
     missing = []

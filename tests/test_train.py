@@ -10,8 +10,9 @@ import torch
 
 from gdbench.mechanisms.noise import NoiseConfig
 from gdbench.priors.empirical import EmpiricalPrior
-from gdbench.train.config import PRESETS, DensifyConfig, OptimConfig, TrainConfig, preset
-from gdbench.train.densify import PARAM_NAMES
+from gdbench.train.adam import OptimConfig
+from gdbench.train.config import PRESETS, TrainConfig, preset
+from gdbench.train.densify import PARAM_NAMES, DensifyConfig
 from gdbench.train.run import train
 from gdbench.train.trainer import TrainingDiverged, init_state, make_context, train_step
 from tests._util import CAPTION, PACED_RUN, tiny, tiny_bank

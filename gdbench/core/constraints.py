@@ -47,6 +47,11 @@ class Range:
         return what + unit
 
 
+def is_int(v) -> bool:
+    """An int that is not a bool (``True`` is an int to Python, not a step count)."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 def _number(x) -> str:
     return str(x) if isinstance(x, int) else f"{x:g}" if x is not None else ""
 

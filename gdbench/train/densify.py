@@ -11,12 +11,159 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Annotated, Literal
 
 import torch
 from torch import Tensor
 
-from gdbench.train.config import DensifyConfig, DensifySchedule
+from gdbench.core.constraints import AtLeast, Between, Positive, Range, check_fields, is_int
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """Adaptive density control (3DGS): clone small and split large Gaussians whose screen-space
+    gradient is high, prune transparent or huge ones, reset opacities periodically.
+
+    The schedule (``start``, ``stop``, ``every``, ``reset_every``) follows the run's length: left
+    unset, each is a fraction of the run (``*_frac``: the paper's 300, 1500, 50 and 400 steps at
+    its 2000), rounded to whole steps; set, it is an absolute step count. ``resolve`` gives the
+    schedule of a run, which never densifies on the last step and never resets opacities in the
+    last ``recover_steps`` steps of the run (docs/training.md, "The densification schedule")."""
+
+    enabled: bool = True
+    start: Annotated[int | None, AtLeast(0)] = None
+    """First step after which densification may run (unset: ``start_frac`` of the run)."""
+    stop: Annotated[int | None, AtLeast(0)] = None
+    """Last step that may densify (unset: ``stop_frac`` of the run)."""
+    every: Annotated[int | None, AtLeast(1)] = None
+    """Densify every this many steps (unset: ``every_frac`` of the run, at least 1)."""
+    reset_every: Annotated[int | None, AtLeast(1)] = None
+    """Opacity reset interval (unset: ``reset_frac`` of the run, at least 1); resets fall on its
+    multiples up to ``stop``."""
+    start_frac: Annotated[float, Between(0, 1)] = 0.15
+    """Default ``start`` as a fraction of the run (the paper: 300 of 2000 steps)."""
+    stop_frac: Annotated[float, Between(0, 1)] = 0.75
+    """Default ``stop`` as a fraction of the run (1500 of 2000 steps)."""
+    every_frac: Annotated[float, Between(0, 1)] = 0.025
+    """Default ``every`` as a fraction of the run (the paper: 50 of 2000 steps)."""
+    reset_frac: Annotated[float, Between(0, 1)] = 0.2
+    """Default ``reset_every`` as a fraction of the run (the paper: 400 of 2000 steps)."""
+    recover_steps: Annotated[int, AtLeast(0)] = 100
+    """No opacity reset in the last this many steps of the run: opacities need them to recover from
+    the reset value (measured on the duck: 25-50 steps; docs/training.md). Resets of the default
+    interval that would fall there are dropped; an explicit ``reset_every`` that puts one there is
+    refused."""
+    grad_threshold: Annotated[float, AtLeast(0)] = 2e-4
+    """Mean screen-space gradient norm per view (per unit of half the image size, losses averaged
+    over pixels) above which a Gaussian grows; 3DGS's default. About 5% of Gaussians exceed it
+    mid-run (measured)."""
+    grad_quantile: Annotated[float | None, Range(0, 1, hi_open=True)] = None
+    """Instead of ``grad_threshold``: grow the Gaussians whose statistic is above this quantile of
+    the statistic over the Gaussians seen since the last densification (0.95: the top 5%). Growth
+    then does not depend on the score's scale, which differs between guidance rules (sds-gs's
+    weight 1 - abar): a way to hold paired presets' model sizes comparable (docs/training.md)."""
+    percent_dense: Annotated[float, Positive()] = 0.01
+    """Scale (fraction of the scene extent) separating clone (below) from split (above)."""
+    prune_opacity: Annotated[float, Between(0, 1)] = 0.01
+    """Gaussians below this opacity are pruned."""
+    prune_scale: Annotated[float, Positive()] = 0.5
+    """Gaussians larger than this fraction of the scene extent are pruned."""
+    prune_scale_from: Literal["start", "reset"] = "start"
+    """When the world-size prune (``prune_scale``) starts: with the first densification, or after
+    the first opacity reset (3DGS and gsplat; never, in a run without one)."""
+    reset_value: Annotated[float, Between(0, 1, open=True)] = 0.05
+    """Opacities are capped at this value by a reset."""
+    max_gaussians: Annotated[int, AtLeast(1)] = 30000
+
+    def __post_init__(self) -> None:
+        check_fields(self, "densify.")  # every field against its declared type and range
+        if self.start_frac > self.stop_frac:
+            raise ValueError(f"densify.start_frac: {self.start_frac} is after stop_frac {self.stop_frac}")
+        if self.prune_scale_from not in ("start", "reset"):
+            raise ValueError(f"densify.prune_scale_from: expected 'start' or 'reset', got {self.prune_scale_from!r}")
+
+    def resolve(self, steps: int) -> DensifySchedule:
+        """The schedule of a ``steps``-step run. An explicit setting that would densify on the last
+        step, reset opacities in the last ``recover_steps`` steps, or leave no densification at all
+        raises ValueError naming it, the run's length and the limit."""
+        if not is_int(steps) or steps < 1:
+            raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
+        n = int(steps)
+
+        def frac(f: float, least: int = 0) -> int:
+            return max(least, math.floor(f * n + 0.5))
+
+        start = self.start if self.start is not None else frac(self.start_frac)
+        every = self.every if self.every is not None else frac(self.every_frac, 1)
+        reset_every = self.reset_every if self.reset_every is not None else frac(self.reset_frac, 1)
+        stop = self.stop if self.stop is not None else min(frac(self.stop_frac), n - 1)
+        last_grow = (min(stop, n) // every) * every
+        if self.enabled and self.stop is not None and last_grow == n and last_grow > start:
+            raise ValueError(
+                f"densify.stop (--densify-stop): {self.stop} densifies on the last step of a {n}-step run "
+                f"(every {every} steps), and nothing would train what it adds; expected at most {n - 1}"
+            )
+        explicit = [f"--densify-{k.replace('_', '-')} {getattr(self, k)}" for k in ("start", "stop", "every")
+                    if getattr(self, k) is not None]  # fmt: skip
+        if self.enabled and explicit and (start // every + 1) * every > min(stop, n):
+            raise ValueError(
+                f"densify ({', '.join(explicit)}): no step of a {n}-step run densifies (every {every} steps after "
+                f"step {start}, up to step {min(stop, n)}); to train without densification pass --no-densify"
+            )
+        reset_until = max(0, min(stop, n - self.recover_steps))
+        last_reset = (min(stop, n) // reset_every) * reset_every
+        if self.enabled and 0 < last_reset and last_reset > reset_until and self.reset_every is not None:
+            limit = f"at or before step {reset_until}" if reset_until else "none: the run is too short for one"
+            raise ValueError(
+                f"densify.reset_every (--densify-reset-every): {self.reset_every} puts an opacity reset at step "
+                f"{last_reset} of a {n}-step run, {n - last_reset} steps before its end; the last reset must be "
+                f"at least {self.recover_steps} steps before the end (densify.recover_steps), so {limit}"
+            )
+        return DensifySchedule(n, self.enabled, start, stop, every, reset_every, reset_until)
+
+
+@dataclass(frozen=True)
+class DensifySchedule:
+    """The densification schedule of one run, in 1-based steps: grow at the multiples of
+    ``every`` in (``start``, min(``stop``, ``steps``)], reset opacities at the multiples of
+    ``reset_every`` up to ``reset_until`` (at most ``stop``). No growth falls on the last step and
+    ``reset_until <= steps - recover_steps`` (``DensifyConfig.resolve`` refuses settings that
+    would break either); an explicit ``stop`` may lie beyond the run."""
+
+    steps: int
+    enabled: bool
+    start: int
+    stop: int
+    every: int
+    reset_every: int
+    reset_until: int
+
+    def grows(self, step: int) -> bool:
+        return self.enabled and self.start < step <= min(self.stop, self.steps) and step % self.every == 0
+
+    def resets(self, step: int) -> bool:
+        return self.enabled and 0 < step <= self.reset_until and step % self.reset_every == 0
+
+    def grow_steps(self) -> list[int]:
+        if not self.enabled:
+            return []
+        first = (self.start // self.every + 1) * self.every
+        return list(range(first, min(self.stop, self.steps) + 1, self.every))
+
+    def reset_steps(self) -> list[int]:
+        return list(range(self.reset_every, self.reset_until + 1, self.reset_every)) if self.enabled else []
+
+    def last_collect(self) -> int:
+        """The last step whose screen-space gradients a densification still uses (0: none)."""
+        g = self.grow_steps()
+        return g[-1] if g else 0
+
+    def as_dict(self) -> dict:
+        """What run.json and the checkpoint record: the settings and the steps they give."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        return d | {"grow_steps": self.grow_steps(), "reset_steps": self.reset_steps()}
+
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh", "sh_rest")
 """The trainer's parameters: ``sh`` is the base colour (SH band 0, [N, 1, D]) and ``sh_rest`` the
