@@ -162,7 +162,7 @@ class TrainConfig:
     sees one)."""
 
     def __post_init__(self) -> None:
-        check_fields(self)  # every field against its declared type and range (gdbench.core.constraints)
+        check_fields(self)  # every field against its declared type, range and choices (core.constraints)
         if not self.sigma_min < self.sigma_max:
             raise ValueError(f"sigma_min (--sigma-min): expected < sigma_max ({self.sigma_max}), got {self.sigma_min}")
         for name in ("fovy_range", "azimuth_range", "elevation_range"):
@@ -175,8 +175,6 @@ class TrainConfig:
             )
         if self.init == "ply" and self.init_ply is None:
             raise ValueError("init_ply: init='ply' needs a PLY path (--init-ply FILE)")
-        if self.prior not in ("empirical", "learned", "sd"):
-            raise ValueError(f"prior: expected 'empirical', 'learned' or 'sd', got {self.prior!r}")
         if self.prior == "learned":
             if self.depth_conditioning:
                 raise ValueError(
@@ -186,14 +184,10 @@ class TrainConfig:
                 raise ValueError(f"variants: the learned prior takes 1 or 3 (all of a caption's), got {self.variants}")
             if self.learned_guidance < 1:
                 raise ValueError(f"learned_guidance: expected >= 1 (1 is no guidance), got {self.learned_guidance}")
-        if self.sd_mode not in ("rgb", "latent"):
-            raise ValueError(f"sd_mode: expected 'rgb' or 'latent', got {self.sd_mode!r}")
         if self.prior == "sd" and self.resolution % 8:
             raise ValueError(f"resolution: the sd prior needs a multiple of 8 (latents are 1/8), got {self.resolution}")
         if self.prior == "sd" and self.sd_guidance < 1:
             raise ValueError(f"sd_guidance: expected >= 1, got {self.sd_guidance}")
-        if self.guidance not in ("sjc", "sds"):
-            raise ValueError(f"guidance: expected 'sjc' or 'sds', got {self.guidance!r}")
         self.densify.resolve(self.steps)  # an explicit schedule that breaks the rules fails here
 
 

@@ -80,8 +80,6 @@ class DensifyConfig:
         check_fields(self, "densify.")  # every field against its declared type and range
         if self.start_frac > self.stop_frac:
             raise ValueError(f"densify.start_frac: {self.start_frac} is after stop_frac {self.stop_frac}")
-        if self.prune_scale_from not in ("start", "reset"):
-            raise ValueError(f"densify.prune_scale_from: expected 'start' or 'reset', got {self.prune_scale_from!r}")
 
     def resolve(self, steps: int) -> DensifySchedule:
         """The schedule of a ``steps``-step run. An explicit setting that would densify on the last
