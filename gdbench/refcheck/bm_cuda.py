@@ -1,7 +1,8 @@
-"""On a GPU: the pure-torch renderer on CUDA against gsplat's CUDA rasterizer (agreement and
-speed), and the C++ compositor's scaling with CPU threads.
+"""On a GPU: the renderer on CUDA (the gsplat backend and the torch path) against gsplat's CUDA
+rasterizer and the C++ compositor (agreement and speed), the training step on both devices, and
+the C++ compositor's scaling with CPU threads.
 
-    python -m gdbench.refcheck.bm_cuda --out bench_results/cuda            # all three parts
+    python -m gdbench.refcheck.bm_cuda --out bench_results/cuda            # all four parts
     python -m gdbench.refcheck.bm_cuda --parts threads --out /tmp/cuda     # CPU part only
 
 Parts (``--parts``):

@@ -2,7 +2,7 @@
 the peer renderers.
 
 Sweep: N in {1k, 10k, 100k} x resolution in {64, 256, 512} x path x {forward, forward+backward}.
-Paths: ``splat`` (C++ compositor), ``splat_torch`` (the pure-torch compositor, the CUDA path),
+Paths: ``splat`` (C++ compositor), ``splat_torch`` (the pure-torch compositor, any device),
 ``dense`` (``renderers.splat.reference`` in float32: every Gaussian at every pixel), and with
 ``--peers`` the references: ``gsplat_torch`` (gsplat 1.5.3's torch stages, completed on CPU)
 and ``mitsuba_ellipsoids`` (Mitsuba 3 ray-traced ellipsoids, forward only, 4 spp). Slow paths run only
