@@ -431,7 +431,7 @@ def test_bm_cell_breaks_a_cell_down_and_compares_a_peer_checkout(tmp_path):
     assert peer["same_scene"] == "True" and peer["same_scores"] == "True" and float(peer["ratio"]) > 0
     # the next cell of a two-cell sweep (sjc-gs after gd): from both checkouts, scored alike
     i = next(i for i, r in enumerate(rows) if r["what"].startswith("the next cell of a sweep"))
-    assert 0 < float(rows[i]["seconds"]) < wall and float(rows[i + 1]["ratio"]) > 0
+    assert float(rows[i]["seconds"]) > 0 and float(rows[i + 1]["ratio"]) > 0  # faster: a benchmark claim
     assert rows[i + 1]["same_scene"] == "True" and rows[i + 1]["same_scores"] == "True"
     assert any("matrix product" in r["what"] and float(r["gflops"]) > 0 for r in rows)
 
