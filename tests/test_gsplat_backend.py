@@ -115,51 +115,27 @@ def test_the_opacity_cap_stands_in_for_the_clamp_within_its_bound():
 def _gsplat_on_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, near_plane, far_plane,
                    eps2d, sh_degree, packed, tile_size, backgrounds, render_mode, rasterize_mode):  # fmt: skip
     """A stand-in for ``gsplat.rasterization`` (its contract for what the backend asks: classic, not
-    packed, the render modes RGB, ED and RGB+ED, backgrounds padded with 0 for depth, expected
-    depth over alpha) built from gsplat's own torch stages, so the backend's mapping runs on CPU."""
-    import math
+    packed, the render modes RGB, ED and RGB+ED, expected depth, radii [C, N, 2], culled means2d
+    left unset) built on gsplat's own torch stages (``renderers.gsplat_torch``), so the backend's
+    mapping runs on CPU."""
+    from renderers.gsplat_torch import rasterize as gsplat_torch
 
-    from renderers.gsplat_torch.rasterize import _composite, _gsplat
-
-    ti = _gsplat()
-    assert means.dim() == 2 and not packed and rasterize_mode == "classic" and tile_size <= 32
-    N, C = means.shape[0], viewmats.shape[0]
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    covars, _ = ti._quat_scale_to_covar_preci(q, scales, compute_covar=True, compute_preci=False, triu=False)
-    radii, means2d, depths, conics, _ = ti._fully_fused_projection(
-        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane
-    )
-    radii = radii[..., None].expand(C, N, 2) if radii.dim() == 2 else radii
-    if sh_degree is not None:
-        dirs = means[None] - torch.linalg.inv(viewmats)[:, :3, 3][:, None]
-        sh = colors if colors.dim() == 4 else colors[None].expand(C, *colors.shape)
-        colors = torch.clamp_min(ti._spherical_harmonics(sh_degree, dirs, sh) + 0.5, 0.0)
-    else:
-        colors = colors if colors.dim() == 3 else colors[None].expand(C, *colors.shape)
-    if render_mode == "RGB+ED":
-        colors = torch.cat([colors, depths[..., None]], -1)
-        backgrounds = None if backgrounds is None else torch.cat([backgrounds, torch.zeros(C, 1)], -1)
-    elif render_mode == "ED":
-        colors, backgrounds = depths[..., None], None
-    tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    _, isect_ids, flatten_ids = ti._isect_tiles(means2d, radii, depths, tile_size, tw, th, sort=True)
-    offsets = ti._isect_offset_encode(isect_ids, C, tw, th)
-    D = colors.shape[-1]
-    flat = (means2d.reshape(C * N, 2), conics.reshape(C * N, 3), opacities[None].expand(C, N).reshape(C * N),
-            colors.reshape(C * N, D), depths.reshape(C * N))  # fmt: skip
-    img, T, _, _ = _composite(*flat, offsets, flatten_ids, width, height, tile_size, False, False)
-    alpha = 1 - T
-    if backgrounds is not None:
-        img = img + T * backgrounds[:, None, None, :]
-    if render_mode in ("ED", "RGB+ED"):
-        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp(min=1e-10)], -1)
-    return img, alpha, {"radii": radii, "means2d": means2d + 1000.0 * (radii == 0).any(-1, keepdim=True)}
+    assert not packed and rasterize_mode == "classic" and tile_size <= 32
+    q = quats / quats.norm(dim=-1, keepdim=True)  # the CUDA kernel's normalisation: NaN for a zero quaternion
+    out = gsplat_torch(means, q, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=sh_degree,
+                       background=None if render_mode == "ED" else backgrounds, near_plane=near_plane,
+                       far_plane=far_plane, eps2d=eps2d, tile_size=tile_size,
+                       outputs=("rgb", "alpha", "depth", "means2d", "radii"))  # fmt: skip
+    images = {"RGB": out.rgb, "ED": out.depth, "RGB+ED": torch.cat([out.rgb, out.depth], -1)}[render_mode]
+    radii = out.radii if out.radii.dim() == 3 else out.radii[..., None].expand(*out.radii.shape, 2)
+    unset = 1000.0 * (radii == 0).any(-1, keepdim=True)  # garbage where culled, as the CUDA kernel leaves it
+    return images, out.alpha, {"radii": radii, "means2d": out.means2d + unset}
 
 
 @pytest.mark.parametrize("sh_degree", [None, 2])
 def test_the_backend_maps_outputs_modes_and_background_as_the_torch_path(sh_degree, monkeypatch):
     """The backend's own work on the CPU, with ``gsplat.rasterization`` stood in by gsplat's torch
-    stages (``_gsplat_on_cpu``; its culled means2d made garbage, as the CUDA kernel leaves them):
+    stages (``_gsplat_on_cpu``):
     every output set and its render mode, the background beside the depth channel, the clamp's
     cap, a zero quaternion, and culled means2d zeroed, against our torch path given what the
     backend gives gsplat (capped opacities at its clamp), and within the cap's bound of ours."""
