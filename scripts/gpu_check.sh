@@ -1,17 +1,13 @@
 #!/usr/bin/env bash
 # The GPU checks behind docs/renderer.md "On a GPU", in one call on a bare NVIDIA machine that has
 # python3 with a CUDA torch but no network (how they were run for the docs). Prepare on a CPU
-# machine with the project set up (scripts/gpu_prepare.sh does both):
-#   - wheels of what that machine lacks in .whl/ (tyro, docstring-parser, typeguard, plyfile,
-#     trimesh, gsplat==1.5.3, diffusers, importlib_metadata: `pip download --no-deps
-#     --only-binary=:all: --python-version 3.12 --platform manylinux_2_17_x86_64 -d .whl NAME`),
-#   - the cache a run reads in .devcache/ (the duck's image bank, built here by pyrender, which
-#     that machine lacks, xz-compressed to travel; the tiny SD tokenizer's vocabulary),
-#   - optionally the compiled kernels of an earlier call in .devbuild/ (gsplat's and the C++
-#     compositor's, as this script packs them into OUT/{gsplat,ext}_build.tar.xz),
-# then `bash scripts/gpu_check.sh OUT [SEEDS]`. The builds run first, then the tests and the
-# paired runs side by side, then the benchmark alone (its timings undisturbed); results are
-# packed into OUT/gpu_results.tgz after every stage.
+# machine with the project set up: scripts/gpu_prepare.sh writes the wheels that machine lacks
+# (.whl/) and the cache a run reads (.devcache/: the duck's banks xz-compressed, the tiny SD
+# tokenizer's vocabulary). Carry both, and .devbuild/ if an earlier call's OUT gave its builds
+# (gsplat_build.tar.xz, ext_build.tar.xz: the compiled kernels), then run
+# `bash scripts/gpu_check.sh OUT [SEEDS]`. The builds run first, then the tests and the paired
+# runs side by side, then the benchmark alone (its timings undisturbed); results are packed into
+# OUT/gpu_results.tgz after every stage.
 set -u
 OUT=${1:-gpu_results}
 SEEDS=${2:-8}
