@@ -93,7 +93,7 @@ MUTATIONS = [
              "means2d = torch.stack([fx * x / zs + cx - 0.5, fy * y / zs + cy - 0.5], dim=-1)",
              "pixel centres at integers instead of +0.5"),
     # the trainer's wiring of the paper's mechanisms (what reaches the renderers, captured by tests)
-    Mutation("spread-dropped", "gdbench/train/views.py", "spread_deg=cfg.views_spread_deg,", "spread_deg=None,",
+    Mutation("spread-dropped", "gdbench/train/views.py", "spread_deg=cfg.views.spread_deg,", "spread_deg=None,",
              "--views-spread-deg never reaches the step's cameras", "trainer wiring",
              _train("test_views_spread_reaches_the_noise_renderer")),
     Mutation("jitter-not-rendered", "gdbench/train/distill.py", "        means, log_scales = jitter(",

@@ -228,3 +228,51 @@ def one_line(err: str) -> str:
     lines = [line for line in err.strip().splitlines() if line.strip()]
     assert len(lines) == 1 and "Traceback" not in err, err
     return lines[0]
+
+
+def help_text(name: str, prior: str = "empirical") -> str:
+    """``gdbench NAME --help`` as tyro prints it, in this process (one column: tyro lays out
+    two at ~200), with the commands' help as the entry point builds it (generate's and sweep's
+    for ``prior``)."""
+    import contextlib
+    import io
+    import os
+
+    import tyro
+
+    from gdbench.app.cli import command
+
+    buf, columns = io.StringIO(), os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "100"
+    try:
+        with contextlib.redirect_stdout(buf), contextlib.suppress(SystemExit):
+            tyro.cli(command(name, prior), args=["--help"], prog=f"gdbench {name}")
+    finally:
+        if columns is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = columns
+    return buf.getvalue()
+
+
+def option_helps(command: str, prior: str = "empirical") -> dict[str, str]:
+    """Each option of ``gdbench COMMAND --help`` with its help text (tyro's boxed or plain layout)."""
+    import re
+
+    text = help_text(command, prior)
+    helps: dict[str, str] = {}
+    name = None
+    for line in text.splitlines():
+        body = line.rstrip()
+        if body.lstrip().startswith("│"):  # the boxed layout of a terminal
+            body = body.strip().strip("│").rstrip()
+        m = re.match(r"\s{0,2}(--[a-z][a-z0-9-]*)", body)  # an option starts a line; help lines are indented
+        if m:  # the help starts on this line after two spaces, or on the next ones
+            name = m.group(1)
+            parts = re.split(r"\s{2,}", body.strip(), maxsplit=1)
+            helps[name] = parts[1] if len(parts) > 1 else ""
+        elif name and body.startswith("      "):
+            helps[name] += " " + body.strip()
+        else:
+            name = None
+    return helps

@@ -14,7 +14,7 @@ from gdbench.app.cli import Demo, main
 from gdbench.core.builtin import demo_scene
 from gdbench.core.camera import SphericalPoses
 from renderers.splat import rasterize
-from tests._util import import_edges
+from tests._util import help_text, import_edges, option_helps
 
 
 def test_demo_writes_turntable_that_matches_a_direct_render(tmp_path):
@@ -115,60 +115,13 @@ def test_render_bad_path(tmp_path):
         main(Render(tmp_path / "nothing"))
 
 
-def _help_text(command: str) -> str:
-    """``gdbench COMMAND --help`` as tyro prints it, in this process (one column: tyro lays out
-    two at ~200), with the commands' help as the entry point builds it."""
-    import contextlib
-    import io
-    import os
-
-    import tyro
-
-    from gdbench.app.cli import COMMANDS
-
-    buf, columns = io.StringIO(), os.environ.get("COLUMNS")
-    os.environ["COLUMNS"] = "100"
-    try:
-        with contextlib.redirect_stdout(buf), contextlib.suppress(SystemExit):
-            tyro.cli(COMMANDS[command][0], args=["--help"], prog=f"gdbench {command}")
-    finally:
-        if columns is None:
-            del os.environ["COLUMNS"]
-        else:
-            os.environ["COLUMNS"] = columns
-    return buf.getvalue()
-
-
-def _option_helps(command: str) -> dict[str, str]:
-    """Each option of ``gdbench COMMAND --help`` with its help text (tyro's boxed or plain layout)."""
-    import re
-
-    text = _help_text(command)
-    helps: dict[str, str] = {}
-    name = None
-    for line in text.splitlines():
-        body = line.rstrip()
-        if body.lstrip().startswith("│"):  # the boxed layout of a terminal
-            body = body.strip().strip("│").rstrip()
-        m = re.match(r"\s{0,2}(--[a-z][a-z0-9-]*)", body)  # an option starts a line; help lines are indented
-        if m:  # the help starts on this line after two spaces, or on the next ones
-            name = m.group(1)
-            parts = re.split(r"\s{2,}", body.strip(), maxsplit=1)
-            helps[name] = parts[1] if len(parts) > 1 else ""
-        elif name and body.startswith("      "):
-            helps[name] += " " + body.strip()
-        else:
-            name = None
-    return helps
-
-
 def test_every_option_says_what_it_does():
     """Each option's help says more than its own name and its default (a docstring placed under
     another field used to leave --front-bias with 'front bias' alone)."""
     import re
 
     for command in ("generate", "sweep"):
-        helps = _option_helps(command)
+        helps = option_helps(command)
         assert {"--steps", "--front-bias", "--densify-stop", "--noise-ou-beta"} <= set(helps)
         for name, text in helps.items():
             if name in ("--help",):
@@ -176,24 +129,24 @@ def test_every_option_says_what_it_does():
             own = set(name.strip("-").split("-")) | {"default", "none", "true", "false", "the"}
             words = set(re.findall(r"[a-z]+", text.lower())) - own
             assert len(words) >= 3, (command, name, text)
-    assert "kappa" in _option_helps("generate")["--front-bias"]
+    assert "kappa" in option_helps("generate")["--front-bias"]
 
 
 def test_options_that_would_do_nothing_are_refused_naming_both(tmp_path):
     """An option that acts only under another setting is refused when that setting is off, with
     the option it needs named; nothing is written."""
 
-    from gdbench.app.cli import Generate, GenerateTrain, MethodOptions
+    from gdbench.app.cli import Generate, GenerateTrain
 
     cases = [
-        (dict(method=MethodOptions(noise_ou_beta=0.2)), r"--noise-ou-beta acts only with --noise-redraw ou "
+        (dict(train=GenerateTrain(noise_ou_beta=0.2)), r"--noise-ou-beta acts only with --noise-redraw ou "
          r"\(this run: --noise-redraw run\)"),
         (dict(train=GenerateTrain(log_every=5), progress=False), r"--log-every acts only with the progress report "
          r"or --log-dir"),
         (dict(train=GenerateTrain(vgs_gamma=0.1), preset="sjc-gs"), r"--vgs-gamma acts only with --vgs"),
         (dict(train=GenerateTrain(view_window_deg=30.0, view_prompting="none")), r"--view-window-deg acts only "
          r"with --view-prompting window"),
-        (dict(method=MethodOptions(noise_redraw="step"), preset="gd-no-sn"), r"--noise-redraw acts only with "
+        (dict(train=GenerateTrain(noise_redraw="step"), preset="gd-no-sn"), r"--noise-redraw acts only with "
          r"structured noise"),
     ]  # fmt: skip
     for kw, match in cases:
@@ -226,7 +179,9 @@ def test_field_docs_read_from_each_file_once_are_the_docs_of_each_class():
                 if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
                 and isinstance(getattr(b, "value", None), ast.Constant) and isinstance(b.value.value, str)}  # fmt: skip
 
-    classes = [kind for kind, _ in cli.COMMANDS.values()] + [options.MethodSpec, options.TrainConfig]
+    from gdbench.train.config import NESTED
+
+    classes = [kind for kind, _ in cli.COMMANDS.values()] + [options.TrainConfig, *NESTED.values()]
     classes += [_Outer.Inner]
     for cls in classes:
         assert options._field_docs.__wrapped__(cls) == oracle(cls), cls
@@ -306,7 +261,7 @@ def test_help_reads_once_per_option():
     ).stdout
     assert "--steps INT" in real and "{None" not in real and "--anneal, --no-anneal" in real
     for command in COMMANDS:
-        text = _help_text(command)
+        text = help_text(command)
         assert "{None" not in text and "{True,False}" not in text, command
         flat = " ".join(text.split())
         root = Path(__file__).resolve().parents[1]
@@ -314,7 +269,7 @@ def test_help_reads_once_per_option():
         for doc in re.findall(r"[\w.-]+(?:/[\w.-]+)+\.md\b", flat):  # every document a help names is here
             assert (root / doc).is_file(), (command, doc)
         assert len(re.findall(r"\(default[^)]*\)\s*\(default", flat)) == 0, command
-        helps = _option_helps(command)
+        helps = option_helps(command)
         assert helps, command
         for name, body in helps.items():
             assert name == "--help" or len(body.split()) >= 2, (command, name, body)
@@ -392,7 +347,8 @@ def test_sweep_config_file_gives_the_defaults(tmp_path, monkeypatch):
     cmd = seen[0]
     assert cmd.prompts == ("a corgi",) and cmd.seeds == (0, 1, 2) and cmd.settings == ("janus",)
     assert cmd.steps == 50 and cmd.colmap is False and cmd.config == grid
-    assert cmd.train.overrides() == {"views_per_step": 2} and cmd.method.overrides() == {"noise.redraw": "ou"}
+    assert cmd.train.overrides() == {"views.per_step": 2, "noise.redraw": "ou"}
+    assert cmd.train.options() == {"views_per_step": 2, "noise_redraw": "ou"}
     again = sweep_from_mapping(sweep_mapping(cmd))
     assert sweep_mapping(again) == sweep_mapping(cmd)
 
@@ -549,7 +505,7 @@ def test_sweep_grid_files_and_optional_parts_fail_in_one_line(tmp_path, monkeypa
     from gdbench.core import cache
 
     s = sweep_from_mapping({"overrides": {"noise": {"redraw": "ou"}, "densify.enabled": False}})
-    assert s.method.overrides() == {"noise.redraw": "ou", "densify.enabled": False}
+    assert s.train.overrides() == {"noise.redraw": "ou", "densify.enabled": False}
     assert sweep_from_mapping(None).prompts == cli.Sweep().prompts
     (tmp_path / "g.yaml").write_text("workers: null\n")
     for argv, match in ((["--config", "a.yaml", "--config=b.yaml"], "given more than once"),

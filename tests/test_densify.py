@@ -311,13 +311,13 @@ def test_densify_false_on_the_command_line_trains_without_densification(tmp_path
     densification flag beside it is refused as doing nothing."""
     import json
 
-    from gdbench.app.cli import Generate, GenerateTrain, MethodOptions, main
+    from gdbench.app.cli import Generate, GenerateTrain, main
 
     out = tmp_path / "r"
-    main(Generate("a yellow duck", out=out, score=False, progress=False, train=GenerateTrain(steps=40, resolution=16),
-                  method=MethodOptions(densify=False)))  # fmt: skip
+    main(Generate("a yellow duck", out=out, score=False, progress=False,
+                  train=GenerateTrain(steps=40, resolution=16, densify=False)))  # fmt: skip
     run = json.loads((out / "run.json").read_text())
     assert run["densify_schedule"]["enabled"] is False and run["densify_schedule"]["grow_steps"] == []
     assert run["gaussians"] == 4096  # nothing cloned, split or pruned
     with pytest.raises(ValueError, match=r"--densify-every acts only with densification \(this run: --no-densify\)"):
-        main(Generate("a yellow duck", out=tmp_path / "x", method=MethodOptions(densify=False, densify_every=5)))
+        main(Generate("a yellow duck", out=tmp_path / "x", train=GenerateTrain(densify=False, densify_every=5)))

@@ -79,7 +79,7 @@ def test_ray_sweeps_on_cuda_are_refused_before_any_cell(tmp_path, monkeypatch):
     """Ray hides the GPUs from tasks that ask for none: a Ray sweep on CUDA would fail in every
     cell after the grid was accepted, so it is refused with the grid (a GPU is faked here)."""
     import gdbench.core.devices
-    from gdbench.experiments.sweep import sweep
+    from gdbench.experiments.sweep import SweepConfig, sweep
 
     real = gdbench.core.devices.resolve_device
     monkeypatch.setattr(
@@ -89,7 +89,15 @@ def test_ray_sweeps_on_cuda_are_refused_before_any_cell(tmp_path, monkeypatch):
     )
     with pytest.raises(ValueError, match=r"device: Ray runs a sweep's cells as tasks without a GPU"):
         sweep(
-            ["a yellow duck"], ["gd"], [0], steps=2, out=tmp_path / "sw", executor="ray", overrides={"device": "cuda"}
+            SweepConfig(
+                ["a yellow duck"],
+                ["gd"],
+                [0],
+                steps=2,
+                out=tmp_path / "sw",
+                executor="ray",
+                overrides={"device": "cuda"},
+            )
         )
     assert not (tmp_path / "sw" / "cells").exists()
 
@@ -261,13 +269,14 @@ def test_depth_conditioning_on_cuda(tmp_path):
 def test_a_two_cell_sweep_on_cuda(tmp_path):
     """A sweep of two cells on CUDA: both cells train and score there, their rows say so, and
     their GT PSNR is close to the same cells on the CPU (a few steps: within 1 dB)."""
-    from gdbench.experiments.sweep import sweep
+    from gdbench.experiments.sweep import SweepConfig, sweep
 
     tiny_cfg = {"resolution": 16, "init_points": 150, "checkpoint_every": 2, "turntable_frames": 2}
     rows = {}
     for dev in ("cpu", "cuda"):
-        rows[dev] = sweep(["a yellow duck"], ["gd", "sjc-gs"], [0], steps=4, out=tmp_path / dev, colmap=False,
-                          overrides=tiny_cfg | {"device": dev}, progress=False)  # fmt: skip
+        grid = SweepConfig(["a yellow duck"], ["gd", "sjc-gs"], [0], steps=4, out=tmp_path / dev, colmap=False,
+                           overrides=tiny_cfg | {"device": dev}, progress=False)  # fmt: skip
+        rows[dev] = sweep(grid)
         assert len(rows[dev]) == 2
     for a, b in zip(rows["cpu"], rows["cuda"]):
         assert b["device"] == "cuda" and a["device"] == "cpu"

@@ -194,7 +194,7 @@ def test_learned_prior_bad_input(tmp_path):
 def test_train_config_for_learned_prior():
     from gdbench.train.config import preset
 
-    with pytest.raises(ValueError, match="depth_conditioning"):
+    with pytest.raises(ValueError, match="--depth-conditioning acts only with --prior empirical or sd"):
         preset("gd", prior="learned", depth_conditioning=True)
     with pytest.raises(ValueError, match="variants"):
         preset("gd", prior="learned", variants=2)

@@ -83,9 +83,11 @@ def test_training_options_work_or_end_in_one_line_naming_the_flag(prior, tmp_pat
     run finishes (exit 0) or ends with one line naming the flag or the file (exit 2)."""
     from gdbench.app.cli import entrypoint
     from gdbench.priors import factory
+    from gdbench.priors.empirical import EmpiricalPriorConfig
     from gdbench.train.config import TrainConfig
 
-    flags = _numeric_flags(TrainConfig, exclude=("steps", "resolution", "seed", "semantic_steps", "sd_guidance"))
+    # the empirical prior's own options too (the default --prior; the others need a network)
+    flags = _numeric_flags(TrainConfig, exclude=("steps", "resolution", "seed")) | _numeric_flags(EmpiricalPriorConfig)
     opt = data.draw(st.sampled_from(sorted(flags)))
     v = _value(data.draw(_VALUES), flags[opt])
     assume(v is not None)
@@ -142,8 +144,10 @@ def test_every_numeric_option_declares_its_range():
 
     free: set[tuple[str, str]] = set()  # none today: seeds too have a range (what manual_seed takes)
     missing = []
-    for cls in (TrainConfig, DensifyConfig, NoiseConfig, cli.Demo, cli.Noise, cli.Render, cli.Score, cli.Sweep,
-                cli.TrainPrior):  # fmt: skip
+    from gdbench.priors.factory import PRIOR_CONFIGS
+
+    for cls in (TrainConfig, DensifyConfig, NoiseConfig, *PRIOR_CONFIGS.values(), cli.Demo, cli.Noise, cli.Render,
+                cli.Score, cli.SweepBase, cli.TrainPrior):  # fmt: skip
         for name, (base, rng) in _declared(cls).items():
             if base is not None and rng is None and (cls.__name__, name) not in free:
                 missing.append(f"{cls.__name__}.{name}")

@@ -515,10 +515,10 @@ def test_the_memory_estimate_names_the_flag_that_sizes_the_largest_buffer():
     """Without the empirical prior's bank, a huge resolution still names --resolution (its
     renders), and many views per step name --views-per-step."""
     from gdbench.app.resources import generate_terms
-    from gdbench.train.config import TrainConfig
+    from gdbench.train.config import TrainConfig, apply_overrides
 
     def largest(**kw):
-        return max(generate_terms(TrainConfig(**kw)), key=lambda x: x[2])[0]
+        return max(generate_terms(apply_overrides(TrainConfig(), kw)), key=lambda x: x[2])[0]
 
     assert largest(prior="learned", resolution=40000) == "resolution"
     assert largest(prior="learned", views_per_step=100000) == "views_per_step"

@@ -234,13 +234,16 @@ def test_both_rendering_modes_with_depth_control_and_semantic_code(mode, tmp_pat
 def test_cli_generate_runs_the_sd_prior_and_does_not_score_it_against_an_asset(tmp_path):
     import json
 
-    from gdbench.app.cli import Generate, GenerateTrain, main
+    from gdbench.app.cli import GENERATE_EXCLUDES, generate_command, main
+    from gdbench.train.options import train_options
 
-    train = GenerateTrain(prior="sd", sd_guidance=7.5, steps=2, resolution=32)
-    s = main(Generate(prompt=PROMPT, out=tmp_path, progress=False, train=train))
+    train = train_options(GENERATE_EXCLUDES, "sd")(prior="sd", sd_guidance=7.5, steps=2, resolution=32)
+    s = main(generate_command("sd")(prompt=PROMPT, out=tmp_path, progress=False, train=train))
     assert s["steps"] == 2 and "gt" not in s
     run = json.loads((tmp_path / "run.json").read_text())
-    assert run["config"]["prior"] == "sd" and run["config"]["sd_mode"] == "rgb" and run["caption"] is None
+    prior = run["config"]["prior"]
+    assert prior["kind"] == "sd" and prior["sd_mode"] == "rgb" and prior["sd_guidance"] == 7.5
+    assert run["caption"] is None
 
 
 @pytest.mark.parametrize("mode", ["rgb", "latent"])

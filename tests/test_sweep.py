@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from gdbench.app.cli import Score, Sweep, main
-from gdbench.experiments.sweep import CellSpec, cell_config, run_cell, sweep
+from gdbench.experiments.sweep import CellSpec, SweepConfig, cell_config, run_cell, sweep
 from gdbench.metrics.run_scores import score_run
 from gdbench.train.run import train
 
@@ -29,7 +29,9 @@ def _read_csv(path):
 @pytest.fixture(scope="module")
 def tiny_sweep(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep")
-    rows = sweep([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    rows = sweep(
+        SweepConfig([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    )
     return out, rows
 
 
@@ -68,7 +70,7 @@ def test_figures_are_drawn_on_request_and_a_finished_sweep_draws_them_without_tr
 
     args = ([PROMPT], ["gd"], [0])
     kw = dict(steps=4, out=tmp_path, colmap=False, overrides=TINY, progress=False)
-    rows = sweep(*args, **kw)
+    rows = sweep(SweepConfig(*args, **kw))
     cell = CellSpec(PROMPT, "gd", 0, 4, str(tmp_path), colmap=False, overrides=TINY).dir
     assert (cell / "scene.ply").is_file() and (tmp_path / "verdict.csv").is_file()
     for name in ("turntable.gif", "turntable.mp4", "turntable_sheet.png", "curves.png"):
@@ -84,7 +86,7 @@ def test_figures_are_drawn_on_request_and_a_finished_sweep_draws_them_without_tr
 
     monkeypatch.setattr(run_mod, "train_step", no_step)
     before = json.loads((cell / "run.json").read_text())
-    again = sweep(*args, **kw, figures=True)
+    again = sweep(SweepConfig(*args, **kw, figures=True))
     after = json.loads((cell / "run.json").read_text())  # the provenance of the call that trained it stands
     assert {k: after[k] for k in run_mod.PROVENANCE} == {k: before[k] for k in run_mod.PROVENANCE}
     for name in ("turntable.gif", "turntable.mp4", "turntable_sheet.png", "curves.png"):
@@ -109,7 +111,9 @@ def test_a_finished_sweep_skips_all_cells_and_an_interrupted_one_continues(tiny_
         raise AssertionError(f"cell {spec} should have been skipped")
 
     monkeypatch.setattr(sw, "run_cell", boom)
-    again = sweep([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    again = sweep(
+        SweepConfig([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    )
     assert json.dumps(again) == json.dumps(rows)  # (NaN-safe equality)
     monkeypatch.undo()
 
@@ -119,7 +123,9 @@ def test_a_finished_sweep_skips_all_cells_and_an_interrupted_one_continues(tiny_
     train(cell_config(spec), stop_at=2)
     ran = []
     monkeypatch.setattr(sw, "run_cell", lambda s, **kw: ran.append(s) or run_cell(s, **kw))
-    resumed = sweep([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    resumed = sweep(
+        SweepConfig([PROMPT], ["gd", "sjc-gs"], [0, 1], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    )
     assert ran == [spec]
     assert json.loads((spec.dir / "run.json").read_text())["resumed_from_step"] == 2
     assert resumed[3]["gt_psnr"] == rows[3]["gt_psnr"]
@@ -132,7 +138,7 @@ def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep,
     ran = []
     monkeypatch.setattr(sw, "run_cell", lambda s, **kw: ran.append(s) or {"preset": s.preset})
     monkeypatch.setattr("gdbench.experiments.tables.tables", lambda rows, out, *a: {})
-    sweep([PROMPT], ["gd"], [0], steps=6, out=out, colmap=False, overrides=TINY, progress=False)
+    sweep(SweepConfig([PROMPT], ["gd"], [0], steps=6, out=out, colmap=False, overrides=TINY, progress=False))
     assert [s.steps for s in ran] == [6]
 
 
@@ -146,11 +152,11 @@ def test_a_running_sweep_writes_its_tables_on_a_clock_and_once_at_the_end(tmp_pa
     real = sweep_tables.tables
     monkeypatch.setattr(sweep_tables, "tables", lambda rows, out, *a: calls.append(len(rows)) or real(rows, out, *a))
     kw = dict(steps=4, colmap=False, overrides=TINY, progress=False)
-    rows = sweep([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "a", **kw)
+    rows = sweep(SweepConfig([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "a", **kw))
     assert calls == [3]  # the default clock: one write, at the end, with every cell
     monkeypatch.setattr(sweep_module, "TABLES_EVERY_S", 0.0)
     calls.clear()
-    sweep([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "b", **kw)
+    sweep(SweepConfig([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "b", **kw))
     assert calls == [1, 2, 3, 3]  # after each cell, then the end
     untimed = lambda path: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in _read_csv(path)]  # noqa: E731
     assert untimed(tmp_path / "a" / "cells.csv") == untimed(tmp_path / "b" / "cells.csv") and len(rows) == 3
@@ -158,13 +164,13 @@ def test_a_running_sweep_writes_its_tables_on_a_clock_and_once_at_the_end(tmp_pa
 
 def test_sweep_rejects_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="presets: unknown"):
-        sweep([PROMPT], ["gd", "best"], [0], out=tmp_path)
+        sweep(SweepConfig([PROMPT], ["gd", "best"], [0], out=tmp_path))
     with pytest.raises(ValueError, match="prompts, presets, seeds"):
-        sweep([], ["gd"], [0], out=tmp_path)
+        sweep(SweepConfig([], ["gd"], [0], out=tmp_path))
     with pytest.raises(ValueError, match=r"seeds: \[1\] listed more than once"):
-        sweep([PROMPT], ["gd"], [0, 1, 1], out=tmp_path)
+        sweep(SweepConfig([PROMPT], ["gd"], [0, 1, 1], out=tmp_path))
     with pytest.raises(ValueError, match="executor"):
-        sweep([PROMPT], ["gd"], [0], out=tmp_path, executor="slurm", steps=1, colmap=False, progress=False)
+        sweep(SweepConfig([PROMPT], ["gd"], [0], out=tmp_path, executor="slurm", steps=1, colmap=False, progress=False))
 
 
 def test_local_workers_run_cells_on_their_share_of_the_cores(tiny_sweep, tmp_path):
@@ -174,8 +180,8 @@ def test_local_workers_run_cells_on_their_share_of_the_cores(tiny_sweep, tmp_pat
     import os
 
     _, rows = tiny_sweep
-    got = sweep([PROMPT], ["gd", "sjc-gs"], [1], steps=4, out=tmp_path, colmap=False, overrides=TINY,
-                progress=False, workers=2)  # fmt: skip
+    got = sweep(SweepConfig([PROMPT], ["gd", "sjc-gs"], [1], steps=4, out=tmp_path, colmap=False, overrides=TINY,
+                progress=False, workers=2))  # fmt: skip
     assert [r["threads"] for r in got] == [max(1, (os.cpu_count() or 1) // 2)] * 2
     for r in got:
         local = next(x for x in rows if (x["preset"], x["seed"]) == (r["preset"], 1))
@@ -192,14 +198,14 @@ def test_groups_cross_the_grid_and_claims_pair_within_a_group(tiny_sweep, tmp_pa
 
     _, plain = tiny_sweep
     groups = {"v1": {}, "v2": {"views_per_step": 2, "views_spread_deg": 10.0}}
-    rows = sweep([PROMPT], ["gd", "gd-no-sn"], [0], steps=4, out=tmp_path, colmap=False, overrides=TINY,
-                 progress=False, groups=groups)  # fmt: skip
+    rows = sweep(SweepConfig([PROMPT], ["gd", "gd-no-sn"], [0], steps=4, out=tmp_path, colmap=False, overrides=TINY,
+                 progress=False, groups=groups))  # fmt: skip
     assert [(r["group"], r["preset"]) for r in rows] == [(g, p) for g in ("v1", "v2") for p in ("gd", "gd-no-sn")]
     for r in rows:
         spec = CellSpec(PROMPT, r["preset"], 0, 4, str(tmp_path), group=r["group"])
         assert spec.dir.parts[-5] == r["group"] and (spec.dir / "cell.json").is_file()
         run = json.loads((spec.dir / "run.json").read_text())
-        assert run["config"]["views_per_step"] == r["views_per_step"] == (2 if r["group"] == "v2" else 1)
+        assert run["config"]["views"]["per_step"] == r["views_per_step"] == (2 if r["group"] == "v2" else 1)
         assert r["janus_failure_rate"] == r["featureless_rate"] + r["multi_face_rate"]
     assert rows[0]["gt_psnr"] == next(p["gt_psnr"] for p in plain if (p["preset"], p["seed"]) == ("gd", 0))
     assert rows[2]["gt_psnr"] != rows[0]["gt_psnr"]  # two views per step: another run
@@ -210,16 +216,18 @@ def test_groups_cross_the_grid_and_claims_pair_within_a_group(tiny_sweep, tmp_pa
     assert len(faces) == 2 and all(v["pairs"] == 1 for v in faces)
     assert "| v2 / easy | gd |" in (tmp_path / "summary.md").read_text()
     with pytest.raises(ValueError, match="groups: expected names"):
-        sweep([PROMPT], ["gd"], [0], out=tmp_path, groups={"../x": {}}, colmap=False, progress=False)
+        sweep(SweepConfig([PROMPT], ["gd"], [0], out=tmp_path, groups={"../x": {}}, colmap=False, progress=False))
     with pytest.raises(ValueError, match="views-spread-deg acts only with --views-per-step 2 or more"):
-        sweep([PROMPT], ["gd"], [0], out=tmp_path, groups={"a": {"views_spread_deg": 5.0}}, colmap=False)
+        sweep(SweepConfig([PROMPT], ["gd"], [0], out=tmp_path, groups={"a": {"views_spread_deg": 5.0}}, colmap=False))
 
 
 def test_ray_executor_gives_the_local_rows(tiny_sweep, tmp_path):
     ray = pytest.importorskip("ray")
     _, rows = tiny_sweep
     got = sweep(
-        [PROMPT], ["gd"], [1], steps=4, out=tmp_path, executor="ray", colmap=False, overrides=TINY, progress=False
+        SweepConfig(
+            [PROMPT], ["gd"], [1], steps=4, out=tmp_path, executor="ray", colmap=False, overrides=TINY, progress=False
+        )
     )
     assert not ray.is_initialized()  # the sweep shut down the instance it started
     local = next(r for r in rows if (r["preset"], r["seed"]) == ("gd", 1))
@@ -270,10 +278,9 @@ def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
 
 
 def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
-    from gdbench.app.cli import MethodOptions, SweepTrain
+    from gdbench.app.cli import SweepTrain
 
-    opts = MethodOptions(noise_redraw="ou", noise_ratio="variance")
-    train = SweepTrain(view_prompting="none", views_per_step=2)
+    train = SweepTrain(view_prompting="none", views_per_step=2, noise_redraw="ou", noise_ratio="variance")
     res = main(
         Sweep(
             prompts=(PROMPT,),
@@ -282,19 +289,18 @@ def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
             steps=2,
             out=tmp_path,
             colmap=False,
-            method=opts,
             train=train,
         )
     )
     cell = tmp_path / "cells" / "easy" / "a_yellow_duck" / "gd" / "seed0"
     assert res["cells"] == 1 and json.loads((cell / "cell.json").read_text())["spec"]["overrides"] == {
         "view_prompting": "none",
-        "views_per_step": 2,
+        "views.per_step": 2,
         "noise.redraw": "ou",
         "noise.ratio_mode": "variance",
     }
     config = json.loads((cell / "run.json").read_text())["config"]
-    assert config["view_prompting"] == "none" and config["views_per_step"] == 2
+    assert config["view_prompting"] == "none" and config["views"]["per_step"] == 2
     assert config["noise"]["redraw"] == "ou" and config["noise"]["ratio_mode"] == "variance"
     assert "No claim is decidable here" in capsys.readouterr().out
 
@@ -303,31 +309,33 @@ def test_settings_dial_the_prior_and_pair_cells(tmp_path):
     """janus: no view prompting and a front-heavy bank; instance: three variants; every cell
     scored with the view metrics, and each claim about two presets that ran is in verdict.csv."""
     rows = sweep(
-        [PROMPT],
-        ["gd", "gd-no-sn", "sjc-gs"],
-        [0],
-        steps=2,
-        out=tmp_path,
-        colmap=False,
-        overrides=TINY,
-        progress=False,
-        settings=["easy", "janus", "instance"],
-        setting_presets={"janus": ["gd", "gd-no-sn"], "instance": ["gd", "gd-no-sn"]},
+        SweepConfig(
+            [PROMPT],
+            ["gd", "gd-no-sn", "sjc-gs"],
+            [0],
+            steps=2,
+            out=tmp_path,
+            colmap=False,
+            overrides=TINY,
+            progress=False,
+            settings=["easy", "janus", "instance"],
+            setting_presets={"janus": ["gd", "gd-no-sn"], "instance": ["gd", "gd-no-sn"]},
+        ),
     )
     assert [(r["setting"], r["preset"]) for r in rows] == [
         ("easy", "gd"), ("easy", "gd-no-sn"), ("easy", "sjc-gs"),
         ("janus", "gd"), ("janus", "gd-no-sn"), ("instance", "gd"), ("instance", "gd-no-sn"),
     ]  # fmt: skip
     cfg = json.loads((CellSpec(PROMPT, "gd", 0, 2, str(tmp_path), setting="janus").dir / "run.json").read_text())
-    assert cfg["config"]["view_prompting"] == "none" and cfg["config"]["front_bias"] == 1.0
+    assert cfg["config"]["view_prompting"] == "none" and cfg["config"]["prior"]["front_bias"] == 1.0
     cfg = json.loads((CellSpec(PROMPT, "gd", 0, 2, str(tmp_path), setting="instance").dir / "run.json").read_text())
-    assert cfg["config"]["variants"] == 3 and cfg["config"]["view_prompting"] == "window"
+    assert cfg["config"]["prior"]["variants"] == 3 and cfg["config"]["view_prompting"] == "window"
     for r in rows:
         assert 0 <= r["multi_face_rate"] <= 1 and 0 <= r["instance_inconsistency"] <= 1 and 0 <= r["floaters"] <= 1
     verdicts = _read_csv(tmp_path / "verdict.csv")
     assert {(v["setting"], v["a"], v["b"]) for v in verdicts} >= {("janus", "gd", "gd-no-sn"), ("easy", "gd", "sjc-gs")}
     with pytest.raises(ValueError, match="settings: expected distinct names"):
-        sweep([PROMPT], ["gd"], [0], out=tmp_path, settings=["hard"])
+        sweep(SweepConfig([PROMPT], ["gd"], [0], out=tmp_path, settings=["hard"]))
 
 
 def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():

@@ -9,12 +9,14 @@ import pytest
 import torch
 
 from gdbench.mechanisms.noise import NoiseConfig
+from gdbench.mechanisms.variational import VGSConfig
 from gdbench.priors.empirical import EmpiricalPrior
 from gdbench.train.adam import OptimConfig
 from gdbench.train.config import PRESETS, TrainConfig, preset
 from gdbench.train.densify import PARAM_NAMES, DensifyConfig
 from gdbench.train.run import train
 from gdbench.train.trainer import TrainingDiverged, init_state, make_context, train_step
+from gdbench.train.views import ViewsConfig
 from tests._util import CAPTION, PACED_RUN, tiny, tiny_bank
 
 
@@ -41,10 +43,10 @@ def test_every_preset_runs_two_steps_and_writes_outputs(name, prior, tmp_path):
 
 
 def test_presets_switch_what_the_paper_ablates():
-    assert PRESETS["gd"].structured_noise and PRESETS["gd"].vgs
-    assert not PRESETS["gd-no-sn"].structured_noise and PRESETS["gd-no-sn"].vgs
-    assert PRESETS["gd-no-vgs"].structured_noise and not PRESETS["gd-no-vgs"].vgs
-    assert not PRESETS["sjc-gs"].structured_noise and not PRESETS["sjc-gs"].vgs
+    assert PRESETS["gd"].structured_noise and PRESETS["gd"].vgs.enabled
+    assert not PRESETS["gd-no-sn"].structured_noise and PRESETS["gd-no-sn"].vgs.enabled
+    assert PRESETS["gd-no-vgs"].structured_noise and not PRESETS["gd-no-vgs"].vgs.enabled
+    assert not PRESETS["sjc-gs"].structured_noise and not PRESETS["sjc-gs"].vgs.enabled
     assert PRESETS["sds-gs"].guidance == "sds"
     # the mechanism's control: gd in every field but the noise colours' redraw
     from dataclasses import replace
@@ -113,7 +115,8 @@ def test_resume_refuses_a_different_config(prior, tmp_path):
         (dict(guidance="dds"), ValueError, "guidance"),
         (dict(init_opacity=1.5), ValueError, "init_opacity"),
         (dict(elevation_range=(-90.0, 45.0)), ValueError, r"elevation_range \(--elevation-range\): .* in \(-90, 90\)"),
-        (dict(vgs_unit="pixels"), ValueError, r"vgs_unit \(--vgs-unit\): expected one of \['scene', 'pixel'\]"),
+        (dict(vgs=VGSConfig(unit="pixels")), ValueError, r"vgs.unit \(--vgs-unit\): expected one of \[.scene"),
+        (dict(views=ViewsConfig(per_step=0)), ValueError, r"views.per_step \(--views-per-step\): expected an int >= 1"),
         (dict(seed=True), ValueError, r"seed \(--seed\): expected an int"),
     ],
 )
@@ -533,11 +536,13 @@ def test_run_id_keeps_runs_made_before_a_field_was_added():
     as the code did before it, so a finished run of the older code keeps its id (a sweep finds it
     finished instead of refusing to overwrite it); any other value changes the id."""
     from gdbench.core.io import sha256_json
+    from gdbench.core.layout import flat_config
     from gdbench.train.checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
     from gdbench.train.run import config_dict, run_id
 
     cfg = preset("gd", steps=50)
-    before = {k: v for k, v in config_dict(cfg).items() if k not in RESUME_IGNORES and k not in ADDED_AT_DEFAULT}
+    flat = flat_config(config_dict(cfg))  # the layout run ids were first computed in
+    before = {k: v for k, v in flat.items() if k not in RESUME_IGNORES and k not in ADDED_AT_DEFAULT}
     assert run_id(cfg) == sha256_json(before)[:16]
     assert run_id(preset("gd", steps=50, views_per_step=4, views_spread_deg=10.0)) != run_id(
         preset("gd", steps=50, views_per_step=4)
@@ -545,17 +550,18 @@ def test_run_id_keeps_runs_made_before_a_field_was_added():
 
 
 def _changed(cfg, name):
-    """``cfg`` with field ``name`` set to another valid value (of its type, or another choice of its
-    Literal), for the field classification test."""
+    """``cfg`` (a config dataclass) with field ``name`` set to another valid value (of its type, or
+    another choice of its Literal), for the field classification test."""
     import dataclasses
     import typing
     from pathlib import Path
 
     v = getattr(cfg, name)
-    hint = typing.get_type_hints(TrainConfig)[name]
+    hint = typing.get_type_hints(type(cfg))[name]
     choices = [a for a in typing.get_args(hint) if isinstance(a, str)]
     special = {
-        "views_spread_deg": 10.0,
+        "spread_deg": 10.0,
+        "variants": 3,
         "init_ply": Path("cloud.ply"),
         "log_dir": Path("tb"),
         "sd_controlnet": "controlnet",
@@ -590,12 +596,10 @@ IGNORED_FIELDS = {"out", "progress", "checkpoint_every", "log_every", "turntable
 reports, how often it checkpoints, where its TensorBoard scalars go; the turntable is drawn after
 training), and the device (float rounding only, as the thread count; recorded in run.json)."""
 RESULT_FIELDS = {
-    "prompt", "preset", "steps", "seed", "resolution", "views_per_step", "views_spread_deg", "init", "init_points",
-    "init_ply", "init_opacity", "init_color", "camera_radius", "fovy_range", "azimuth_range", "elevation_range",
-    "background", "guidance", "sigma_min", "sigma_max", "anneal", "samples_per_step", "weight", "view_prompting",
-    "view_window_deg", "front_bias", "variants", "depth_conditioning", "prior", "learned_model", "learned_guidance",
-    "sd_model", "sd_mode", "sd_guidance", "sd_controlnet", "sd_dtype", "semantic_code", "semantic_steps",
-    "structured_noise", "noise", "vgs", "vgs_gamma", "vgs_unit", "optim", "densify", "sh_degree", "max_bad_steps",
+    "prompt", "preset", "steps", "seed", "resolution", "views", "init", "init_points", "init_ply", "init_opacity",
+    "init_color", "camera_radius", "fovy_range", "azimuth_range", "elevation_range", "background", "guidance",
+    "sigma_min", "sigma_max", "anneal", "samples_per_step", "weight", "view_prompting", "prior", "structured_noise",
+    "noise", "vgs", "optim", "densify", "sh_degree", "max_bad_steps",
 }  # fmt: skip
 """Fields that may change a result (or, as preset and max_bad_steps, say which run it is)."""
 
@@ -615,14 +619,32 @@ def test_every_config_field_is_classified_and_result_fields_change_the_run_id():
     assert names == RESULT_FIELDS | IGNORED_FIELDS, f"classify: {sorted(names - RESULT_FIELDS - IGNORED_FIELDS)}"
     assert RESUME_IGNORES == IGNORED_FIELDS
     base = preset("gd", steps=50)
-    for name in sorted(names):
-        other = _changed(base, name)
-        if name in RESULT_FIELDS:
-            assert run_id(other) != run_id(base), name
-            assert config_diff(config_dict(base), config_dict(other)) == [name], name
+    changes = [(base, _changed(base, name), name) for name in sorted(names - {"views", "vgs", "prior"})]
+    # the groups that were flat fields (views, vgs) and every prior's settings, one by one, under the
+    # names run ids and resume compare them by (the flat layout: views_per_step, vgs_gamma, sd_model)
+    from gdbench.core.constraints import flag
+    from gdbench.priors.factory import PRIOR_CONFIGS
+
+    for group in ("views", "vgs"):
+        sub = getattr(base, group)
+        for f in dataclasses.fields(sub):
+            other = dataclasses.replace(base, **{group: _changed(sub, f.name)})
+            changes.append((base, other, flag(f"{group}.{f.name}")[2:].replace("-", "_")))
+    for kind in PRIOR_CONFIGS:
+        b = preset("gd", steps=50, prior=kind)
+        changes += [
+            (b, dataclasses.replace(b, prior=_changed(b.prior, f.name)), f.name) for f in dataclasses.fields(b.prior)
+        ]
+        if kind != "empirical":
+            changes.append((base, b, "prior"))
+    assert len(changes) > 45  # not vacuous
+    for a, b, name in changes:
+        if name in IGNORED_FIELDS:
+            assert run_id(b) == run_id(a), name
+            assert config_diff(config_dict(a), config_dict(b)) == [], name
         else:
-            assert run_id(other) == run_id(base), name
-            assert config_diff(config_dict(base), config_dict(other)) == [], name
+            assert run_id(b) != run_id(a), name
+            assert config_diff(config_dict(a), config_dict(b)) == [name], name
 
 
 def test_run_outputs_are_written_while_the_folder_lock_is_held(prior, tmp_path, monkeypatch):

@@ -174,13 +174,13 @@ def test_training_frustums_are_the_runs_own_views_within_its_ranges():
     from gdbench.train.config import TrainConfig
     from gdbench.train.outputs import config_dict
     from gdbench.train.streams import make_streams
-    from gdbench.train.views import sample_views
+    from gdbench.train.views import ViewsConfig, sample_views
 
     cfg = TrainConfig(
         seed=3,
         steps=40,
         resolution=32,
-        views_per_step=2,
+        views=ViewsConfig(per_step=2),
         camera_radius=1.2,
         fovy_range=(42.0, 55.0),
         azimuth_range=(-90.0, 60.0),

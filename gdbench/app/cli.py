@@ -3,8 +3,9 @@ only parses arguments with tyro."""
 
 from __future__ import annotations
 
+import functools
 import signal
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -30,19 +31,21 @@ from gdbench.app.commands import (
 )
 from gdbench.core.constraints import AtLeast, Between, Positive, Seed, check_fields
 from gdbench.core.io import prompt_slug
+from gdbench.priors.factory import PRIOR_CONFIGS
 from gdbench.train.config import BASE_PRESETS, PRESETS
-from gdbench.train.options import method_options, train_options
+from gdbench.train.options import train_options
 
-MethodOptions = method_options()
-"""The nested settings' overrides (the noise's redraw and mixing, the densification schedule)."""
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 """The presets' names, from the one place they are defined (train/config.py)."""
-GenerateTrain = train_options(("prompt", "preset", "out", "progress"))
-"""Every other TrainConfig field as an optional override of the preset."""
+GENERATE_EXCLUDES = ("prompt", "preset", "out", "progress")
+"""TrainConfig fields that are not training options of generate (its own options, or none)."""
+GenerateTrain = train_options(GENERATE_EXCLUDES)
+"""Every other TrainConfig field as an optional override of the preset (the empirical prior's
+options; ``generate_command`` makes the others')."""
 
 
 @dataclass
-class Generate:
+class GenerateBase:
     """Text to a 3D Gaussian scene: score distillation on the embedded CPU prior (or the learned
     prior with --prior learned, Stable Diffusion with --prior sd).
 
@@ -73,8 +76,27 @@ class Generate:
     """Score the result against the asset (PSNR/SSIM and view metrics) into scores.json."""
     progress: bool = True
     """Report progress: a bar on a terminal, a plain line every few seconds in a log."""
-    train: tyro.conf.OmitArgPrefixes[GenerateTrain] = field(default_factory=GenerateTrain)
-    method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
+
+
+def _with_options(base: type, train: type, name: str) -> type:
+    """``base`` with the option group ``train`` (a ``train_options`` class)."""
+    cls = make_dataclass(
+        name,
+        [("train", tyro.conf.OmitArgPrefixes[train], field(default_factory=train))],
+        bases=(base,),
+        namespace={"__doc__": base.__doc__, "__module__": __name__},
+    )
+    return cls
+
+
+@functools.cache
+def generate_command(prior: str = "empirical") -> type:
+    """The generate command with the options of ``prior`` (a --prior choice)."""
+    return _with_options(GenerateBase, train_options(GENERATE_EXCLUDES, prior), "Generate")
+
+
+Generate = generate_command()
+"""The generate command with the empirical prior's options (the default --prior)."""
 
 
 @dataclass
@@ -106,13 +128,13 @@ class Render:
     one)."""
 
 
-def run_generate(cmd: Generate) -> dict:
+def run_generate(cmd) -> dict:
     from gdbench.app.resources import check_generate_memory
     from gdbench.train.config import apply_overrides, preset
     from gdbench.train.options import inert_options
     from gdbench.train.run import train
 
-    overrides = cmd.train.overrides() | cmd.method.overrides()
+    overrides = cmd.train.overrides()
     base, file_out = _config_file(cmd.config, cmd.preset) if cmd.config is not None else (None, None)
     prompt = cmd.prompt if cmd.prompt is not None else (base.prompt if base is not None else None)
     if not prompt:
@@ -280,13 +302,16 @@ def run_score(cmd: Score) -> dict:
     return s
 
 
-SweepTrain = train_options(("prompt", "preset", "out", "progress", "seed", "steps", "log_every", "log_dir"))
-"""Every other TrainConfig field as an override of every cell (cells run without a progress bar,
+SWEEP_EXCLUDES = ("prompt", "preset", "out", "progress", "seed", "steps", "log_every", "log_dir")
+"""TrainConfig fields that are not overrides of a sweep's cells (cells run without a progress bar,
 so --log-every has no place here)."""
+SweepTrain = train_options(SWEEP_EXCLUDES)
+"""Every other TrainConfig field as an override of every cell (the empirical prior's options;
+``sweep_command`` makes the others')."""
 
 
 @dataclass
-class Sweep:
+class SweepBase:
     """Train and score every (setting, prompt, preset, seed) cell; write cells.csv, summary.csv,
     summary.md and verdict.csv (the paper's claims over (prompt, seed) pairs: BCa intervals,
     signed-rank p-values Holm-adjusted, equivalence tests, power, per-prompt effects); with
@@ -336,30 +361,43 @@ class Sweep:
     does (about 2 s a cell), and the sweep's ablation.png (every cell's metrics). Off, a cell
     writes scene.ply, run.json, scores.json and cell.json, what the tables need; run a finished
     sweep again with --figures to draw them (nothing is trained again)."""
-    train: tyro.conf.OmitArgPrefixes[SweepTrain] = field(default_factory=SweepTrain)
-    """Overrides applied to every cell (after its setting's)."""
-    method: tyro.conf.OmitArgPrefixes[MethodOptions] = field(default_factory=MethodOptions)
 
 
-def sweep_from_mapping(d: dict, what: str = "config") -> Sweep:
+@functools.cache
+def sweep_command(prior: str = "empirical") -> type:
+    """The sweep command with the options of ``prior`` (a --prior choice) as overrides of every
+    cell (after its setting's)."""
+    return _with_options(SweepBase, train_options(SWEEP_EXCLUDES, prior), "Sweep")
+
+
+Sweep = sweep_command()
+"""The sweep command with the empirical prior's options (the default --prior)."""
+
+
+def sweep_from_mapping(d: dict, what: str = "config", prior: str | None = None):
     """The ``Sweep`` a grid file describes (see ``Sweep.config``): each value checked against its
     option's type (``train.config.from_json``); ``overrides`` takes the training options by their
-    option names (views-per-step, noise-redraw) or run.json's (noise.redraw, or nested mappings)."""
+    option names (views-per-step, noise-redraw) or run.json's (noise.redraw, or nested mappings).
+    Its command has the options of ``prior`` (the command line's --prior), else of the file's
+    'prior' override, else of the empirical prior."""
     import typing
 
-    from gdbench.train.config import from_json
-    from gdbench.train.options import METHOD_KEYS, MethodSpec
+    from gdbench.core.constraints import flag
+    from gdbench.train.config import NESTED, from_json
 
     if d is None:
         d = {}  # an empty file: every default
     if not isinstance(d, dict):
         raise ValueError(f"{what}: expected a mapping of sweep options, got {type(d).__name__}")
-    hints = typing.get_type_hints(Sweep, include_extras=True)
-    names = {f.name for f in fields(Sweep)} - {"config", "train", "method"}
-    train_hints = typing.get_type_hints(SweepTrain, include_extras=True)
-    method_hints = typing.get_type_hints(MethodSpec, include_extras=True)
-    dotted = {key: option for option, key in METHOD_KEYS.items()}  # run.json's names -> the options
-    top, train, method = {}, {}, {}
+    over = d.get("overrides")
+    kind = prior or (over.get("prior") if isinstance(over, dict) else None) or "empirical"
+    command = sweep_command(kind if kind in PRIOR_CONFIGS else "empirical")  # (a bad name: the check names it)
+    train_cls = typing.get_type_hints(command)["train"]
+    train_cls = typing.get_args(train_cls)[0] if typing.get_origin(train_cls) is Annotated else train_cls
+    hints = typing.get_type_hints(SweepBase, include_extras=True)
+    names = {f.name for f in fields(SweepBase)} - {"config"}
+    train_hints = typing.get_type_hints(train_cls, include_extras=True)
+    top, train = {}, {}
     for key, value in d.items():
         k = str(key).replace("-", "_")
         if k == "overrides":
@@ -367,16 +405,14 @@ def sweep_from_mapping(d: dict, what: str = "config") -> Sweep:
                 raise ValueError(f"{what}: overrides: expected a mapping of training options, got {value!r}")
             flat = {}
             for ok, ov in value.items():
-                if ok in ("noise", "densify") and isinstance(ov, dict):  # run.json's nested form
+                if ok in NESTED and isinstance(ov, dict):  # run.json's nested form
                     flat |= {f"{ok}.{k2}": v2 for k2, v2 in ov.items()}
                 else:
                     flat[str(ok)] = ov
             for ok, ov in flat.items():
-                o = dotted.get(ok, ok.replace("-", "_"))
+                o = flag(ok)[2:].replace("-", "_")  # run.json's names (noise.redraw) -> the options'
                 if o in train_hints:
                     train[o] = from_json(train_hints[o], ov, f"overrides: {ok}", what)
-                elif o in method_hints:
-                    method[o] = from_json(method_hints[o], ov, f"overrides: {ok}", what)
                 else:
                     raise ValueError(f"{what}: overrides: unknown training option {ok!r}")
         elif k in names:
@@ -385,7 +421,7 @@ def sweep_from_mapping(d: dict, what: str = "config") -> Sweep:
             top[k] = from_json(hints[k], value, k, what)
         else:
             raise ValueError(f"{what}: unknown sweep option {key!r}; expected some of {sorted(names | {'overrides'})}")
-    return Sweep(**top, train=SweepTrain(**train), method=MethodOptions(**method))
+    return command(**top, train=train_cls(**train))
 
 
 def load_mapping(path: Path, what: str = "config") -> dict:
@@ -409,11 +445,11 @@ def load_mapping(path: Path, what: str = "config") -> dict:
     return d
 
 
-def sweep_mapping(cmd: Sweep) -> dict:
+def sweep_mapping(cmd) -> dict:
     """``cmd`` as the mapping ``sweep_from_mapping`` reads (what <out>/sweep.yaml holds)."""
     d = {}
-    for f in fields(Sweep):
-        if f.name in ("config", "train", "method"):
+    for f in fields(cmd):
+        if f.name in ("config", "train"):
             continue
         v = getattr(cmd, f.name)
         d[f.name] = list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
@@ -421,18 +457,17 @@ def sweep_mapping(cmd: Sweep) -> dict:
     def plain(v):
         return list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
 
-    over = {k: plain(v) for k, v in cmd.train.overrides().items()}
-    over |= {f.name: getattr(cmd.method, f.name) for f in fields(cmd.method) if getattr(cmd.method, f.name) is not None}
+    over = {k: plain(v) for k, v in cmd.train.options().items()}  # by option name, as a user writes them
     if over:
         d["overrides"] = over
     return d
 
 
-def run_sweep(cmd: Sweep) -> dict:
+def run_sweep(cmd) -> dict:
     import yaml
 
     from gdbench.core.io import atomic_write, check_folder
-    from gdbench.experiments.sweep import sweep
+    from gdbench.experiments.sweep import SweepConfig, sweep
 
     check_folder(cmd.out)
     text = yaml.safe_dump(sweep_mapping(cmd), sort_keys=False).encode()
@@ -442,7 +477,7 @@ def run_sweep(cmd: Sweep) -> dict:
         atomic_write(Path(cmd.out) / "sweep.yaml", lambda f: f.write(text))
 
     per = {"janus": cmd.janus_presets, "instance": cmd.instance_presets}
-    rows = sweep(
+    grid = SweepConfig(
         list(cmd.prompts),
         list(cmd.presets),
         list(cmd.seeds),
@@ -453,33 +488,34 @@ def run_sweep(cmd: Sweep) -> dict:
         workers=cmd.workers,
         colmap=cmd.colmap,
         colmap_views=cmd.colmap_views,
-        overrides=cmd.train.overrides() | cmd.method.overrides(),
+        overrides=cmd.train.overrides(),
         settings=list(cmd.settings),
         setting_presets={k: list(v) for k, v in per.items() if v},
         colmap_presets=list(cmd.colmap_presets) or None,
         colmap_settings=list(cmd.colmap_settings) or None,
-        on_valid=record,
         figures=cmd.figures,
     )
+    rows = sweep(grid, on_valid=record)
     print((Path(cmd.out) / "summary.md").read_text())
     return {"cells": len(rows), "out": str(cmd.out)}
 
 
 COMMANDS = {
-    "generate": (Generate, run_generate),
+    "generate": (GenerateBase, run_generate),
     "render": (Render, run_render),
     "compare": (Compare, run_compare),
     "demo": (Demo, run_demo),
     "noise": (Noise, run_noise),
     "score": (Score, run_score),
-    "sweep": (Sweep, run_sweep),
+    "sweep": (SweepBase, run_sweep),
     "bench": (Bench, run_bench),
     "train-prior": (TrainPrior, run_train_prior),
     "view": (View, run_view),
     "export": (Export, run_export),
     "cache": (Cache, run_cache),
 }
-"""Subcommand name -> (its options, the function that runs them)."""
+"""Subcommand name -> (its options, the function that runs them); generate's and sweep's options
+are those of a --prior choice (``generate_command``, ``sweep_command``)."""
 
 
 def one_paragraph_help(cls) -> type:
@@ -516,7 +552,7 @@ def main(cmd) -> dict:
     """Validate the whole command line against its declared ranges (``gdbench.core.constraints``),
     then run it: nothing is built, rendered or trained for a command that cannot run."""
     for _, (kind, run) in COMMANDS.items():
-        if type(cmd) is kind:
+        if isinstance(cmd, kind):
             check_fields(cmd, nested=False)  # option groups (train, method) hold plain flags
             return run(cmd)
     raise TypeError(f"cmd: unknown command {type(cmd).__name__}")
@@ -611,20 +647,79 @@ def entrypoint() -> None:
     except ValueError as e:
         print(f"gdbench sweep: error: {e}", file=sys.stderr)
         sys.exit(2)
+    prior = None
+    if argv[:1] in (["generate"], ["sweep"]):
+        try:
+            prior = chosen_prior(argv)
+        except ValueError as e:
+            print(f"gdbench {argv[0]}: error: {e}", file=sys.stderr)
+            sys.exit(2)
     if config is not None:  # the file's options become the defaults the command line overrides
 
         def with_config() -> None:  # read under run_reporting: a bad file is one line, as any error
             path, rest = config
-            default = sweep_from_mapping(load_mapping(path), what=f"config ({path})")
-            cmd = tyro.cli(Sweep, default=default, args=rest, prog="gdbench sweep")
+            default = sweep_from_mapping(load_mapping(path), what=f"config ({path})", prior=prior)
+            cmd = tyro.cli(type(default), default=default, args=rest, prog="gdbench sweep")
             cmd.config = path
             main(cmd)
 
         run_reporting("sweep", with_config)
         return
-    cmd = tyro.extras.subcommand_cli_from_dict({name: kind for name, (kind, _) in COMMANDS.items()})
-    name = next(n for n, (kind, _) in COMMANDS.items() if type(cmd) is kind)
+    cmd = tyro.extras.subcommand_cli_from_dict({name: command(name, prior or "empirical") for name in COMMANDS})
+    name = next(n for n, (kind, _) in COMMANDS.items() if isinstance(cmd, kind))
     run_reporting(name, lambda: main(cmd))
+
+
+def command(name: str, prior: str = "empirical") -> type:
+    """The options class of subcommand ``name``; generate's and sweep's with ``prior``'s options."""
+    if name == "generate":
+        return generate_command(prior)
+    if name == "sweep":
+        return sweep_command(prior)
+    return COMMANDS[name][0]
+
+
+def chosen_prior(argv: list[str]) -> str:
+    """The --prior of a generate or sweep command line (``argv`` from the subcommand on): given,
+    else the one its --config file names, else 'empirical'; a bad name is left to the parser. A
+    prior's option typed for another prior is a ValueError naming the prior it needs."""
+    from gdbench.train.config import PRIOR_KEYS
+
+    rest = argv[1:]
+    kind = None
+    for i, a in enumerate(rest):
+        if a == "--prior" and i + 1 < len(rest):
+            kind = rest[i + 1]
+        elif a.startswith("--prior="):
+            kind = a.split("=", 1)[1]
+    if kind is None:
+        kind = _file_prior(argv)
+    kind = kind if kind in PRIOR_CONFIGS else "empirical"
+    for a in rest:
+        if a == "--":
+            break
+        name = a.split("=", 1)[0].removeprefix("--").removeprefix("no-").replace("-", "_")
+        if a.startswith("--") and name in PRIOR_KEYS and kind not in PRIOR_KEYS[name]:
+            raise ValueError(f"{a.split('=', 1)[0]} acts only with --prior {' or '.join(PRIOR_KEYS[name])} "
+                             f"(this command: --prior {kind})")  # fmt: skip
+    return kind
+
+
+def _file_prior(argv: list[str]) -> str | None:
+    """The prior a generate or sweep --config file names (a run.json's config, a settings file,
+    a sweep's overrides), or None; a file that cannot be read is left to the command to report."""
+    try:
+        found = _config_arg(argv)
+        if found is None:
+            return None
+        d = load_mapping(found[0])
+    except Exception:  # (the command reads the file again and names what is wrong)
+        return None
+    d = d.get("config", d) if "run_id" in d else d
+    d = d.get("overrides", d) if argv[0] == "sweep" else d
+    prior = d.get("prior") if isinstance(d, dict) else None
+    prior = prior.get("kind") if isinstance(prior, dict) else prior
+    return prior if isinstance(prior, str) else None
 
 
 def program() -> None:

@@ -46,9 +46,9 @@ def generate_terms(cfg) -> list[tuple[str, object, float, str]]:
     """The big buffers of a training run, each with the option that sizes it: the prior's bank
     and its zoomed copies (resolution), one step's renders and noise fields (views per step,
     samples per step) and the Gaussians (initial points, the densification cap)."""
-    R, V, K = cfg.resolution, cfg.views_per_step, cfg.samples_per_step
+    R, V, K = cfg.resolution, cfg.views.per_step, cfg.samples_per_step
     terms: list[tuple[str, object, float, str]] = []
-    if cfg.prior == "empirical":
+    if cfg.prior.kind == "empirical":
         from gdbench.assets.bank import BankConfig
 
         lo, hi = cfg.fovy_range

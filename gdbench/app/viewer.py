@@ -180,8 +180,10 @@ def training_cameras(config: dict, steps: int, max_views: int = MAX_FRUSTUMS) ->
     ``SphericalPoses.sample`` of ``views_per_step`` poses per step, in the config's radius, fov,
     azimuth and elevation ranges), for the first ``steps`` steps; returns the first view of every
     k-th step (at most ``max_views``) and the steps they belong to."""
+    from gdbench.core.layout import flat_config
     from gdbench.train.streams import make_streams
 
+    config = flat_config(config)  # either layout of run.json
     try:
         keys = ("seed", "camera_radius", "fovy_range", "azimuth_range", "elevation_range", "resolution")
         seed, radius, fovy, az, el, res = (config[k] for k in keys)

@@ -75,9 +75,13 @@ def Seed() -> Range:
 
 
 def flag(key: str) -> str:
-    """The command-line option of a field key ('noise.ou_beta' -> '--noise-ou-beta')."""
-    special = {"noise.ratio_mode": "--noise-ratio", "densify.enabled": "--densify"}
-    return special.get(key) or "--" + key.replace(".", "-").replace("_", "-")
+    """The command-line option of a field key ('noise.ou_beta' -> '--noise-ou-beta', 'vgs.enabled'
+    -> '--vgs', 'prior.sd_model' -> '--sd-model')."""
+    key = key.removeprefix("prior.")  # the prior's settings are flags of their own (--sd-model)
+    if key == "noise.ratio_mode":
+        return "--noise-ratio"
+    key = key.removesuffix(".enabled")  # a group switched on and off by its name (--vgs, --densify)
+    return "--" + key.replace(".", "-").replace("_", "-")
 
 
 @functools.cache

@@ -109,19 +109,19 @@ SEEDS = list(range(10))
 def run_blocks(blocks: list[Block], seeds: list[int], out: Path, args, rounds: int) -> dict[str, list[dict]]:
     """Each block's sweep into ``out/blocks/<name>``, the seeds in ``rounds`` rounds (every block
     gets its first seeds before any block its last); returns each block's rows."""
-    from gdbench.experiments.sweep import sweep
+    from gdbench.experiments.sweep import SweepConfig, sweep
 
     rows: dict[str, list[dict]] = {}
     per = max(1, -(-len(seeds) // rounds))
     for k in range(per, len(seeds) + per, per):
         for b in blocks:
             print(f"decisive: block {b.name}, seeds {seeds[:k]}", flush=True)
-            rows[b.name] = sweep(
+            rows[b.name] = sweep(SweepConfig(
                 b.prompts, b.presets, seeds[: min(k, len(seeds))], steps=b.steps, out=out / "blocks" / b.name,
                 executor=args.executor, address=args.address, workers=args.workers, colmap=b.colmap,
                 settings=b.settings, groups={g: GROUPS[g] for g in b.groups}, overrides=b.overrides,
                 progress=args.progress, figures=True,  # the turntable grids read the cells' GIFs
-            )  # fmt: skip
+            ))  # fmt: skip
     return rows
 
 

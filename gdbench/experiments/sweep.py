@@ -21,6 +21,7 @@ import math
 import re
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -159,11 +160,7 @@ def cell_config(spec: CellSpec):
 def prior_name(cfg) -> str:
     """The prior of a config as a table names it: 'empirical', 'sd', or 'learned:<model>' (the
     shipped model 'auto' resolves to, or the model's path)."""
-    if cfg.prior != "learned":
-        return cfg.prior
-    from gdbench.priors.learned.prior import model_for_front_bias
-
-    return "learned:" + (model_for_front_bias(cfg.front_bias) if cfg.learned_model == "auto" else cfg.learned_model)
+    return "learned:" + cfg.prior.model if cfg.prior.kind == "learned" else cfg.prior.kind
 
 
 def setting_overrides(setting: str, prior: str | None) -> dict:
@@ -215,10 +212,10 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
         "prompt": spec.prompt,
         "preset": spec.preset,
         "seed": spec.seed,
-        "variants": cfg.variants,
+        "variants": getattr(cfg.prior, "variants", 1),
         "prior": prior_name(cfg),
-        "views_per_step": cfg.views_per_step,
-        "views_spread_deg": math.nan if cfg.views_spread_deg is None else cfg.views_spread_deg,
+        "views_per_step": cfg.views.per_step,
+        "views_spread_deg": math.nan if cfg.views.spread_deg is None else cfg.views.spread_deg,
         "iterations": r.state.step,
         "train_time_s": train_s,
         "gaussians": scores["gaussians"],
@@ -284,50 +281,61 @@ def _done(spec: CellSpec, figures: bool = False) -> dict | None:
     return {k: math.nan if v is None else v for k, v in row.items()}  # null: a missing number
 
 
-def sweep(
-    prompts: list[str],
-    presets: list[str],
-    seeds: list[int],
-    *,
-    steps: int = 2000,
-    out: str | Path = "runs/sweep",
-    executor: Literal["local", "ray"] = "local",
-    address: str = "",
-    workers: int = 1,
-    colmap: bool = True,
-    colmap_views: int = 100,
-    overrides: dict | None = None,
-    progress: bool = True,
-    settings: list[str] | None = None,
-    setting_presets: dict[str, list[str]] | None = None,
-    colmap_presets: list[str] | None = None,
-    colmap_settings: list[str] | None = None,
-    groups: dict[str, dict] | None = None,
-    on_valid=None,
-    figures: bool = False,
-) -> list[dict]:
-    """Train and score the grid groups x settings x prompts x presets x seeds; returns the rows.
+@dataclass(frozen=True)
+class SweepConfig:
+    """A sweep's grid: groups x settings x prompts x presets x seeds, and how its cells run."""
 
-    ``setting_presets`` restricts the presets of a setting (default: all ``presets``);
-    ``colmap_presets`` and ``colmap_settings`` restrict COLMAP scoring (default: every cell, when
-    ``colmap``). ``groups`` names sets of overrides applied on top of ``overrides`` (a factor the
-    ambiguity settings do not cover: the prior, views per step); each group's cells live in
-    ``out/cells/<group>/`` and claims pair within a group (default: one unnamed group).
-    ``on_valid()``, if given, is called once the grid is validated, before any cell runs.
-    ``figures``: each cell also writes its turntable and training curves (what ``turntable_grid``
-    reads), and the sweep ablation.png; off, only what the tables need (a finished sweep run again
-    with ``figures`` draws them without training). ``out/timings.json`` records where the call's
-    time went (validation, cells, tables)."""
+    prompts: Sequence[str]
+    presets: Sequence[str]
+    seeds: Sequence[int]
+    steps: int = 2000
+    """Training steps per cell."""
+    out: str | Path = "runs/sweep"
+    """Folder of the cells (one run folder each) and the tables."""
+    executor: Literal["local", "ray"] = "local"
+    address: str = ""
+    """Ray cluster address (ray executor); empty starts a local Ray instance."""
+    workers: int = 1
+    """Cells run at once."""
+    colmap: bool = True
+    """Score cells with COLMAP consistency."""
+    colmap_views: int = 100
+    overrides: Mapping[str, object] | None = None
+    """Training overrides of every cell (``train.config.apply_overrides``'s keys), after its setting's."""
+    progress: bool = True
+    settings: Sequence[str] | None = None
+    """Ambiguity settings (default: easy)."""
+    setting_presets: Mapping[str, Sequence[str]] | None = None
+    """Restricts the presets of a setting (default: all ``presets``)."""
+    colmap_presets: Sequence[str] | None = None
+    """Restrict COLMAP scoring to these presets (default: every cell, when ``colmap``)."""
+    colmap_settings: Sequence[str] | None = None
+    """... and to these settings."""
+    groups: Mapping[str, Mapping[str, object]] | None = None
+    """Named sets of overrides applied on top of ``overrides`` (a factor the ambiguity settings do
+    not cover: the prior, views per step); each group's cells live in ``out/cells/<group>/`` and
+    claims pair within a group (default: one unnamed group)."""
+    figures: bool = False
+    """Each cell also writes its turntable and training curves (what ``turntable_grid`` reads), and
+    the sweep ablation.png; off, only what the tables need (a finished sweep run again with
+    ``figures`` draws them without training)."""
+
+
+def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
+    """Train and score the grid of ``cfg``; returns the rows. ``on_valid()``, if given, is called
+    once the grid is validated, before any cell runs. ``out/timings.json`` records where the
+    call's time went (validation, cells, tables)."""
     from gdbench.experiments.claims import label
     from gdbench.experiments.tables import tables
 
-    out = Path(out)
-    settings = list(settings or ["easy"])
+    prompts, presets, seeds = list(cfg.prompts), list(cfg.presets), list(cfg.seeds)
+    out = Path(cfg.out)
+    settings = list(cfg.settings or ["easy"])
     bad = [s for s in settings if s not in SETTINGS]
     if bad or len(set(settings)) != len(settings):
         raise ValueError(f"settings: expected distinct names from {sorted(SETTINGS)}, got {settings}")
-    per = {s: list((setting_presets or {}).get(s, presets)) for s in settings}
-    groups = dict(groups or {"": {}})
+    per = {s: list((cfg.setting_presets or {}).get(s, presets)) for s in settings}
+    groups = dict(cfg.groups or {"": {}})
     bad = [g for g in groups if not re.fullmatch(r"[a-z][a-z0-9_.-]*", g)] if list(groups) != [""] else []
     if bad or not groups:
         raise ValueError(
@@ -342,13 +350,13 @@ def sweep(
             pr,
             p,
             sd,
-            steps,
+            cfg.steps,
             str(out),
-            colmap
-            and (colmap_presets is None or p in colmap_presets)
-            and (colmap_settings is None or st in colmap_settings),
-            colmap_views,
-            dict(overrides or {}) | gov,
+            cfg.colmap
+            and (cfg.colmap_presets is None or p in cfg.colmap_presets)
+            and (cfg.colmap_settings is None or st in cfg.colmap_settings),
+            cfg.colmap_views,
+            dict(cfg.overrides or {}) | dict(gov),
             st,
             g,
         )
@@ -359,10 +367,10 @@ def sweep(
         for p in per[st]
     ]
     t_start = time.perf_counter()
-    validate_grid(prompts, presets, seeds, specs, executor)
+    validate_grid(prompts, presets, seeds, specs, cfg.executor)
     t_valid = time.perf_counter()
-    if executor == "ray" and address:
-        check_ray_address(address)
+    if cfg.executor == "ray" and cfg.address:
+        check_ray_address(cfg.address)
     for line in inert_overrides(specs):
         print(f"sweep: note: {line}", file=sys.stderr)
     if on_valid is not None:
@@ -370,25 +378,25 @@ def sweep(
     rows: dict[int, dict] = {}
     todo = []
     for i, spec in enumerate(specs):
-        done = _done(spec, figures)
+        done = _done(spec, cfg.figures)
         if done is not None:
             rows[i] = done
         else:
             todo.append(i)
-    if progress:
-        print(f"sweep: {len(specs)} cells, {len(rows)} already finished, {len(todo)} to run ({executor})")
+    if cfg.progress:
+        print(f"sweep: {len(specs)} cells, {len(rows)} already finished, {len(todo)} to run ({cfg.executor})")
     from gdbench.core.progress import progress as progress_bar
 
-    bar = progress_bar(len(todo), "sweep", "cell", disable=not progress or not todo)
+    bar = progress_bar(len(todo), "sweep", "cell", disable=not cfg.progress or not todo)
     written = time.monotonic()
     tables_s = 0.0
     t_cells = time.perf_counter()
     try:
-        for i, row in _execute([specs[i] for i in todo], executor, address, workers, figures):
+        for i, row in _execute([specs[i] for i in todo], cfg.executor, cfg.address, cfg.workers, cfg.figures):
             rows[todo[i]] = row
             if time.monotonic() - written >= TABLES_EVERY_S:  # a look at a long sweep's tables
                 t0 = time.perf_counter()
-                tables([rows[k] for k in sorted(rows)], out, figures)
+                tables([rows[k] for k in sorted(rows)], out, cfg.figures)
                 tables_s += time.perf_counter() - t0
                 written = time.monotonic()
             if bar is not None:
@@ -405,12 +413,12 @@ def sweep(
     t_end = time.perf_counter()
     cells_s = t_end - t_cells - tables_s  # without the periodic rewrites of the tables
     ordered = [rows[k] for k in sorted(rows)]
-    tables(ordered, out, figures)
+    tables(ordered, out, cfg.figures)
     tables_s += time.perf_counter() - t_end
     from gdbench.core.io import write_json
     from gdbench.core.provenance import code_commit
 
-    timings = {"commit": code_commit(), "cells": len(specs), "ran": len(todo), "workers": workers,
+    timings = {"commit": code_commit(), "cells": len(specs), "ran": len(todo), "workers": cfg.workers,
                "validate_s": t_valid - t_start, "cells_s": cells_s, "tables_s": tables_s,
                "sweep_s": time.perf_counter() - t_start}  # fmt: skip
     write_json(timings, out / "timings.json")

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 import torch
 from torch import Tensor
@@ -48,6 +48,9 @@ RatioMode = Literal["amplitude", "variance"]
 class NoiseConfig:
     """Settings of the noise cloud and of its use during a run."""
 
+    OPTIONS: ClassVar[tuple[str, ...]] = ("redraw", "ou_beta", "ratio_mode")
+    """The fields that are command-line options (``core.constraints.flag`` names them: --noise-redraw,
+    --noise-ou-beta, --noise-ratio)."""
     n_gaussians: Annotated[int, AtLeast(1)] = 3072
     """M, the number of noise Gaussians (3072 keeps the noise under 30% of a 4k-Gaussian
     training step at 128 px on 2 CPU cores; see docs/noise.md)."""
@@ -61,17 +64,20 @@ class NoiseConfig:
     azimuth_range: Annotated[tuple[float, float], Between(-360, 360, unit="degrees")] = (-180.0, 180.0)
     elevation_range: Annotated[tuple[float, float], Between(-90, 90, unit="degrees")] = (-45.0, 45.0)
     redraw: Redraw = "run"
-    """When colours are redrawn: once per run (the paper: one fixed source seen from every view),
-    every step (an ablation: no two steps share a source), or an Ornstein-Uhlenbeck drift."""
+    """When the noise cloud's colours are redrawn: 'run' keeps one draw for the whole run (the
+    paper: every view sees one fixed 3D source; the default), 'ou' drifts them slowly
+    (Ornstein-Uhlenbeck, --noise-ou-beta), 'step' redraws every step (an ablation: no two steps
+    share a source)."""
     ou_beta: Annotated[float, Range(0, 1, lo_open=True)] = 0.1
-    """b of the OU drift (0 < b <= 1; 1 is the same as 'step')."""
+    """b of the Ornstein-Uhlenbeck drift c_t = sqrt(1 - b) c_{t-1} + sqrt(b) eps (0 < b <= 1; 1 is
+    the same as 'step'; default 0.1); acts only with --noise-redraw ou."""
     ratio_start: Annotated[float, Between(0, 1)] = 0.3
     """r_t at the first step."""
     ratio_end: Annotated[float, Between(0, 1)] = 0.05
     """r_t at the last step."""
     ratio_mode: RatioMode = "variance"
-    """How r_t mixes: 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid) or 'variance'
-    (n = sqrt(r) n_s + sqrt(1 - r) n_iid)."""
+    """How the paper's 'proportion of structured noise' r_t (0.3 -> 0.05) mixes: 'variance' (the
+    default: n = sqrt(r) n_s + sqrt(1 - r) n_iid) or 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid)."""
     v_min: Annotated[float, AtLeast(0)] = 1e-6
     """Pixels with sum_i w_i^2 below this get iid noise."""
 

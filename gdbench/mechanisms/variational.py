@@ -13,11 +13,31 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Annotated, ClassVar, Literal
 
 import torch
 from torch import Tensor
 
+from gdbench.core.constraints import AtLeast
 from gdbench.core.rand import randn
+
+
+@dataclass(frozen=True)
+class VGSConfig:
+    """The paper's variational Gaussians in a training run (its options: --vgs, --vgs-gamma,
+    --vgs-unit)."""
+
+    OPTIONS: ClassVar[tuple[str, ...]] = ("enabled", "gamma", "unit")
+    """The fields that are command-line options (``core.constraints.flag`` names them)."""
+    enabled: bool = True
+    """Use the paper's variational Gaussians (section 3.3)."""
+    gamma: Annotated[float, AtLeast(0)] = 0.05
+    """gamma of the jitter theta' = theta + gamma s(sigma) eps (means in --vgs-unit lengths,
+    log-scales as is)."""
+    unit: Literal["scene", "pixel"] = "scene"
+    """Length unit of the means' jitter: the scene radius (0.5) or the training pixel's footprint at
+    the origin (2 r tan(fovy/2) / resolution at the middle fovy), which follows the resolution."""
 
 
 def vp_level(sigma: float) -> float:

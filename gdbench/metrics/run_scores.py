@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from gdbench.core.io import jsonable, num, read_json, sha256_file, write_json
+from gdbench.core.layout import flat_config
 from gdbench.core.scene import GaussianScene
 
 BLOCKS = ("gt", "views", "colmap")
@@ -119,7 +120,7 @@ def _check_run_json(info: dict, path: Path) -> None:
             raise ValueError(
                 f"run.json: {path}: '{key}' should be a {kind.__name__}, got {info[key]!r}; fix or delete it"
             )
-    config = info.get("config") or {}
+    config = flat_config(info.get("config") or {})
     bg = config.get("background", (1.0, 1.0, 1.0))
     ok_bg = isinstance(bg, (list, tuple)) and len(bg) == 3 and all(isinstance(c, (int, float)) for c in bg)
     variants = config.get("variants", 1)
@@ -165,7 +166,7 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
     """The asked-for score blocks into ``blocks``: reused from ``previous`` where they match."""
     from gdbench.core.provenance import made
 
-    config = info.get("config", {})
+    config = flat_config(info.get("config", {}))
     if want_gt:
         variants = int(config.get("variants", 1))
         params = {"caption": info["caption"], "variants": variants, "background": list(bg)}

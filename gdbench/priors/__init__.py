@@ -75,3 +75,14 @@ def nearest_tick(sigmas: Tensor, sigma) -> Tensor:
     if bool((s <= 0).any()) or not bool(torch.isfinite(s).all()):
         raise ValueError(f"sigma: expected positive finite noise levels, got {s.tolist()}")
     return (s.log()[:, None] - sigmas.double().log()[None]).abs().argmin(1)
+
+
+def network_device(device: str) -> torch.device | None:
+    """Where a network prior (learned, SD) runs for a trainer on ``device`` ('cpu', 'cuda' or
+    'auto'): on the trainer's device when that is a GPU, else None (the prior's own choice: CUDA
+    when torch sees one; the renders stay on the CPU and the prior moves its inputs and outputs).
+    The empirical prior's bank stays in host memory."""
+    from gdbench.core.devices import resolve_device
+
+    dev = resolve_device(device, "device (--device)")
+    return dev if dev.type != "cpu" else None

@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -42,6 +42,7 @@ from torch import Tensor
 from gdbench.assets.bank import Bank, BankConfig, load_bank
 from gdbench.assets.library import ASSETS
 from gdbench.assets.zoom import zoom_images
+from gdbench.core.constraints import AtLeast, Range
 from gdbench.priors import ve_sigmas_from_betas
 from gdbench.priors.prompt_check import contradiction
 from gdbench.priors.text import CaptionMatcher
@@ -399,3 +400,41 @@ def bank_config_for(resolution: int, fovy_range: tuple[float, float], **kw) -> B
     ratio = math.tan(math.radians(hi) / 2) / math.tan(math.radians(lo) / 2)
     res = int(math.ceil(resolution * ratio / 8 - 1e-9) * 8)
     return BankConfig(resolution=res, fovy=hi, **kw)
+
+
+@dataclass(frozen=True)
+class EmpiricalPriorConfig:
+    """The embedded CPU prior (``--prior empirical``): the exact posterior over image banks of the
+    procedural assets, rendered from where the trainer's cameras look."""
+
+    kind: ClassVar[str] = "empirical"
+    front_bias: Annotated[float, AtLeast(0)] = 0.0
+    """kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform; the Janus setting
+    of the ablation uses it with view prompting off)."""
+    variants: Annotated[int, AtLeast(1)] = 1
+    """Procedural variants of the caption in the bank (1..3; the instance setting of the ablation
+    uses 3)."""
+    depth_conditioning: bool = False
+    """Condition the prior on depth (the ControlNet role: the joint rgb-depth posterior)."""
+    view_window_deg: Annotated[float, Range(0, 180, lo_open=True, unit="degrees")] = 45.0
+    """Half-width of the view window (--view-prompting window), degrees."""
+
+    @property
+    def input_space(self) -> str:
+        """What the trainer renders for this prior: 'rgb', with '+depth' when it conditions on depth."""
+        return "rgb+depth" if self.depth_conditioning else "rgb"
+
+    def make(self, cfg) -> EmpiricalPrior:
+        """The prior of the training config ``cfg``: its bank rendered at the trainer's camera
+        distance, background and widest field of view, so it sees the object from where the
+        trainer's cameras do (the object keeps its size in the world)."""
+        return EmpiricalPrior(
+            view_mode=cfg.view_prompting,
+            window_deg=self.view_window_deg,
+            depth_weight=1.0 if self.depth_conditioning else 0.0,
+            front_bias=self.front_bias,
+            variants=self.variants,
+            bank_config=bank_config_for(
+                cfg.resolution, cfg.fovy_range, background=tuple(cfg.background), radius=float(cfg.camera_radius)
+            ),
+        )

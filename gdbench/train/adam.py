@@ -17,6 +17,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass, fields
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -29,6 +30,9 @@ from gdbench.core.private import foreach_add_, fused_adam_
 class OptimConfig:
     """Adam learning rates per parameter group (docs/training.md, "Settings against the
     references": the references' values and the reasons for ours)."""
+
+    OPTIONS: ClassVar[tuple[str, ...]] = ()
+    """None of its fields is a command-line option (a config file sets them: optim.means)."""
 
     means: float = 1e-3
     """Initial learning rate of the means, per unit of the scene extent over 0.5 (the rate is

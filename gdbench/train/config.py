@@ -10,14 +10,18 @@ reset every 400 steps. One departure, for the 2-core CPU: the training resolutio
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
-from gdbench.core.constraints import AtLeast, Between, Positive, Range, Seed, check_fields
+from gdbench.core.constraints import AtLeast, Between, Positive, Seed, check_fields, flag
+from gdbench.core.layout import LEGACY_PRIOR_DEFAULTS, flat_config  # noqa: F401 (flat_config: run ids)
 from gdbench.mechanisms.noise import NoiseConfig
+from gdbench.mechanisms.variational import VGSConfig
+from gdbench.priors.factory import PRIOR_CONFIGS, EmpiricalPriorConfig, PriorConfig
 from gdbench.train.adam import OptimConfig
 from gdbench.train.densify import DensifyConfig
+from gdbench.train.views import ViewsConfig
 
 
 @dataclass(frozen=True)
@@ -33,14 +37,8 @@ class TrainConfig:
     """Seed of every random stream of the run (train/streams.py): presets with one seed are paired."""
     resolution: Annotated[int, AtLeast(8, "px")] = 64
     """Training render size (CPU-sized; the paper uses 512 with Stable Diffusion)."""
-    views_per_step: Annotated[int, AtLeast(1)] = 1
-    """Views rendered per step; they share one jitter, one sigma and one draw of the noise cloud's
-    colours (so one step already couples views through the structured noise)."""
-    views_spread_deg: Annotated[float | None, Range(0, 180, lo_open=True, unit="degrees")] = None
-    """Views of one step (views_per_step > 1): unset (the default) draws each anywhere in the pose
-    ranges; a number keeps the others within +-this many degrees (azimuth and elevation) of the step's first
-    view, so they see the same structured noise at the same surface points (docs/noise.md, "Does
-    the noise reach two views?")."""
+    views: ViewsConfig = field(default_factory=ViewsConfig)
+    """How many views a step renders, and how far apart (train/views.py)."""
     # initialisation
     init: Literal["sphere", "ply", "bank-depth"] = "sphere"
     """Initial Gaussians: the paper's sphere, a point cloud (--init-ply) or the prompt's bank depth."""
@@ -81,57 +79,18 @@ class TrainConfig:
     """Global scale of the score (the 'guidance' multiplier)."""
     view_prompting: Literal["none", "buckets", "window"] = "window"
     """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
-    of +-``view_window_deg`` around the camera azimuth, or none (docs/training.md)."""
-    view_window_deg: Annotated[float, Range(0, 180, lo_open=True, unit="degrees")] = 45.0
-    """Half-width of the view window (view_prompting='window'), degrees."""
-    front_bias: Annotated[float, AtLeast(0)] = 0.0
-    """Empirical prior: kappa of the front-heavy bank, pi_i ~ exp(kappa cos azimuth_i) (0: uniform;
-    the Janus setting of the ablation uses it with view prompting off). Learned prior: picks the
-    shipped model trained at that kappa (0 or 2) when --learned-model is 'auto'."""
-    variants: Annotated[int, AtLeast(1)] = 1
-    """Empirical prior: procedural variants of the caption in the bank (1..3; the instance setting
-    of the ablation uses 3). Learned prior: 1 (variant 0) or 3 (the variant dropped: all three)."""
-    depth_conditioning: bool = False
-    """Condition the prior on depth (the ControlNet role; empirical prior: joint rgb-depth posterior)."""
-    # the prior
-    prior: Literal["empirical", "learned", "sd"] = "empirical"
-    """empirical: the embedded CPU prior (the exact posterior over image banks of procedural assets);
-    learned: a small diffusion model trained on the same assets (docs/learned_prior.md); sd: Stable
-    Diffusion."""
-    learned_model: str = "auto"
-    """learned: 'uniform', 'front' (the shipped models, trained on views uniform in azimuth or drawn
-    with probability ~ exp(2 cos azimuth)), a model.safetensors or run folder of `gdbench
-    train-prior`, or 'auto' (the shipped model of --front-bias)."""
-    learned_guidance: Annotated[float, AtLeast(1)] = 3.0
-    """learned: classifier-free guidance scale (1: none, one network evaluation per view)."""
-    sd_model: str = "tiny"
-    """sd: a local diffusers folder or a repo id in the Hugging Face cache (offline), or 'tiny'
-    (random weights built from configs: smoke runs and tests, meaningless images)."""
-    sd_mode: Literal["rgb", "latent"] = "rgb"
-    """rgb: render RGB and encode it with the VAE (GaussianDiffusion); latent: render the 4 latent
-    channels directly at 1/8 resolution (SJC)."""
-    sd_guidance: Annotated[float, AtLeast(1)] = 100.0
-    """Classifier-free guidance scale (SJC and DreamFusion use 100 with score distillation)."""
-    sd_controlnet: str | None = None
-    """sd with depth_conditioning: a depth ControlNet folder ('tiny' with the tiny model)."""
-    sd_dtype: Literal["float32", "float16"] = "float32"
-    """sd: weights' precision (float16 for CUDA; the Gaussians stay float32)."""
-    semantic_code: bool = False
-    """sd: 3DFuse's semantic code sampling (image, textual inversion, LoRA) before training;
-    saved in <out>/semantic and reloaded on resume."""
-    semantic_steps: Annotated[int, AtLeast(1)] = 100
-    """Textual-inversion and LoRA steps of the semantic code."""
+    around the camera azimuth (its half-width an option of the empirical prior), or none
+    (docs/training.md)."""
+    prior: PriorConfig = field(default_factory=EmpiricalPriorConfig)
+    """The prior score distillation queries, with its own settings (--prior empirical, learned or
+    sd): the embedded CPU prior (the exact posterior over image banks of procedural assets), a
+    small diffusion model trained on the same assets (docs/learned_prior.md), or Stable Diffusion."""
     # the paper's additions
     structured_noise: bool = True
     """Use the paper's structured noise (section 3.2)."""
     noise: NoiseConfig = field(default_factory=NoiseConfig)
-    vgs: bool = True
-    """Use the paper's variational Gaussians (section 3.3)."""
-    vgs_gamma: Annotated[float, AtLeast(0)] = 0.05
-    """gamma of the jitter theta' = theta + gamma s(sigma) eps (means in ``vgs_unit``s, log-scales as is)."""
-    vgs_unit: Literal["scene", "pixel"] = "scene"
-    """Length unit of the means' jitter: the scene radius (0.5) or the training pixel's footprint at
-    the origin (2 r tan(fovy/2) / resolution at the middle fovy), which follows the resolution."""
+    vgs: VGSConfig = field(default_factory=VGSConfig)
+    """The paper's variational Gaussians (section 3.3; mechanisms/variational.py)."""
     # optimisation
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
@@ -169,34 +128,25 @@ class TrainConfig:
             lo, hi = getattr(self, name)
             if lo > hi:
                 raise ValueError(f"{name} (--{name.replace('_', '-')}): expected low <= high, got {(lo, hi)}")
-        if self.init == "bank-depth" and self.prior != "empirical":
+        if self.init == "bank-depth" and self.prior.kind != "empirical":
             raise ValueError(
-                f"init: 'bank-depth' needs the empirical prior's image bank; --prior {self.prior} has none"
+                f"init: 'bank-depth' needs the empirical prior's image bank; --prior {self.prior.kind} has none"
             )
         if self.init == "ply" and self.init_ply is None:
             raise ValueError("init_ply: init='ply' needs a PLY path (--init-ply FILE)")
-        if self.prior == "learned":
-            if self.depth_conditioning:
-                raise ValueError(
-                    "depth_conditioning: the learned prior has no depth input (use --prior empirical or sd)"
-                )
-            if self.variants not in (1, 3):
-                raise ValueError(f"variants: the learned prior takes 1 or 3 (all of a caption's), got {self.variants}")
-            if self.learned_guidance < 1:
-                raise ValueError(f"learned_guidance: expected >= 1 (1 is no guidance), got {self.learned_guidance}")
-        if self.prior == "sd" and self.resolution % 8:
+        if self.prior.kind == "sd" and self.resolution % 8:
             raise ValueError(f"resolution: the sd prior needs a multiple of 8 (latents are 1/8), got {self.resolution}")
-        if self.prior == "sd" and self.sd_guidance < 1:
-            raise ValueError(f"sd_guidance: expected >= 1, got {self.sd_guidance}")
         self.densify.resolve(self.steps)  # an explicit schedule that breaks the rules fails here
 
 
 PRESETS: dict[str, TrainConfig] = {
     "gd": TrainConfig(preset="gd"),
     "gd-no-sn": TrainConfig(preset="gd-no-sn", structured_noise=False),
-    "gd-no-vgs": TrainConfig(preset="gd-no-vgs", vgs=False),
-    "sjc-gs": TrainConfig(preset="sjc-gs", structured_noise=False, vgs=False),
-    "sds-gs": TrainConfig(preset="sds-gs", structured_noise=False, vgs=False, guidance="sds", anneal=True),
+    "gd-no-vgs": TrainConfig(preset="gd-no-vgs", vgs=VGSConfig(enabled=False)),
+    "sjc-gs": TrainConfig(preset="sjc-gs", structured_noise=False, vgs=VGSConfig(enabled=False)),
+    "sds-gs": TrainConfig(
+        preset="sds-gs", structured_noise=False, vgs=VGSConfig(enabled=False), guidance="sds", anneal=True
+    ),
     "gd-redraw-step": TrainConfig(preset="gd-redraw-step", noise=NoiseConfig(redraw="step")),
 }
 """The paper's method, its two ablations and two baselines, written out by hand; and a control
@@ -207,18 +157,51 @@ BASE_PRESETS = ("gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs")
 """The paper's method, ablations and baselines (a sweep's default presets)."""
 
 
-NESTED = {"noise": NoiseConfig, "optim": OptimConfig, "densify": DensifyConfig}
+NESTED = {"views": ViewsConfig, "noise": NoiseConfig, "vgs": VGSConfig, "optim": OptimConfig, "densify": DensifyConfig}
 """Nested config groups an override may reach with a dotted key ('noise.redraw')."""
+
+OPTION_KEYS: dict[str, str] = {
+    flag(f"{g}.{name}")[2:].replace("-", "_"): f"{g}.{name}" for g, cls in NESTED.items() for name in cls.OPTIONS
+}
+"""A nested group's option -> its dotted key ('vgs_gamma' -> 'vgs.gamma', 'densify' ->
+'densify.enabled', 'noise_ratio' -> 'noise.ratio_mode'): the names the command line, sweep files
+and run.json up to commit 95ebebe (vgs, vgs_gamma, vgs_unit, views_per_step, views_spread_deg)
+give them."""
+
+
+def canonical_key(key: str) -> str:
+    """An override key as ``apply_overrides`` resolves it: a group's option by its dotted key,
+    a prior's setting without its 'prior.' prefix, any other as it is."""
+    return OPTION_KEYS.get(key, key.removeprefix("prior."))
+
+
+PRIOR_KEYS: dict[str, tuple[str, ...]] = {}
+for _kind, _cls in PRIOR_CONFIGS.items():
+    for _f in fields(_cls):
+        PRIOR_KEYS[_f.name] = (*PRIOR_KEYS.get(_f.name, ()), _kind)
+"""A prior's setting -> the priors that have it (front_bias: empirical and learned)."""
 
 
 def apply_overrides(cfg: TrainConfig, overrides: Mapping[str, object]) -> TrainConfig:
-    """``cfg`` with ``overrides`` applied: keys are TrainConfig fields, or 'group.field' for the
-    nested groups in ``NESTED``; unknown keys raise ValueError naming them."""
+    """``cfg`` with ``overrides`` applied: keys are TrainConfig fields, 'group.field' for the nested
+    groups in ``NESTED`` or a group's option name (``OPTION_KEYS``: 'vgs_gamma'), or the prior's:
+    'prior' names its kind (its settings that the new kind shares are kept) and each prior setting
+    goes by its own name ('sd_model', or 'prior.sd_model'). Unknown keys, and a prior's setting the
+    chosen prior lacks, raise ValueError naming them."""
     top: dict[str, object] = {}
     nested: dict[str, dict[str, object]] = {}
+    prior_kw: dict[str, object] = {}
+    prior = cfg.prior
     for key, value in overrides.items():
         group, dot, name = key.partition(".")
-        if dot:
+        if key in OPTION_KEYS and not is_dataclass(value):  # a group's option ('vgs': a bool, not the group)
+            group, _, name = OPTION_KEYS[key].partition(".")
+            nested.setdefault(group, {})[name] = value
+        elif key == "prior":
+            prior = _prior_of_kind(prior, value)
+        elif (group == "prior" and dot) or key in PRIOR_KEYS:
+            prior_kw[name if dot else key] = value
+        elif dot:
             if group not in NESTED or name not in {f.name for f in fields(NESTED[group])}:
                 raise ValueError(f"overrides: unknown setting {key!r}")
             nested.setdefault(group, {})[name] = value
@@ -226,9 +209,31 @@ def apply_overrides(cfg: TrainConfig, overrides: Mapping[str, object]) -> TrainC
             raise ValueError(f"overrides: unknown setting {key!r}")
         else:
             top[key] = value
+    for key in prior_kw:
+        if key not in {f.name for f in fields(prior)}:
+            kinds = " or ".join(PRIOR_KEYS.get(key, ()))
+            if not kinds:
+                raise ValueError(f"overrides: unknown setting 'prior.{key}'")
+            raise ValueError(f"{flag(key)} acts only with --prior {kinds} (this run: --prior {prior.kind})")
     for group, values in nested.items():
         top[group] = replace(top.get(group, getattr(cfg, group)), **values)
-    return replace(cfg, **top)
+    return replace(cfg, **top, prior=replace(prior, **prior_kw))
+
+
+def _prior_of_kind(prior, kind):
+    """``prior`` as a config of ``kind`` (a --prior name, or a prior's config as it is): the
+    settings the two kinds share (front_bias, variants, depth_conditioning) carried over."""
+    if not isinstance(kind, str):
+        if type(kind) not in PRIOR_CONFIGS.values():
+            raise ValueError(f"prior (--prior): expected one of {list(PRIOR_CONFIGS)} or a config, got {kind!r}")
+        return kind
+    if kind not in PRIOR_CONFIGS:
+        raise ValueError(f"prior (--prior): expected one of {list(PRIOR_CONFIGS)}, got {kind!r}")
+    if kind == prior.kind:
+        return prior
+    cls = PRIOR_CONFIGS[kind]
+    shared = {f.name: getattr(prior, f.name) for f in fields(cls) if f.name in {g.name for g in fields(prior)}}
+    return cls(**shared)
 
 
 def preset(name: str, **overrides) -> TrainConfig:
@@ -295,8 +300,11 @@ def from_json(typ, value, key: str, what: str = "config"):
 
 def config_from_dict(d: Mapping[str, object], *, base: TrainConfig | None = None, what: str = "config") -> TrainConfig:
     """The ``TrainConfig`` a JSON dict describes (the inverse of ``outputs.config_dict``, as run.json
-    stores it): nested groups as dicts, tuples as lists, paths as strings. Keys it lacks keep
-    ``base``'s values (default: the dict's own preset); unknown keys raise a ValueError naming them."""
+    stores it): nested groups as dicts, tuples as lists, paths as strings, the prior as a mapping
+    with its 'kind'. The flat layout of run.json up to commit 95ebebe (the prior's kind as 'prior',
+    its settings beside the other fields) converts here too: there, settings of the other priors
+    must hold their defaults (``LEGACY_PRIOR_DEFAULTS``). Keys it lacks keep ``base``'s values
+    (default: the dict's own preset); unknown keys raise a ValueError naming them."""
     import typing
 
     if not isinstance(d, Mapping):
@@ -308,8 +316,27 @@ def config_from_dict(d: Mapping[str, object], *, base: TrainConfig | None = None
         base = PRESETS[name]
     hints = typing.get_type_hints(TrainConfig, include_extras=True)
     flat: dict[str, object] = {}
+    prior = d.get("prior")
+    if isinstance(prior, Mapping):  # the prior's config: its kind and settings
+        kind = prior.get("kind", base.prior.kind)
+        flat["prior"] = kind
+        cls = PRIOR_CONFIGS.get(kind) if isinstance(kind, str) else None
+        sub = typing.get_type_hints(cls, include_extras=True) if cls is not None else {}
+        for k, v in prior.items():
+            if k != "kind":
+                flat[f"prior.{k}"] = from_json(sub[k], v, f"prior.{k}", what) if k in sub else v
+    elif prior is not None:
+        flat["prior"] = prior
+    kind = flat.get("prior", base.prior.kind)
+    mine = {f.name for f in fields(PRIOR_CONFIGS[kind])} if kind in PRIOR_CONFIGS else set()
     for key, value in d.items():
-        if key in NESTED:
+        if key == "prior":
+            continue
+        if key in OPTION_KEYS and not isinstance(value, Mapping):  # the flat layout's vgs, views_per_step, ...
+            group, _, name = OPTION_KEYS[key].partition(".")
+            sub = typing.get_type_hints(NESTED[group], include_extras=True)
+            flat[OPTION_KEYS[key]] = from_json(sub[name], value, key, what)
+        elif key in NESTED:
             if not isinstance(value, Mapping):
                 raise ValueError(f"{what}: {key}: expected a mapping, got {value!r}")
             sub = typing.get_type_hints(NESTED[key], include_extras=True)
@@ -317,8 +344,16 @@ def config_from_dict(d: Mapping[str, object], *, base: TrainConfig | None = None
                 if k not in sub:
                     raise ValueError(f"{what}: unknown setting '{key}.{k}'")
                 flat[f"{key}.{k}"] = from_json(sub[k], v, f"{key}.{k}", what)
+        elif key in LEGACY_PRIOR_DEFAULTS:  # the flat layout
+            if key not in mine and value == LEGACY_PRIOR_DEFAULTS[key]:
+                continue  # another prior's setting at its default: the flat layout wrote every one
+            cls = next((PRIOR_CONFIGS[k] for k in PRIOR_KEYS[key] if k == kind), PRIOR_CONFIGS[PRIOR_KEYS[key][0]])
+            flat[key] = from_json(typing.get_type_hints(cls, include_extras=True)[key], value, key, what)
         elif key not in hints:
             raise ValueError(f"{what}: unknown setting {key!r}")
         else:
             flat[key] = from_json(hints[key], value, key, what)
-    return apply_overrides(base, flat)
+    try:
+        return apply_overrides(base, flat)
+    except ValueError as e:
+        raise ValueError(f"{what}: {e}") from None

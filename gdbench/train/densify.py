@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, fields
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 import torch
 from torch import Tensor
@@ -31,16 +31,25 @@ class DensifyConfig:
     schedule of a run, which never densifies on the last step and never resets opacities in the
     last ``recover_steps`` steps of the run (docs/training.md, "The densification schedule")."""
 
+    OPTIONS: ClassVar[tuple[str, ...]] = ("enabled", "start", "stop", "every", "reset_every", "grad_quantile")
+    """The fields that are command-line options (``core.constraints.flag`` names them: --densify,
+    --densify-start, ...)."""
     enabled: bool = True
+    """Densify at all (clone, split, prune, reset opacities; default: on). --no-densify trains the
+    initial Gaussians as they are."""
     start: Annotated[int | None, AtLeast(0)] = None
-    """First step after which densification may run (unset: ``start_frac`` of the run)."""
+    """Densification starts after this step (default: ``start_frac`` = 15% of --steps, rounded; the
+    paper's 300 at 2000). Set, it is an absolute step."""
     stop: Annotated[int | None, AtLeast(0)] = None
-    """Last step that may densify (unset: ``stop_frac`` of the run)."""
+    """Last step that may densify (default: ``stop_frac`` = 75% of --steps; 1500 at 2000). Set, it is
+    an absolute step, and must not densify on the run's last step."""
     every: Annotated[int | None, AtLeast(1)] = None
-    """Densify every this many steps (unset: ``every_frac`` of the run, at least 1)."""
+    """Densify every this many steps (default: ``every_frac`` = 2.5% of --steps, at least 1; the
+    paper's 50 at 2000). Set, it is an absolute step count."""
     reset_every: Annotated[int | None, AtLeast(1)] = None
-    """Opacity reset interval (unset: ``reset_frac`` of the run, at least 1); resets fall on its
-    multiples up to ``stop``."""
+    """Opacity reset interval, resets at its multiples up to --densify-stop (default: ``reset_frac``
+    = 20% of --steps; the paper's 400 at 2000). Set, it is an absolute step count; no reset may
+    fall in the last ``recover_steps`` (100) steps of the run, where opacities could not recover."""
     start_frac: Annotated[float, Between(0, 1)] = 0.15
     """Default ``start`` as a fraction of the run (the paper: 300 of 2000 steps)."""
     stop_frac: Annotated[float, Between(0, 1)] = 0.75
@@ -59,10 +68,11 @@ class DensifyConfig:
     over pixels) above which a Gaussian grows; 3DGS's default. About 5% of Gaussians exceed it
     mid-run (measured)."""
     grad_quantile: Annotated[float | None, Range(0, 1, hi_open=True)] = None
-    """Instead of ``grad_threshold``: grow the Gaussians whose statistic is above this quantile of
-    the statistic over the Gaussians seen since the last densification (0.95: the top 5%). Growth
-    then does not depend on the score's scale, which differs between guidance rules (sds-gs's
-    weight 1 - abar): a way to hold paired presets' model sizes comparable (docs/training.md)."""
+    """Instead of ``grad_threshold`` (default: the threshold 2e-4): grow the Gaussians whose
+    statistic is above this quantile of the statistic over the Gaussians seen since the last
+    densification (0.95: the top 5%). Growth then does not depend on the score's scale, which
+    differs between guidance rules (sds-gs's weight 1 - abar): a way to hold paired presets' model
+    sizes comparable (docs/training.md)."""
     percent_dense: Annotated[float, Positive()] = 0.01
     """Scale (fraction of the scene extent) separating clone (below) from split (above)."""
     prune_opacity: Annotated[float, Between(0, 1)] = 0.01

@@ -26,16 +26,16 @@ def render_for_prior(ctx: Context, state: TrainState, views: Views):
 
     cfg, p = ctx.cfg, state.params
     means, log_scales = p["means"], p["log_scales"]
-    if cfg.vgs:
+    if cfg.vgs.enabled:
         means, log_scales = jitter(
             means,
             log_scales,
             views.sigma,
-            gamma=cfg.vgs_gamma,
+            gamma=cfg.vgs.gamma,
             scene_radius=ctx.jitter_length,
             generator=state.streams["jitter"],
         )
-    depth = cfg.depth_conditioning and ctx.mode == "rgb"
+    depth = cfg.prior.input_space == "rgb+depth" and ctx.mode == "rgb"
     latent = ctx.mode == "sd-latent"
     out = rasterize(
         means,

@@ -1,10 +1,10 @@
 """Command-line options derived from the configs, shared by ``gdbench generate`` and ``gdbench
 sweep``: every option left unset keeps the preset's value.
 
-``train_options(exclude)`` builds a dataclass with one optional field per ``TrainConfig`` field
-(its type, and its docstring as the help text), so a new config field is an option without
-touching the CLI. ``method_options()`` adds the fields of the nested groups a user tunes: the
-structured noise's schedule and the densification schedule.
+``train_options(exclude, prior)`` builds a dataclass with one optional field per ``TrainConfig``
+field (its type, and its docstring as the help text), per field a nested group offers
+(``OPTIONS`` of its config: --noise-redraw, --vgs-gamma, --views-per-step) and per setting of
+the chosen prior's config, so a new config field is an option without touching the CLI.
 """
 
 from __future__ import annotations
@@ -14,12 +14,11 @@ import functools
 import inspect
 import itertools
 import typing
-from dataclasses import dataclass, field, fields, make_dataclass
+from dataclasses import field, fields, make_dataclass
 from typing import Annotated, Literal, Optional
 
-from gdbench.train.config import PRESETS, TrainConfig
-
-NESTED = ("noise", "optim", "densify")
+from gdbench.core.constraints import flag
+from gdbench.train.config import NESTED, PRESETS, TrainConfig, canonical_key
 
 
 @functools.cache
@@ -57,131 +56,94 @@ def _field_docs(cls) -> dict[str, str]:
     return docs
 
 
+PRIOR_HELP = (
+    "The prior score distillation queries: empirical (the embedded CPU prior, the exact posterior "
+    "over image banks of procedural assets), learned (a small diffusion model trained on the same "
+    "assets) or sd (Stable Diffusion). Each has options of its own: `--prior learned --help` lists them."
+)
+
+
 @functools.cache
-def train_options(exclude: tuple[str, ...] = ()):
-    """A dataclass ``TrainOptions`` of optional overrides, one per field of ``TrainConfig`` (minus
-    ``exclude`` and the nested groups), with ``.overrides()`` giving the set ones as a dict."""
+def train_options(exclude: tuple[str, ...] = (), prior: str = "empirical"):
+    """A dataclass ``TrainOptions`` of optional overrides: one per field of ``TrainConfig`` (minus
+    ``exclude``), per field a nested group offers (its config's ``OPTIONS``, named by ``flag``),
+    --prior, and one per setting of the ``prior`` kind's config (the options of the other priors
+    are not there to type). ``.overrides()`` gives the set ones as ``apply_overrides`` takes them
+    (a group's by their dotted key, a prior's by their names); ``.options()`` by option name."""
     import tyro
 
-    hints = typing.get_type_hints(TrainConfig)
-    docs = _field_docs(TrainConfig)
+    from gdbench.priors.factory import PRIOR_CONFIGS
+
     base = TrainConfig()
     specs = []
-    for f in fields(TrainConfig):
-        if f.name in exclude or f.name in NESTED:
-            continue
-        default = getattr(base, f.name)
-        differs = sorted(p for p, c in PRESETS.items() if getattr(c, f.name) != default)
-        note = f"(default: {default!r}" + (f"; the presets {differs} differ" if differs else "") + ")"
-        helptext = docs.get(f.name, f.name.replace("_", " "))
+    keys: dict[str, str] = {}
+
+    def option(name: str, hint, helptext: str, note: str, key: str | None = None) -> None:
         # DisallowNone: unset is the preset's value, so None is no value to type ("--steps INT", and
         # booleans as --anneal/--no-anneal like the command's own flags)
         typ = Annotated[
-            Optional[hints[f.name]],  # noqa: UP045
+            Optional[hint],  # noqa: UP045
             tyro.conf.DisallowNone,
             tyro.conf.arg(help=helptext, help_behavior_hint=note),
         ]
-        specs.append((f.name, typ, field(default=None)))
+        specs.append((name, typ, field(default=None)))
+        keys[name] = key or name
+
+    def group(cls, values, prefix: str = "") -> None:
+        hints, docs = typing.get_type_hints(cls), _field_docs(cls)
+        names = [f.name for f in fields(cls)] if not prefix else list(cls.OPTIONS)
+        for name in names:
+            key = prefix + name
+            default = getattr(values, name)
+            differs = sorted(p for p, c in PRESETS.items() if prefix and _get(c, key) != _get(base, key))
+            doc = docs.get(name, name.replace("_", " "))
+            said = "(default" in doc or "unset" in doc
+            note = (
+                "" if said else f"(default: {default!r}" + (f"; the presets {differs} differ" if differs else "") + ")"
+            )
+            option(flag(key)[2:].replace("-", "_") if prefix else name, hints[name], doc, note, key)
+
+    hints, docs = typing.get_type_hints(TrainConfig), _field_docs(TrainConfig)
+    for f in fields(TrainConfig):
+        if f.name in exclude:
+            continue
+        if f.name == "prior":
+            option("prior", Literal[tuple(PRIOR_CONFIGS)], PRIOR_HELP, "(default: empirical)")
+            group(PRIOR_CONFIGS[prior], PRIOR_CONFIGS[prior]())
+        elif f.name in NESTED:
+            group(NESTED[f.name], getattr(base, f.name), prefix=f.name + ".")
+        else:
+            default = getattr(base, f.name)
+            differs = sorted(p for p, c in PRESETS.items() if getattr(c, f.name) != default)
+            note = f"(default: {default!r}" + (f"; the presets {differs} differ" if differs else "") + ")"
+            option(f.name, hints[f.name], docs.get(f.name, f.name.replace("_", " ")), note)
 
     def overrides(self) -> dict[str, object]:
+        return {keys[f.name]: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+    def options(self) -> dict[str, object]:
         return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
-    return make_dataclass("TrainOptions", specs, namespace={"overrides": overrides})
+    namespace = {"overrides": overrides, "options": options, "prior_kind": prior}
+    return make_dataclass("TrainOptions", specs, namespace=namespace)
 
 
-@dataclass
-class MethodSpec:
-    """Overrides of the preset's nested settings (unset: the preset's own)."""
-
-    noise_redraw: Literal["run", "ou", "step"] | None = None
-    """When the noise cloud's colours are redrawn: 'run' keeps one draw for the whole run (the
-    paper: every view sees one fixed 3D source; the default), 'ou' drifts them slowly
-    (Ornstein-Uhlenbeck, --noise-ou-beta), 'step' redraws every step (an ablation: no two steps
-    share a source)."""
-    noise_ou_beta: float | None = None
-    """b of the Ornstein-Uhlenbeck drift c_t = sqrt(1 - b) c_{t-1} + sqrt(b) eps (default 0.1); acts
-    only with --noise-redraw ou."""
-    noise_ratio: Literal["amplitude", "variance"] | None = None
-    """How the paper's 'proportion of structured noise' (0.3 -> 0.05) mixes: 'variance' (the
-    default: n = sqrt(r) n_s + sqrt(1 - r) n_iid) or 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid)."""
-    densify_start: int | None = None
-    """Densification starts after this step (default: 15% of --steps, rounded; the paper's 300 at
-    2000). Set, it is an absolute step."""
-    densify_stop: int | None = None
-    """Last step that may densify (default: 75% of --steps; 1500 at 2000). Set, it is an absolute
-    step, and must not densify on the run's last step."""
-    densify_every: int | None = None
-    """Densify every this many steps (default: 2.5% of --steps, at least 1; the paper's 50 at 2000).
-    Set, it is an absolute step count."""
-    densify_reset_every: int | None = None
-    """Opacity reset interval, resets at its multiples up to --densify-stop (default: 20% of --steps; the
-    paper's 400 at 2000). Set, it is an absolute step count; no reset may fall in the last 100 steps
-    of the run, where opacities could not recover."""
-
-    densify: bool | None = None
-    """Densify at all (clone, split, prune, reset opacities; default: on). --no-densify trains the
-    initial Gaussians as they are."""
-    densify_grad_quantile: float | None = None
-    """Grow the Gaussians above this quantile of the densification statistic (0.95: the top 5%)
-    instead of above the fixed threshold 2e-4 (default: the threshold): growth then does not follow
-    the score's scale, so paired presets keep comparable model sizes (docs/training.md)."""
-
-    def overrides(self) -> dict[str, object]:
-        """The set options as TrainConfig overrides (dotted keys for the nested groups)."""
-        return _method_overrides(self)
-
-
-METHOD_KEYS = {
-    "noise_redraw": "noise.redraw",
-    "noise_ou_beta": "noise.ou_beta",
-    "noise_ratio": "noise.ratio_mode",
-    **{f"densify_{k}": f"densify.{k}" for k in ("start", "stop", "every", "reset_every", "grad_quantile")},
-    "densify": "densify.enabled",
-}
-"""``MethodSpec``'s option -> its TrainConfig override key (a nested group's dotted name)."""
-
-
-def _method_overrides(self) -> dict[str, object]:
-    return {METHOD_KEYS[f.name]: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
-
-
-@functools.cache
-def method_options():
-    """``MethodSpec`` for the command line: each option's help is its docstring as one paragraph
-    (tyro keeps a docstring's line breaks), which already states the default."""
-    import tyro
-
-    hints = typing.get_type_hints(MethodSpec)
-    docs = _field_docs(MethodSpec)
-    specs = [
-        (
-            f.name,
-            Annotated[hints[f.name], tyro.conf.DisallowNone, tyro.conf.arg(help=docs[f.name], help_behavior_hint="")],
-            field(default=None),
-        )
-        for f in fields(MethodSpec)
-    ]
-    return make_dataclass(
-        "MethodOptions", specs, namespace={"overrides": _method_overrides, "__doc__": MethodSpec.__doc__}
-    )
-
-
-def flag(key: str) -> str:
-    """The command-line option of an override key ('noise.ou_beta' -> '--noise-ou-beta')."""
-    from gdbench.core.constraints import flag as _flag
-
-    return _flag(key)
+def _get(cfg, key: str):
+    """The value of a dotted key ('vgs.gamma') of a config."""
+    for part in key.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
 
 
 def _acts(cfg) -> dict[str, tuple[bool, str]]:
     """For each option that acts only under another setting: (whether it acts in ``cfg``, what it
-    needs, named by its option)."""
+    needs, named by its option). A prior's options act only with that prior: the command line
+    offers them only there (``train_options``) and ``apply_overrides`` refuses them elsewhere."""
     sn = (cfg.structured_noise, "structured noise (--structured-noise; this run has it off)")
-    sd = (cfg.prior == "sd", f"--prior sd (this run: --prior {cfg.prior})")
     sjc = (cfg.guidance == "sjc", f"--guidance sjc (this run: --guidance {cfg.guidance}, which anneals its timestep)")
-    lp = (cfg.prior == "learned", f"--prior learned (this run: --prior {cfg.prior})")
-    emp_lp = (cfg.prior in ("empirical", "learned"), f"--prior empirical or learned (this run: --prior {cfg.prior})")
-    return {
+    p = cfg.prior
+    latent = p.input_space.startswith("latent")
+    acts = {
         "noise.ou_beta": (
             cfg.structured_noise and cfg.noise.redraw == "ou",
             f"--noise-redraw ou (this run: --noise-redraw {cfg.noise.redraw})" if cfg.structured_noise else sn[1],
@@ -192,56 +154,49 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
             cfg.progress or cfg.log_dir is not None,
             "the progress report or --log-dir (this run: --no-progress, no --log-dir)",
         ),
-        "view_window_deg": (
-            cfg.view_prompting == "window" and cfg.prior == "empirical",
-            f"--view-prompting window and --prior empirical (this run: --view-prompting {cfg.view_prompting}, "
-            f"--prior {cfg.prior}; Stable Diffusion's view prompts are words, with no window)",
+        "views.spread_deg": (
+            cfg.views.per_step > 1,
+            f"--views-per-step 2 or more (this run: --views-per-step {cfg.views.per_step})",
         ),
-        "views_spread_deg": (
-            cfg.views_per_step > 1,
-            f"--views-per-step 2 or more (this run: --views-per-step {cfg.views_per_step})",
-        ),
-        "vgs_gamma": (cfg.vgs, "--vgs (this run has VGS off)"),
-        "vgs_unit": (cfg.vgs, "--vgs (this run has VGS off)"),
+        "vgs.gamma": (cfg.vgs.enabled, "--vgs (this run has VGS off)"),
+        "vgs.unit": (cfg.vgs.enabled, "--vgs (this run has VGS off)"),
         "sigma_min": sjc,
         "sigma_max": sjc,
         "anneal": sjc,
-        "front_bias": (
-            cfg.prior == "empirical" or (cfg.prior == "learned" and cfg.learned_model == "auto"),
-            f"--prior empirical, or --prior learned with --learned-model auto (this run: --prior {cfg.prior}"
-            + (f", --learned-model {cfg.learned_model})" if cfg.prior == "learned" else ")"),
-        ),
-        "variants": emp_lp,
-        "learned_model": lp,
-        "learned_guidance": lp,
-        "sd_model": sd,
-        "sd_mode": sd,
-        "sd_guidance": sd,
-        "sd_dtype": sd,
-        "semantic_code": sd,
-        "semantic_steps": (cfg.prior == "sd" and cfg.semantic_code, "--prior sd with --semantic-code"),
-        "sd_controlnet": (
-            cfg.prior == "sd" and cfg.depth_conditioning and cfg.sd_model != "tiny",
-            "--prior sd with --depth-conditioning and a real --sd-model (the tiny model builds its own)",
-        ),
         **{
             f"densify.{k}": (cfg.densify.enabled, "densification (this run: --no-densify)")
             for k in ("start", "stop", "every", "reset_every", "grad_quantile")
         },
         "init_ply": (cfg.init == "ply", f"--init ply (this run: --init {cfg.init})"),
         "init_color": (
-            cfg.init == "sphere" or (cfg.prior == "sd" and cfg.sd_mode == "latent"),
+            cfg.init == "sphere" or latent,
             f"--init sphere (this run: --init {cfg.init}, whose points bring their colours)",
         ),
-        "sh_degree": (
-            not (cfg.prior == "sd" and cfg.sd_mode == "latent"),
-            "an RGB render (this run: --sd-mode latent renders 4 latent features without SH)",
-        ),
+        "sh_degree": (not latent, "an RGB render (this run: --sd-mode latent renders 4 latent features without SH)"),
     }
+    if p.kind == "empirical":
+        acts["view_window_deg"] = (
+            cfg.view_prompting == "window",
+            f"--view-prompting window (this run: --view-prompting {cfg.view_prompting})",
+        )
+    if p.kind == "learned":
+        acts["front_bias"] = (
+            p.learned_model == "auto",
+            f"--learned-model auto (this run: --learned-model {p.learned_model}, which has its own)",
+        )
+    if p.kind == "sd":
+        acts["semantic_steps"] = (p.semantic_code, "--semantic-code (this run has it off)")
+        acts["sd_controlnet"] = (
+            p.depth_conditioning and p.sd_model != "tiny",
+            "--depth-conditioning and a real --sd-model (the tiny model builds its own)",
+        )
+    return acts
 
 
 def inert_options(cfg, given) -> list[str]:
-    """One line per option in ``given`` (override keys the user set) that does nothing in ``cfg``,
-    naming the option it needs; empty when every given option acts."""
+    """One line per option in ``given`` (override keys the user set, by any name ``apply_overrides``
+    takes) that does nothing in ``cfg``, naming the option it needs; empty when every given option
+    acts."""
     acts = _acts(cfg)
-    return [f"{flag(k)} acts only with {acts[k][1]}" for k in given if k in acts and not acts[k][0]]
+    keys = [canonical_key(k) for k in given]
+    return [f"{flag(k)} acts only with {acts[k][1]}" for k in keys if k in acts and not acts[k][0]]

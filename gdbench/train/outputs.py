@@ -10,11 +10,13 @@ from gdbench.train.config import TrainConfig
 
 
 def config_dict(cfg: TrainConfig) -> dict:
-    """JSON-friendly dict of a config (paths as strings, tuples as lists)."""
+    """JSON-friendly dict of a config (paths as strings, tuples as lists, nested configs as
+    mappings; the prior's with its 'kind' first)."""
 
     def conv(v):
         if dataclasses.is_dataclass(v):
-            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+            kind = {"kind": v.kind} if hasattr(type(v), "kind") else {}
+            return kind | {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
         if isinstance(v, Path):
             return str(v)
         if isinstance(v, tuple):

@@ -91,14 +91,16 @@ class RunResult:
 
 
 def run_id(cfg: TrainConfig) -> str:
-    """A short hash of everything in the config that changes the result (fields added later are
-    left out at the value that behaves as before them: ``ADDED_AT_DEFAULT``)."""
+    """A short hash of everything in the config that changes the result, in the flat layout runs
+    were first named in (``config.flat_config``); fields added later are left out at the value
+    that behaves as before them (``ADDED_AT_DEFAULT``)."""
     from gdbench.train.checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
+    from gdbench.train.config import flat_config
 
     return sha256_json(
         {
             k: v
-            for k, v in config_dict(cfg).items()
+            for k, v in flat_config(config_dict(cfg)).items()
             if k not in RESUME_IGNORES and not (k in ADDED_AT_DEFAULT and v == ADDED_AT_DEFAULT[k])
         }
     )[:16]

@@ -62,7 +62,8 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
     cond = prior.encode(cfg.prompt)
     encoder = prior.encode_images  # Prior protocol: None for pixel priors
     # sd-rgb: the render encoded into the prior's input (SD's VAE, the learned prior's box filter)
-    latent = cfg.sd_mode == "latent" and cfg.prior == "sd"
+    space = cfg.prior.input_space  # what the prior reads: rgb or latent, with +depth when it conditions on it
+    latent = space.startswith("latent")
     mode: Mode = "rgb" if encoder is None else ("sd-latent" if latent else "sd-rgb")
     factor = int(prior.factor)
     streams = make_streams(cfg.seed)
@@ -71,7 +72,7 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         cloud = make_noise_cloud(cfg.noise, prior.channels, generator=streams["noise_cloud"])
         noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
     depth_points, latent_bg = None, None
-    if mode != "rgb" and cfg.depth_conditioning:  # 3DFuse: depth of the initial cloud
+    if mode != "rgb" and space.endswith("+depth"):  # 3DFuse: depth of the initial cloud
         depth_points = initial_scene(cfg, generator=streams["init"]).means.detach().to(device)
     if mode == "sd-latent":
         with torch.no_grad():
@@ -81,7 +82,7 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
     _check_bank_camera(cfg, bank)
     extent = scene_extent(cfg, generator=make_streams(cfg.seed)["init"], bank=bank)
     length = extent
-    if cfg.vgs_unit == "pixel":
+    if cfg.vgs.unit == "pixel":
         mid = math.radians(sum(cfg.fovy_range) / 2)
         length = 2 * cfg.camera_radius * math.tan(mid / 2) / cfg.resolution
     return Context(

@@ -6,14 +6,34 @@ from __future__ import annotations
 import bisect
 import struct
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated, ClassVar
 
 import torch
 
 from gdbench.core.camera import Cameras, SphericalPoses
+from gdbench.core.constraints import AtLeast, Range
 
 if TYPE_CHECKING:
     from gdbench.train.state import Context, TrainState
+
+
+@dataclass(frozen=True)
+class ViewsConfig:
+    """How many views one training step renders, and how far apart (its options:
+    --views-per-step, --views-spread-deg). Where the cameras may be (radius, field of view,
+    azimuth and elevation ranges) is the config's camera model, which the prior's bank and the
+    scores share."""
+
+    OPTIONS: ClassVar[tuple[str, ...]] = ("per_step", "spread_deg")
+    """The fields that are command-line options (``core.constraints.flag`` names them)."""
+    per_step: Annotated[int, AtLeast(1)] = 1
+    """Views rendered per step; they share one jitter, one sigma and one draw of the noise cloud's
+    colours (so one step already couples views through the structured noise)."""
+    spread_deg: Annotated[float | None, Range(0, 180, lo_open=True, unit="degrees")] = None
+    """Views of one step (--views-per-step 2 or more): unset (the default) draws each anywhere in
+    the pose ranges; a number keeps the others within +-this many degrees (azimuth and elevation)
+    of the step's first view, so they see the same structured noise at the same surface points
+    (docs/noise.md, "Does the noise reach two views?")."""
 
 
 @dataclass(frozen=True)
@@ -60,13 +80,13 @@ def sample_views(ctx: Context, state: TrainState) -> Views:
     """Poses (``views`` stream) and the noise level (``sigma`` stream) of this step."""
     cfg = ctx.cfg
     poses = SphericalPoses.sample(
-        cfg.views_per_step,
+        cfg.views.per_step,
         generator=state.streams["views"],
         radius=cfg.camera_radius,
         fovy_range=cfg.fovy_range,
         azimuth_range=cfg.azimuth_range,
         elevation_range=cfg.elevation_range,
-        spread_deg=cfg.views_spread_deg,
+        spread_deg=cfg.views.spread_deg,
     )
     R, r = cfg.resolution, cfg.resolution // ctx.factor
     prior_cams = poses.cameras(r, r)

@@ -36,10 +36,12 @@ import itertools
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, ClassVar
 
 import torch
 from torch import Tensor
 
+from gdbench.core.constraints import AtLeast
 from gdbench.priors import sd_abar, ve_sigmas_from_betas
 
 WEIGHTS = Path(__file__).parent / "weights"
@@ -321,3 +323,48 @@ class LearnedPrior:
         finally:
             self.view_mode = mode
         return x.clamp(-1, 1)
+
+
+@dataclass(frozen=True)
+class LearnedPriorConfig:
+    """The learned prior (``--prior learned``): a small diffusion model trained on the procedural
+    assets' renders (docs/learned_prior.md)."""
+
+    kind: ClassVar[str] = "learned"
+    learned_model: str = "auto"
+    """'uniform', 'front' (the shipped models, trained on views uniform in azimuth or drawn with
+    probability ~ exp(2 cos azimuth)), a model.safetensors or run folder of `gdbench train-prior`,
+    or 'auto' (the shipped model of --front-bias)."""
+    learned_guidance: Annotated[float, AtLeast(1)] = 3.0
+    """Classifier-free guidance scale (1: none, one network evaluation per view)."""
+    front_bias: Annotated[float, AtLeast(0)] = 0.0
+    """Picks the shipped model trained at that kappa (0 or 2) when --learned-model is 'auto'."""
+    variants: Annotated[int, AtLeast(1)] = 1
+    """1 (variant 0) or 3 (the variant dropped: all three of the caption's)."""
+
+    def __post_init__(self) -> None:
+        if self.variants not in (1, 3):
+            raise ValueError(f"variants: the learned prior takes 1 or 3 (all of a caption's), got {self.variants}")
+
+    input_space: ClassVar[str] = "rgb"
+    """What the trainer renders for this prior (it has no depth input)."""
+
+    @property
+    def model(self) -> str:
+        """The model this config loads: the shipped one of ``front_bias`` for 'auto'."""
+        return model_for_front_bias(self.front_bias) if self.learned_model == "auto" else self.learned_model
+
+    def make(self, cfg) -> LearnedPrior:
+        """The prior of the training config ``cfg``, checked against its cameras."""
+        from gdbench.priors import network_device
+
+        prior = LearnedPrior(
+            self.model,
+            device=network_device(cfg.device),
+            guidance_scale=self.learned_guidance,
+            view_mode=cfg.view_prompting,
+            variants=self.variants,
+            resolution=cfg.resolution,
+        )
+        prior.check_cameras(cfg.camera_radius, cfg.background, cfg.fovy_range, cfg.elevation_range)
+        return prior

@@ -23,9 +23,12 @@ import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, ClassVar, Literal
 
 import torch
 from torch import Tensor
+
+from gdbench.core.constraints import AtLeast
 
 VIEW_SUFFIXES = (", front view", ", side view", ", back view", ", overhead view")
 
@@ -292,3 +295,66 @@ class StableDiffusionPrior:
             D = self.denoise(x, torch.tensor([s]), one)
             x = D + (s_next / s) * (x - D)
         return self.decode_latents(x)
+
+
+@dataclass(frozen=True)
+class SDPriorConfig:
+    """Stable Diffusion (``--prior sd``): the paper's prior, from a local diffusers folder or the
+    Hugging Face cache, never downloaded (docs/stable_diffusion.md)."""
+
+    kind: ClassVar[str] = "sd"
+    sd_model: str = "tiny"
+    """A local diffusers folder or a repo id in the Hugging Face cache (offline), or 'tiny'
+    (random weights built from configs: smoke runs and tests, meaningless images)."""
+    sd_mode: Literal["rgb", "latent"] = "rgb"
+    """rgb: render RGB and encode it with the VAE (GaussianDiffusion); latent: render the 4 latent
+    channels directly at 1/8 resolution (SJC)."""
+    sd_guidance: Annotated[float, AtLeast(1)] = 100.0
+    """Classifier-free guidance scale (SJC and DreamFusion use 100 with score distillation)."""
+    sd_controlnet: str | None = None
+    """With --depth-conditioning: a depth ControlNet folder ('tiny' with the tiny model)."""
+    sd_dtype: Literal["float32", "float16"] = "float32"
+    """Weights' precision (float16 for CUDA; the Gaussians stay float32)."""
+    semantic_code: bool = False
+    """3DFuse's semantic code sampling (image, textual inversion, LoRA) before training; saved in
+    <out>/semantic and reloaded on resume."""
+    semantic_steps: Annotated[int, AtLeast(1)] = 100
+    """Textual-inversion and LoRA steps of the semantic code."""
+    depth_conditioning: bool = False
+    """Condition the prior on the depth of the initial cloud (3DFuse's depth ControlNet)."""
+
+    @property
+    def input_space(self) -> str:
+        """What the trainer renders for this prior: 'rgb' (encoded by the VAE) or 'latent' (the
+        4 latent channels), with '+depth' when it conditions on depth."""
+        return self.sd_mode + ("+depth" if self.depth_conditioning else "")
+
+    def make(self, cfg) -> StableDiffusionPrior:
+        """The prior of the training config ``cfg``, with its semantic code (made or reloaded)."""
+        from gdbench.priors import network_device
+        from gdbench.priors.sd.threedfuse import SemanticCodeConfig, load_semantic_code, semantic_code
+
+        kw = dict(
+            guidance_scale=self.sd_guidance,
+            view_prompting=cfg.view_prompting != "none",
+            dtype=getattr(torch, self.sd_dtype),
+            device=network_device(cfg.device),
+        )
+        if self.sd_model == "tiny":
+            prior = StableDiffusionPrior.tiny(seed=0, controlnet=self.depth_conditioning, **kw)
+        else:
+            controlnet = self.sd_controlnet if self.depth_conditioning else None
+            if self.depth_conditioning and controlnet is None:
+                raise ValueError(
+                    "sd_controlnet: depth_conditioning with Stable Diffusion needs a depth ControlNet folder"
+                )
+            prior = StableDiffusionPrior.from_pretrained(self.sd_model, controlnet=controlnet, **kw)
+        if self.semantic_code:
+            folder = Path(cfg.out) / "semantic"
+            if (folder / "semantic.json").is_file():
+                load_semantic_code(prior, folder)
+            else:
+                n = self.semantic_steps
+                sc = SemanticCodeConfig(size=max(64, cfg.resolution), ti_steps=n, lora_steps=n, seed=cfg.seed)
+                semantic_code(prior, cfg.prompt, folder, sc)
+        return prior
