@@ -385,7 +385,7 @@ def test_error_benchmark_writes_one_csv_with_skips(tmp_path):
 def test_bench_quick_runs_render_in_one_process_and_peers_as_asked(monkeypatch, tmp_path):
     import importlib
 
-    from gdbench.app.cli import Bench, run_bench
+    from gdbench.app.cmd_refs import Bench, run_bench
 
     seen = {}
 

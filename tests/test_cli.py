@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from gdbench.app.cli import Demo, main
+from gdbench.app.cli import main
+from gdbench.app.cmd_tools import Demo
 from gdbench.core.builtin import demo_scene
 from gdbench.core.camera import SphericalPoses
 from renderers.splat import rasterize
@@ -63,7 +64,7 @@ def test_no_two_modules_import_each_other():
 
 
 def test_noise_preview_writes_figure_with_unit_variance(tmp_path, monkeypatch):
-    from gdbench.app.cli import Noise
+    from gdbench.app.cmd_tools import Noise
     from gdbench.core import plotting
 
     inside, real = [], plotting.save
@@ -86,11 +87,12 @@ def test_noise_preview_writes_figure_with_unit_variance(tmp_path, monkeypatch):
 
 
 def test_generate_then_render(tmp_path):
-    from gdbench.app.cli import Generate, Render
+    from gdbench.app.cmd_generate import Generate
+    from gdbench.app.cmd_scenes import Render
     from gdbench.core.scene import GaussianScene
 
     out = tmp_path / "duck"
-    from gdbench.app.cli import GenerateTrain
+    from gdbench.app.cmd_generate import GenerateTrain
 
     s = main(
         Generate("A Yellow Duck", out=out, score=False, progress=False, train=GenerateTrain(steps=3, resolution=16))
@@ -109,7 +111,7 @@ def test_generate_then_render(tmp_path):
 
 def test_render_bad_path(tmp_path):
 
-    from gdbench.app.cli import Render
+    from gdbench.app.cmd_scenes import Render
 
     with pytest.raises(FileNotFoundError, match="run: no PLY"):
         main(Render(tmp_path / "nothing"))
@@ -136,7 +138,7 @@ def test_options_that_would_do_nothing_are_refused_naming_both(tmp_path):
     """An option that acts only under another setting is refused when that setting is off, with
     the option it needs named; nothing is written."""
 
-    from gdbench.app.cli import Generate, GenerateTrain
+    from gdbench.app.cmd_generate import Generate, GenerateTrain
 
     cases = [
         (dict(train=GenerateTrain(noise_ou_beta=0.2)), r"--noise-ou-beta acts only with --noise-redraw ou "
@@ -281,7 +283,7 @@ def test_generate_defaults_to_a_folder_named_after_the_prompt(tmp_path, monkeypa
     steps."""
 
     import gdbench.train.run as run_mod
-    from gdbench.app.cli import Generate, GenerateTrain
+    from gdbench.app.cmd_generate import Generate, GenerateTrain
 
     monkeypatch.chdir(tmp_path)
     small = GenerateTrain(steps=2, resolution=16)
@@ -305,7 +307,7 @@ def test_generate_config_reproduces_a_run(tmp_path):
     """--config run.json trains the same config again: same run id, bit-identical scene.ply on
     CPU; an option on the command line overrides the file; a YAML file of a few settings is
     applied to the preset."""
-    from gdbench.app.cli import Generate, GenerateTrain
+    from gdbench.app.cmd_generate import Generate, GenerateTrain
 
     a = tmp_path / "a"
     main(Generate("a corgi", preset="gd-no-vgs", out=a, score=False, progress=False,
@@ -333,7 +335,7 @@ def test_sweep_config_file_gives_the_defaults(tmp_path, monkeypatch):
     """sweep --config grid.yaml: the file's options are the defaults, the command line overrides
     them, and the mapping a sweep writes (<out>/sweep.yaml) reads back to the same command."""
     import gdbench.app.cli as cli
-    from gdbench.app.cli import sweep_from_mapping, sweep_mapping
+    from gdbench.app.cmd_sweep import sweep_from_mapping, sweep_mapping
 
     grid = tmp_path / "grid.yaml"
     grid.write_text(
@@ -358,7 +360,7 @@ def test_sweep_config_file_gives_the_defaults(tmp_path, monkeypatch):
 
 def test_cache_list_and_clear(tmp_path, monkeypatch, capsys):
     """The cache's listing adds up the files on disk; clear removes gdbench's parts only."""
-    from gdbench.app.cli import Cache
+    from gdbench.app.cmd_tools import Cache
     from gdbench.core import cache
 
     monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
@@ -387,7 +389,8 @@ def test_cache_build_leaves_nothing_for_a_first_run_to_render(tmp_path, monkeypa
     """After `gdbench cache build --prompts PROMPT` in an empty cache, a first run of the prompt and
     its scores render nothing with pyrender (oracle: pyrender's entry points raise), and the
     build of every asset writes the marker scripts/setup.sh looks for."""
-    from gdbench.app.cli import Cache, Generate, GenerateTrain
+    from gdbench.app.cmd_generate import Generate, GenerateTrain
+    from gdbench.app.cmd_tools import Cache
     from gdbench.app.prebuild import PREBUILT
 
     monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
@@ -415,7 +418,8 @@ def test_render_uses_the_runs_cameras_and_frames_any_ply(tmp_path):
     similarity applied to scene and orbit)."""
     import dataclasses
 
-    from gdbench.app.cli import Generate, GenerateTrain, Render
+    from gdbench.app.cmd_generate import Generate, GenerateTrain
+    from gdbench.app.cmd_scenes import Render
 
     out = tmp_path / "run"
     small = GenerateTrain(steps=3, resolution=16, turntable_frames=4, background=(0.2, 0.3, 0.4))
@@ -474,7 +478,8 @@ def test_settings_files_are_typed_and_numbers_are_numbers(tmp_path, monkeypatch)
     file's preset, and a file's run folder is used when --out is not given."""
     import yaml
 
-    from gdbench.app.cli import Generate, Sweep, SweepTrain, _config_file, sweep_mapping
+    from gdbench.app.cmd_generate import Generate, _config_file
+    from gdbench.app.cmd_sweep import Sweep, SweepTrain, sweep_mapping
     from gdbench.train.config import config_from_dict, preset
     from gdbench.train.run import run_id
 
@@ -501,12 +506,13 @@ def test_sweep_grid_files_and_optional_parts_fail_in_one_line(tmp_path, monkeypa
     one line; a missing optional dependency's advice is one line too; clear refuses a cache
     folder that is the current one (GDBENCH_CACHE="" means unset)."""
     import gdbench.app.cli as cli
-    from gdbench.app.cli import error_line, sweep_from_mapping
+    from gdbench.app.cli import error_line
+    from gdbench.app.cmd_sweep import sweep_from_mapping
     from gdbench.core import cache
 
     s = sweep_from_mapping({"overrides": {"noise": {"redraw": "ou"}, "densify.enabled": False}})
     assert s.train.overrides() == {"noise.redraw": "ou", "densify.enabled": False}
-    assert sweep_from_mapping(None).prompts == cli.Sweep().prompts
+    assert sweep_from_mapping(None).prompts == cli.command("sweep")().prompts
     (tmp_path / "g.yaml").write_text("workers: null\n")
     for argv, match in ((["--config", "a.yaml", "--config=b.yaml"], "given more than once"),
                         (["--config", str(tmp_path / "none.yaml")], "no file at"),

@@ -116,7 +116,8 @@ def test_bad_scene_and_backend_names():
 
 
 def test_cli_compare(tmp_path, capsys):
-    from gdbench.app.cli import Compare, main
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_refs import Compare
 
     summary = main(Compare(scene="near_wide", out=tmp_path, backends=("splat",)))
     assert summary == {"near_wide": {"rows": 7, "skipped": 0}}

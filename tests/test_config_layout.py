@@ -41,7 +41,8 @@ def test_every_stored_run_json_converts_with_its_run_id_and_back(path):
 
 
 def test_generate_with_a_stored_run_json_makes_the_run_of_the_same_id(tmp_path):
-    from gdbench.app.cli import Generate, main
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_generate import Generate
 
     stored = ROOT / "fixtures" / "runs" / "empirical_gd.run.json"
     main(Generate(config=stored, out=tmp_path / "again", score=False, progress=False))
@@ -85,7 +86,8 @@ def test_the_frozen_flat_defaults_are_the_prior_configs_defaults():
 
 
 def test_sweep_files_of_the_flat_layout_load_with_their_priors_options():
-    from gdbench.app.cli import load_mapping, sweep_from_mapping, sweep_mapping
+    from gdbench.app.cmd_generate import load_mapping
+    from gdbench.app.cmd_sweep import sweep_from_mapping, sweep_mapping
 
     cmd = sweep_from_mapping(load_mapping(ROOT / "fixtures" / "runs" / "sweep_learned.yaml"))
     assert cmd.train.prior == "learned" and cmd.train.learned_guidance == 2.0 and not hasattr(cmd.train, "sd_model")

@@ -311,7 +311,8 @@ def test_densify_false_on_the_command_line_trains_without_densification(tmp_path
     densification flag beside it is refused as doing nothing."""
     import json
 
-    from gdbench.app.cli import Generate, GenerateTrain, main
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_generate import Generate, GenerateTrain
 
     out = tmp_path / "r"
     main(Generate("a yellow duck", out=out, score=False, progress=False,

@@ -65,7 +65,7 @@ def test_cuda_without_a_gpu_is_one_line_before_any_work(argv, tmp_path, monkeypa
 def test_a_run_json_config_leaves_the_device_to_the_command_line(tmp_path):
     """A run.json made on a GPU reproduces its run on a machine without one (--device chooses);
     a settings file's device is a setting like any other."""
-    from gdbench.app.cli import _config_file
+    from gdbench.app.cmd_generate import _config_file
     from gdbench.train.outputs import config_dict
 
     cfg = config_dict(tiny("gd", tmp_path / "run", device="cuda"))

@@ -492,8 +492,8 @@ def test_export_command_names_files_and_round_trips(tmp_path, capsys):
     """``gdbench export``: default names beside the source per format and up axis, the file read
     back with its up axis equals the scene (float32 PLY: exactly), render reads a .splat; the
     source is never overwritten."""
-    from gdbench.app.cli import Render, main
-    from gdbench.app.commands import Export
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_scenes import Export, Render
     from gdbench.core.builtin import demo_scene
 
     run = tmp_path / "run"

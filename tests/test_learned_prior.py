@@ -426,7 +426,8 @@ def test_denoising_error_against_the_exact_posterior_mean():
 
 def test_train_prior_command(tmp_path, capsys):
     """`gdbench train-prior` trains, writes its run folder, and its model serves `--prior learned`."""
-    from gdbench.app.cli import TrainPrior, main
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_tools import TrainPrior
     from gdbench.priors.learned.prior import LearnedPrior
 
     out = main(TrainPrior(out=tmp_path / "p", steps=4, batch=4, size=16, views=2, resolution=32, threads=1,

@@ -581,12 +581,13 @@ def test_noise_preview_into_a_folder(monkeypatch, capsys, tmp_path):
 
 
 def test_generate_prints_the_matched_caption(prior, monkeypatch, capsys, tmp_path):
-    from gdbench.app.cli import Generate, main
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_generate import Generate
     from gdbench.train import run as run_mod
 
     real = run_mod.make_context
     monkeypatch.setattr(run_mod, "make_context", lambda cfg, p=None: real(cfg, prior))
-    from gdbench.app.cli import GenerateTrain
+    from gdbench.app.cmd_generate import GenerateTrain
 
     s = main(
         Generate(CAPTION, out=tmp_path / "r", score=False, progress=False, train=GenerateTrain(steps=2, resolution=16))

@@ -234,7 +234,8 @@ def test_both_rendering_modes_with_depth_control_and_semantic_code(mode, tmp_pat
 def test_cli_generate_runs_the_sd_prior_and_does_not_score_it_against_an_asset(tmp_path):
     import json
 
-    from gdbench.app.cli import GENERATE_EXCLUDES, generate_command, main
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_generate import GENERATE_EXCLUDES, generate_command
     from gdbench.train.options import train_options
 
     train = train_options(GENERATE_EXCLUDES, "sd")(prior="sd", sd_guidance=7.5, steps=2, resolution=32)

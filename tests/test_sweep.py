@@ -12,7 +12,9 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from gdbench.app.cli import Score, Sweep, main
+from gdbench.app.cli import main
+from gdbench.app.cmd_scenes import Score
+from gdbench.app.cmd_sweep import Sweep
 from gdbench.experiments.sweep import CellSpec, SweepConfig, cell_config, run_cell, sweep
 from gdbench.metrics.run_scores import score_run
 from gdbench.train.run import train
@@ -278,7 +280,7 @@ def test_command_line_errors_are_one_line_with_exit_code_2(monkeypatch, capsys):
 
 
 def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
-    from gdbench.app.cli import SweepTrain
+    from gdbench.app.cmd_sweep import SweepTrain
 
     train = SweepTrain(view_prompting="none", views_per_step=2, noise_redraw="ou", noise_ratio="variance")
     res = main(

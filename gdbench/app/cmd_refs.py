@@ -1,0 +1,84 @@
+"""Commands that check the renderer and measure speed: ``compare`` (against the reference
+renderers) and ``bench`` (the benchmarks, each writing CSV and JSON)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+
+@dataclass
+class Compare:
+    """Run every applicable renderer on fixture scenes; write error-against-time rows (CSV/JSON),
+    error maps and a Pareto plot per scene, and print the table."""
+
+    scene: str = "all"
+    """A fixture name (fixtures/scenes/*.json) or 'all'."""
+    out: Path = Path("runs/compare")
+    """Folder for compare.csv/json, the error maps and the Pareto plots."""
+    backends: tuple[str, ...] = ()
+    """Only these renderers (default: all); the float64 reference always runs."""
+
+
+def run_compare(cmd: Compare) -> dict:
+    from gdbench.refcheck.compare import run
+
+    results = run(cmd.scene, backends=list(cmd.backends) or None, out=cmd.out)
+    return {k: {"rows": len(v.rows), "skipped": len(v.skipped)} for k, v in results.items()}
+
+
+BENCHES = {
+    "render": ("gdbench.refcheck.bm_render", "render.csv", []),
+    "peers": ("gdbench.refcheck.bm_render", "peers.csv", ["--peers"]),
+    "error": ("gdbench.refcheck.bm_error", "error_vs_runtime.csv", []),
+    "stability": ("gdbench.refcheck.bm_stability", "stability.csv", []),
+    "noise": ("gdbench.bench.bm_noise", "noise.csv", []),
+    "train": ("gdbench.bench.bm_train", "train.csv", []),
+    "scale": ("gdbench.bench.bm_scale", "scale.csv", []),
+    "cell": ("gdbench.bench.bm_cell", "cell.csv", []),
+    "cuda": ("gdbench.refcheck.bm_cuda", "cuda", []),
+}
+"""Benchmark name -> (module, CSV name (a folder for cuda), extra arguments)."""
+
+
+@dataclass
+class Bench:
+    """Benchmarks; each writes a CSV with a JSON summary (and a plot or table) to --out.
+
+    render: splat vs the dense all-pairs path over N and resolution (speed, memory);
+    peers: splat vs gsplat_torch vs Mitsuba ellipsoids (target: splat forward >= 10x gsplat at
+    10k Gaussians, 256 px, same run); error: error against run time over all fixtures (Pareto);
+    stability: stiff and extreme cases on every renderer; noise: structured-noise share of a
+    training step; train: denoiser, full-run and per-step timings; scale: 1M Gaussians with SH
+    degree 3 at 1920x1080 (time and peak memory); cell: one scored 1000-step sweep cell in a fresh
+    process and its phases, COLMAP on its scene, a cold first run (the module gdbench.bench.bm_cell
+    run with a peer checkout compares two versions of the code in one run); cuda: on a GPU, the
+    renderer on CUDA (the gsplat backend, the torch path) against gsplat itself and the C++
+    compositor (agreement, speed), the training step on both devices, and the C++ compositor's
+    scaling with CPU threads (only that part without a GPU)."""
+
+    which: tyro.conf.Positional[
+        Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell", "cuda"]
+    ]
+    """The benchmark (above)."""
+    out: Path = Path("bench_results")
+    """Folder for the CSV/JSON/plots."""
+    quick: bool = False
+    """Small grid (render and peers only; render's cases all in this process, so its peak memory
+    is not per case): a smoke run, not numbers to publish."""
+
+
+def run_bench(cmd: Bench) -> dict:
+    import importlib
+
+    module, csv_name, extra = BENCHES[cmd.which]
+    argv = ["--out", str(Path(cmd.out) / csv_name), *extra]
+    if cmd.quick:
+        if cmd.which not in ("render", "peers"):
+            raise ValueError(f"quick: only render and peers have a quick grid, not {cmd.which!r}")
+        argv += ["--quick"] + (["--inprocess"] if cmd.which == "render" else [])
+    code = importlib.import_module(module).main(argv)
+    return {"bench": cmd.which, "csv": str(Path(cmd.out) / csv_name), "exit": code}

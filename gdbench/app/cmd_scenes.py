@@ -1,0 +1,221 @@
+"""Commands on a finished scene: ``render`` (a turntable), ``score`` (against the asset and
+COLMAP), ``export`` (to other formats) and ``view`` (the interactive viewer). Each is an options
+dataclass (its field docstrings are the help) and a ``run_*`` function."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from gdbench.core.constraints import AtLeast, Between, Positive
+
+
+@dataclass
+class Render:
+    """Turntable (GIF, MP4, contact sheet) of a run folder, a 3DGS or compressed PLY, or a .splat."""
+
+    run: tyro.conf.Positional[Path]
+    """A run folder (its scene.ply is used), a .ply file (Inria 3DGS, or the compressed PLY) or a
+    .splat file."""
+    out: Path | None = None
+    """Output folder (default: the run folder, or the PLY's folder)."""
+    frames: Annotated[int | None, AtLeast(1)] = None
+    """Views on the orbit, 360/frames degrees apart (default: a run's turntable frames, else 36)."""
+    size: Annotated[int | None, AtLeast(8, "px")] = None
+    """Side of each frame in pixels (default: a run's turntable size, else 256)."""
+    radius: Annotated[float | None, Positive()] = None
+    """Orbit radius in scene units (default: a run's turntable radius, 1.3; a PLY from elsewhere:
+    framed from its bounds, centred on them)."""
+    elevation: Annotated[float, Between(-90, 90, unit="degrees")] = 15.0
+    """Camera elevation above the scene's horizontal plane (+Z up), degrees."""
+    fovy: Annotated[float, Between(1, 179, unit="degrees")] = 45.0
+    """Vertical field of view, degrees."""
+    up: Literal["+z", "-y", "+y"] = "+z"
+    """The up axis of the scene file: +z for gdbench's runs, -y for Inria/COLMAP captures and
+    `gdbench export`'s default, +y."""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """Where the frames are rendered: cpu (the C++ compositor), cuda (gsplat's CUDA kernels with
+    gdbench's conventions, or the torch path where they cannot run) or auto (cuda when torch sees
+    one)."""
+
+
+def run_render(cmd: Render) -> dict:
+    import contextlib
+
+    from gdbench.app.export import load_scene
+    from gdbench.app.resources import check_render_memory
+    from gdbench.core.devices import resolve_device
+    from gdbench.core.io import FolderLock
+    from gdbench.core.turntable import write_turntable
+
+    device = resolve_device(cmd.device, "device (--device)")
+    src = Path(cmd.run)
+    ply = src / "scene.ply" if src.is_dir() else src
+    if not ply.is_file():
+        raise FileNotFoundError(f"run: no PLY at {ply} (pass a run folder or a .ply file)")
+    run = _run_turntable(ply)
+    frames = cmd.frames or run.get("frames", 36)
+    size = cmd.size or run.get("size", 256)
+    check_render_memory(size, frames)
+    out = Path(cmd.out or ply.parent)
+    # a run folder has one writer: not while a generate (--overwrite) or score writes there
+    run_folder = (out / "run.json").is_file() or (out / FolderLock.NAME).is_file()
+    with FolderLock(out) if run_folder else contextlib.nullcontext():
+        scene = load_scene(ply, up=cmd.up)  # a 3DGS or compressed PLY, or a .splat; +Z up
+        radius = cmd.radius or run.get("radius")
+        framing = ""
+        if radius is None:  # not a run's scene: centred on its bounds and framed whole
+            from gdbench.core.framing import frame
+
+            scene, radius = frame(scene, cmd.fovy)
+            framing = f", framed from its bounds at radius {radius:.3g}"
+        res = write_turntable(
+            scene.to(device),
+            out,
+            frames=frames,
+            size=size,
+            radius=radius,
+            elevation=cmd.elevation,
+            fovy=cmd.fovy,
+            background=run.get("background", (1.0, 1.0, 1.0)),
+            stem=ply.stem + "_turntable",
+        )
+    print(
+        f"gdbench render: {len(scene)} Gaussians, {frames} frames at {size}px{framing}, "
+        f"median {1e3 * sorted(res.seconds_per_frame)[frames // 2]:.1f} ms per frame"
+    )
+    for k, v in res.paths.items():
+        print(f"  {k:5s} -> {v}")
+    return {k: str(v) for k, v in res.paths.items()}
+
+
+def _run_turntable(ply: Path) -> dict:
+    """The turntable settings of the run whose scene ``ply`` is (its folder's run.json names the
+    same scene), so ``render`` shows it from ``generate``'s cameras; {} for any other PLY."""
+    from gdbench.core.io import run_json_of
+    from gdbench.core.turntable import RUN_TURNTABLE
+    from gdbench.train.run import turntable_size
+
+    found = run_json_of(ply)
+    if found is None:  # not a run's scene, or a run.json of another scene: framed as any PLY
+        return {}
+    config = found[1].get("config") or {}
+    return {
+        "frames": int(config.get("turntable_frames", 36)),
+        "size": turntable_size(config.get("resolution", 128)),
+        "background": tuple(float(c) for c in config.get("background", (1.0, 1.0, 1.0))),
+        "radius": RUN_TURNTABLE["radius"],
+    }
+
+
+@dataclass
+class Score:
+    """Score a finished run folder: GT PSNR/SSIM against the asset and COLMAP consistency: the
+    registration rate, Var(theta) and translation-direction error, written to its scores.json.
+    Each block records its parameters, commit and time; a block is reused (and marked so) only
+    when the scene, its parameters and the code (commit and uncommitted edits) match, and
+    dropped when they do not."""
+
+    run: tyro.conf.Positional[Path]
+    """A run folder with scene.ply (and run.json for the caption)."""
+    gt: bool = True
+    """Score against the procedural asset (empirical-prior runs)."""
+    colmap: bool = True
+    """Run the COLMAP consistency metric (about 30 s on 2 cores)."""
+    views: Annotated[int, AtLeast(2)] = 100
+    """COLMAP's: the number of turntable views rendered and registered."""
+    size: Annotated[int, AtLeast(16, "px")] = 256
+    """COLMAP's: the side of each rendered view, in pixels."""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """Where the scene's views are rendered: cpu, cuda or auto (cuda when torch sees one); the
+    images are compared on the CPU, and scores agree across devices to float rounding."""
+
+
+def run_score(cmd: Score) -> dict:
+    from gdbench.app.resources import check_score_memory
+    from gdbench.metrics.run_scores import report, score_run
+
+    if not Path(cmd.run).is_dir():
+        raise FileNotFoundError(f"run: expected a run folder, got {cmd.run}")
+    if cmd.colmap:
+        check_score_memory(cmd.size, cmd.views)
+    s = score_run(
+        cmd.run, gt=cmd.gt, colmap=cmd.colmap, views=cmd.views, size=cmd.size, progress=True, device=cmd.device
+    )
+    print(report(s))
+    return s
+
+
+@dataclass
+class Export:
+    """Write a run's scene (or any scene file) for other viewers and editors: the Inria 3DGS PLY
+    (padded to an SH degree for Inria's loader), antimatter15's .splat (web viewers) or
+    SuperSplat's compressed PLY; rotated so the viewer's up axis is up (docs/export.md)."""
+
+    src: tyro.conf.Positional[Path]
+    """A run folder (its scene.ply), a PLY (3DGS or compressed) or a .splat file."""
+    format: Literal["ply", "splat", "ply-compressed"] = "ply"
+    """ply: exact float32, read by Inria's code and most tools; splat: 32 bytes per Gaussian, DC
+    colour only; ply-compressed: about 16 bytes per Gaussian plus SH bands at 8 bits."""
+    up: Literal["+z", "-y", "+y"] = "-y"
+    """The axis that is up in the file: -y for Inria/COLMAP-convention viewers (SuperSplat, the
+    .splat viewers), +y, or +z (gdbench's own)."""
+    sh_degree: Annotated[int | None, Between(0, 3)] = None
+    """SH degree written (ply, ply-compressed): higher pads with zeros (Inria's loader at degree
+    3 wants all 45 f_rest_* properties), lower drops view-dependent colour (default: the scene's)."""
+    out: Path | None = None
+    """The file written (default: beside the source, named by the up axis: scene.y_down.ply,
+    scene.y_down.splat, scene.z_up.compressed.ply, ...)."""
+    src_up: Literal["+z", "-y", "+y"] = "+z"
+    """The up axis of the source file (+z for gdbench's runs)."""
+
+
+def run_export(cmd: Export) -> dict:
+    from gdbench.app.export import export_scene, load_scene
+
+    src = Path(cmd.src)
+    path = src / "scene.ply" if src.is_dir() else src
+    if not path.is_file():
+        raise FileNotFoundError(f"src: no scene at {path} (pass a run folder, a .ply or a .splat file)")
+    stem = path.name.removesuffix(".compressed.ply").removesuffix(".ply").removesuffix(".splat")
+    tag = {"+z": "z_up", "-y": "y_down", "+y": "y_up"}[cmd.up]
+    suffix = {"ply": ".ply", "splat": ".splat", "ply-compressed": ".compressed.ply"}[cmd.format]
+    out = Path(cmd.out) if cmd.out is not None else path.parent / f"{stem}.{tag}{suffix}"
+    if out.resolve() == path.resolve():
+        raise ValueError(f"out: {out} is the source file; pass another --out")
+    scene = load_scene(path, up=cmd.src_up)
+    if cmd.format == "splat" and scene.sh.shape[1] > 1:
+        print(f"gdbench export: note: .splat holds the DC colour only; SH degree {scene.sh_degree} dropped")
+    written = export_scene(scene, out, fmt=cmd.format, up=cmd.up, sh_degree=cmd.sh_degree)
+    size = written.stat().st_size
+    print(f"gdbench export: {len(scene)} Gaussians -> {written} ({cmd.format}, {cmd.up} up, {size / 1e6:.2f} MB)")
+    return {"path": str(written), "bytes": size, "gaussians": len(scene)}
+
+
+@dataclass
+class View:
+    """Interactive viewer of a run folder or any scene file in the browser (viser): the splats,
+    the run's turntable cameras on a slider and its training-view frustums (docs/viewer.md).
+    Serves until Ctrl-C."""
+
+    run: tyro.conf.Positional[Path]
+    """A run folder (its scene.ply, and run.json for the turntable and training views) or a scene
+    file (3DGS or compressed PLY, .splat)."""
+    port: Annotated[int, Between(1, 65535)] = 8080
+    """Port to serve on (viser takes the next free one when it is busy)."""
+    host: str = "127.0.0.1"
+    """Interface to listen on (0.0.0.0: every interface; default: this machine only)."""
+    up: Literal["+z", "-z", "+y", "-y", "+x", "-x"] = "+z"
+    """The scene's up direction (gdbench's runs: +z; Inria/COLMAP captures: -y)."""
+    frustums: bool = False
+    """Show the run's training-view frustums at start (a checkbox toggles them)."""
+
+
+def run_view(cmd: View) -> dict:
+    from gdbench.app.viewer import serve
+
+    v = serve(cmd.run, host=cmd.host, port=cmd.port, up=cmd.up, frustums=cmd.frustums)  # until Ctrl-C
+    return {"url": v.url}

@@ -1,0 +1,166 @@
+"""The small commands: ``demo`` (the built-in scene's turntable), ``noise`` (a preview of the
+structured noise), ``train-prior`` (the learned prior's weights) and ``cache`` (the cache folder)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from gdbench.core.constraints import AtLeast, Positive, Seed
+
+
+@dataclass
+class Demo:
+    """Render the built-in scene as a turntable (GIF, MP4, contact sheet) and print timings."""
+
+    out: Path = Path("runs/demo")
+    """Output folder."""
+    frames: Annotated[int, AtLeast(1)] = 36
+    """Views on the orbit (360/frames degrees apart)."""
+    size: Annotated[int, AtLeast(8, "px")] = 256
+    """Image width and height in pixels."""
+    gaussians: Annotated[int, AtLeast(10)] = 3000
+    """Number of Gaussians in the built-in scene."""
+    seed: Annotated[int, Seed()] = 0
+    """Seed of the built-in scene."""
+
+
+def run_demo(cmd: Demo) -> dict:
+    from gdbench.app.resources import check_render_memory
+    from gdbench.core.turntable import demo
+
+    check_render_memory(cmd.size, cmd.frames, gaussians=cmd.gaussians)
+
+    return demo(cmd.out, frames=cmd.frames, size=cmd.size, gaussians=cmd.gaussians, seed=cmd.seed)
+
+
+@dataclass
+class Noise:
+    """Structured noise tools: --preview writes 4 views of one noise source and the
+    per-pixel histogram against N(0, 1)."""
+
+    preview: bool = False
+    """Write the preview figure."""
+    out: Path = Path("runs/noise_preview.png")
+    """Where the preview goes: a .png file, or a folder (existing, or a path without a suffix)
+    that receives noise_preview.png."""
+    res: Annotated[int, AtLeast(8, "px")] = 128
+    """Resolution of the views."""
+    seed: Annotated[int, Seed()] = 0
+    """Seed of the noise cloud (positions and colours)."""
+    n_gaussians: Annotated[int, AtLeast(1)] = 3072
+    """Noise Gaussians in the cloud."""
+    scale: Annotated[float, Positive()] = 0.02
+    """Their isotropic scale."""
+
+
+def run_noise(cmd: Noise) -> dict:
+    from gdbench.app.noise_preview import preview
+    from gdbench.app.resources import check_noise_memory
+    from gdbench.mechanisms.noise import NoiseConfig
+
+    if not cmd.preview:
+        raise ValueError("preview: nothing to do; pass --preview to write the preview figure")
+    out = Path(cmd.out)
+    if out.is_dir() or not out.suffix:
+        out = out / "noise_preview.png"
+    elif out.suffix.lower() != ".png":
+        raise ValueError(f"out: expected a .png file or a folder, got {cmd.out}")
+    check_noise_memory(cmd.res, cmd.n_gaussians)
+    stats = preview(out, NoiseConfig(n_gaussians=cmd.n_gaussians, scale=cmd.scale), res=cmd.res, seed=cmd.seed)
+    print(
+        f"wrote {stats['path']}: coverage {stats['coverage']:.2f}, per-pixel mean {stats['mean']:+.3f}, "
+        f"variance {stats['var']:.3f}, KS distance to N(0,1) {stats['ks_statistic']:.4f}, "
+        f"correlation length {stats['correlation_length_px']:.1f} px"
+    )
+    print(
+        "  noise shared with the view at azimuth 0 (mean best-pixel correlation): "
+        + ", ".join(f"{v:.2f} at {a} deg" for a, v in stats["view_coupling"].items() if a != "0")
+    )
+    return stats
+
+
+@dataclass
+class TrainPrior:
+    """Train the learned prior: a small conditional diffusion model of the built-in assets
+    (docs/learned_prior.md). Renders its data on first use (cached), checkpoints and resumes in
+    --out, and writes model.safetensors (use it with generate --prior learned --learned-model OUT),
+    loss.csv and loss.png."""
+
+    out: Path = Path("runs/prior")
+    """The run folder (reused with the same settings: the run resumes)."""
+    front_bias: Annotated[float, AtLeast(0)] = 0.0
+    """kappa: training views drawn with probability ~ exp(kappa cos azimuth) (the shipped 'front'
+    model: 2)."""
+    steps: Annotated[int, AtLeast(1)] = 8000
+    """Optimiser steps."""
+    batch: Annotated[int, AtLeast(1)] = 32
+    """Images per step."""
+    lr: Annotated[float, Positive()] = 6e-4
+    """Peak learning rate (AdamW; warm-up, then cosine decay to a tenth)."""
+    seed: Annotated[int, Seed()] = 0
+    """Seed of the initial weights, the batches and the noise."""
+    size: Annotated[int, AtLeast(8, "px")] = 32
+    """The model's resolution (a divisor of --resolution; the 64 px renders are box-filtered to it)."""
+    views: Annotated[int, AtLeast(1)] = 1024
+    """Rendered cameras per (asset, variant)."""
+    resolution: Annotated[int, AtLeast(8, "px")] = 64
+    """Resolution the data is rendered at."""
+    threads: Annotated[int, AtLeast(0)] = 0
+    """torch CPU threads (0: torch's default); a result reproduces for one thread count."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where the model trains (auto: CUDA when present)."""
+    progress: bool = True
+    """Report progress (a bar on a terminal, a line every few seconds in a log)."""
+
+
+def run_train_prior(cmd: TrainPrior) -> dict:
+    from gdbench.priors.learned.data import DataConfig
+    from gdbench.priors.learned.training import PriorTrainConfig, train_prior
+    from gdbench.priors.learned.unet import UNetConfig
+
+    cfg = PriorTrainConfig(
+        out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
+        threads=cmd.threads, device=cmd.device, progress=cmd.progress, unet=UNetConfig(size=cmd.size),
+        data=DataConfig(views=cmd.views, resolution=cmd.resolution),
+    )  # fmt: skip
+    return train_prior(cfg)
+
+
+@dataclass
+class Cache:
+    """What gdbench caches on disk (prompts' image banks, calibration scenes, the learned prior's
+    data, the compiled compositor), under $GDBENCH_CACHE or ~/.cache/gdbench: list it, clear it
+    (all of it is rebuilt when next needed) or build the assets' banks ahead of their first run
+    (scripts/setup.sh does so in the background)."""
+
+    action: tyro.conf.Positional[Literal["list", "clear", "build"]]
+    """list: the cache's folder, each part's size and age; clear: remove it (or --kinds); build:
+    the banks and scoring references a default run of each of --prompts needs (16-45 s each when
+    missing, nothing when present)."""
+    kinds: tuple[Literal["banks", "fixtures", "learned_data", "clip_tokenizer", "ext"], ...] = ()
+    """clear: only these parts (default: all of gdbench's)."""
+    prompts: tuple[str, ...] = ()
+    """build: prompts (or asset captions) to build for (default: every asset, the duck last)."""
+
+
+def run_cache(cmd: Cache) -> dict:
+    from gdbench.core import cache
+
+    if cmd.action != "clear" and cmd.kinds:
+        raise ValueError(f"kinds: only for clear, not {cmd.action} (list shows every part, build builds banks)")
+    if cmd.action != "build" and cmd.prompts:
+        raise ValueError("prompts: only for build")
+    if cmd.action == "build":
+        from gdbench.app.prebuild import build
+
+        built = build(list(cmd.prompts) or None)
+        return {"root": str(cache.root()), "built": built}
+    if cmd.action == "clear":
+        files, size = cache.clear(list(cmd.kinds) or None)
+        print(f"gdbench cache: removed {files} files ({cache.human(size)}) from {cache.root()}")
+    print(cache.listing())
+    return {"root": str(cache.root()), "entries": {e.kind: e.bytes for e in cache.entries()}}
