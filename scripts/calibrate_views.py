@@ -15,7 +15,10 @@ import argparse
 import time
 from pathlib import Path
 
-METRICS = ("multi_face_rate", "featureless_rate", "instance_consistency", "majority_variant", "floaters", "turned_deg")
+METRICS = (
+    "front_everywhere_rate", "multi_face_rate", "blob_rate", "janus_rate", "featureless_rate", "instance_consistency",
+    "majority_variant", "floaters", "turned_deg",
+)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,10 +35,11 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"--captions: unknown {unknown}; known: {sorted(ASSETS)}")
 
+    from gdbench.assets.library import has_front
     from gdbench.core.io import write_csv
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.failures3d import failure_scene
-    from gdbench.metrics.views import reference, render_turntable, score_views
+    from gdbench.metrics.views import reference, render_turntable, result_class, score_views
 
     commit = code_commit()
     rows, sheet = [], {}
@@ -44,8 +48,9 @@ def main(argv: list[str] | None = None) -> int:
         ref = reference(caption, variants=3)
         for kind in a.kinds:
             images, alpha = render_turntable(failure_scene(caption, kind))
-            s = score_views(images, alpha, ref).as_dict()
-            rows.append({"caption": caption, "fixture": kind, **{m: s[m] for m in METRICS}, "commit": commit})
+            s = score_views(images, alpha, ref, front=has_front(caption)).as_dict()
+            row = {"caption": caption, "fixture": kind, **{m: s[m] for m in METRICS}, "class": result_class(s)}
+            rows.append(row | {"commit": commit})
             if caption == a.captions[0]:
                 sheet[kind] = images
         print(f"{caption}: {len(a.kinds)} fixtures in {time.perf_counter() - t0:.0f} s", flush=True)

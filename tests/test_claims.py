@@ -34,11 +34,19 @@ def test_claims_verdict_from_paired_tests():
     assert v["by_prompt"].startswith("a -0.15 (3); b -0.15 (3)")
     assert got["gd-no-vgs", "sjc-gs", "multi_face_rate"]["verdict"] == "undecided"
     assert got["gd", "gd-no-vgs", "floaters"]["verdict"] == "not measured"  # no floaters column
-    # the Janus failure (no face or a second one) is read only where view prompting is off
-    janus = [dict(r, janus_failure_rate=r["multi_face_rate"]) for r in rows]
-    assert not [v for v in evaluate([dict(r, setting="easy") for r in janus]) if v["metric"] == "janus_failure_rate"]
-    jv = [v for v in evaluate(janus) if v["metric"] == "janus_failure_rate"]
-    assert len(jv) == 1 and jv[0]["verdict"] == "holds" and jv[0]["pairs"] == 18
+    # the Janus failure (the front everywhere or a second face) is read only where view prompting is off
+    janus = [dict(r, janus_rate=r["multi_face_rate"]) for r in rows]
+    assert not [v for v in evaluate([dict(r, setting="easy") for r in janus]) if v["metric"] == "janus_rate"]
+    jv = [v for v in evaluate(janus) if v["metric"] == "janus_rate"]
+    assert len(jv) == 1 and jv[0]["verdict"] == "holds" and jv[0]["pairs"] == 18 and jv[0]["left_out"] == ""
+    # a prompt whose asset has no front gives no Janus pair, and the row says which and why
+    burger = janus + [dict(_row(p, "a hamburger", s, 0.0), janus_rate=float("nan")) for p in ("gd", "gd-no-sn")
+                      for s in range(3)]  # fmt: skip
+    jb = next(v for v in evaluate(burger) if v["metric"] == "janus_rate")
+    assert jb["pairs"] == 18 and jb["left_out"] == "janus_rate: a hamburger (the asset declares no front)"
+    from gdbench.experiments.tables import markdown
+
+    assert "Left out of the claims on janus_rate: a hamburger (the asset declares no front)." in markdown([], [jb])
     flipped = [dict(r, multi_face_rate=-r["multi_face_rate"]) for r in rows]
     flipped_got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(flipped)}
     assert flipped_got["gd", "gd-no-sn", "multi_face_rate"]["verdict"] == "does not hold"
@@ -90,7 +98,7 @@ def test_claims_verdict_from_paired_tests():
     ]
     v = evaluate(ties)[0]
     assert v["nonzero_pairs"] == 3 and v["verdict"] == "too few non-tied pairs (k < 6)"
-    metrics = {"multi_face_rate", "janus_failure_rate", "instance_inconsistency", "floaters", "colmap_failure_rate"}
+    metrics = {"multi_face_rate", "janus_rate", "instance_inconsistency", "floaters", "colmap_failure_rate"}
     assert {c.metric for c in CLAIMS} == metrics  # Var(theta): a selection of registered views, no verdict
 
 

@@ -69,8 +69,71 @@ def test_a_3d_chimera_of_two_variants_reads_low_instance_consistency(scores, kin
 
 def test_a_solid_of_revolution_is_featureless_and_shows_no_second_face(scores):
     s = scores["spun"]
-    assert s.featureless_rate == 1
+    assert s.featureless_rate == 1 and s.blob_rate == 1 and s.front_everywhere_rate == 0
     _quiet(s, but=("featureless_rate",))
+
+
+def test_the_front_seen_from_every_side_is_front_everywhere_not_a_blob(scores):
+    """Twelve squeezed fronts around: from every side a face looks at the camera. The views more
+    than 90 degrees off the front (17 of 36) are front_everywhere; the others are the front
+    where it belongs."""
+    from gdbench.metrics.views import result_class
+
+    s = scores["front-everywhere"]
+    assert s.front_everywhere_rate == pytest.approx(17 / 36) and s.blob_rate == 0
+    assert s.multi_face_rate <= 0.05 and s.janus_rate == pytest.approx(s.front_everywhere_rate + s.multi_face_rate)
+    assert result_class(s.as_dict()) == "front_everywhere"
+    assert max(scores[k].front_everywhere_rate for k in scores if k not in ("front-everywhere", "four-faced")) == 0
+
+
+def test_a_faceless_blob_is_a_blob_and_no_janus_failure(scores):
+    from gdbench.metrics.views import result_class
+
+    s = scores["blob"]
+    assert s.blob_rate == 1 and s.front_everywhere_rate == 0 and s.multi_face_rate == 0 and s.janus_rate == 0
+    assert result_class(s.as_dict()) == "blob"
+
+
+def test_the_classes_of_every_fixture_are_disjoint_and_add_up(scores):
+    """Each view has one class; the rates are their shares; featureless and janus are sums."""
+    from gdbench.metrics.views import CLASSES, result_class
+
+    for kind, s in scores.items():
+        n = len(s.view_class)
+        assert n == 36 and set(s.view_class) <= set(CLASSES), kind
+        share = {c: s.view_class.count(c) / n for c in CLASSES}
+        assert share["front_everywhere"] == s.front_everywhere_rate and share["blob"] == s.blob_rate, kind
+        assert share["second_face"] == s.multi_face_rate, kind
+        assert s.featureless_rate == pytest.approx(s.front_everywhere_rate + s.blob_rate), kind
+        assert s.janus_rate == pytest.approx(s.front_everywhere_rate + s.multi_face_rate), kind
+    want = {"asset": "fine", "turned-180": "fine", "two-faced": "second_face", "four-faced": "second_face",
+            "spun": "blob", "blurred": "fine", "floaters": "fine"}  # fmt: skip
+    assert {k: result_class(scores[k].as_dict()) for k in want} == want
+
+
+def test_an_asset_without_a_front_has_no_janus_rates(scores):
+    """front=False (the hamburger's case): self-similar views are blobs, and the Janus rates are
+    empty, not zero."""
+    from gdbench.metrics.failures3d import failure_scene
+    from gdbench.metrics.views import reference, render_turntable, result_class, score_views
+
+    s = score_views(*render_turntable(failure_scene(CAPTION, "front-everywhere")), reference(CAPTION), front=False)
+    assert s.front_everywhere_rate is None and s.multi_face_rate is None and s.janus_rate is None
+    # every view is self-similar; with a front, the 19 views within 90 degrees of it are fine
+    assert s.blob_rate == s.featureless_rate == 1 > scores["front-everywhere"].featureless_rate
+    assert result_class(s.as_dict()) == "blob"
+
+
+def test_result_class_takes_the_class_furthest_past_its_threshold():
+    from gdbench.metrics.views import RESULT_RATES, result_class
+
+    assert RESULT_RATES == {"front_everywhere": 0.25, "second_face": 0.25, "blob": 0.5}
+    assert result_class({"front_everywhere_rate": 0.2, "multi_face_rate": 0.2, "blob_rate": 0.4}) == "fine"
+    assert result_class({"front_everywhere_rate": 0.3, "multi_face_rate": 0.6, "blob_rate": 0.0}) == "second_face"
+    both = {"front_everywhere_rate": 0.45, "multi_face_rate": 0.3, "blob_rate": 0.55}  # 1.8, 1.2 and 1.1 past
+    assert result_class(both) == "front_everywhere"
+    assert result_class({"front_everywhere_rate": None, "multi_face_rate": None, "blob_rate": 0.9}) == "blob"
+    assert result_class({"front_everywhere_rate": float("nan"), "multi_face_rate": 0.0, "blob_rate": 0.0}) == "fine"
 
 
 def test_a_blurred_asset_is_no_failure_of_any_class(scores):

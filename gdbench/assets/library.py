@@ -146,6 +146,26 @@ ASSETS: dict[str, Callable] = {
 """Captions (the paper's prompts) to mesh builders, written out by hand."""
 
 
+FRONTS: dict[str, str | None] = {
+    "a corgi": "the face: eyes, muzzle, nose and tongue",
+    "a yellow duck": "the head's eyes and orange beak",
+    "a hamburger": None,
+    "a lego figure": "the face printed on the head and the print on the torso",
+    "a penguin": "the white belly, the eyes and the orange beak",
+    "a sofa": "the seat with its cushions, the back rest behind them",
+}
+"""What each asset shows at its front (azimuth 0, +X), or None where it has none (the hamburger is
+the same from every side): the Janus classes need a front, and assets without one are left out
+of the Janus claims (docs/scoring.md)."""
+
+
+def has_front(caption: str) -> bool:
+    """Whether the asset ``caption`` declares a front (``FRONTS``)."""
+    if caption not in FRONTS:
+        raise ValueError(f"caption: unknown asset {caption!r}; known: {sorted(FRONTS)}")
+    return FRONTS[caption] is not None
+
+
 VARIANTS = 3
 """Procedural variants per caption (instance ambiguity, docs/training.md 'The embedded prior'): 0 the asset as
 written above; 1 longer front to back and squat, in a warmer, darker shade; 2 compact and tall,

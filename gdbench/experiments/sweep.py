@@ -223,9 +223,12 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
         "gt_ssim": get(gt, "ssim"),
         "gt_offset_deg": get(gt, "offset_deg"),
         "gt_psnr_unaligned": get(gt, "psnr_unaligned"),
-        "multi_face_rate": get(views, "multi_face_rate"),
-        "featureless_rate": get(views, "featureless_rate"),
-        # views with no face or a second one (disjoint: a featureless view is never multi-faced)
+        "multi_face_rate": get(views, "multi_face_rate"),  # second_face (NaN: the asset has no front)
+        "front_everywhere_rate": get(views, "front_everywhere_rate"),
+        "blob_rate": get(views, "blob_rate"),
+        "janus_rate": get(views, "janus_rate"),  # front_everywhere + second_face
+        "featureless_rate": get(views, "featureless_rate"),  # front_everywhere + blob
+        # older tables' sum: views with no face or a second one (disjoint classes)
         "janus_failure_rate": get(views, "featureless_rate") + get(views, "multi_face_rate"),
         "front_share": get(views, "front_share"),
         "instance_inconsistency": 1.0 - get(views, "instance_consistency"),

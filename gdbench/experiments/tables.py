@@ -21,9 +21,10 @@ from gdbench.experiments.claims import label, where
 
 COLUMNS = (
     ("gt_psnr", "GT PSNR dB", False),
-    ("multi_face_rate", "multi-face rate", False),
-    ("featureless_rate", "featureless rate", False),
-    ("janus_failure_rate", "Janus failure rate", False),
+    ("janus_rate", "Janus rate", False),
+    ("front_everywhere_rate", "front everywhere", False),
+    ("multi_face_rate", "second face", False),
+    ("blob_rate", "blob", False),
     ("instance_inconsistency", "instance inconsistency", False),
     ("floaters", "floaters", False),
     ("turned", "turned > 45 deg", False),
@@ -140,6 +141,9 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
         md.append("|---|---|---|---|")
         for v in verdicts:
             md.append(f"| {label(v)} | {v['a']} vs {v['b']} | {v['metric']} | {v['by_prompt'] or 'n/a'} |")
+        left = sorted({v["left_out"] for v in verdicts if v.get("left_out")})
+        if left:
+            md += ["", *[f"Left out of the claims on {line}." for line in left]]
     return "\n".join(md) + "\n"
 
 

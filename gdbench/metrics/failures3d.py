@@ -18,6 +18,10 @@ views are the asset's under the bank's lighting. The failure fixtures cut and mo
   variant 0 on the left (y > 0), variant 2 on the right. The variants differ in shape and
   colour (``assets/library.py``);
 - ``spun``: every disc turned about +Z by a random angle: a featureless solid of revolution;
+- ``front-everywhere``: the front half squeezed into a wedge of 30 degrees (each Gaussian turned
+  from azimuth a to a / 6), twelve times around: from every side a face looks at the camera,
+  with the next ones beside it;
+- ``blob``: ``spun`` in the asset's mean colour (no view-dependent colour): no face anywhere;
 - ``blurred``: every Gaussian moved by 0.01 (each axis, normal) and widened to a ball of
   standard deviation 0.02 (1.2 px at 64 px), at opacity 0.5;
 - ``floaters``: the asset with 40 opaque grey blobs scattered around it (0.42-0.6 from the
@@ -50,6 +54,8 @@ KINDS = (
     "spun",
     "blurred",
     "floaters",
+    "front-everywhere",
+    "blob",
 )
 POINTS = 24000
 """Discs per asset: about 4 per pixel's area of surface at the metric's 64 px (the duck's surface
@@ -274,11 +280,17 @@ def failure_scene(caption: str, kind: str, *, n: int = POINTS, seed: int = 0) ->
     if kind == "two-faced":
         front = asset.subset(torch.nonzero(x > 0).squeeze(1))
         return GaussianScene.cat([front, _mirrored(front)])
-    if kind == "four-faced":  # the front half squeezed into the front quarter, four times
+    if kind in ("four-faced", "front-everywhere"):  # the front half squeezed, 4 or 12 times around
+        copies = 4 if kind == "four-faced" else 12
         front = asset.subset(torch.nonzero(x > 0).squeeze(1))
         azimuth = torch.rad2deg(torch.atan2(front.means[:, 1], front.means[:, 0]).double())
-        quarter = _turned(front, -azimuth / 2)
-        return GaussianScene.cat([_turned(quarter, 90.0 * k) for k in range(4)])
+        wedge = _turned(front, -azimuth / 2 if copies == 4 else -azimuth * (1 - 2 / copies))
+        return GaussianScene.cat([_turned(wedge, 360.0 / copies * k) for k in range(copies)])
+    if kind == "blob":
+        spun = _turned(asset, torch.rand(len(asset), generator=g, dtype=torch.float64) * 360.0)
+        sh = torch.zeros_like(spun.sh)
+        sh[:, 0] = spun.sh[:, 0].mean(0)  # the asset's mean colour, the same from every side
+        return dataclasses.replace(spun, sh=sh)
     if kind.startswith("chimera-"):
         other, axis = (1, 0) if kind == "chimera-front-back" else (2, 1)
         second = asset_scene(caption, other, n=n, seed=seed)

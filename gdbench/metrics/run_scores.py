@@ -229,7 +229,9 @@ def report(s: dict) -> str:
     if "views" in s and "views" not in kept:
         v = s["views"]
         lines.append(
-            f"  views: multi-face {num(v['multi_face_rate']):.2f}, featureless {num(v.get('featureless_rate')):.2f}, "
+            f"  views: Janus {num(v.get('janus_rate')):.2f} "
+            f"(front everywhere {num(v.get('front_everywhere_rate')):.2f}, "
+            f"second face {num(v['multi_face_rate']):.2f}), blob {num(v.get('blob_rate')):.2f}, "
             f"front share {num(v['front_share']):.2f}, "
             f"instance consistency {num(v['instance_consistency']):.2f}, floaters {num(v['floaters']):.3f}, "
             f"turned {num(v.get('turned_deg')):.0f} deg" + _mark(s, "views")

@@ -1,0 +1,61 @@
+"""Agreement of the metric's result classes with labels made by eye (gdbench/metrics/agreement.py):
+Cohen's kappa against its textbook examples, the confusion matrix against a count by hand, and
+bad labels files as one-line errors."""
+
+import json
+
+import pytest
+
+from gdbench.metrics.agreement import LABELS, agreement, cohen_kappa, confusion, main, read_labels
+
+
+def test_cohen_kappa_matches_the_textbook_example():
+    """50 items rated yes/no: 20 both yes, 15 both no, 5 and 10 disagreeing: p_o = 0.7,
+    p_e = 0.5 * 0.6 + 0.5 * 0.4 = 0.5, kappa = 0.4 (Cohen 1960's form, as on Wikipedia)."""
+    a = ["yes"] * 25 + ["no"] * 25
+    b = ["yes"] * 20 + ["no"] * 5 + ["yes"] * 10 + ["no"] * 15
+    assert cohen_kappa(a, b, ("yes", "no")) == pytest.approx(0.4)
+    assert cohen_kappa(a, a, ("yes", "no")) == 1.0
+    assert cohen_kappa(["fine"] * 4, ["fine"] * 4) == 1.0  # one class on both sides: perfect agreement
+    with pytest.raises(ValueError, match="same results"):
+        cohen_kappa(["fine"], [])
+
+
+def test_confusion_counts_each_pair():
+    truth = ["fine", "blob", "blob", "second_face"]
+    pred = ["fine", "fine", "blob", "front_everywhere"]
+    c = confusion(truth, pred)
+    assert c["blob"]["fine"] == 1 and c["blob"]["blob"] == 1 and c["second_face"]["front_everywhere"] == 1
+    assert sum(sum(r.values()) for r in c.values()) == 4 and set(c) == set(LABELS)
+
+
+def _run(root, rid, views):
+    d = root / rid
+    d.mkdir(parents=True)
+    (d / "run.json").write_text(json.dumps({"run_id": rid}))
+    (d / "scores.json").write_text(json.dumps({"views": views}))
+    return d
+
+
+def test_agreement_reads_the_runs_scores_and_names_an_unknown_run_in_one_line(tmp_path, capsys):
+    fe = {"front_everywhere_rate": 0.45, "multi_face_rate": 0.0, "blob_rate": 0.0}
+    blob = {"front_everywhere_rate": 0.0, "multi_face_rate": 0.0, "blob_rate": 0.9}
+    _run(tmp_path / "runs", "aaa", fe)
+    _run(tmp_path / "runs", "bbb", blob)
+    labels = tmp_path / "labels.csv"
+    labels.write_text("run_id,label\naaa,front_everywhere\nbbb,fine\n")
+    from gdbench.metrics.agreement import runs_by_id
+
+    res = agreement(read_labels(labels), runs_by_id([tmp_path / "runs"]))
+    assert [r["metric"] for r in res["rows"]] == ["front_everywhere", "blob"]
+    assert res["recall"]["front_everywhere"] == 1 and res["recall"]["fine"] == 0 and res["recall"]["blob"] is None
+    assert res["kappa_janus_split"] == 1.0  # both say Janus for aaa, not for bbb
+    assert main(["--labels", str(labels), "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "o")]) == 0
+    assert json.loads((tmp_path / "o" / "agreement.json").read_text())["results"] == 2
+    labels.write_text("run_id,label\nzzz,fine\n")
+    assert main(["--labels", str(labels), "--runs", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["agreement: error: labels: run id zzz names no run folder under --runs"]
+    labels.write_text("run_id,label\naaa,janus\n")
+    with pytest.raises(ValueError, match=r"labels: .* line 2: expected a run_id and a label of"):
+        read_labels(labels)
