@@ -16,9 +16,9 @@ azimuth is the result's turn. Then, per class:
   degrees away is under ``FEATURELESS`` of the asset's at the same azimuth (it looks like the
   result's other sides). A self-similar view is **front_everywhere** when the best match of its
   centre band (the vertical band at the middle of the image, what faces the camera) among the
-  asset's views is the front (|azimuth| <= 45) while the view itself is more than 90 degrees
-  from the front (the front seen from behind: the Janus failure as the literature
-  names it), and a **blob** when that match is not the front (no face at all). Of the
+  asset's views is the front (|azimuth| <= 45) and clear (``FRONT_CONTRAST``) while the view
+  itself is more than 90 degrees from the front (the front seen from behind: the Janus failure
+  as the literature names it), and a **blob** when that match is not the front (no face at all). Of the
   other views, **second_face** ones show a second face (below); every other view is **fine**.
   A self-similar view of the front side that matches the front is fine. ``janus_rate`` is
   front_everywhere + second_face; ``featureless_rate`` is front_everywhere + blob (the name of
@@ -84,6 +84,13 @@ under 0.3 of what the asset's view differs from the asset's (mean squared error)
 runs 0.5 and more, a half-failed duck (a face at the front, a blur behind) 0.40; the 3D fixtures:
 the spun assets 1 featureless, the four-faced ones up to 0.28 (faces 90 degrees apart look
 alike), every other 0 (docs/scoring.md)."""
+
+
+FRONT_CONTRAST = 0.15
+"""The centre band's best match counts as the front only when it is clear: its error under 0.85
+of the median over azimuths. A uniform blob's centre matches every azimuth about alike (the Lego
+figure's blob fixture: 0.09, where its nearest azimuth happens to be the front); the fixtures'
+fronts seen from behind read 0.28-0.57 (docs/scoring.md)."""
 
 
 @dataclass(frozen=True)
@@ -234,8 +241,10 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
         consistency = float((variant == majority).double().mean())
     # the front is seen where the view's centre band (the part facing the camera) is best
     # explained by the asset's front: a whole view's match also weighs the silhouette's sides
-    centre = ref.azimuth.double()[per_az[:, per_az.shape[1] // 2].argmin(1)]
-    match_front = _circ(centre) <= 45.0
+    mid = per_az[:, per_az.shape[1] // 2]  # [F, A]
+    centre = ref.azimuth.double()[mid.argmin(1)]
+    clear = 1.0 - mid.min(1).values / mid.median(1).values.clamp_min(1e-12) >= FRONT_CONTRAST
+    match_front = (_circ(centre) <= 45.0) & clear
     away = _circ(truth) > 90.0  # the view itself, seen from more than 90 degrees off the front
     front_everywhere = featureless & match_front & away if front else torch.zeros_like(featureless)
     blob = featureless & ~match_front if front else featureless
