@@ -38,18 +38,21 @@ def _run(root, rid, views):
 
 
 def test_agreement_reads_the_runs_scores_and_names_an_unknown_run_in_one_line(tmp_path, capsys):
-    fe = {"front_everywhere_rate": 0.45, "multi_face_rate": 0.0, "blob_rate": 0.0}
-    blob = {"front_everywhere_rate": 0.0, "multi_face_rate": 0.0, "blob_rate": 0.9}
+    fe = {"front_everywhere_rate": 0.45, "multi_face_rate": 0.0, "blob_rate": 0.0, "janus_rate": 0.45}
+    blob = {"front_everywhere_rate": 0.0, "multi_face_rate": 0.0, "blob_rate": 0.9, "janus_rate": 0.0}
+    burger = {"front_everywhere_rate": None, "multi_face_rate": None, "blob_rate": 1.0, "janus_rate": None}
     _run(tmp_path / "runs", "aaa", fe)
     _run(tmp_path / "runs", "bbb", blob)
+    _run(tmp_path / "runs", "ccc", burger)
     labels = tmp_path / "labels.csv"
-    labels.write_text("run_id,label\naaa,front_everywhere\nbbb,fine\n")
+    labels.write_text("run_id,label\naaa,front_everywhere\nbbb,fine\nccc,fine\n")
     from gdbench.metrics.agreement import runs_by_id
 
     res = agreement(read_labels(labels), runs_by_id([tmp_path / "runs"]))
     assert [r["metric"] for r in res["rows"]] == ["front_everywhere", "blob"]
     assert res["recall"]["front_everywhere"] == 1 and res["recall"]["fine"] == 0 and res["recall"]["blob"] is None
     assert res["kappa_janus_split"] == 1.0  # both say Janus for aaa, not for bbb
+    assert res["results"] == 2 and res["left_out_no_front"] == 1  # the frontless asset: no Janus class
     assert main(["--labels", str(labels), "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "o")]) == 0
     assert json.loads((tmp_path / "o" / "agreement.json").read_text())["results"] == 2
     labels.write_text("run_id,label\nzzz,fine\n")

@@ -1,7 +1,9 @@
 """Agreement of the view metrics with labels made by eye (docs/scoring.md, "The Janus classes
 against labels"): each labelled result's class by the metric (``views.result_class`` of its
 scores.json) against its label, as a confusion matrix, each class's recall and precision, and
-Cohen's kappa over the four classes and over the Janus / not-Janus split.
+Cohen's kappa over the four classes and over the Janus / not-Janus split. Results of assets
+without a front (their Janus rates empty: the hamburger) are left out and counted: a person sees
+a hamburger as whole or not, and the metric has no Janus class for it.
 
     python -m gdbench.metrics.agreement --labels LABELS.csv --runs SWEEP_DIR [...] --out DIR
 
@@ -70,7 +72,7 @@ def agreement(labels: list[dict], runs: dict[str, Path]) -> dict:
     """The metric's class of every labelled result against its label (module docstring)."""
     from gdbench.metrics.views import result_class
 
-    truth, pred, rows = [], [], []
+    truth, pred, rows, frontless = [], [], [], []
     for r in labels:
         run = runs.get(r["run_id"])
         if run is None:
@@ -79,16 +81,23 @@ def agreement(labels: list[dict], runs: dict[str, Path]) -> dict:
         views = json.loads(scores.read_text()).get("views") if scores.is_file() else None
         if not views:
             raise ValueError(f"labels: run {r['run_id']} ({run}) has no view scores; run `gdbench score {run}`")
+        if views.get("janus_rate") is None:  # an asset without a front: no Janus classes to compare
+            frontless.append(r["run_id"])
+            continue
         got = result_class(views)
         truth.append(r["label"])
         pred.append(got)
-        rows.append({"run_id": r["run_id"], "label": r["label"], "metric": got, "run": str(run)})
+        rates = {k: views.get(k) for k in ("front_everywhere_rate", "multi_face_rate", "blob_rate", "front_share")}
+        rows.append({"run_id": r["run_id"], "label": r["label"], "metric": got, **rates, "run": str(run)})
     recall = {c: _share([p == c for t, p in zip(truth, pred) if t == c]) for c in LABELS}
     precision = {c: _share([t == c for t, p in zip(truth, pred) if p == c]) for c in LABELS}
     split_t = ["janus" if t in JANUS else "not" for t in truth]
     split_p = ["janus" if p in JANUS else "not" for p in pred]
+    if not truth:
+        raise ValueError("labels: no labelled result of an asset with a front to compare")
     return {
         "results": len(truth),
+        "left_out_no_front": len(frontless),
         "kappa": cohen_kappa(truth, pred),
         "kappa_janus_split": cohen_kappa(split_t, split_p, ("janus", "not")),
         "recall": recall,
@@ -113,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as e:
         print(f"agreement: error: {e}", file=sys.stderr)
         return 2
-    print(f"{res['results']} results: kappa {res['kappa']:.3f}, Janus / not-Janus kappa {res['kappa_janus_split']:.3f}")
+    print(f"{res['results']} results (and {res['left_out_no_front']} of assets without a front, left out): "
+          f"kappa {res['kappa']:.3f}, Janus / not-Janus kappa {res['kappa_janus_split']:.3f}")  # fmt: skip
     print("label \\ metric: " + ", ".join(LABELS))
     for t in LABELS:
         counts = " ".join(f"{res['confusion'][t][p]:4d}" for p in LABELS)
