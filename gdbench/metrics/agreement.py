@@ -19,8 +19,10 @@ import json
 import sys
 from pathlib import Path
 
-LABELS = ("front_everywhere", "second_face", "blob", "fine")
-"""The classes a result is labelled with (``views.CLASSES`` for a whole result)."""
+from gdbench.metrics.views import CLASSES
+
+LABELS = CLASSES
+"""The classes a result is labelled with: a view's classes, for a whole result."""
 JANUS = ("front_everywhere", "second_face")
 
 

@@ -103,7 +103,7 @@ class Reference:
     """[A] degrees."""
 
 
-CLASSES = ("front_everywhere", "blob", "second_face", "fine")
+CLASSES = ("front_everywhere", "second_face", "blob", "fine")
 """The failure classes of a view, disjoint (module docstring)."""
 
 

@@ -73,8 +73,8 @@ def load_blob(path: Path) -> dict:
 
 def config_diff(saved: dict, now: dict) -> list[str]:
     """Names of the fields that differ between two config dicts (either layout: compared flat,
-    ``config.flat_config``), ignoring ``RESUME_IGNORES``."""
-    from gdbench.train.config import flat_config
+    ``core.layout.flat_config``), ignoring ``RESUME_IGNORES``."""
+    from gdbench.core.layout import flat_config
 
     saved, now = flat_config(saved), flat_config(now)
     return sorted(k for k in set(saved) | set(now) if k not in RESUME_IGNORES and saved.get(k) != now.get(k))

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 from gdbench.core.constraints import AtLeast, Between, Positive, Seed, check_fields, flag
-from gdbench.core.layout import LEGACY_PRIOR_DEFAULTS, flat_config  # noqa: F401 (flat_config: run ids)
+from gdbench.core.layout import LEGACY_PRIOR_DEFAULTS
 from gdbench.mechanisms.noise import NoiseConfig
 from gdbench.mechanisms.variational import VGSConfig
 from gdbench.priors.factory import PRIOR_CONFIGS, EmpiricalPriorConfig, PriorConfig
@@ -175,10 +175,10 @@ def canonical_key(key: str) -> str:
     return OPTION_KEYS.get(key, key.removeprefix("prior."))
 
 
-PRIOR_KEYS: dict[str, tuple[str, ...]] = {}
-for _kind, _cls in PRIOR_CONFIGS.items():
-    for _f in fields(_cls):
-        PRIOR_KEYS[_f.name] = (*PRIOR_KEYS.get(_f.name, ()), _kind)
+PRIOR_KEYS: dict[str, tuple[str, ...]] = {
+    name: tuple(k for k, c in PRIOR_CONFIGS.items() if name in {f.name for f in fields(c)})
+    for name in dict.fromkeys(f.name for c in PRIOR_CONFIGS.values() for f in fields(c))
+}
 """A prior's setting -> the priors that have it (front_bias: empirical and learned)."""
 
 
