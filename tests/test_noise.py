@@ -209,9 +209,9 @@ def test_projection_is_reused_for_repeated_cameras():
     r = NoiseRenderer(cloud)
     g = torch.Generator().manual_seed(0)
     cams = _cams()
-    first = r._prepared(cams)
-    assert r._prepared(_cams()) is first
-    assert r._prepared(_cams((40.0,))) is not first
+    first = r.prepared(cams)
+    assert r.prepared(_cams()) is first
+    assert r.prepared(_cams((40.0,))) is not first
     # and the cached path gives the same noise as a fresh render
     colors = init_colors(cloud, generator=torch.Generator().manual_seed(1)).colors
     a = r.render(colors, cams, generator=torch.Generator().manual_seed(2)).noise

@@ -54,6 +54,9 @@ def test_presets_switch_what_the_paper_ablates():
     ctrl = PRESETS["gd-redraw-step"]
     assert ctrl.noise.redraw == "step" and PRESETS["gd"].noise.redraw == "run"
     assert replace(ctrl, preset="gd", noise=PRESETS["gd"].noise) == PRESETS["gd"]
+    locked = PRESETS["gd-pose-locked"]  # the other control: gd but for the noise's source
+    assert locked.noise.source == "pose" and PRESETS["gd"].noise.source == "cloud"
+    assert replace(locked, preset="gd", noise=PRESETS["gd"].noise) == PRESETS["gd"]
     d = TrainConfig()
     assert (d.steps, d.init_points, d.init_opacity, d.camera_radius) == (2000, 4096, 0.1, 1.0)
     sched = d.densify.resolve(d.steps)
@@ -543,10 +546,13 @@ def test_run_id_keeps_runs_made_before_a_field_was_added():
     cfg = preset("gd", steps=50)
     flat = flat_config(config_dict(cfg))  # the layout run ids were first computed in
     before = {k: v for k, v in flat.items() if k not in RESUME_IGNORES and k not in ADDED_AT_DEFAULT}
+    before["noise"] = {k: v for k, v in before["noise"].items() if k != "source"}  # noise.source, nested
+    assert "noise.source" in ADDED_AT_DEFAULT and "source" in flat["noise"]
     assert run_id(cfg) == sha256_json(before)[:16]
     assert run_id(preset("gd", steps=50, views_per_step=4, views_spread_deg=10.0)) != run_id(
         preset("gd", steps=50, views_per_step=4)
     )
+    assert run_id(preset("gd", steps=50, **{"noise.source": "pose"})) != run_id(cfg)  # any other value counts
 
 
 def _changed(cfg, name):

@@ -41,6 +41,7 @@ from gdbench.core.constraints import AtLeast, Between, Positive, Range, check_fi
 from gdbench.core.rand import randn
 
 Redraw = Literal["step", "run", "ou"]
+Source = Literal["cloud", "pose"]
 RatioMode = Literal["amplitude", "variance"]
 
 
@@ -48,9 +49,15 @@ RatioMode = Literal["amplitude", "variance"]
 class NoiseConfig:
     """Settings of the noise cloud and of its use during a run."""
 
-    OPTIONS: ClassVar[tuple[str, ...]] = ("redraw", "ou_beta", "ratio_mode")
-    """The fields that are command-line options (``core.constraints.flag`` names them: --noise-redraw,
-    --noise-ou-beta, --noise-ratio)."""
+    OPTIONS: ClassVar[tuple[str, ...]] = ("source", "redraw", "ou_beta", "ratio_mode")
+    """The fields that are command-line options (``core.constraints.flag`` names them: --noise-source,
+    --noise-redraw, --noise-ou-beta, --noise-ratio)."""
+    source: Source = "cloud"
+    """What a view's structured noise is: 'cloud' renders the noise cloud from the view's own camera
+    (the paper: views share noise at the same surface point; the default); 'pose' is a control
+    (the gd-pose-locked preset): a 2D field that is a fixed function of the camera's pose, with the
+    same marginals, spectrum and persistence but no 3D correspondence between views
+    (mechanisms/pose_noise.py)."""
     n_gaussians: Annotated[int, AtLeast(1)] = 3072
     """M, the number of noise Gaussians (3072 keeps the noise under 30% of a 4k-Gaussian
     training step at 128 px on 2 CPU cores; see docs/noise.md)."""
@@ -83,6 +90,11 @@ class NoiseConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, "noise.")  # every field against its declared type, range and choices
+        if self.source == "pose" and self.redraw != "run":
+            raise ValueError(
+                f"noise.redraw (--noise-redraw): --noise-source pose is a fixed function of the pose for the "
+                f"whole run; expected 'run', got {self.redraw!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -208,7 +220,8 @@ class NoiseRenderer:
             self._on[device] = (c.means, c.quats, c.scales, c.opacities)
         return self._on[device]
 
-    def _prepared(self, cams: Cameras):
+    def prepared(self, cams: Cameras):
+        """The projection and tile lists of the cloud for ``cams`` (cached per camera set)."""
         from renderers.splat import prepare
 
         key = None
@@ -250,7 +263,7 @@ class NoiseRenderer:
         if device.type != "cpu" and _cpu_compositor():
             cams = cams.to("cpu")
         with torch.no_grad():
-            prepared = self._prepared(cams)
+            prepared = self.prepared(cams)
             shape = prepared.batch + (prepared.n_cameras, cams.height, cams.width, self.cloud.channels)
             iid = randn(shape, generator=generator)  # drawn whether or not a pixel needs it
             noise, coverage = normalised_features(

@@ -19,10 +19,30 @@ RESUME_IGNORES = frozenset(
 """Config fields that do not change a run's result (so a run may resume under other values). ``device``
 changes it by float rounding only, as the thread count does: run.json records both."""
 
-ADDED_AT_DEFAULT = {"views_spread_deg": None}
-"""Config fields added after runs were made, with the value that behaves as the code did before
-them: left out of a run's id at that value, so finished runs keep their id (and resume, and are
-found finished) across the addition."""
+ADDED_AT_DEFAULT = {"views_spread_deg": None, "noise.source": "cloud"}
+"""Config fields added after runs were made (a nested group's by its dotted key), with the value
+that behaves as the code did before them: left out of a run's id at that value, so finished runs
+keep their id (and resume, and are found finished) across the addition."""
+
+
+def comparable(d: dict) -> dict:
+    """A config dict (either layout) as run ids and the resume check compare it: flat
+    (``core.layout.flat_config``), without ``RESUME_IGNORES`` and without the fields of
+    ``ADDED_AT_DEFAULT`` at their value there."""
+    from gdbench.core.layout import flat_config
+
+    out = {k: v for k, v in flat_config(d).items() if k not in RESUME_IGNORES}
+    for key, default in ADDED_AT_DEFAULT.items():
+        group, _, name = key.rpartition(".")
+        holder = out.get(group) if group else out
+        if isinstance(holder, dict) and name in holder and holder[name] == default:
+            holder = {k: v for k, v in holder.items() if k != name}
+            if group:
+                out[group] = holder
+            else:
+                out = holder
+    return out
+
 
 FORMAT = 2
 """Checkpoint layout version (2: one state per random stream, plain-data config and history)."""
@@ -72,12 +92,10 @@ def load_blob(path: Path) -> dict:
 
 
 def config_diff(saved: dict, now: dict) -> list[str]:
-    """Names of the fields that differ between two config dicts (either layout: compared flat,
-    ``core.layout.flat_config``), ignoring ``RESUME_IGNORES``."""
-    from gdbench.core.layout import flat_config
-
-    saved, now = flat_config(saved), flat_config(now)
-    return sorted(k for k in set(saved) | set(now) if k not in RESUME_IGNORES and saved.get(k) != now.get(k))
+    """Names of the fields that differ between two config dicts (either layout, compared as
+    ``comparable`` gives them)."""
+    saved, now = comparable(saved), comparable(now)
+    return sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
 
 
 def checkpoint_path(cfg) -> Path:

@@ -148,10 +148,14 @@ PRESETS: dict[str, TrainConfig] = {
         preset="sds-gs", structured_noise=False, vgs=VGSConfig(enabled=False), guidance="sds", anneal=True
     ),
     "gd-redraw-step": TrainConfig(preset="gd-redraw-step", noise=NoiseConfig(redraw="step")),
+    "gd-pose-locked": TrainConfig(preset="gd-pose-locked", noise=NoiseConfig(source="pose")),
 }
-"""The paper's method, its two ablations and two baselines, written out by hand; and a control
-of the mechanism: gd with the noise cloud's colours redrawn every step, structured noise without
-a shared source (no two steps see the same noise, only its spatial statistics remain)."""
+"""The paper's method, its two ablations and two baselines, written out by hand; and two controls
+of the mechanism (docs/decisive.md, "The controls"): gd-redraw-step, gd with the noise cloud's
+colours redrawn every step (the noise's spatial statistics without persistence: no two steps see
+the same noise; at --views-per-step 4 the views of one step still share it in 3D), and
+gd-pose-locked, a fixed 2D field per camera pose (persistence and the same statistics without 3D
+correspondence between views, mechanisms/pose_noise.py)."""
 
 BASE_PRESETS = ("gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs")
 """The paper's method, ablations and baselines (a sweep's default presets)."""

@@ -150,6 +150,7 @@ def _acts(cfg) -> dict[str, tuple[bool, str]]:
         ),
         "noise.redraw": sn,
         "noise.ratio_mode": sn,
+        "noise.source": sn,
         "log_every": (
             cfg.progress or cfg.log_dir is not None,
             "the progress report or --log-dir (this run: --no-progress, no --log-dir)",

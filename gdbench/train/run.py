@@ -94,16 +94,9 @@ def run_id(cfg: TrainConfig) -> str:
     """A short hash of everything in the config that changes the result, in the flat layout runs
     were first named in (``core.layout.flat_config``); fields added later are left out at the value
     that behaves as before them (``ADDED_AT_DEFAULT``)."""
-    from gdbench.core.layout import flat_config
-    from gdbench.train.checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
+    from gdbench.train.checkpoint import comparable
 
-    return sha256_json(
-        {
-            k: v
-            for k, v in flat_config(config_dict(cfg)).items()
-            if k not in RESUME_IGNORES and not (k in ADDED_AT_DEFAULT and v == ADDED_AT_DEFAULT[k])
-        }
-    )[:16]
+    return sha256_json(comparable(config_dict(cfg)))[:16]
 
 
 def _check_finished(out: Path, cfg: TrainConfig, overwrite: bool, resume: bool) -> None:
