@@ -219,14 +219,18 @@ def test_the_verdict_reports_each_arms_model_size_and_flags_a_2x_gap():
     from gdbench.experiments.claims import CLAIMS, evaluate
 
     keys = [(p, s) for p in "abc" for s in (0, 1)]
-    rows = [dict(_row("gd", p, s, 0.2), gaussians=7000 + 100 * s) for p, s in keys]
-    rows += [dict(_row("gd-no-sn", p, s, 0.3), gaussians=6000) for p, s in keys]
+    rows = [dict(_row("gd", p, s, 0.2), gaussians=7000 + 100 * s, gt_psnr=20.0 + s) for p, s in keys]
+    rows += [dict(_row("gd-no-sn", p, s, 0.3), gaussians=6000, gt_psnr=21.0) for p, s in keys]
     rows += [dict(_row("sds-gs", p, s, 0.3), gaussians=1500) for p, s in keys]
-    rows.append(dict(_row("gd", "z", 0, 0.1), gaussians=1))  # unpaired: not in the means
+    rows.append(dict(_row("gd", "z", 0, 0.1), gaussians=1, gt_psnr=99.0))  # unpaired: not in the means
     claims = [CLAIMS[0], type(CLAIMS[0])("size", "gd", "sds-gs", "multi_face_rate")]
     got = {(v["a"], v["b"]): v for v in evaluate(rows, claims)}
     v = got["gd", "gd-no-sn"]
     assert (v["gaussians_a"], v["gaussians_b"]) == (7050.0, 6000.0) and not v["size_confounded"]
+    assert (v["gt_psnr_a"], v["gt_psnr_b"]) == (20.5, 21.0)  # GT PSNR beside the claim, over the pairs
+    from gdbench.experiments.tables import markdown
+
+    assert "| 7050 / 6000 | 20.5 / 21 |" in markdown([], [v])
     v = got["gd", "sds-gs"]
     assert v["size_ratio"] == pytest.approx(7050 / 1500) and v["size_confounded"]
 
@@ -254,3 +258,26 @@ def test_holm_family_holds_only_the_claims_a_test_decides():
     assert untested["verdict"] == "not testable here (neither preset fails)"
     assert untested["p_holm"] != untested["p_holm"]  # NaN: no hypothesis tested
     assert tested["p_holm"] == pytest.approx(tested["p_value"]) and tested["verdict"] == "holds"
+
+
+def test_a_prompt_that_reverses_the_pooled_effect_is_named():
+    """Five prompts where gd lowers the rate in every seed and one (the penguin) where it raises it
+    in 9 of 10: the penguin is listed with its effect and count; 7 of 10 is not a reversal, and a
+    prompt that goes with the pooled effect never is."""
+    import numpy as np
+
+    from gdbench.experiments.claims import evaluate, reversals
+
+    rows = []
+    for p in ["a duck", "a corgi", "a sofa", "a lego figure", "a cat", "a penguin"]:
+        for s in range(10):
+            up = p == "a penguin" and s < 9
+            rows += [_row("gd-no-sn", p, s, 0.5), _row("gd", p, s, 0.9 if up else 0.2)]
+    v = next(v for v in evaluate(rows) if v["a"] == "gd" and v["b"] == "gd-no-sn")
+    assert v["mean_diff"] < 0 and v["reversals"] == "a penguin +0.33 (9 of 10 pairs)"
+    keys = [("x", s) for s in range(10)] + [("y", s) for s in range(10)]
+    d = np.array([0.1] * 7 + [-0.1] * 3 + [-0.5] * 10)  # x: 7 of 10 against the pooled sign
+    assert reversals(keys, d) == ""
+    from gdbench.experiments.tables import markdown
+
+    assert "| a penguin +0.33 (9 of 10 pairs) |" in markdown([], [v])

@@ -130,3 +130,23 @@ def test_a_pose_locked_source_persists_by_construction():
         NoiseConfig(source="pose", redraw="step")
     with pytest.raises(ValueError, match=r"noise\.source"):
         NoiseConfig(source="image")
+
+
+def test_the_controls_measure_what_each_arm_keeps():
+    """experiments.controls through the trainer's own noise path, one draw: structured noise
+    (r = 1) persists at one pose and shares noise at one surface point 5 degrees away; redrawn
+    every step it does neither across steps; pose-locked persists and shares more at the pixel
+    than at the surface point."""
+    from gdbench.experiments.controls import measure_arm
+    from gdbench.priors.factory import make_prior
+    from gdbench.train.config import preset
+
+    prior = make_prior(preset("gd", prior="learned"))
+    gd = measure_arm(prior, "gd", {}, 1.0, draws=1)
+    step = measure_arm(prior, "gd-redraw-step", {}, 1.0, draws=1)
+    locked = measure_arm(prior, "gd-pose-locked", {}, 1.0, draws=1)
+    for row in (gd, step, locked):
+        assert abs(row["variance"] - 1) < 0.25 and row["corr_length_px"] > 1.0
+    assert gd["persist_lag100"] > 0.8 and gd["surface_5_next"] > 0.6
+    assert abs(step["persist_lag1"]) < 0.15 and abs(step["surface_5_next"]) < 0.15
+    assert locked["persist_lag100"] > 0.95 and locked["pixel_5_next"] > locked["surface_5_next"] + 0.1

@@ -273,22 +273,51 @@ the model, not only what the claim ablates, then differs between them (docs/trai
 
 
 def _sizes(rows: list[dict], c: Claim, keys: list) -> dict:
-    """Mean final Gaussian count of each arm over the pairs, their ratio (larger / smaller) and
-    whether it exceeds ``SIZE_RATIO_LIMIT``."""
+    """Mean final Gaussian count and GT PSNR of each arm over the pairs (what else differs between
+    the arms, printed beside the claim), the counts' ratio (larger / smaller) and whether it
+    exceeds ``SIZE_RATIO_LIMIT``."""
 
-    def mean(preset: str) -> float:
-        n = {(r["prompt"], r["seed"]): num(r.get("gaussians")) for r in rows if r["preset"] == preset}
+    def mean(preset: str, metric: str) -> float:
+        n = {(r["prompt"], r["seed"]): num(r.get(metric)) for r in rows if r["preset"] == preset}
         vals = [float(n[k]) for k in keys if k in n and n[k] == n[k]]
         return float(np.mean(vals)) if vals else math.nan
 
-    ga, gb = mean(c.a), mean(c.b)
+    ga, gb = mean(c.a, "gaussians"), mean(c.b, "gaussians")
     ratio = max(ga, gb) / min(ga, gb) if ga > 0 and gb > 0 else math.nan
     return {
         "gaussians_a": ga,
         "gaussians_b": gb,
         "size_ratio": ratio,
         "size_confounded": bool(ratio > SIZE_RATIO_LIMIT),
+        "gt_psnr_a": mean(c.a, "gt_psnr"),
+        "gt_psnr_b": mean(c.b, "gt_psnr"),
     }
+
+
+REVERSAL_SHARE = 0.8
+"""A prompt reverses a claim when at least this share of its pairs (8 of 10 seeds) differ with the
+sign opposite to the pooled mean difference's."""
+REVERSAL_MIN_PAIRS = 5
+"""Fewest pairs of one prompt a reversal is read from."""
+
+
+def reversals(keys: list[tuple], d: np.ndarray) -> str:
+    """The prompts whose pairs go against the pooled mean difference in at least ``REVERSAL_SHARE``
+    of their pairs, e.g. 'a penguin +0.43 (9 of 10 pairs)'; '' when none. With a pooled mean of
+    exactly 0 every prompt that goes one way in that share is listed."""
+    if not len(d):
+        return ""
+    pooled = np.sign(d.mean())
+    out = []
+    for prompt, v in per_prompt(keys, d).items():
+        v = np.asarray(v)
+        for sign in (1.0, -1.0):
+            if sign == pooled or len(v) < REVERSAL_MIN_PAIRS:
+                continue
+            k = int((np.sign(v) == sign).sum())
+            if k >= math.ceil(REVERSAL_SHARE * len(v)):
+                out.append(f"{prompt} {v.mean():+.2g} ({k} of {len(v)} pairs)")
+    return "; ".join(out)
 
 
 JANUS_METRICS = ("janus_rate", "multi_face_rate", "front_everywhere_rate", "janus_failure_rate")
@@ -374,6 +403,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "pairs_for_80pct_power": pairs_for_power(d),
                     **across_prompts(keys, d, margin),
                     "by_prompt": by_prompt(keys, d),
+                    "reversals": reversals(keys, d),
                     "left_out": left_out(c.metric, set(va) & set(vb), keys),
                     **_sizes(sel, c, keys),
                 }

@@ -28,6 +28,7 @@ commit, controls.md the table docs/decisive.md quotes.
 from __future__ import annotations
 
 import argparse
+import functools
 from pathlib import Path
 
 import torch
@@ -68,6 +69,15 @@ def _fields(ctx, state, az: list[float], step: int) -> torch.Tensor:
     return _noise_fields(ctx, state, views, shape, True)[0]
 
 
+@functools.lru_cache(maxsize=512)
+def _depth_pair(caption: str, a0: float, sep: float, size: int):
+    """(z, cams) of the asset at azimuths a0 and a0 + sep: the same for every arm (one render)."""
+    from gdbench.priors.learned.evaluation import render_views
+
+    _, z, cams = render_views(caption, torch.tensor([a0, a0 + sep]), ELEVATION, FOVY, size=size, depth=True)
+    return z, cams
+
+
 def _corr(a: torch.Tensor, b: torch.Tensor) -> float:
     a, b = a.double().flatten() - a.double().mean(), b.double().flatten() - b.double().mean()
     return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-12))
@@ -76,7 +86,7 @@ def _corr(a: torch.Tensor, b: torch.Tensor) -> float:
 def measure_arm(prior, preset_name: str, overrides: dict, ratio: float, *, draws: int, seed0: int = 0) -> dict:
     """The statistics of one arm at mixing ratio ``ratio`` (see the module docstring)."""
     from gdbench.mechanisms.noise import autocorrelation_length
-    from gdbench.priors.learned.evaluation import render_views, warp
+    from gdbench.priors.learned.evaluation import warp
     from gdbench.train.config import preset
     from gdbench.train.trainer import init_state, make_context
 
@@ -102,8 +112,7 @@ def measure_arm(prior, preset_name: str, overrides: dict, ratio: float, *, draws
         step = 104
         for caption in CAPTIONS:
             for sep in SEPARATIONS[1:]:
-                _, z, cams = render_views(caption, torch.tensor([a0, a0 + sep]), ELEVATION, FOVY,
-                                          size=ctx.cfg.resolution // ctx.factor, depth=True)  # fmt: skip
+                z, cams = _depth_pair(caption, a0, sep, ctx.cfg.resolution // ctx.factor)
                 pair = [_fields(ctx, state, [a0], step), _fields(ctx, state, [a0 + sep], step + 1)]
                 modes = {"next": torch.cat(pair)}
                 if several:

@@ -17,7 +17,7 @@ import math
 import statistics
 from pathlib import Path
 
-from gdbench.experiments.claims import label, where
+from gdbench.experiments.claims import REVERSAL_SHARE, label, where
 
 COLUMNS = (
     ("gt_psnr", "GT PSNR dB", False),
@@ -48,6 +48,10 @@ def _median(xs: list[float]) -> float:
 
 def _fmt(x: float) -> str:
     return "n/a" if x != x else f"{x:.3g}"
+
+
+def _count(x: float) -> str:
+    return "n/a" if x != x else f"{x:.0f}"
 
 
 def _mean_std(xs: list) -> tuple[float, float, int]:
@@ -120,8 +124,9 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
     md += ["", "(k of n): the metric could be measured on k of the n cells; n/a: on none.", ""]
     md += ["| setting | claim | a vs b | metric | pairs | mean a | mean b | a - b [95% BCa CI] | a better | "
            "p (Holm) | equivalence p (margin) | pairs for 80% power | verdict on these prompts | prompts | "
-           "across prompts: a - b [95% t CI] | p (Holm) | verdict across prompts | Gaussians a / b |"]  # fmt: skip
-    md.append("|---" * 18 + "|")
+           "across prompts: a - b [95% t CI] | p (Holm) | verdict across prompts | Gaussians a / b | "
+           "GT PSNR a / b (dB) |"]  # fmt: skip
+    md.append("|---" * 19 + "|")
     if not verdicts:
         md[-2:] = ["No claim is decidable here: each needs both of its presets in one setting."]
     for v in verdicts:
@@ -134,13 +139,16 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
             f"{_fmt(v['pairs_for_80pct_power'])} | {v['verdict']} | {v['prompts']} | "
             f"{_fmt(v['prompt_mean_diff'])} [{_fmt(v['prompt_ci_low'])}, {_fmt(v['prompt_ci_high'])}] | "
             f"{_fmt(v['p_prompts'])} ({_fmt(v['p_prompts_holm'])}) | {v['verdict_prompts']} | "
-            f"{_fmt(v['gaussians_a'])} / {_fmt(v['gaussians_b'])}{_size_note(v)} |"
+            f"{_count(v['gaussians_a'])} / {_count(v['gaussians_b'])}{_size_note(v)} | "
+            f"{_fmt(v.get('gt_psnr_a', math.nan))} / {_fmt(v.get('gt_psnr_b', math.nan))} |"
         )
     if verdicts:
-        md += ["", "Per prompt, the mean difference a - b (pairs):", "", "| setting | a vs b | metric | per prompt |"]
-        md.append("|---|---|---|---|")
+        md += ["", "Per prompt, the mean difference a - b (pairs), and the prompts that reverse the pooled "
+               f"effect (the opposite sign in at least {REVERSAL_SHARE:.0%} of their pairs):", "",
+               "| setting | a vs b | metric | per prompt | reversed by |", "|---|---|---|---|---|"]  # fmt: skip
         for v in verdicts:
-            md.append(f"| {label(v)} | {v['a']} vs {v['b']} | {v['metric']} | {v['by_prompt'] or 'n/a'} |")
+            md.append(f"| {label(v)} | {v['a']} vs {v['b']} | {v['metric']} | {v['by_prompt'] or 'n/a'} | "
+                      f"{v.get('reversals') or 'none'} |")  # fmt: skip
         left = sorted({v["left_out"] for v in verdicts if v.get("left_out")})
         if left:
             md += ["", *[f"Left out of the claims on {line}." for line in left]]
