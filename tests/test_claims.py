@@ -262,8 +262,8 @@ def test_holm_family_holds_only_the_claims_a_test_decides():
 
 def test_a_prompt_that_reverses_the_pooled_effect_is_named():
     """Five prompts where gd lowers the rate in every seed and one (the penguin) where it raises it
-    in 9 of 10: the penguin is listed with its effect and count; 7 of 10 is not a reversal, and a
-    prompt that goes with the pooled effect never is."""
+    in 9 of 10: the penguin is listed with its effect and count; 7 of 10 is not a reversal, and
+    where the pooled reading decided, a prompt that goes with it never is."""
     import numpy as np
 
     from gdbench.experiments.claims import evaluate, reversals
@@ -278,6 +278,10 @@ def test_a_prompt_that_reverses_the_pooled_effect_is_named():
     keys = [("x", s) for s in range(10)] + [("y", s) for s in range(10)]
     d = np.array([0.1] * 7 + [-0.1] * 3 + [-0.5] * 10)  # x: 7 of 10 against the pooled sign
     assert reversals(keys, d) == ""
+    # a pooled reading that decided nothing hides one-way prompts of either sign
+    d = np.array([0.1] * 9 + [-0.1] + [-0.2] * 8 + [0.3] * 2)
+    assert reversals(keys, d) == "x +0.08 (9 of 10 pairs)"
+    assert reversals(keys, d, decided=False) == "x +0.08 (9 of 10 pairs); y -0.1 (8 of 10 pairs)"
     from gdbench.experiments.tables import markdown
 
     assert "| a penguin +0.33 (9 of 10 pairs) |" in markdown([], [v])

@@ -295,16 +295,18 @@ def _sizes(rows: list[dict], c: Claim, keys: list) -> dict:
 
 
 REVERSAL_SHARE = 0.8
-"""A prompt reverses a claim when at least this share of its pairs (8 of 10 seeds) differ with the
-sign opposite to the pooled mean difference's."""
+"""A prompt goes against a claim's pooled reading when at least this share of its pairs (8 of 10
+seeds) differ with one sign: the sign opposite to the pooled mean difference where the pooled
+reading decided (holds, does not hold), either sign where it did not (a pooled 'undecided' then
+hides a one-way prompt)."""
 REVERSAL_MIN_PAIRS = 5
 """Fewest pairs of one prompt a reversal is read from."""
 
 
-def reversals(keys: list[tuple], d: np.ndarray) -> str:
-    """The prompts whose pairs go against the pooled mean difference in at least ``REVERSAL_SHARE``
-    of their pairs, e.g. 'a penguin +0.43 (9 of 10 pairs)'; '' when none. With a pooled mean of
-    exactly 0 every prompt that goes one way in that share is listed."""
+def reversals(keys: list[tuple], d: np.ndarray, *, decided: bool = True) -> str:
+    """The prompts that go against the pooled reading (``REVERSAL_SHARE``), e.g. 'a penguin +0.43
+    (9 of 10 pairs)'; '' when none. ``decided``: whether the pooled reading decided (then only the
+    sign opposite to the pooled mean counts)."""
     if not len(d):
         return ""
     pooled = np.sign(d.mean())
@@ -312,7 +314,7 @@ def reversals(keys: list[tuple], d: np.ndarray) -> str:
     for prompt, v in per_prompt(keys, d).items():
         v = np.asarray(v)
         for sign in (1.0, -1.0):
-            if sign == pooled or len(v) < REVERSAL_MIN_PAIRS:
+            if (decided and sign == pooled) or len(v) < REVERSAL_MIN_PAIRS:
                 continue
             k = int((np.sign(v) == sign).sum())
             if k >= math.ceil(REVERSAL_SHARE * len(v)):
@@ -403,20 +405,21 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "pairs_for_80pct_power": pairs_for_power(d),
                     **across_prompts(keys, d, margin),
                     "by_prompt": by_prompt(keys, d),
-                    "reversals": reversals(keys, d),
+                    "reversals": "",  # after the verdict (below)
                     "left_out": left_out(c.metric, set(va) & set(vb), keys),
                     **_sizes(sel, c, keys),
                 }
             )
-            arms.append((b, a, c.fails_at))
-    family = [r["p_value"] if untested(b, a, f) is None else math.nan for r, (b, a, f) in zip(out, arms)]
+            arms.append((b, a, c.fails_at, keys, d))
+    family = [r["p_value"] if untested(b, a, f) is None else math.nan for r, (b, a, f, *_) in zip(out, arms)]
     for row, p in zip(out, holm(family)):
         row["p_holm"] = p
     family = [r["p_prompts"] if f == f and r["prompts"] >= MIN_PROMPTS else math.nan for r, f in zip(out, family)]
     for row, p in zip(out, holm(family)):
         row["p_prompts_holm"] = p
-    for row, (b, a, fails_at) in zip(out, arms):
+    for row, (b, a, fails_at, keys, d) in zip(out, arms):
         row["verdict"] = verdict(row, baseline=b, treated=a, fails_at=fails_at)
+        row["reversals"] = reversals(keys, d, decided=row["verdict"] in ("holds", "does not hold"))
         row["verdict_prompts"] = verdict_prompts(row)
     return out
 

@@ -143,9 +143,11 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
             f"{_fmt(v.get('gt_psnr_a', math.nan))} / {_fmt(v.get('gt_psnr_b', math.nan))} |"
         )
     if verdicts:
-        md += ["", "Per prompt, the mean difference a - b (pairs), and the prompts that reverse the pooled "
-               f"effect (the opposite sign in at least {REVERSAL_SHARE:.0%} of their pairs):", "",
-               "| setting | a vs b | metric | per prompt | reversed by |", "|---|---|---|---|---|"]  # fmt: skip
+        md += ["", "Per prompt, the mean difference a - b (pairs), and the prompts that go against the pooled "
+               f"reading (one sign in at least {REVERSAL_SHARE:.0%} of their pairs: the sign opposite to the pooled "
+               "mean where the verdict holds or does not hold, either sign where it is not decided):", "",
+               "| setting | a vs b | metric | per prompt | against the pooled reading |",
+               "|---|---|---|---|---|"]  # fmt: skip
         for v in verdicts:
             md.append(f"| {label(v)} | {v['a']} vs {v['b']} | {v['metric']} | {v['by_prompt'] or 'n/a'} | "
                       f"{v.get('reversals') or 'none'} |")  # fmt: skip
