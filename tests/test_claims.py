@@ -285,3 +285,21 @@ def test_a_prompt_that_reverses_the_pooled_effect_is_named():
     from gdbench.experiments.tables import markdown
 
     assert "| a penguin +0.33 (9 of 10 pairs) |" in markdown([], [v])
+
+
+def test_the_pose_locked_control_is_a_claim_of_its_own():
+    """A janus sweep with gd and gd-pose-locked reads the 3D-correspondence claim (gd against the
+    control), and only there: the same rows in the easy setting give no Janus claim."""
+    from gdbench.experiments.claims import evaluate
+
+    rows = []
+    for p in "abcdef":
+        for s in range(3):
+            rows += [
+                dict(_row("gd", p, s, 0.1), janus_rate=0.2),
+                dict(_row("gd-pose-locked", p, s, 0.1), janus_rate=0.5),
+            ]
+    got = [v for v in evaluate(rows) if v["b"] == "gd-pose-locked"]
+    assert [v["claim"] for v in got] == ["3D correspondence between views, not persistence alone, cuts Janus failures"]
+    assert got[0]["mean_diff"] == pytest.approx(-0.3) and got[0]["verdict"] == "holds"
+    assert not [v for v in evaluate([dict(r, setting="easy") for r in rows]) if v["b"] == "gd-pose-locked"]

@@ -41,8 +41,8 @@ class SweepBase:
     prompts: tuple[str, ...] = ("a yellow duck", "a corgi", "a penguin")
     """Prompts (free text; matched to the embedded prior's assets)."""
     presets: tuple[str, ...] = BASE_PRESETS
-    """Training presets to compare (see docs/training.md; gd-redraw-step, the mechanism's
-    control, on request)."""
+    """Training presets to compare (see docs/training.md; the mechanism's controls gd-redraw-step
+    and gd-pose-locked on request)."""
     seeds: Annotated[tuple[int, ...], Seed()] = (0, 1)
     """Seeds per (setting, prompt, preset); cells with one seed and prompt are paired."""
     settings: tuple[Literal["easy", "janus", "instance"], ...] = ("easy",)

@@ -93,6 +93,13 @@ CLAIMS = (
         1.0,
     ),
     Claim("persistent noise, not the noise's texture, cuts Janus failures", "gd", "gd-redraw-step", "janus_rate", 1.0),
+    Claim(
+        "3D correspondence between views, not persistence alone, cuts Janus failures",
+        "gd",
+        "gd-pose-locked",
+        "janus_rate",
+        1.0,
+    ),
     Claim("structured noise reduces instance inconsistency", "gd", "gd-no-sn", "instance_inconsistency"),
     Claim("structured noise reduces instance inconsistency", "gd-no-vgs", "sjc-gs", "instance_inconsistency"),
     Claim("variational Gaussians reduce floaters", "gd", "gd-no-vgs", "floaters"),
