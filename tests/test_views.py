@@ -47,13 +47,40 @@ def test_a_turned_asset_reads_its_turn_and_nothing_else(scores, turn):
     _quiet(s)
 
 
-@pytest.mark.parametrize("kind", ["two-faced", "four-faced"])
-def test_a_second_face_is_a_multi_face_failure_not_a_blob_nor_floaters(scores, kind):
-    s = scores[kind]
-    assert s.multi_face_rate > 0.5 > 5 * max(scores[k].multi_face_rate for k in scores if "faced" not in k)
-    # four faces 90 degrees apart look alike from some sides (the duck's: 0.28), a blob from all
-    assert s.featureless_rate <= (0 if kind == "two-faced" else 0.35)
-    _quiet(s, but=("multi_face_rate", "featureless_rate"))
+def test_a_second_face_is_a_janus_failure_seen_where_the_face_is(scores):
+    """The front and its mirror image behind it: the views that show the second face are the
+    ones within 45 degrees of azimuth 180 (where the fixture puts it), at least JANUS_RESULT of
+    the turntable; no blob, no floaters."""
+    from gdbench.metrics.views import JANUS_RESULT, result_class, turntable_poses
+
+    s = scores["two-faced"]
+    az = turntable_poses().azimuth.tolist()
+    flagged = [a for a, c in zip(az, s.view_class) if c in ("second_face", "front_everywhere")]
+    assert len(flagged) >= JANUS_RESULT * 36 and all(abs((a % 360) - 180) <= 45 for a in flagged), flagged
+    assert result_class(s.as_dict()) == "second_face" and s.blob_rate == 0
+    assert max(scores[k].janus_rate for k in scores if "faced" not in k and k != "front-everywhere") == 0
+    _quiet(s, but=("multi_face_rate",))
+
+
+def test_four_faces_read_second_faces_only_where_faces_are(scores):
+    """Four fronts squeezed into 90 degrees each: the views flagged are within 45 degrees of the
+    faces at 90, 180 and 270 (none at the result's own front), and some are (the squeezed faces
+    fit the front's pixels loosely: the duck reads 0.14, under JANUS_RESULT; docs/scoring.md)."""
+    from gdbench.metrics.views import turntable_poses
+
+    s = scores["four-faced"]
+    az = turntable_poses().azimuth.tolist()
+    flagged = [a % 360 for a, c in zip(az, s.view_class) if c in ("second_face", "front_everywhere")]
+    assert s.janus_rate > 0.05 and all(min(abs(a - f) for f in (90, 180, 270)) <= 45 for a in flagged), flagged
+
+
+def test_the_back_seen_from_every_side_is_a_blob_not_a_janus_failure(scores):
+    """The back half squeezed and repeated around (the held-out labels' miss: a corgi's rump from
+    every side, whose silhouette matches the front view's): no view shows the front's parts."""
+    from gdbench.metrics.views import result_class
+
+    s = scores["back-everywhere"]
+    assert s.janus_rate == 0 and s.blob_rate == 1 and result_class(s.as_dict()) == "blob"
 
 
 @pytest.mark.parametrize("kind", ["chimera-front-back", "chimera-left-right"])
@@ -106,8 +133,9 @@ def test_the_classes_of_every_fixture_are_disjoint_and_add_up(scores):
         assert share["second_face"] == s.multi_face_rate, kind
         assert s.featureless_rate == pytest.approx(s.front_everywhere_rate + s.blob_rate), kind
         assert s.janus_rate == pytest.approx(s.front_everywhere_rate + s.multi_face_rate), kind
-    want = {"asset": "fine", "turned-180": "fine", "two-faced": "second_face", "four-faced": "second_face",
-            "spun": "blob", "blurred": "fine", "floaters": "fine"}  # fmt: skip
+    want = {"asset": "fine", "turned-180": "fine", "two-faced": "second_face",
+            "front-everywhere": "front_everywhere", "back-everywhere": "blob", "spun": "blob", "blob": "blob",
+            "blurred": "fine", "floaters": "fine"}  # fmt: skip
     assert {k: result_class(scores[k].as_dict()) for k in want} == want
 
 
@@ -124,16 +152,28 @@ def test_an_asset_without_a_front_has_no_janus_rates(scores):
     assert result_class(s.as_dict()) == "blob"
 
 
-def test_result_class_takes_the_class_furthest_past_its_threshold():
-    from gdbench.metrics.views import RESULT_RATES, result_class
+def test_result_class_reads_janus_first_then_blob():
+    from gdbench.metrics.views import JANUS_RESULT, RESULT_RATES, result_class
 
-    assert RESULT_RATES == {"front_everywhere": 0.25, "second_face": 0.25, "blob": 0.5}
-    assert result_class({"front_everywhere_rate": 0.2, "multi_face_rate": 0.2, "blob_rate": 0.4}) == "fine"
-    assert result_class({"front_everywhere_rate": 0.3, "multi_face_rate": 0.6, "blob_rate": 0.0}) == "second_face"
-    both = {"front_everywhere_rate": 0.45, "multi_face_rate": 0.3, "blob_rate": 0.55}  # 1.8, 1.2 and 1.1 past
-    assert result_class(both) == "front_everywhere"
+    assert RESULT_RATES == {"front_everywhere": JANUS_RESULT, "second_face": JANUS_RESULT, "blob": 0.5}
+    assert result_class({"front_everywhere_rate": 0.05, "multi_face_rate": 0.05, "blob_rate": 0.4}) == "fine"
+    assert result_class({"front_everywhere_rate": 0.1, "multi_face_rate": 0.06, "blob_rate": 0.9}) == "front_everywhere"
+    assert result_class({"front_everywhere_rate": 0.0, "multi_face_rate": 0.2, "blob_rate": 0.0}) == "second_face"
+    assert result_class({"front_everywhere_rate": 0.05, "multi_face_rate": 0.05, "blob_rate": 0.6}) == "blob"
     assert result_class({"front_everywhere_rate": None, "multi_face_rate": None, "blob_rate": 0.9}) == "blob"
     assert result_class({"front_everywhere_rate": float("nan"), "multi_face_rate": 0.0, "blob_rate": 0.0}) == "fine"
+
+
+def test_front_masks_are_the_marked_parts_seen_from_each_side():
+    """The duck's beak and eyes: seen from the front, less from 45 degrees, hidden from behind;
+    an asset without marked parts (the hamburger) has none."""
+    from gdbench.metrics.views import front_masks
+
+    m = front_masks("a yellow duck", azimuth=(0.0, 45.0, 90.0, 180.0))
+    n = [int(x.sum()) for x in m]
+    assert n[0] > n[1] > n[2] and n[0] > 50 and n[3] == 0, n
+    with pytest.raises(ValueError, match="marks no front parts"):
+        front_masks("a hamburger")
 
 
 def test_a_blurred_asset_is_no_failure_of_any_class(scores):
@@ -166,8 +206,8 @@ def test_a_trained_like_scene_is_matched_to_its_azimuth():
     # turntable azimuth a (0, 10, ...) is reference index (a + 180) / 5, turned by 40 degrees
     az = turntable_poses(36).azimuth
     idx = (((az + 40 + 180) % 360) / 5).round().long()
-    s = score_views(imgs[0, idx], torch.ones(36, 8, 8), ref)
-    assert s.offset_deg == 40 and s.multi_face_rate == 0 and s.instance_consistency == 1
+    s = score_views(imgs[0, idx], torch.ones(36, 8, 8), ref, front=False)
+    assert s.offset_deg == 40 and s.blob_rate == 0 and s.instance_consistency == 1
     assert s.turned_deg == -40  # its view from t is the asset's from t + 40 = t - (-40)
 
 
@@ -182,8 +222,8 @@ def test_turned_deg_reads_the_turn_of_a_result(turn):
     ref = Reference(imgs, torch.ones(1, 72, 8, 8), torch.arange(72, dtype=torch.float32) * 5 - 180)
     az = turntable_poses(36).azimuth
     idx = (((az - turn + 180) % 360) / 5).round().long()
-    s = score_views(imgs[0, idx], torch.ones(36, 8, 8), ref)
-    assert s.turned_deg == turn and s.multi_face_rate == 0
+    s = score_views(imgs[0, idx], torch.ones(36, 8, 8), ref, front=False)
+    assert s.turned_deg == turn and s.multi_face_rate is None and s.janus_rate is None
 
 
 def test_a_run_is_scored_on_its_own_background(tmp_path):
@@ -535,3 +575,20 @@ def test_floaters_never_import_scipy():
     root = Path(__file__).resolve().parents[1]
     run = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("caption", ["a corgi", "a lego figure", "a penguin", "a sofa"])
+def test_every_fronted_asset_tells_its_front_from_its_back(caption):
+    """The front test on the other assets' fixtures: the asset and its turn read fine, a second
+    face behind is a Janus failure, the back from every side and a solid of revolution are blobs
+    (the four-faced and squeezed front-everywhere fixtures, which fit the front's pixels loosely,
+    are read in docs/scoring.md's table, not asserted)."""
+    from gdbench.metrics.failures3d import failure_scene
+    from gdbench.metrics.views import reference, result_class, score_scene
+
+    ref = reference(caption)
+    want = {"asset": "fine", "turned-180": "fine", "two-faced": "second_face", "back-everywhere": "blob",
+            "spun": "blob"}  # fmt: skip
+    got = {k: result_class(score_scene(failure_scene(caption, k), caption, ref=ref).as_dict()) for k in want}
+    assert got == want

@@ -20,9 +20,9 @@ def yellow_duck():
             S.ellipsoid((0, 0, 0), (0.32, 0.24, 0.2), S.mottled(yellow, 0.1, 30, 1)),
             S.ellipsoid((-0.3, 0, 0.1), (0.1, 0.08, 0.06), S.solid(yellow), rotate=("y", 30)),  # tail
             S.ellipsoid((0.2, 0, 0.25), (0.15, 0.14, 0.15), S.mottled(yellow, 0.1, 30, 2)),  # head
-            S.ellipsoid((0.38, 0, 0.22), (0.09, 0.07, 0.03), S.solid(orange)),  # beak
-            S.ellipsoid((0.3, 0.08, 0.3), (0.03, 0.03, 0.035), S.solid(BLACK)),
-            S.ellipsoid((0.3, -0.08, 0.3), (0.03, 0.03, 0.035), S.solid(BLACK)),
+            S.front(S.ellipsoid((0.38, 0, 0.22), (0.09, 0.07, 0.03), S.solid(orange))),  # beak
+            S.front(S.ellipsoid((0.3, 0.08, 0.3), (0.03, 0.03, 0.035), S.solid(BLACK))),
+            S.front(S.ellipsoid((0.3, -0.08, 0.3), (0.03, 0.03, 0.035), S.solid(BLACK))),
             S.ellipsoid((-0.02, 0.21, 0.04), (0.16, 0.06, 0.09), S.stripes(yellow, (0.9, 0.66, 0.1), 0, 0.05)),  # wing
             S.ellipsoid((-0.02, -0.21, 0.04), (0.16, 0.06, 0.09), S.stripes(yellow, (0.9, 0.66, 0.1), 0, 0.05)),
         ]
@@ -38,13 +38,13 @@ def corgi():
             S.ellipsoid((0, 0, 0), (0.3, 0.14, 0.12), coat),
             S.ellipsoid((0.05, 0, -0.06), (0.22, 0.1, 0.07), S.solid(white)),  # belly
             S.ellipsoid((0.3, 0, 0.12), (0.12, 0.11, 0.1), coat),  # head
-            S.ellipsoid((0.4, 0, 0.08), (0.07, 0.06, 0.05), S.solid(white)),  # muzzle
-            S.ellipsoid((0.47, 0, 0.1), (0.02, 0.025, 0.02), S.solid(BLACK)),  # nose
-            S.ellipsoid((0.38, 0.05, 0.16), (0.02, 0.02, 0.02), S.solid(BLACK)),
-            S.ellipsoid((0.38, -0.05, 0.16), (0.02, 0.02, 0.02), S.solid(BLACK)),
+            S.front(S.ellipsoid((0.4, 0, 0.08), (0.07, 0.06, 0.05), S.solid(white))),  # muzzle
+            S.front(S.ellipsoid((0.47, 0, 0.1), (0.02, 0.025, 0.02), S.solid(BLACK))),  # nose
+            S.front(S.ellipsoid((0.38, 0.05, 0.16), (0.02, 0.02, 0.02), S.solid(BLACK))),
+            S.front(S.ellipsoid((0.38, -0.05, 0.16), (0.02, 0.02, 0.02), S.solid(BLACK))),
             S.cone((0.28, 0.07, 0.2), 0.05, 0.12, S.solid(tan), rotate=("x", -20)),  # ears
             S.cone((0.28, -0.07, 0.2), 0.05, 0.12, S.solid(tan), rotate=("x", 20)),
-            S.ellipsoid((0.44, 0, 0.03), (0.02, 0.03, 0.01), S.solid(pink)),  # tongue
+            S.front(S.ellipsoid((0.44, 0, 0.03), (0.02, 0.03, 0.01), S.solid(pink))),  # tongue
             S.ellipsoid((-0.31, 0, 0.06), (0.05, 0.04, 0.04), S.solid(white)),  # tail
             *legs,
         ]
@@ -78,11 +78,11 @@ def lego_figure():
         [
             S.cylinder((0, 0, 0.33), 0.09, 0.13, S.solid(yellow)),  # head
             S.cylinder((0, 0, 0.41), 0.05, 0.04, S.solid(yellow)),  # stud
-            S.ellipsoid((0.085, 0.035, 0.35), (0.01, 0.012, 0.018), S.solid(BLACK)),  # eyes
-            S.ellipsoid((0.085, -0.035, 0.35), (0.01, 0.012, 0.018), S.solid(BLACK)),
-            S.box((0.087, 0, 0.305), (0.01, 0.07, 0.012), S.solid(BLACK)),  # mouth
+            S.front(S.ellipsoid((0.085, 0.035, 0.35), (0.01, 0.012, 0.018), S.solid(BLACK))),  # eyes
+            S.front(S.ellipsoid((0.085, -0.035, 0.35), (0.01, 0.012, 0.018), S.solid(BLACK))),
+            S.front(S.box((0.087, 0, 0.305), (0.01, 0.07, 0.012), S.solid(BLACK))),  # mouth
             S.box((0, 0, 0.15), (0.16, 0.26, 0.22), S.solid(red)),  # torso
-            S.box((0.082, 0, 0.17), (0.01, 0.12, 0.12), S.checker(WHITE, (0.1, 0.5, 0.1), 0.03)),  # front print
+            S.front(S.box((0.082, 0, 0.17), (0.01, 0.12, 0.12), S.checker(WHITE, (0.1, 0.5, 0.1), 0.03))),  # print
             S.cylinder((0, 0.16, 0.14), 0.04, 0.2, S.solid(red), rotate=("x", 10)),  # arms
             S.cylinder((0, -0.16, 0.14), 0.04, 0.2, S.solid(red), rotate=("x", -10)),
             S.ellipsoid((0.03, 0.17, 0.02), (0.035, 0.035, 0.035), S.solid(yellow)),  # hands
@@ -101,13 +101,15 @@ def penguin():
     return S.combine(
         [
             S.ellipsoid((0, 0, 0), (0.2, 0.19, 0.3), back),
-            S.ellipsoid((0.07, 0, -0.03), (0.15, 0.15, 0.25), S.spots(WHITE, (0.85, 0.85, 0.8), 0.02, 30, 0.4, 10)),
+            S.front(
+                S.ellipsoid((0.07, 0, -0.03), (0.15, 0.15, 0.25), S.spots(WHITE, (0.85, 0.85, 0.8), 0.02, 30, 0.4, 10))
+            ),
             S.ellipsoid((0.02, 0, 0.32), (0.13, 0.13, 0.12), back),  # head
-            S.ellipsoid((0.1, 0.05, 0.35), (0.03, 0.03, 0.03), S.solid(WHITE)),
-            S.ellipsoid((0.1, -0.05, 0.35), (0.03, 0.03, 0.03), S.solid(WHITE)),
-            S.ellipsoid((0.125, 0.055, 0.355), (0.012, 0.012, 0.012), S.solid(BLACK)),
-            S.ellipsoid((0.125, -0.055, 0.355), (0.012, 0.012, 0.012), S.solid(BLACK)),
-            S.cone((0.13, 0, 0.3), 0.03, 0.09, S.solid(orange), rotate=("y", 100)),  # beak
+            S.front(S.ellipsoid((0.1, 0.05, 0.35), (0.03, 0.03, 0.03), S.solid(WHITE))),
+            S.front(S.ellipsoid((0.1, -0.05, 0.35), (0.03, 0.03, 0.03), S.solid(WHITE))),
+            S.front(S.ellipsoid((0.125, 0.055, 0.355), (0.012, 0.012, 0.012), S.solid(BLACK))),
+            S.front(S.ellipsoid((0.125, -0.055, 0.355), (0.012, 0.012, 0.012), S.solid(BLACK))),
+            S.front(S.cone((0.13, 0, 0.3), 0.03, 0.09, S.solid(orange), rotate=("y", 100))),  # beak
             S.ellipsoid((0.0, 0.2, 0.0), (0.05, 0.03, 0.18), back, rotate=("x", -15)),  # flippers
             S.ellipsoid((0.0, -0.2, 0.0), (0.05, 0.03, 0.18), back, rotate=("x", 15)),
             S.ellipsoid((0.08, 0.07, -0.3), (0.08, 0.04, 0.02), S.solid(orange)),  # feet
@@ -127,9 +129,13 @@ def sofa():
             S.box((-0.16, 0, 0.08), (0.1, 0.8, 0.3), fabric),  # back rest (at -X: front faces +X)
             S.box((0, 0.37, 0.0), (0.42, 0.08, 0.2), fabric),  # arm rests
             S.box((0, -0.37, 0.0), (0.42, 0.08, 0.2), fabric),
-            S.box((0.04, 0.17, 0.0), (0.3, 0.32, 0.05), cushion),  # seat cushions
-            S.box((0.04, -0.17, 0.0), (0.3, 0.32, 0.05), cushion),
-            S.box((-0.09, 0, 0.12), (0.05, 0.3, 0.16), S.spots((0.95, 0.9, 0.8), (0.8, 0.2, 0.3), 0.03, 25, 0.5, 12)),
+            S.front(S.box((0.04, 0.17, 0.0), (0.3, 0.32, 0.05), cushion)),  # seat cushions
+            S.front(S.box((0.04, -0.17, 0.0), (0.3, 0.32, 0.05), cushion)),
+            S.front(
+                S.box(
+                    (-0.09, 0, 0.12), (0.05, 0.3, 0.16), S.spots((0.95, 0.9, 0.8), (0.8, 0.2, 0.3), 0.03, 25, 0.5, 12)
+                )
+            ),
             *legs,
         ]
     )
@@ -156,7 +162,8 @@ FRONTS: dict[str, str | None] = {
 }
 """What each asset shows at its front (azimuth 0, +X), or None where it has none (the hamburger is
 the same from every side): the Janus classes need a front, and assets without one are left out
-of the Janus claims (docs/scoring.md)."""
+of the Janus claims (docs/scoring.md). The builders mark these parts (``shapes.front``), so the
+metric's front test can look at them (``metrics.views.front_masks``)."""
 
 
 def has_front(caption: str) -> bool:

@@ -135,11 +135,28 @@ def cone(center, radius, height, color: ColorFn, rotate=None, sections: int = 40
     return _finish(m, color, pose(center, rotate))
 
 
+def front(mesh):
+    """``mesh`` marked as a part of the asset's front (a face, a beak: ``assets.library.FRONTS``);
+    ``combine`` keeps the mark per vertex in ``metadata['front']`` (the Janus classes' front test,
+    ``metrics.views``). The geometry and colours are unchanged."""
+    mesh.metadata["front"] = True
+    return mesh
+
+
+def _front_marks(part) -> np.ndarray:
+    """A bool per vertex of ``part``: whether it belongs to the asset's front (``front``)."""
+    mark = part.metadata.get("front", False)
+    return np.full(len(part.vertices), bool(mark)) if np.ndim(mark) == 0 else np.asarray(mark, bool)
+
+
 def combine(parts, fit_radius: float = 0.45):
-    """Concatenate parts, centre the bounding box at the origin and scale to ``fit_radius``."""
+    """Concatenate parts, centre the bounding box at the origin and scale to ``fit_radius``; the
+    vertices of parts marked by ``front`` are listed in ``metadata['front']`` (a bool per vertex)."""
     import trimesh
 
+    marks = np.concatenate([_front_marks(p) for p in parts])
     m = trimesh.util.concatenate(parts)
+    m.metadata["front"] = marks
     lo, hi = m.bounds
     m.apply_translation(-(lo + hi) / 2)
     r = np.linalg.norm(m.vertices, axis=1).max()

@@ -21,6 +21,9 @@ views are the asset's under the bank's lighting. The failure fixtures cut and mo
 - ``front-everywhere``: the front half squeezed into a wedge of 30 degrees (each Gaussian turned
   from azimuth a to a / 6), twelve times around: from every side a face looks at the camera,
   with the next ones beside it;
+- ``back-everywhere``: the same with the back half (turned to face +X first): the asset's back
+  from every side and its front nowhere (a faceless result whose silhouette may still match
+  the front's);
 - ``blob``: ``spun`` in the asset's mean colour (no view-dependent colour): no face anywhere;
 - ``blurred``: every Gaussian moved by 0.01 (each axis, normal) and widened to a ball of
   standard deviation 0.02 (1.2 px at 64 px), at opacity 0.5;
@@ -55,6 +58,7 @@ KINDS = (
     "blurred",
     "floaters",
     "front-everywhere",
+    "back-everywhere",
     "blob",
 )
 POINTS = 24000
@@ -280,9 +284,12 @@ def failure_scene(caption: str, kind: str, *, n: int = POINTS, seed: int = 0) ->
     if kind == "two-faced":
         front = asset.subset(torch.nonzero(x > 0).squeeze(1))
         return GaussianScene.cat([front, _mirrored(front)])
-    if kind in ("four-faced", "front-everywhere"):  # the front half squeezed, 4 or 12 times around
+    if kind in ("four-faced", "front-everywhere", "back-everywhere"):  # a half squeezed, 4 or 12 times around
         copies = 4 if kind == "four-faced" else 12
-        front = asset.subset(torch.nonzero(x > 0).squeeze(1))
+        if kind == "back-everywhere":
+            front = _turned(asset.subset(torch.nonzero(x < 0).squeeze(1)), 180.0)  # the back, facing +X
+        else:
+            front = asset.subset(torch.nonzero(x > 0).squeeze(1))
         azimuth = torch.rad2deg(torch.atan2(front.means[:, 1], front.means[:, 0]).double())
         wedge = _turned(front, -azimuth / 2 if copies == 4 else -azimuth * (1 - 2 / copies))
         return GaussianScene.cat([_turned(wedge, 360.0 / copies * k) for k in range(copies)])

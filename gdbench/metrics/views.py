@@ -11,25 +11,26 @@ azimuth is the result's turn. Then, per class:
 - **turned_deg**: the turn of the result about +Z, in (-180, 180]: its view from azimuth t is
   the asset's view from t - turned_deg. Where view prompting defines the front, a turn of more
   than 45 degrees is a failure of its own (the sweep's ``turned`` column).
-- **the failure classes of a view**, disjoint (``view_class``; each result's rates in ``views``):
-  a view is *self-similar* when its mean squared difference to the result's views 60 or more
-  degrees away is under ``FEATURELESS`` of the asset's at the same azimuth (it looks like the
-  result's other sides). A self-similar view is **front_everywhere** when the best match of its
-  centre band (the vertical band at the middle of the image, what faces the camera) among the
-  asset's views is the front (|azimuth| <= 45) and clear (``FRONT_CONTRAST``) while the view
-  itself is more than 90 degrees from the front (the front seen from behind: the Janus failure
-  as the literature names it), and a **blob** when that match is not the front (no face at all). Of the
-  other views, **second_face** ones show a second face (below); every other view is **fine**.
-  A self-similar view of the front side that matches the front is fine. ``janus_rate`` is
-  front_everywhere + second_face; ``featureless_rate`` is front_everywhere + blob (the name of
-  older tables). An asset without a declared front (``assets.library.FRONTS``: the hamburger)
-  has no Janus classes: its self-similar views are blobs, and front_everywhere, second_face
-  and janus rates are None.
-- **multi-face rate** (second_face): the share of views, self-similar ones excepted, that show a second face:
-  a part (a vertical band ``BAND`` px wide) that is distinctive (matched far better than by the
-  typical azimuth) and explained by a reference view more than 45 degrees from its (turned)
-  azimuth with under ``SECOND`` of the error of every view within 45 degrees. A two-faced
-  object shows its mirrored head in a side view's band and its front from behind.
+- **the failure classes of a view**, disjoint (``view_class``; each result's rates in ``views``).
+  A view **shows the front** when its pixels where the asset's front parts (``FRONTS``: the
+  face, the beak, the seat; marked in the mesh) are seen from some azimuth within 45 degrees of
+  the front look like that front view, and not like the asset's view from the opposite side
+  at the same pixels (``front_part_ratio`` under ``PART_RATIO``, compared at 1/``PART_BLUR`` of
+  the size), and its centre band is clearly best matched by a front view (``FRONT_CONTRAST``).
+  The result's own front is the view that shows it best; a view more than 90 degrees
+  from there that shows the front too is a **Janus view** (the front seen from behind). A view
+  is *self-similar* when its mean squared difference to the result's views 60 or more degrees
+  away is under ``FEATURELESS`` of the asset's at the same azimuth (it looks like the result's
+  other sides). A Janus view is **front_everywhere** when it is self-similar (the same front
+  from every side) and **second_face** when it is not (a second front on a body with other
+  sides); a self-similar view that does not show the front is a **blob**; every other view is
+  **fine**. ``janus_rate`` is front_everywhere + second_face; ``featureless_rate`` is
+  front_everywhere + blob (the name of older tables). An asset without a declared front (the
+  hamburger) has no Janus classes: its self-similar views are blobs, and front_everywhere,
+  second_face and janus rates are None. Until 2026-11-27 the front was the best match of the
+  view's centre band and second faces came from a band test; both failed labels made by eye
+  (docs/scoring.md, "Calibration").
+- **multi-face rate**: the second_face class's rate (the name of older tables).
 - **instance consistency**: part-aware. Inside the object (the result's silhouette eroded by 2
   px), each pixel's error against every variant's view at its (turned) azimuth, averaged over a
   window, votes for a variant when the best is clearly ahead and explains the pixel (``VOTE``);
@@ -45,25 +46,17 @@ azimuth is the result's turn. Then, per class:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor
 
+from gdbench.assets.library import FRONTS
 from gdbench.core.camera import SphericalPoses
 
 ELEVATION, FOVY, SIZE, FRAMES = 20.0, 55.0, 64, 36
 
-BAND = 16
-"""Width in pixels of the vertical bands (parts) each view is matched by, half a band apart: at
-64 px a band is a quarter of the image, about a third of the object across."""
-SECOND = 0.5
-"""A band shows a second face when a reference view more than 45 degrees from its (turned)
-azimuth explains it with under half the error of the best view within 45 degrees."""
-GAP = 0.003
-"""... and by at least GAP in mean squared error (an RMS of 0.055): a second face makes the view
-from the true side clearly wrong (the two-faced objects' flagged bands: 0.01-0.03 at the median),
-where a blur only blunts it (the blurred penguin read 0.31 second faces without the gap, 0 with)."""
 VOTE, EXPLAINED, WINDOW, MIN_VOTES = 0.5, 0.01, 7, 200
 """A pixel votes for a variant when that variant's squared error (summed over RGB, averaged over
 a WINDOW x WINDOW window) is under VOTE of the next variant's and under EXPLAINED (an RMS of
@@ -72,11 +65,6 @@ views (a featureless or blurred result): the whole views' variants decide. Calib
 3D fixtures of the six assets (docs/scoring.md): single variants 0.98-1.0 (blurred 0.78-1.0),
 left/right chimeras 0.42-0.75, front/back 0.52-0.86 (the views from the front see one variant);
 clean runs 0.98-1.0."""
-DISTINCT = 0.6
-"""A band is distinctive when its best match's error is under 0.4 of the median over azimuths
-(1 - min / median >= 0.6); with SECOND and GAP it separates the two- and four-faced fixtures
-(0.58-1.0 of views) from the others (0-0.03, the blurred hamburger 0.28) in docs/scoring.md's
-table."""
 FEATURELESS = 0.3
 """A view is featureless when it differs from the result's views 60 or more degrees away by
 under 0.3 of what the asset's view differs from the asset's (mean squared error). Calibrated
@@ -86,11 +74,24 @@ the spun assets 1 featureless, the four-faced ones up to 0.28 (faces 90 degrees 
 alike), every other 0 (docs/scoring.md)."""
 
 
-FRONT_CONTRAST = 0.15
-"""The centre band's best match counts as the front only when it is clear: its error under 0.85
-of the median over azimuths. A uniform blob's centre matches every azimuth about alike (the Lego
-figure's blob fixture: 0.09, where its nearest azimuth happens to be the front); the fixtures'
-fronts seen from behind read 0.28-0.57 (docs/scoring.md)."""
+PART_BLUR = 4
+"""The front test compares views box-filtered by this factor (64 px -> 16 px): the learned prior's
+results are 32 px renders upsampled, and a face's few pixels survive only as a patch of colour."""
+PART_RATIO = 0.5
+"""A view shows the asset's front when, over the pixels where the front's parts (``FRONTS``,
+marked in the mesh) are seen from some azimuth within 45 degrees of the front, it is closer to
+that front view than to the view from the opposite side by this factor (mean squared error at
+``PART_BLUR``; ``front_part_ratio``)."""
+MIN_PART_PIXELS = 3
+"""Front views whose parts cover fewer (filtered) pixels than this are not used by the front test."""
+BAND, FRONT_CONTRAST = 16, 0.15
+"""... and when the view's centre band (``BAND`` px wide at the middle of the image, what faces the
+camera) is best matched by one of the asset's front views (|azimuth| <= 45), clearly (its error
+under 1 - FRONT_CONTRAST of the median over azimuths): at 16 px a ring of the beak's colour on a
+spun duck passes the part test, and its centre band matches no azimuth clearly."""
+JANUS_RESULT = 0.15
+"""A result is Janus when at least this share of its views show the front more than 90 degrees
+from where the result shows it best (``result_class``)."""
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,9 @@ class Reference:
     """[V, A, H, W] coverage."""
     azimuth: Tensor
     """[A] degrees."""
+    front_mask: Tensor | None = None
+    """[A, H, W] bool: where the asset's front parts are seen at each azimuth (variant 0,
+    occlusion included; ``front_masks``), None for an asset without a front."""
 
 
 CLASSES = ("front_everywhere", "second_face", "blob", "fine")
@@ -153,30 +157,99 @@ def reference(caption: str, variants: int = 1, size: int = SIZE, background=(1.0
         az = bank.azimuth[order]
         imgs.append(bank.images[order])
         alphas.append(bank.alpha[order])
-    return Reference(torch.stack(imgs), torch.stack(alphas), az)
+    masks = front_masks(caption, size, tuple(float(a) for a in az)) if FRONTS.get(caption) else None
+    return Reference(torch.stack(imgs), torch.stack(alphas), az, masks)
+
+
+def front_masks(caption: str, size: int = SIZE, azimuth: tuple[float, ...] | None = None) -> Tensor:
+    """[A, H, W] bool: the pixels where the asset's front parts (marked by ``assets.shapes.front``)
+    are seen at the ring's azimuths (default every 5 degrees; elevation 20, fovy 55), the rest of
+    the asset occluding them. Cached per process."""
+    if azimuth is None:
+        azimuth = tuple(float(a) for a in torch.arange(-180.0, 180.0, 5.0))
+    return _front_masks(caption, size, azimuth).clone()
+
+
+@functools.lru_cache(maxsize=16)
+def _front_masks(caption: str, size: int, azimuth: tuple[float, ...]) -> Tensor:
+    import numpy as np
+
+    from gdbench.assets.library import build
+    from renderers.pyrender_points.mesh import render_mesh
+
+    mesh = build(caption)
+    marks = mesh.metadata.get("front")
+    if marks is None or not marks.any():
+        raise ValueError(f"caption: {caption!r} marks no front parts (assets.library.FRONTS)")
+    rgba = np.zeros((len(mesh.vertices), 4), np.uint8)
+    rgba[:, 3] = 255
+    rgba[marks, :3] = 255
+    mesh.visual.vertex_colors = rgba
+    n = len(azimuth)
+    poses = SphericalPoses(torch.tensor(azimuth, dtype=torch.float64), torch.full((n,), ELEVATION, dtype=torch.float64),
+                           torch.ones(n, dtype=torch.float64), torch.full((n,), FOVY, dtype=torch.float64))  # fmt: skip
+    pose_gl, Ks = poses.cameras(size, size).to_opengl()
+    rgb, _, _ = render_mesh(mesh, pose_gl.double().numpy(), Ks.double().numpy(), size, size,
+                            background=(0.0, 0.0, 0.0), ambient=1.0, headlight=0.0)  # fmt: skip
+    return torch.from_numpy(rgb[..., 0] > 0.5)
+
+
+def front_part_ratio(images: Tensor, ref: Reference, blur: int = PART_BLUR) -> Tensor:
+    """[F]: for each view, the least over the front views (azimuth within 45 degrees of the front)
+    of its mean squared error to that view over the view's front-part pixels where the asset's view
+    from the opposite side is not background, divided by its error over the same pixels to that
+    opposite view (variant 0; views and references box-filtered by ``blur``). Under
+    ``PART_RATIO``: the view shows the front's parts (a face, a beak), not what the back shows
+    there. Inf where no front view has ``MIN_PART_PIXELS``."""
+    import torch.nn.functional as F
+
+    if ref.front_mask is None:
+        raise ValueError("ref: expected a reference with front masks (an asset that declares a front)")
+    if blur < 1 or images.shape[1] % blur or images.shape[2] % blur:
+        raise ValueError(f"blur: expected a factor >= 1 of the views' size {tuple(images.shape[1:3])}, got {blur}")
+
+    def down(x: Tensor) -> Tensor:  # [N, H, W, C] box-filtered by ``blur``
+        return F.avg_pool2d(x.float().permute(0, 3, 1, 2), blur).permute(0, 2, 3, 1)
+
+    az = ref.azimuth.double()
+    views, refs = down(images), down(ref.images[0])
+    parts = down(ref.front_mask[..., None].float())[..., 0] > 0
+    solid = down(ref.alpha[0][..., None].float())[..., 0] > 0.5
+    best = torch.full((images.shape[0],), float("inf"), dtype=torch.float64)
+    for i in torch.nonzero(_circ(az) <= 45.0).squeeze(1).tolist():
+        j = int(_circ(az - (az[i] + 180.0)).argmin())
+        m = parts[i] & solid[j]  # where the back has something to compare
+        if int(m.sum()) < MIN_PART_PIXELS:
+            continue
+        e_front = ((views[:, m] - refs[i][m]) ** 2).mean((1, 2)).double()
+        e_back = ((views[:, m] - refs[j][m]) ** 2).mean((1, 2)).double()
+        best = torch.minimum(best, e_front / e_back.clamp_min(1e-12))
+    return best
 
 
 def _circ(d: Tensor) -> Tensor:
     return ((d + 180.0) % 360.0 - 180.0).abs()
 
 
-def _errors(images: Tensor, ref: Reference) -> tuple[Tensor, Tensor]:
-    """Mean squared errors of every view against every reference view: whole views [F, V, A] and
-    bands [F, B, V, A] (vertical strips ``BAND`` px wide, or the image's width if narrower, half
-    a band apart), float64."""
+def _errors(images: Tensor, ref: Reference) -> Tensor:
+    """Mean squared errors of every view against every reference view [F, V, A], float64."""
     F, H, W, _ = images.shape
-    V, A = ref.images.shape[:2]
-    width = min(BAND, W)
-    starts = list(range(0, W - width + 1, max(1, width // 2)))
-    whole = torch.empty(F, V, A, dtype=torch.float64)
-    band = torch.empty(F, len(starts), V, A, dtype=torch.float64)
     refs = ref.images.float()
-    for f in range(F):
-        cols = ((images[f].float() - refs) ** 2).sum((2, 4)).double()  # [V, A, W]
-        whole[f] = cols.sum(-1) / (H * W * 3)
-        for b, x in enumerate(starts):
-            band[f, b] = cols[..., x : x + width].sum(-1) / (H * width * 3)
-    return whole, band
+    return torch.stack([((images[f].float() - refs) ** 2).sum((2, 3, 4)).double() / (H * W * 3) for f in range(F)])
+
+
+def _centre_front(images: Tensor, ref: Reference) -> Tensor:
+    """[F] bool: the view's centre band is clearly best matched by a front view (``FRONT_CONTRAST``)."""
+    F, W = images.shape[0], images.shape[2]
+    width = min(BAND, W)
+    x = (W - width) // 2
+    refs = ref.images.float()
+    mid = torch.stack(
+        [((images[f].float() - refs) ** 2)[:, :, :, x : x + width].sum((2, 3, 4)).min(0).values for f in range(F)]
+    ).double()  # [F, A]: the best variant at each azimuth
+    centre = ref.azimuth.double()[mid.argmin(1)]
+    clear = 1.0 - mid.min(1).values / mid.median(1).values.clamp_min(1e-12) >= FRONT_CONTRAST
+    return (_circ(centre) <= 45.0) & clear
 
 
 def _self_difference(images: Tensor, azimuth: Tensor) -> Tensor:
@@ -203,8 +276,7 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     V, A = ref.images.shape[:2]
     if ref.images.shape[2:4] != (H, W):
         raise ValueError(f"images: expected {tuple(ref.images.shape[2:4])} px like the reference, got {(H, W)}")
-    whole, band = _errors(images, ref)  # [F, V, A], [F, B, V, A]
-    mse = whole.reshape(F, V * A)
+    mse = _errors(images, ref).reshape(F, V * A)  # [F, V, A] -> variant-major
     best = mse.argmin(1)  # [F] over variant-major (variant, azimuth)
     variant, az_idx = best // A, best % A
     matched = ref.azimuth[az_idx].double()
@@ -217,18 +289,9 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     offset = float(offsets[k])
     # featureless: the view is about as its views from other sides (the asset's differ more)
     apart = _circ(ref.azimuth.double()[None] - (truth[:, None] + offset))  # [F, A]: from each turned view
-    near, at = apart <= 45.0, apart.argmin(1)
+    at = apart.argmin(1)
     majority_view = int(torch.mode(variant).values)
     featureless = _self_difference(images, truth) < FEATURELESS * _self_difference(ref.images[majority_view, at], truth)
-    # parts: each band against every azimuth, the best variant at each
-    per_az = band.min(2).values  # [F, B, A]
-    has = per_az.median(2).values > 1e-6  # bands that are not background in every view
-    contrast = 1.0 - per_az.min(2).values / per_az.median(2).values.clamp_min(1e-12)
-    distinct = has & (contrast >= DISTINCT) & ~featureless[:, None]  # [F, B]
-    inf = torch.tensor(float("inf"), dtype=torch.float64)
-    e_near = torch.where(near[:, None], per_az, inf).min(2).values
-    e_far = torch.where(~near[:, None], per_az, inf).min(2).values
-    second = distinct & (e_far < SECOND * e_near) & (e_near - e_far > GAP)  # better explained from > 45 deg away
     # instance: each explained pixel inside the object votes for a variant at its azimuth
     votes = _pixel_votes(images, alpha, ref, at)[~featureless]  # [F', H, W], -1: no vote
     votes = votes[votes >= 0]
@@ -239,16 +302,18 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     else:  # no part decides between variants: the whole views do
         majority = majority_view
         consistency = float((variant == majority).double().mean())
-    # the front is seen where the view's centre band (the part facing the camera) is best
-    # explained by the asset's front: a whole view's match also weighs the silhouette's sides
-    mid = per_az[:, per_az.shape[1] // 2]  # [F, A]
-    centre = ref.azimuth.double()[mid.argmin(1)]
-    clear = 1.0 - mid.min(1).values / mid.median(1).values.clamp_min(1e-12) >= FRONT_CONTRAST
-    match_front = (_circ(centre) <= 45.0) & clear
-    away = _circ(truth) > 90.0  # the view itself, seen from more than 90 degrees off the front
-    front_everywhere = featureless & match_front & away if front else torch.zeros_like(featureless)
-    blob = featureless & ~match_front if front else featureless
-    second_face = second.any(1) & ~featureless
+    # the front: a view shows it when its front parts' pixels look like the front's, not like the
+    # back's (``front_part_ratio``); the result's own front is the view that shows it best, and a
+    # view more than 90 degrees from there that shows it too is a Janus view
+    if front:
+        part = front_part_ratio(images, ref)
+        seen, facing = (part < PART_RATIO) & _centre_front(images, ref), truth[int(part.argmin())]
+        janus = seen & (_circ(truth - facing) > 90.0)
+    else:
+        seen = janus = torch.zeros_like(featureless)
+    front_everywhere = janus & featureless
+    second_face = janus & ~featureless
+    blob = featureless & ~seen
     cls = [
         "front_everywhere" if fe else "blob" if b else "second_face" if sf else "fine"
         for fe, b, sf in zip(front_everywhere.tolist(), blob.tolist(), second_face.tolist())
@@ -413,21 +478,18 @@ def fixture_views(caption: str, mode: str, *, frames: int = FRAMES, size: int = 
     return torch.from_numpy(rgb), torch.from_numpy(alpha)
 
 
-RESULT_RATES = {"front_everywhere": 0.25, "second_face": 0.25, "blob": 0.5}
-"""A result is of a failure class when that class's rate reaches this share of its views: a
-quarter for the Janus classes (a front seen from behind can only show in the half of the views
-more than 90 degrees off the front: the front-everywhere fixtures read about 0.45), half for
-blobs. Set before the labelled set was read (docs/scoring.md)."""
+RESULT_RATES = {"front_everywhere": JANUS_RESULT, "second_face": JANUS_RESULT, "blob": 0.5}
+"""A result is of a failure class when that class's rate reaches this share of its views; the
+Janus classes come first (``result_class``)."""
 
 
 def result_class(views: dict) -> str:
-    """The class of a whole result from its ``views`` block (scores.json): among the classes whose
-    rate reaches ``RESULT_RATES``, the one furthest past its threshold (rate over threshold);
-    'fine' when none does. An asset without a front has no Janus classes (their rates None)."""
-    rates = {
-        "front_everywhere": views.get("front_everywhere_rate"),
-        "second_face": views.get("multi_face_rate"),
-        "blob": views.get("blob_rate"),
-    }
-    over = {k: v / RESULT_RATES[k] for k, v in rates.items() if v is not None and v == v and v >= RESULT_RATES[k]}
-    return max(over, key=over.get) if over else "fine"
+    """The class of a whole result from its ``views`` block (scores.json): Janus when
+    front_everywhere + second_face reach ``JANUS_RESULT`` (the larger of the two names it), else
+    blob when the blob rate reaches ``RESULT_RATES['blob']``, else 'fine'. An asset without a
+    front has no Janus classes (their rates None)."""
+    fe, sf = views.get("front_everywhere_rate"), views.get("multi_face_rate")
+    blob = views.get("blob_rate")
+    if fe is not None and sf is not None and fe == fe and sf == sf and fe + sf >= JANUS_RESULT:
+        return "front_everywhere" if fe >= sf else "second_face"
+    return "blob" if blob is not None and blob == blob and blob >= RESULT_RATES["blob"] else "fine"
