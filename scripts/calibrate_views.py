@@ -1,6 +1,6 @@
 """The view metrics' calibration table of docs/scoring.md: every 3D failure fixture of every
 asset (``gdbench/metrics/failures3d.py``) scored by ``score_views``, one row per (asset,
-fixture), and a sheet of the duck's fixtures.
+fixture), and a sheet of the first asset's fixtures.
 
     python scripts/calibrate_views.py --out docs/results/calibration \
         --sheet docs/figures/failure_fixtures.png
