@@ -62,3 +62,21 @@ def test_agreement_reads_the_runs_scores_and_names_an_unknown_run_in_one_line(tm
     labels.write_text("run_id,label\naaa,janus\n")
     with pytest.raises(ValueError, match=r"labels: .* line 2: expected a run_id and a label of"):
         read_labels(labels)
+
+
+def test_the_committed_label_files_are_valid_and_the_second_rater_labelled_the_same_results():
+    """Every labels file under fixtures/labels reads (a run id and a class of LABELS per row), a
+    hamburger is labelled blob or fine only (the rule: it has no front), and the second rater's
+    file names exactly the results of the three first-rater sets, each with the same asset."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "fixtures" / "labels"
+    files = sorted(root.glob("janus_labels*.csv"))
+    assert len(files) >= 4
+    rows = {f.name: read_labels(f) for f in files}
+    for name, rs in rows.items():
+        assert all(r["label"] in ("blob", "fine") for r in rs if r["caption"] == "a hamburger"), name
+        assert len({r["run_id"] for r in rs}) == len(rs), name  # one label per result
+    first = {r["run_id"]: r["caption"] for n, rs in rows.items() if n != "janus_labels_rater2.csv" for r in rs}
+    second = {r["run_id"]: r["caption"] for r in rows["janus_labels_rater2.csv"]}
+    assert second == first and len(first) == 192
