@@ -89,9 +89,12 @@ BAND, FRONT_CONTRAST = 16, 0.15
 camera) is best matched by one of the asset's front views (|azimuth| <= 45), clearly (its error
 under 1 - FRONT_CONTRAST of the median over azimuths): at 16 px a ring of the beak's colour on a
 spun duck passes the part test, and its centre band matches no azimuth clearly."""
-JANUS_RESULT = 0.15
+JANUS_RESULT = 0.12
 """A result is Janus when at least this share of its views show the front more than 90 degrees
-from where the result shows it best (``result_class``)."""
+from where the result shows it best (``result_class``): 0.15 as developed on the first two
+labelled sets, lowered to 0.12 after the fresh set was scored because the four-faced duck and
+sofa fixtures read 0.14 (their squeezed faces pass the part test in fewer views); the fresh set's
+agreement is the same at both (docs/scoring.md)."""
 
 
 @dataclass(frozen=True)
