@@ -122,7 +122,8 @@ def run_generate(cmd) -> dict:
     if cmd.score and r.caption is not None and r.state.step >= cfg.steps:
         from gdbench.metrics.run_scores import score_run
 
-        summary["gt"] = score_run(out, gt=True, colmap=False, progress=cmd.progress, device=cfg.device)["gt"]
+        scores = score_run(out, gt=True, colmap=False, progress=cmd.progress, device=cfg.device)
+        summary |= {k: scores[k] for k in ("gt", "views") if k in scores}
     print(r.report(summary, matched=False))
     return summary
 

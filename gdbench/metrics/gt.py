@@ -134,5 +134,12 @@ def score_against_asset(
     return GTScore(best[0], float(ssim(best[2], ref).mean()), best[1], at0 if at0 is not None else float("nan"))
 
 
+def turned_deg(offset_deg: float) -> float:
+    """The result's turn about +Z in (-180, 180] from the GT score's best azimuth offset (its view
+    from azimuth t is the asset's from t - turn: the view metrics' ``turned_deg`` convention)."""
+    t = (float(offset_deg) + 180.0) % 360.0 - 180.0
+    return 180.0 if t == -180.0 else t + 0.0  # + 0.0: no -0
+
+
 CHUNK = 24
 """Views per render call of the ground-truth score."""

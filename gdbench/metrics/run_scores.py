@@ -215,6 +215,55 @@ def _mark(s: dict, name: str) -> str:
     return ""
 
 
+FAILED_CLASSES = {
+    "blob": ("blob_rate", "a blob: the same from every side, without the asset's features"),
+    "front_everywhere": ("janus_rate", "the asset's front seen from every side (Janus)"),
+    "second_face": ("janus_rate", "a second face (Janus)"),
+}
+"""The failure classes of a whole result (``views.result_class``), the rate that decides each and
+how ``generate`` names it."""
+
+
+def _rate(x) -> str:
+    """A class rate as printed: two decimals, 'n/a' where the class is undefined (no front)."""
+    return "n/a" if x is None else f"{num(x):.2f}"
+
+
+def gt_text(g: dict) -> str:
+    """The GT block in words: the PSNR after the best turn, the turn (``gt.turned_deg``: one sign
+    convention with the view metrics' turned_deg) and the PSNR as the result stands."""
+    from gdbench.metrics.gt import turned_deg
+
+    return (
+        f"PSNR {num(g['psnr']):.2f} dB turned to its best match (turned {turned_deg(num(g['offset_deg'])):.0f} deg; "
+        f"{num(g.get('psnr_unaligned')):.2f} dB as it stands), SSIM {num(g['ssim']):.3f}"
+    )
+
+
+def result_lines(gt: dict, views: dict | None) -> list[str]:
+    """What a finished run's scores say, for ``generate``'s summary: the GT PSNR after the best
+    turn and before it, the turn, the failure classes and, when the result is of a failure class
+    (``views.result_class``), a one-line warning."""
+    lines = [f"  against the asset at 12 held-out views: {gt_text(gt)}"]
+    if views:
+        from gdbench.metrics.views import result_class
+
+        cls = result_class(views)
+        janus = views.get("janus_rate")
+        lines.append(
+            f"  views: {cls}; Janus {_rate(janus)}{' (no front)' if janus is None else ''} and blob "
+            f"{_rate(views.get('blob_rate'))} of 36 turntable views, floaters {num(views.get('floaters')):.3f} "
+            "of the opacity"
+        )
+        if cls in FAILED_CLASSES:
+            key, what = FAILED_CLASSES[cls]
+            lines.append(
+                f"  warning: this run failed: {what}, in {num(views.get(key)):.2f} of its views; the PSNR above is of "
+                "that shape (docs/scoring.md, 'View metrics')"
+            )
+    return lines
+
+
 def report(s: dict) -> str:
     """The lines ``gdbench score`` prints: the blocks asked for (reused ones marked), and the
     names of those the file keeps from earlier calls of the same code."""
@@ -222,16 +271,13 @@ def report(s: dict) -> str:
     kept = set(s.get("kept", ()))
     if "gt" in s and "gt" not in kept:
         g = s["gt"]
-        lines.append(
-            f"  GT: PSNR {num(g['psnr']):.2f} dB, SSIM {num(g['ssim']):.3f} (offset {num(g['offset_deg']):.0f} deg)"
-            + _mark(s, "gt")
-        )
+        lines.append(f"  GT: {gt_text(g)}" + _mark(s, "gt"))
     if "views" in s and "views" not in kept:
         v = s["views"]
         lines.append(
-            f"  views: Janus {num(v.get('janus_rate')):.2f} "
-            f"(front everywhere {num(v.get('front_everywhere_rate')):.2f}, "
-            f"second face {num(v['multi_face_rate']):.2f}), blob {num(v.get('blob_rate')):.2f}, "
+            f"  views: Janus {_rate(v.get('janus_rate'))} "
+            f"(front everywhere {_rate(v.get('front_everywhere_rate'))}, "
+            f"second face {_rate(v.get('multi_face_rate'))}), blob {_rate(v.get('blob_rate'))}, "
             f"front share {num(v['front_share']):.2f}, "
             f"instance consistency {num(v['instance_consistency']):.2f}, floaters {num(v['floaters']):.3f}, "
             f"turned {num(v.get('turned_deg')):.0f} deg" + _mark(s, "views")

@@ -81,11 +81,9 @@ class RunResult:
             f"-> {s['out']}"
         )
         if "gt" in s:
-            g = s["gt"]
-            lines.append(
-                f"  against the asset at 12 held-out views: PSNR {g['psnr']:.2f} dB, SSIM {g['ssim']:.3f} "
-                f"(best azimuth offset {g['offset_deg']:.0f} deg)"
-            )
+            from gdbench.metrics.run_scores import result_lines
+
+            lines += result_lines(s["gt"], s.get("views"))
         lines += [f"  {k:18s} {v}" for k, v in sorted(self.paths.items())]
         return "\n".join(lines)
 
