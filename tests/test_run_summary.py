@@ -48,3 +48,14 @@ def test_a_turned_result_reads_one_turn_and_a_failed_one_warns(tmp_path):
     warn = [x for x in result_lines(b["gt"], b["views"]) if "warning" in x]
     assert len(warn) == 1 and "this run failed: a blob" in warn[0] and f"in {b['views']['blob_rate']:.2f}" in warn[0]
     assert torch.isfinite(torch.tensor(b["gt"]["psnr"]))
+
+
+@pytest.mark.skipif(not available()[0], reason=f"pyrender unavailable: {available()[1]}")
+def test_scores_json_records_the_gt_turn_in_the_view_metrics_convention(tmp_path):
+    """The duck turned by 180 degrees: scores.json's gt block has turned_deg 180 beside its
+    offset_deg, and the views block reads the same turn."""
+    from gdbench.metrics.run_scores import score_run
+
+    s = score_run(_run(tmp_path, "turned-180"), colmap=False)
+    stored = json.loads((tmp_path / "turned-180" / "scores.json").read_text())
+    assert stored["gt"]["turned_deg"] == 180 == stored["views"]["turned_deg"] == s["gt"]["turned_deg"]

@@ -175,7 +175,7 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
             reused += ["gt", "views"]
             phases.total -= 1  # nothing to report there
         else:
-            from gdbench.metrics.gt import score_against_asset
+            from gdbench.metrics.gt import score_against_asset, turned_deg
             from gdbench.metrics.views import score_scene as view_scores
 
             phases.start("ground truth and view metrics")
@@ -187,6 +187,7 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
                 "psnr": s.psnr,
                 "ssim": s.ssim,
                 "offset_deg": s.offset_deg,
+                "turned_deg": turned_deg(s.offset_deg),
                 "psnr_unaligned": s.psnr_unaligned,
                 "variant": v["majority_variant"],
                 "background": list(bg),
