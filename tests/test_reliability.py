@@ -391,8 +391,26 @@ def test_an_unwritable_bank_cache_costs_the_cache_not_the_run(tmp_path, monkeypa
 @pytest.mark.parametrize(
     ("args", "match"),
     [
-        (("generate", "a yellow duck", "--out", "/sys/gdbench-out", "--steps", "1"), r"/sys/gdbench-out"),
-        (("generate", "a yellow duck", "--out", "FILE", "--steps", "1"), r"out: .*FILE is a file; expected a folder"),
+        (
+            ("generate", "a yellow duck", "--out", "/sys/gdbench-out", "--steps", "1"),
+            r"out \(--out\): cannot write into /sys/gdbench-out \(",
+        ),
+        (
+            ("generate", "a yellow duck", "--out", "/proc/gdbench/out", "--steps", "1"),
+            r"out \(--out\): cannot write into /proc/gdbench/out",
+        ),
+        (
+            ("export", "PLY", "--format", "splat", "--out", "x.ply"),
+            r"out \(--out\): --format splat writes a \.splat file",
+        ),
+        (
+            ("generate", "a yellow duck", "--preset", "dreamgaussian"),
+            r"--preset: unknown preset 'dreamgaussian'; expected one of gd, gd-no-sn, .*gd-pose-locked$",
+        ),
+        (
+            ("generate", "a yellow duck", "--out", "FILE", "--steps", "1"),
+            r"out \(--out\): .*FILE is a file; expected a folder",
+        ),
         (("generate", "a yellow duck", "--resolution", "100000"), r"\(--resolution\): 100000 needs about \d+"),
         (("generate", "a blue duck", "--steps", "1"), r"prompt: 'a blue duck' matched 'a yellow duck'.*asks for blue"),
         (("generate", "not a duck", "--steps", "1"), r"prompt: 'not a duck' matched .*negates"),
@@ -507,7 +525,7 @@ def test_a_diverged_run_and_a_dangling_out_are_one_line(prior, monkeypatch, caps
     for name, target in (("dangling", tmp_path / "nowhere"), ("loop", tmp_path / "loop")):
         (tmp_path / name).symlink_to(target)
         code, _, err = cli(monkeypatch, capsys, *args, "--out", tmp_path / name)
-        assert code == 2 and f"out: {tmp_path / name} is a symbolic link to" in one_line(err), err
+        assert code == 2 and f"out (--out): {tmp_path / name} is a symbolic link to" in one_line(err), err
     assert not (tmp_path / "nowhere").exists()
 
 

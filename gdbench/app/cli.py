@@ -170,6 +170,7 @@ def entrypoint() -> None:
     if argv[:1] in (["generate"], ["sweep"]):
         try:
             prior = chosen_prior(argv)
+            check_presets(argv)
         except ValueError as e:
             print(f"gdbench {argv[0]}: error: {e}", file=sys.stderr)
             sys.exit(2)
@@ -196,6 +197,27 @@ def command(name: str, prior: str = "empirical") -> type:
     if name == "sweep":
         return sweep_command(prior)
     return COMMANDS[name][0]
+
+
+def check_presets(argv: list[str]) -> None:
+    """A ValueError naming --preset and the known presets when a generate command line's --preset
+    is not one (the parser's own message lists 'None' among them, the value that means "not
+    given"; a sweep's --presets are checked by ``SweepConfig``)."""
+    from gdbench.train.config import PRESETS
+
+    if argv[:1] != ["generate"]:
+        return
+    rest = argv[1:]
+    given = None
+    for i, a in enumerate(rest):
+        if a == "--":
+            break
+        if a.startswith("--preset="):
+            given = a.split("=", 1)[1]
+        elif a == "--preset" and i + 1 < len(rest):
+            given = rest[i + 1]
+    if given is not None and given not in PRESETS:
+        raise ValueError(f"--preset: unknown preset {given!r}; expected one of {', '.join(PRESETS)}")
 
 
 def chosen_prior(argv: list[str]) -> str:

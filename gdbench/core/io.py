@@ -273,6 +273,24 @@ def check_folder(folder: str | Path, what: str = "out") -> Path:
     return folder
 
 
+def probe_writable(folder: str | Path, what: str = "out") -> Path:
+    """``folder`` (a path that may not exist yet) where files can be made: a probe file is made
+    and removed in it, or in its nearest existing parent, so nothing is left behind and nothing is
+    created for a command that fails later (a bad prompt). A place that refuses (read-only, /sys,
+    /proc, full) is a ValueError naming ``what``, before any work."""
+    folder = Path(folder)
+    place = folder
+    while not place.exists() and place != place.parent:
+        place = place.parent
+    try:
+        fd, probe = tempfile.mkstemp(dir=place, prefix=".gdbench-probe.")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ValueError(f"{what}: cannot write into {folder} ({e.strerror or e} at {place})") from None
+    return folder
+
+
 def writable_folder(folder: str | Path, what: str = "out") -> Path:
     """``check_folder``, then make it and write and remove a probe file there: a read-only or
     full place fails now, naming the folder, not after minutes of work."""

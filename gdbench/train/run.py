@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from gdbench.core.io import FolderLock, check_folder, read_json, sha256_file, sha256_json, write_json
+from gdbench.core.io import FolderLock, check_folder, probe_writable, read_json, sha256_file, sha256_json, write_json
 from gdbench.core.signals import RunInterrupted, defer_stop_signals
 from gdbench.train.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from gdbench.train.config import TrainConfig
@@ -141,7 +141,8 @@ def train(
     short run).
     """
     t_start = time.perf_counter()
-    out = check_folder(cfg.out)  # before the bank is built: a file or a dangling link is refused
+    out = check_folder(cfg.out, "out (--out)")  # before the bank is built: a file or a dangling link is refused
+    probe_writable(out, "out (--out)")  # and a place that refuses files (read-only, /sys, /proc)
     if not overwrite:  # a finished run of another config is refused before the bank is built
         _check_finished(out, cfg, overwrite, resume)
     ctx = make_context(cfg, prior)  # bad prompts fail here, before anything is written
