@@ -107,9 +107,13 @@ def test_comparing_another_scene_into_the_same_folder_keeps_one_table_and_no_orp
         run(first, backends=["splat"], out=tmp_path, verbose=False)
 
 
-def test_bad_scene_and_backend_names():
+def test_bad_scene_and_backend_names(tmp_path):
     with pytest.raises(ValueError, match="scene: no fixture named 'nope'"):
         load_fixture("nope")
+    out = tmp_path / "never"  # an unknown --scene fails before --out is made or anything runs
+    with pytest.raises(ValueError, match=r"scene \(--scene\): no fixture named 'nope'"):
+        run(["isotropic", "nope"], backends=["splat"], out=out, verbose=False)
+    assert not out.exists()
     with pytest.raises(ValueError, match="backends: unknown"):
         run("isotropic", backends=["blender"], verbose=False)
     assert set(BACKENDS) >= {"splat", "gsplat_torch", "pyrender_points"}

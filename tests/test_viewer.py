@@ -443,3 +443,31 @@ def test_browser_screenshot_matches_our_render(tmp_path):
         print(msg)
         assert right["psnr"] >= 37.0 and right["mae"] <= 0.006 and right["iou"] >= 0.95, msg
         assert right["psnr"] - turned["psnr"] >= 15.0 and right["psnr"] - mirrored["psnr"] >= 15.0, msg
+
+
+def test_view_ends_on_sigterm_with_one_line_and_143(tmp_path):
+    """`gdbench view` in a separate process, sent SIGTERM once it serves: the one line and exit
+    code 128 + 15 that every other command gives (the viewer used to swallow it and exit 0)."""
+    pytest.importorskip("viser", reason="the viewer needs viser: pip install -e '.[view]' (or make setup)")
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    ply = demo_scene(50).save_ply(tmp_path / "scene.ply")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.Popen([sys.executable, "-m", "gdbench.app.cli", "view", str(ply), "--port", str(_free_port())],
+                            cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        deadline = time.time() + 120
+        line = ""
+        while "gdbench view:" not in line and time.time() < deadline and proc.poll() is None:
+            line = proc.stdout.readline()
+        assert "gdbench view:" in line, line
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "gdbench view: error: interrupted by SIGTERM", err

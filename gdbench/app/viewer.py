@@ -371,7 +371,9 @@ def serve(
     returns to). ``framed``: turntable about the scene's bounds at the distance that shows it whole
     (``framed_orbit``) instead of the run's orbit about the origin; by default for a PLY without
     a run.json (a scene from elsewhere), not for a run's scene or a ``GaussianScene``. ``block``:
-    serve until Ctrl-C, then stop; else return at once (``Viewer.stop``). viser moves to the next
+    serve until a stop signal (Ctrl-C, SIGTERM), then stop the server and let the interrupt
+    through (the command line ends with one line and 128 + the signal's number); else return at
+    once (``Viewer.stop``). viser moves to the next
     free port when ``port`` is taken (``Viewer.port``).
     """
     viser = import_viser()
@@ -461,11 +463,8 @@ def serve(
         print(f"gdbench view: {name} at {viewer.url}" + (" (Ctrl-C stops)" if block else ""))
     if not block:
         return viewer
-    try:
+    try:  # until a stop signal: the command line ends with its one line and 128 + its number
         while True:
             time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
     finally:
         server.stop()
-    return viewer

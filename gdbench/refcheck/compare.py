@@ -393,6 +393,9 @@ def run(
     unknown = [b for b in backends or [] if b not in BACKENDS]
     if unknown:
         raise ValueError(f"backends: unknown {unknown}; known: {sorted(BACKENDS)}")
+    missing = [n for n in names if n not in fixture_names()]
+    if missing:  # before --out is made and before any progress
+        raise ValueError(f"scene (--scene): no fixture named {missing[0]!r}; known: {fixture_names()}")
     from gdbench.core.io import writable_folder
 
     writable_folder(out)  # a read-only --out fails now, not after the rendering
