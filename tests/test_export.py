@@ -512,3 +512,48 @@ def test_export_command_names_files_and_round_trips(tmp_path, capsys):
     assert (tmp_path / "r" / "scene.y_down_turntable_sheet.png").is_file()
     with pytest.raises(ValueError, match=r"out: .* is the source file"):
         main(Export(run, format="ply", out=run / "scene.ply"))
+
+
+def _write_vertex_ply(path, fields: dict):
+    from plyfile import PlyData, PlyElement
+
+    n = len(next(iter(fields.values())))
+    v = np.zeros(n, dtype=[(k, "f4") for k in fields])
+    for k, col in fields.items():
+        v[k] = col
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
+    return path
+
+
+def test_a_bare_point_cloud_says_how_to_start_a_run_from_it(tmp_path):
+    """x, y, z and colours but no Gaussian properties: the error names the missing ones and the
+    command that takes a point cloud (generate --init ply --init-ply)."""
+    from gdbench.core.scene import GaussianScene
+
+    xyz = {"x": [0.0, 0.1], "y": [0.0, 0.2], "z": [0.0, 0.3]}
+    pts = _write_vertex_ply(tmp_path / "pts.ply", xyz | {"red": [1.0, 0.5], "green": [0.0, 0.5], "blue": [0.0, 0.5]})
+    with pytest.raises(ValueError, match=r"a point cloud, not a 3DGS PLY \(missing .*f_dc_0.*--init ply --init-ply"):
+        GaussianScene.load_ply(pts)
+
+
+def test_a_mip_splatting_filter_3d_field_is_named_as_ignored(tmp_path):
+    """A 3DGS PLY with Mip-Splatting's filter_3D property: read as plain Gaussians (the same values
+    as without it), with a warning that names the field."""
+    from plyfile import PlyData, PlyElement
+
+    from gdbench.core.builtin import demo_scene
+    from gdbench.core.ply import read_ply
+
+    plain = demo_scene(20).save_ply(tmp_path / "plain.ply")
+
+    v = PlyData.read(str(plain))["vertex"].data
+    extra = np.zeros(len(v), dtype=v.dtype.descr + [("filter_3D", "f4")])
+    for name in v.dtype.names:
+        extra[name] = v[name]
+    extra["filter_3D"] = 0.01
+    mip = tmp_path / "mip.ply"
+    PlyData([PlyElement.describe(extra, "vertex")]).write(str(mip))
+    with pytest.warns(UserWarning, match="filter_3D property .* is ignored"):
+        got = read_ply(mip)
+    want = read_ply(plain)
+    assert all(torch.equal(got[k], want[k]) for k in want)

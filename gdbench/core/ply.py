@@ -192,8 +192,21 @@ def read_ply(path: str | Path) -> dict[str, Tensor]:
         *(f"rot_{i}" for i in range(4)),
     ]
     missing = [r for r in required if r not in names]
+    if missing and {"x", "y", "z"} <= names:  # points without Gaussians: a point cloud to start a run from
+        raise ValueError(
+            f"{path}: a point cloud, not a 3DGS PLY (missing vertex properties {missing}); to start a run from "
+            f"its points, pass it to `gdbench generate PROMPT --init ply --init-ply {path}`"
+        )
     if missing:
         raise ValueError(f"{path}: not a 3DGS PLY, missing vertex properties {missing}")
+    if "filter_3D" in names:
+        import warnings
+
+        warnings.warn(
+            f"{path}: its filter_3D property (Mip-Splatting's 3D smoothing filter) is ignored: the scene is read "
+            "and rendered as plain 3D Gaussians",
+            stacklevel=2,
+        )
     _check_extent(path, ply)
     n_rest = sum(1 for name in names if name.startswith("f_rest_"))
     if n_rest not in _REST_TO_K or any(f"f_rest_{i}" not in names for i in range(n_rest)):
