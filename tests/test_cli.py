@@ -571,3 +571,20 @@ def test_the_program_exits_as_python_would_without_its_teardown():
     assert bad.returncode == 2 and "exit handler ran" in bad.stdout and "--steps" in bad.stderr
     text = run("text")
     assert text.returncode == 1 and "a text exit" in text.stderr and "exit handler ran" in text.stdout
+
+
+def test_a_resumed_run_says_so_in_its_first_line(tmp_path, capsys):
+    """The second generate into a folder with a checkpoint: its first line says it resumes from
+    the checkpoint (a fresh run's says how many steps go into the folder), and the last says
+    from which step."""
+    from gdbench.app.cmd_generate import Generate, GenerateTrain
+
+    out = tmp_path / "r"
+    small = GenerateTrain(steps=3, resolution=16)
+    main(Generate("a yellow duck", out=out, score=False, progress=False, train=small))
+    first = capsys.readouterr().out.splitlines()
+    assert "; 3 steps into " in first[0] and "resuming" not in first[0]
+    main(Generate("a yellow duck", out=out, score=False, progress=False, train=small))
+    again = capsys.readouterr().out.splitlines()
+    assert again[0].endswith(f"; resuming the run in {out} from its checkpoint (3 steps in all)"), again[0]
+    assert any("(resumed from step 3)" in line for line in again)

@@ -113,9 +113,15 @@ def run_generate(cmd) -> dict:
         require_tensorboard()
 
     def started(ctx) -> None:  # the matched asset before the steps, not after them
+        from gdbench.train.checkpoint import checkpoint_path
+
         caption, sim = getattr(ctx.cond, "caption", None), getattr(ctx.cond, "similarity", None)
         match = f" -> asset {caption!r} (cosine {sim:.2f})" if caption is not None else ""
-        print(f"gdbench generate: prompt {cfg.prompt!r}{match}; {cfg.steps} steps into {out}", flush=True)
+        if cmd.resume and checkpoint_path(cfg).is_file():  # said first, not only in the last line
+            what = f"resuming the run in {out} from its checkpoint ({cfg.steps} steps in all)"
+        else:
+            what = f"{cfg.steps} steps into {out}"
+        print(f"gdbench generate: prompt {cfg.prompt!r}{match}; {what}", flush=True)
 
     r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite, on_start=started)
     summary = r.summary()
