@@ -199,6 +199,20 @@ def command(name: str, prior: str = "empirical") -> type:
     return COMMANDS[name][0]
 
 
+def _option_value(rest: list[str], flag: str) -> str | None:
+    """The last value ``flag`` is given on a command line (``--flag V`` or ``--flag=V``), before
+    any ``--``; None when it is not given."""
+    value = None
+    for i, a in enumerate(rest):
+        if a == "--":
+            break
+        if a.startswith(flag + "="):
+            value = a.split("=", 1)[1]
+        elif a == flag and i + 1 < len(rest):
+            value = rest[i + 1]
+    return value
+
+
 def check_presets(argv: list[str]) -> None:
     """A ValueError naming --preset and the known presets when a generate command line's --preset
     is not one (the parser's own message lists 'None' among them, the value that means "not
@@ -207,15 +221,7 @@ def check_presets(argv: list[str]) -> None:
 
     if argv[:1] != ["generate"]:
         return
-    rest = argv[1:]
-    given = None
-    for i, a in enumerate(rest):
-        if a == "--":
-            break
-        if a.startswith("--preset="):
-            given = a.split("=", 1)[1]
-        elif a == "--preset" and i + 1 < len(rest):
-            given = rest[i + 1]
+    given = _option_value(argv[1:], "--preset")
     if given is not None and given not in PRESETS:
         raise ValueError(f"--preset: unknown preset {given!r}; expected one of {', '.join(PRESETS)}")
 
@@ -227,12 +233,7 @@ def chosen_prior(argv: list[str]) -> str:
     from gdbench.train.config import PRIOR_KEYS
 
     rest = argv[1:]
-    kind = None
-    for i, a in enumerate(rest):
-        if a == "--prior" and i + 1 < len(rest):
-            kind = rest[i + 1]
-        elif a.startswith("--prior="):
-            kind = a.split("=", 1)[1]
+    kind = _option_value(rest, "--prior")
     if kind is None:
         kind = _file_prior(argv)
     kind = kind if kind in PRIOR_CONFIGS else "empirical"

@@ -174,7 +174,7 @@ class Export:
 
 
 def run_export(cmd: Export) -> dict:
-    from gdbench.app.export import export_scene, load_scene
+    from gdbench.app.export import SUFFIXES, export_scene, load_scene
 
     src = Path(cmd.src)
     path = src / "scene.ply" if src.is_dir() else src
@@ -184,7 +184,7 @@ def run_export(cmd: Export) -> dict:
     tag = {"+z": "z_up", "-y": "y_down", "+y": "y_up"}[cmd.up]
     suffix = {"ply": ".ply", "splat": ".splat", "ply-compressed": ".compressed.ply"}[cmd.format]
     out = Path(cmd.out) if cmd.out is not None else path.parent / f"{stem}.{tag}{suffix}"
-    if out.suffix.lower() != Path("x" + suffix).suffix:  # the API's rule (export._check_path), in the flags' names
+    if out.suffix.lower() != SUFFIXES[cmd.format]:  # the API's rule (export._check_path), in the flags' names
         raise ValueError(f"out (--out): --format {cmd.format} writes a {suffix} file; got {str(out)!r}")
     if out.resolve() == path.resolve():
         raise ValueError(f"out: {out} is the source file; pass another --out")

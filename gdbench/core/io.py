@@ -296,10 +296,7 @@ def writable_folder(folder: str | Path, what: str = "out") -> Path:
     full place fails now, naming the folder, not after minutes of work."""
     folder = check_folder(folder, what)
     folder.mkdir(parents=True, exist_ok=True)
-    fd, probe = tempfile.mkstemp(dir=folder, prefix=".gdbench-probe.")
-    os.close(fd)
-    os.unlink(probe)
-    return folder
+    return probe_writable(folder, what)
 
 
 class FolderBusy(RuntimeError):

@@ -78,15 +78,10 @@ def _depth_pair(caption: str, a0: float, sep: float, size: int):
     return z, cams
 
 
-def _corr(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = a.double().flatten() - a.double().mean(), b.double().flatten() - b.double().mean()
-    return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-12))
-
-
 def measure_arm(prior, preset_name: str, overrides: dict, ratio: float, *, draws: int, seed0: int = 0) -> dict:
     """The statistics of one arm at mixing ratio ``ratio`` (see the module docstring)."""
     from gdbench.mechanisms.noise import autocorrelation_length
-    from gdbench.priors.learned.evaluation import warp
+    from gdbench.priors.learned.evaluation import pearson, warped_corr
     from gdbench.train.config import preset
     from gdbench.train.trainer import init_state, make_context
 
@@ -105,10 +100,10 @@ def measure_arm(prior, preset_name: str, overrides: dict, ratio: float, *, draws
         at_one_camera.append(_fields(ctx, state, [0.0], 2)[0])
         add("mean", float(n0.mean()))
         add("variance", float(n0.double().var()))
-        add("persist_lag1", _corr(n0, _fields(ctx, state, [a0], 3)))
+        add("persist_lag1", pearson(n0, _fields(ctx, state, [a0], 3)))
         for t in range(4, 103):
             _fields(ctx, state, [a0 + 180.0], t)  # steps between, looking elsewhere
-        add("persist_lag100", _corr(n0, _fields(ctx, state, [a0], 103)))
+        add("persist_lag100", pearson(n0, _fields(ctx, state, [a0], 103)))
         step = 104
         for caption in CAPTIONS:
             for sep in SEPARATIONS[1:]:
@@ -119,9 +114,8 @@ def measure_arm(prior, preset_name: str, overrides: dict, ratio: float, *, draws
                     modes["same"] = _fields(ctx, state, [a0, a0 + sep], step + 2)
                 step += 3
                 for mode, n in modes.items():
-                    wb, valid = warp(n[1], z[0], cams[0], cams[1], z[1])
-                    add(f"surface_{sep:g}_{mode}", _corr(n[0][valid], wb[valid]))
-                    add(f"pixel_{sep:g}_{mode}", _corr(n[0], n[1]))
+                    add(f"surface_{sep:g}_{mode}", warped_corr(n, z, cams))
+                    add(f"pixel_{sep:g}_{mode}", pearson(n[0], n[1]))
     field = torch.cat(at_one_camera, -1)  # [h, w, draws x C]: independent draws at one camera
     cover = torch.ones(field.shape[:2] + (1,))
     row = {k: sum(v) / len(v) for k, v in vals.items()}

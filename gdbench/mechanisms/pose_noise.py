@@ -65,19 +65,16 @@ def anchor_weights(
     j0, j1 = math.floor((elevation - REACH * width) / width), math.ceil((elevation + REACH * width) / width)
     span = min(math.ceil(REACH * width / (step_az * shrink)) + 1, n_az // 2 + 1)
     i_mid = round(azimuth / step_az)
-    anchors, d2 = [], []
+    d2: dict[tuple[int, int], float] = {}  # anchor -> squared distance, each anchor once (azimuth wraps)
     for j in range(j0, j1 + 1):
         de = j * width - elevation
         for i in range(i_mid - span, i_mid + span + 1):
             da = (i * step_az - azimuth + 180.0) % 360.0 - 180.0
             dist2 = (da * shrink) ** 2 + de * de
             if dist2 <= (REACH * width) ** 2:
-                k = (i % n_az, j)
-                if k not in anchors:
-                    anchors.append(k)
-                    d2.append(dist2)
-    a = torch.exp(-torch.tensor(d2, dtype=torch.float64) / (2 * width * width))
-    return anchors, a / a.norm()
+                d2.setdefault((i % n_az, j), dist2)
+    a = torch.exp(-torch.tensor(list(d2.values()), dtype=torch.float64) / (2 * width * width))
+    return list(d2), a / a.norm()
 
 
 def _anchor_seed(seed: int, anchor: tuple[int, int]) -> int:

@@ -234,25 +234,29 @@ def _circ(d: Tensor) -> Tensor:
     return ((d + 180.0) % 360.0 - 180.0).abs()
 
 
-def _errors(images: Tensor, ref: Reference) -> Tensor:
-    """Mean squared errors of every view against every reference view [F, V, A], float64."""
+def _errors(images: Tensor, ref: Reference) -> tuple[Tensor, Tensor]:
+    """Mean squared errors of every view against every reference view, whole views and their
+    centre bands (``BAND`` px wide at the middle, what faces the camera), each [F, V, A] float64,
+    from one pass over the views."""
     F, H, W, _ = images.shape
-    refs = ref.images.float()
-    return torch.stack([((images[f].float() - refs) ** 2).sum((2, 3, 4)).double() / (H * W * 3) for f in range(F)])
-
-
-def _centre_front(images: Tensor, ref: Reference) -> Tensor:
-    """[F] bool: the view's centre band is clearly best matched by a front view (``FRONT_CONTRAST``)."""
-    F, W = images.shape[0], images.shape[2]
     width = min(BAND, W)
     x = (W - width) // 2
     refs = ref.images.float()
-    mid = torch.stack(
-        [((images[f].float() - refs) ** 2)[:, :, :, x : x + width].sum((2, 3, 4)).min(0).values for f in range(F)]
-    ).double()  # [F, A]: the best variant at each azimuth
-    centre = ref.azimuth.double()[mid.argmin(1)]
+    whole, centre = [], []
+    for f in range(F):
+        cols = ((images[f].float() - refs) ** 2).sum((2, 4))  # [V, A, W]
+        whole.append(cols.sum(-1).double() / (H * W * 3))
+        centre.append(cols[..., x : x + width].sum(-1).double() / (H * width * 3))
+    return torch.stack(whole), torch.stack(centre)
+
+
+def _centre_front(centre: Tensor, azimuth: Tensor) -> Tensor:
+    """[F] bool: the view's centre band (``_errors``' [F, V, A]) is clearly best matched by a
+    front view (``FRONT_CONTRAST``)."""
+    mid = centre.min(1).values  # [F, A]: the best variant at each azimuth
+    best = azimuth.double()[mid.argmin(1)]
     clear = 1.0 - mid.min(1).values / mid.median(1).values.clamp_min(1e-12) >= FRONT_CONTRAST
-    return (_circ(centre) <= 45.0) & clear
+    return (_circ(best) <= 45.0) & clear
 
 
 def _self_difference(images: Tensor, azimuth: Tensor) -> Tensor:
@@ -275,11 +279,14 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     if not (bool(torch.isfinite(images).all()) and bool(torch.isfinite(alpha).all())):
         raise ValueError("images, alpha: expected finite values (a broken render is no result to score)")
     images, alpha = images.detach().cpu(), alpha.detach().cpu()  # small: the scoring runs on the CPU
+    from gdbench.metrics.gt import turned_deg  # the one wrap of a turn into (-180, 180]
+
     F, H, W, _ = images.shape
     V, A = ref.images.shape[:2]
     if ref.images.shape[2:4] != (H, W):
         raise ValueError(f"images: expected {tuple(ref.images.shape[2:4])} px like the reference, got {(H, W)}")
-    mse = _errors(images, ref).reshape(F, V * A)  # [F, V, A] -> variant-major
+    whole, centre = _errors(images, ref)  # [F, V, A]
+    mse = whole.reshape(F, V * A)  # variant-major
     best = mse.argmin(1)  # [F] over variant-major (variant, azimuth)
     variant, az_idx = best // A, best % A
     matched = ref.azimuth[az_idx].double()
@@ -310,7 +317,7 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     # view more than 90 degrees from there that shows it too is a Janus view
     if front:
         part = front_part_ratio(images, ref)
-        seen, facing = (part < PART_RATIO) & _centre_front(images, ref), truth[int(part.argmin())]
+        seen, facing = (part < PART_RATIO) & _centre_front(centre, ref.azimuth), truth[int(part.argmin())]
         janus = seen & (_circ(truth - facing) > 90.0)
     else:
         seen = janus = torch.zeros_like(featureless)
@@ -337,7 +344,7 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
         majority_variant=majority,
         floaters=_detached(alpha, dilate),
         offset_deg=offset,
-        turned_deg=-((offset + 180.0) % 360.0 - 180.0) or 0.0,  # matched = truth + offset = truth - turn
+        turned_deg=turned_deg(-offset),  # matched = truth + offset = truth - turn
         matched_azimuth=matched.tolist(),
         matched_variant=variant.tolist(),
     )

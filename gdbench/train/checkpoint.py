@@ -31,16 +31,16 @@ def comparable(d: dict) -> dict:
     ``ADDED_AT_DEFAULT`` at their value there."""
     from gdbench.core.layout import flat_config
 
+    def without(fields: dict, name: str, default) -> dict:
+        return {k: v for k, v in fields.items() if not (k == name and v == default)}
+
     out = {k: v for k, v in flat_config(d).items() if k not in RESUME_IGNORES}
     for key, default in ADDED_AT_DEFAULT.items():
         group, _, name = key.rpartition(".")
-        holder = out.get(group) if group else out
-        if isinstance(holder, dict) and name in holder and holder[name] == default:
-            holder = {k: v for k, v in holder.items() if k != name}
-            if group:
-                out[group] = holder
-            else:
-                out = holder
+        if not group:
+            out = without(out, name, default)
+        elif isinstance(out.get(group), dict):
+            out[group] = without(out[group], name, default)
     return out
 
 

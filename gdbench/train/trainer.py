@@ -70,12 +70,13 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
     noise = None
     if cfg.structured_noise:
         cloud = make_noise_cloud(cfg.noise, prior.channels, generator=streams["noise_cloud"])
-        noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
         if cfg.noise.source == "pose":  # the control: fields locked to the pose, seeded from the cloud's stream
             from gdbench.mechanisms.pose_noise import PoseLockedNoise
 
             seed = int(torch.randint(2**62, (1,), generator=streams["noise_cloud"]))
             noise = PoseLockedNoise(cloud, seed=seed, v_min=cfg.noise.v_min)
+        else:
+            noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
     depth_points, latent_bg = None, None
     if mode != "rgb" and space.endswith("+depth"):  # 3DFuse: depth of the initial cloud
         depth_points = initial_scene(cfg, generator=streams["init"]).means.detach().to(device)

@@ -247,7 +247,7 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
                         wb, valid = warp(D[1], z[0], cams[0], cams[1], z[1])
                         out[name] = float(((D[0] - wb) ** 2)[valid].mean())
                         # how alike the two views' departures from the truth are (what the noise made)
-                        out[f"{name}_corr"] = _corr((D[0] - x0[0])[valid], (wb - clean_b)[valid])
+                        out[f"{name}_corr"] = pearson((D[0] - x0[0])[valid], (wb - clean_b)[valid])
                         out["pixels"] = int(valid.sum())
                     rows.append({"caption": caption, "separation": separation, "sigma": s, "ratio": ratio, "draw": d,
                                  **out})  # fmt: skip
@@ -298,10 +298,10 @@ def warped_corr(n: Tensor, z: Tensor, cams) -> float:
     """Correlation of view A's field with view B's warped into A over the pixels both see: how much
     of the noise reaches both views at the same surface point (iid noise: 0)."""
     wb, valid = warp(n[1], z[0], cams[0], cams[1], z[1])
-    return _corr(n[0][valid], wb[valid])
+    return pearson(n[0][valid], wb[valid])
 
 
-def _corr(a: Tensor, b: Tensor) -> float:
+def pearson(a: Tensor, b: Tensor) -> float:
     """Pearson correlation of two equally shaped sets of values."""
     a, b = a - a.mean(), b - b.mean()
     return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-12))
