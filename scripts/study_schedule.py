@@ -26,7 +26,7 @@ from pathlib import Path
 
 FIELDS = [
     "steps", "views", "seed", "overrides", "gaussians", "psnr", "ssim", "mean_opacity",
-    "duplicates", "train_s", "commit", "utc",
+    "duplicates", "train_s", "ms_per_step", "commit", "utc",
 ]  # fmt: skip
 
 
@@ -38,6 +38,12 @@ def _commit() -> str:
         return subprocess.check_output(["git", "describe", "--always", "--dirty"], cwd=root, text=True).strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+def _median(xs: list[float]) -> float:
+    """The median of ``xs`` (nan when empty): a step's time, robust to the first steps' warm-up."""
+    xs = sorted(xs)
+    return xs[len(xs) // 2] if xs else float("nan")
 
 
 def _steps(items: list[str]) -> list[int]:
@@ -115,6 +121,7 @@ def run(args) -> None:
             "mean_opacity": round(float(torch.sigmoid(scene.opacity_logits).mean()), 4),
             "duplicates": dup,
             "train_s": round(time.perf_counter() - t0, 1),
+            "ms_per_step": round(1e3 * _median([h["seconds"] for h in r.state.history if "seconds" in h]), 1),
             "commit": commit,
             "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
