@@ -187,7 +187,9 @@ def import_edges(*packages: str) -> dict[str, set[str]]:
 CAPTION = "a test blob"
 """The caption of the tests' tiny bank (``tiny_bank``), the prompt of ``tiny`` configs."""
 
-TINY_DENSIFY = DensifyConfig(start_frac=0.1, every_frac=0.2, reset_frac=1 / 3, grad_threshold=1e-6, recover_steps=0)
+TINY_DENSIFY = DensifyConfig(
+    start_frac=0.1, every_frac=0.2, reset_frac=1 / 3, grad_threshold=1e-6, recover_steps=0, min_every=1
+)
 """A schedule that scales down to a few steps: at 9 steps, densify at 2, 4 and 6, reset at 3 and 6."""
 
 

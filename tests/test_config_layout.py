@@ -42,7 +42,10 @@ def test_every_stored_run_json_converts_with_its_run_id_and_back(path):
     assert comparable(flat) == comparable(stored["config"])
     kept = RESUME_IGNORES & set(flat)
     assert {k: flat[k] for k in kept} == {k: stored["config"][k] for k in kept}
-    assert {k for k, v in flat.items() if v != stored["config"][k]} <= {"noise"}  # noise.source since
+    assert {k for k, v in flat.items() if v != stored["config"][k]} <= {
+        "noise",
+        "densify",
+    }  # noise.source, densify.min_every and max_growth since
 
 
 def test_generate_with_a_stored_run_json_makes_the_run_of_the_same_id(tmp_path):

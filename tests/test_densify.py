@@ -59,7 +59,7 @@ def test_no_schedule_puts_an_event_on_the_last_step_or_a_reset_in_the_final_stre
     cfg = DensifyConfig(start=start, stop=stop, every=every, reset_every=reset_every, recover_steps=recover)
     limit = n - recover  # the last step a reset may fall on
     start_ = start if start is not None else math.floor(0.15 * n + 0.5)
-    every_ = every if every is not None else max(1, math.floor(0.025 * n + 0.5))
+    every_ = every if every is not None else max(25, math.floor(0.025 * n + 0.5))  # the floor: min_every
     stop_ = stop if stop is not None else min(math.floor(0.75 * n + 0.5), n - 1)
     raw_grows, _ = _events(start_, stop_, every_, 1, n)
     explicit_growth = any(v is not None for v in (start, stop, every))
@@ -148,6 +148,7 @@ def test_a_camera_rendered_b_times_accumulates_the_statistic_of_one_view(preset_
             preset_name,
             prompt=CAPTION,
             steps=10,
+            densify_every=5,  # a 10-step run densifies by default no more (densify.min_every)
             resolution=16,
             init_points=150,
             views_per_step=b,
@@ -190,7 +191,7 @@ def test_densify_constructed_case():
         params["sh_rest"][:] = torch.arange(n, dtype=torch.float32)[:, None, None] + 10
     old_m = opt.state[params["sh"]]["exp_avg"].clone()
     scale1 = params["log_scales"].detach()[1].exp()
-    cfg = DensifyConfig(start=0, every=1, grad_threshold=0.5, percent_dense=0.01, prune_opacity=0.01)
+    cfg = DensifyConfig(start=0, every=1, grad_threshold=0.5, percent_dense=0.01, prune_opacity=0.01, max_growth=1.0)
     strat = DensifyStrategy(cfg, steps=10)
     st = strat.init_state(n)
     st.grad2d[:] = torch.tensor([1.0, 1.0, 1.0, 0.0])
@@ -207,6 +208,33 @@ def test_densify_constructed_case():
     torch.testing.assert_close(m[:2], old_m[[0, 3]])  # kept rows keep their moments
     assert float(m[2:].abs().sum()) == 0.0  # new rows start at zero
     assert st.grad2d.shape == (5,) and float(st.grad2d.sum()) == 0
+
+
+@pytest.mark.parametrize(("max_growth", "grown"), [(0.3, 3), (0.45, 4), (1.0, 6)])
+def test_one_densification_grows_at_most_max_growth_of_the_scene_hottest_first(max_growth, grown):
+    """10 small opaque Gaussians, 6 above the threshold with distinct statistics: a densification
+    clones floor(max_growth * 10) of them (all 6 when that is more), the hottest, and no other."""
+    n = 10
+    params = {
+        "means": torch.arange(n, dtype=torch.float32)[:, None].expand(n, 3).clone(),
+        "quats": torch.tensor([[1.0, 0, 0, 0]] * n),
+        "log_scales": torch.full((n, 3), math.log(0.001)),
+        "opacity_logits": torch.zeros(n),
+        "sh": torch.zeros(n, 1, 3),
+        "sh_rest": torch.zeros(n, 0, 3),
+    }
+    params = {k: v.requires_grad_(True) for k, v in params.items()}
+    opt = torch.optim.Adam([{"params": [params[k]], "lr": 0.1, "name": k} for k in PARAM_NAMES])
+    cfg = DensifyConfig(start=0, every=1, grad_threshold=0.5, max_growth=max_growth)
+    strat = DensifyStrategy(cfg, steps=10)
+    st = strat.init_state(n)
+    heat = torch.tensor([0.9, 0.1, 3.0, 0.6, 0.2, 2.0, 0.3, 1.5, 0.7, 0.0])  # hot: 2 > 5 > 7 > 0 > 8 > 3
+    st.grad2d[:] = heat
+    st.count[:] = 1
+    _, info = strat.step(params, opt, st, step=1, generator=torch.Generator().manual_seed(0))
+    assert (info["cloned"], info["split"], info["pruned"]) == (grown, 0, 0)
+    clones = params["means"][n:, 0].tolist()  # a clone keeps its original's mean: x = its index
+    assert sorted(clones) == sorted([2.0, 5.0, 7.0, 0.0, 8.0, 3.0][:grown])
 
 
 def test_opacity_reset_caps_opacities():

@@ -546,8 +546,12 @@ def test_run_id_keeps_runs_made_before_a_field_was_added():
     cfg = preset("gd", steps=50)
     flat = flat_config(config_dict(cfg))  # the layout run ids were first computed in
     before = {k: v for k, v in flat.items() if k not in RESUME_IGNORES and k not in ADDED_AT_DEFAULT}
-    before["noise"] = {k: v for k, v in before["noise"].items() if k != "source"}  # noise.source, nested
+    for key in ADDED_AT_DEFAULT:  # nested ones (noise.source, densify.min_every) by their dotted keys
+        group, _, name = key.rpartition(".")
+        if group:
+            before[group] = {k: v for k, v in before[group].items() if k != name}
     assert "noise.source" in ADDED_AT_DEFAULT and "source" in flat["noise"]
+    assert "densify.min_every" in ADDED_AT_DEFAULT and "min_every" in flat["densify"]
     assert run_id(cfg) == sha256_json(before)[:16]
     assert run_id(preset("gd", steps=50, views_per_step=4, views_spread_deg=10.0)) != run_id(
         preset("gd", steps=50, views_per_step=4)
@@ -716,7 +720,7 @@ def test_one_thread_trains_the_two_thread_run_bit_for_bit(tmp_path):
     a step groups its sums by thread count (docs/conventions.md). 32 px: four tiles per view."""
     from gdbench.train.trainer import init_state, make_context, train_step
 
-    cfg = preset("gd", steps=20, resolution=32, init_points=600, out=tmp_path, progress=False)
+    cfg = preset("gd", steps=20, densify_every=5, resolution=32, init_points=600, out=tmp_path, progress=False)
     ctx = make_context(cfg)
     params, before = {}, torch.get_num_threads()
     try:

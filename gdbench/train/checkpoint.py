@@ -19,10 +19,19 @@ RESUME_IGNORES = frozenset(
 """Config fields that do not change a run's result (so a run may resume under other values). ``device``
 changes it by float rounding only, as the thread count does: run.json records both."""
 
-ADDED_AT_DEFAULT = {"views_spread_deg": None, "noise.source": "cloud"}
+ADDED_AT_DEFAULT = {
+    "views_spread_deg": None,
+    "noise.source": "cloud",
+    "densify.min_every": 25,
+    "densify.max_growth": 0.3,
+}
 """Config fields added after runs were made (a nested group's by its dotted key), with the value
 that behaves as the code did before them: left out of a run's id at that value, so finished runs
-keep their id (and resume, and are found finished) across the addition."""
+keep their id (and resume, and are found finished) across the addition. One exception: the
+densification floor and cap (``densify.min_every``, ``densify.max_growth``, commit after c054296)
+behave as before in runs of 1000 steps or more (every default densification of those is as it
+was), not in shorter ones; a run's ``densify_schedule`` in run.json tells the two apart, and a
+checkpoint of the old schedule is refused on resume (``load_checkpoint``)."""
 
 
 def comparable(d: dict) -> dict:

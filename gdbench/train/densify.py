@@ -44,8 +44,8 @@ class DensifyConfig:
     """Last step that may densify (default: ``stop_frac`` = 75% of --steps; 1500 at 2000). Set, it is
     an absolute step, and must not densify on the run's last step."""
     every: Annotated[int | None, AtLeast(1)] = None
-    """Densify every this many steps (default: ``every_frac`` = 2.5% of --steps, at least 1; the
-    paper's 50 at 2000). Set, it is an absolute step count."""
+    """Densify every this many steps (default: ``every_frac`` = 2.5% of --steps, at least
+    ``min_every`` = 25; the paper's 50 at 2000). Set, it is an absolute step count."""
     reset_every: Annotated[int | None, AtLeast(1)] = None
     """Opacity reset interval, resets at its multiples up to --densify-stop (default: ``reset_frac``
     = 20% of --steps; the paper's 400 at 2000). Set, it is an absolute step count; no reset may
@@ -56,6 +56,13 @@ class DensifyConfig:
     """Default ``stop`` as a fraction of the run (1500 of 2000 steps)."""
     every_frac: Annotated[float, Between(0, 1)] = 0.025
     """Default ``every`` as a fraction of the run (the paper: 50 of 2000 steps)."""
+    min_every: Annotated[int, AtLeast(1)] = 25
+    """The default ``every`` is at least this many steps, whatever the run's length: the
+    statistic a densification reads is gathered over that many steps. Measured on the duck
+    (docs/training.md, "Short runs"): over 25 steps the Gaussians that grow overlap those of a
+    200-step reading 0.41 (Jaccard; 0.43 at 4 views per step), 84% of the agreement of the paper's
+    50 steps (0.49); over 3 steps, 0.23. Runs of 1000 steps and more are unchanged (their 2.5% is
+    25 or more); a shorter run densifies less often, a 20-step run not at all."""
     reset_frac: Annotated[float, Between(0, 1)] = 0.2
     """Default ``reset_every`` as a fraction of the run (the paper: 400 of 2000 steps)."""
     recover_steps: Annotated[int, AtLeast(0)] = 100
@@ -85,6 +92,12 @@ class DensifyConfig:
     reset_value: Annotated[float, Between(0, 1, open=True)] = 0.05
     """Opacities are capped at this value by a reset."""
     max_gaussians: Annotated[int, AtLeast(1)] = 30000
+    """No densification grows the scene beyond this many Gaussians (the hottest candidates go first)."""
+    max_growth: Annotated[float, Positive()] = 0.3
+    """One densification adds at most this share of the Gaussians it starts from (clones before
+    splits, the hottest first in each, as for ``max_gaussians``). Measured on the duck (docs/training.md, "Short runs"): the densifications
+    of 1000- to 5000-step runs add at most 0.26 (seeds 0-2), so it binds on none of them; those of
+    100- and 300-step runs add up to 0.40."""
 
     def __post_init__(self) -> None:
         check_fields(self, "densify.")  # every field against its declared type and range
@@ -103,7 +116,7 @@ class DensifyConfig:
             return max(least, math.floor(f * n + 0.5))
 
         start = self.start if self.start is not None else frac(self.start_frac)
-        every = self.every if self.every is not None else frac(self.every_frac, 1)
+        every = self.every if self.every is not None else frac(self.every_frac, self.min_every)
         reset_every = self.reset_every if self.reset_every is not None else frac(self.reset_frac, 1)
         stop = self.stop if self.stop is not None else min(frac(self.stop_frac), n - 1)
         last_grow = (min(stop, n) // every) * every
@@ -312,7 +325,7 @@ class DensifyStrategy:
         scale = params["log_scales"].detach().exp().amax(-1)
         big = scale > c.percent_dense * self.extent
         hot = avg > self.threshold(avg, state.count.to(dev))
-        room = max(0, c.max_gaussians - n)
+        room = max(0, min(c.max_gaussians - n, math.floor(c.max_growth * n)))
         clone = hot & ~big
         split = hot & big
         # respect the cap: keep the hottest candidates
