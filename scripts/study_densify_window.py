@@ -4,6 +4,8 @@
 
     python scripts/study_densify_window.py window --out docs/results/densify_window
     python scripts/study_densify_window.py events --out docs/results/densify_window
+    python scripts/study_densify_window.py plot docs/results/short_runs/before.csv \
+        docs/results/short_runs/after.csv --out docs/figures/short_runs.png
 
 ``window``: the duck (gd, the default config of a 2000-step run) trained to step S with its
 schedule, then on for 200 steps with densification held off while each step's statistic (the
@@ -192,6 +194,37 @@ def events(args) -> None:
     _write(out / "events.csv", rows)
 
 
+def plot(args) -> None:
+    """GT PSNR, Gaussians and the run's wall time against --steps (log axis) from
+    ``study_schedule.py`` tables, before and after: each seed a dot, the mean a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    panels = [("psnr", "GT PSNR (dB)"), ("gaussians", "Gaussians"), ("train_s", "run + scoring, s (wall)")]
+    for path, colour in zip((args.before, args.after), ("tab:blue", "tab:orange")):
+        with open(path) as f:
+            rows = [r for r in csv.DictReader(f) if r["views"] == "1" and r["overrides"] == "{}"]
+        steps = sorted({int(r["steps"]) for r in rows})
+        label = f"{Path(path).stem} ({rows[0]['commit']})"
+        for ax, (key, title) in zip(axes, panels):
+            pts = [(int(r["steps"]), float(r[key])) for r in rows]
+            ax.scatter(*zip(*pts), s=10, color=colour, alpha=0.5)
+            means = [sum(v for s_, v in pts if s_ == s) / sum(1 for s_, _ in pts if s_ == s) for s in steps]
+            ax.plot(steps, means, color=colour, label=label)
+            ax.set_xscale("log")
+            ax.set_xlabel("--steps")
+            ax.set_title(title)
+            ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("The duck (gd), seeds 0-2, before and after the densification floor and cap", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(args.out, dpi=110)
+    print(f"-> {args.out}")
+
+
 def _write(path: Path, rows: list[dict]) -> None:
     stamp = {"commit": _commit(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     with open(path, "w", newline="") as f:
@@ -216,6 +249,11 @@ def main(argv: list[str] | None = None) -> None:
     e.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     e.add_argument("--steps", nargs="+", type=int, default=[100, 300, 1000, 2000, 5000])
     e.set_defaults(fn=events)
+    q = sub.add_parser("plot", help="PSNR, Gaussians and time against --steps, before and after")
+    q.add_argument("before")
+    q.add_argument("after")
+    q.add_argument("--out", required=True)
+    q.set_defaults(fn=plot)
     args = p.parse_args(argv)
     args.fn(args)
 

@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 import tyro
 
 from gdbench.core.constraints import AtLeast, Between, Positive
+from gdbench.core.filetags import UpAxis
 
 
 @dataclass
@@ -33,9 +34,10 @@ class Render:
     """Camera elevation above the scene's horizontal plane (+Z up), degrees."""
     fovy: Annotated[float, Between(1, 179, unit="degrees")] = 45.0
     """Vertical field of view, degrees."""
-    up: Literal["+z", "-y", "+y"] = "+z"
-    """The up axis of the scene file: +z for gdbench's runs, -y for Inria/COLMAP captures and
-    `gdbench export`'s default, +y."""
+    up: UpAxis | None = None
+    """The up axis of the scene file (default: the one the file records, as every file gdbench
+    writes does, else +z): +z for gdbench's runs, -y for Inria/COLMAP captures and `gdbench
+    export`'s default. One that differs from the file's recorded axis is refused."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     """Where the frames are rendered: cpu (the C++ compositor), cuda (gsplat's CUDA kernels with
     gdbench's conventions, or the torch path where they cannot run) or auto (cuda when torch sees
@@ -64,7 +66,7 @@ def run_render(cmd: Render) -> dict:
     # a run folder has one writer: not while a generate (--overwrite) or score writes there
     run_folder = (out / "run.json").is_file() or (out / FolderLock.NAME).is_file()
     with FolderLock(out) if run_folder else contextlib.nullcontext():
-        scene = load_scene(ply, up=cmd.up)  # a 3DGS or compressed PLY, or a .splat; +Z up
+        scene = load_scene(ply, up=cmd.up, flag="--up")  # a 3DGS or compressed PLY, or a .splat; +Z up
         radius = cmd.radius or run.get("radius")
         framing = ""
         if radius is None:  # not a run's scene: centred on its bounds and framed whole
@@ -160,41 +162,58 @@ class Export:
     format: Literal["ply", "splat", "ply-compressed"] = "ply"
     """ply: exact float32, read by Inria's code and most tools; splat: 32 bytes per Gaussian, DC
     colour only; ply-compressed: about 16 bytes per Gaussian plus SH bands at 8 bits."""
-    up: Literal["+z", "-y", "+y"] = "-y"
-    """The axis that is up in the file: -y for Inria/COLMAP-convention viewers (SuperSplat, the
-    .splat viewers), +y, or +z (gdbench's own)."""
+    up: UpAxis = "-y"
+    """The axis that is up in the file written: -y for Inria/COLMAP-convention viewers (SuperSplat,
+    the .splat viewers), +y, +z (gdbench's own), ... The file records it (and the run it comes
+    from), and gdbench's commands read it back."""
     sh_degree: Annotated[int | None, Between(0, 3)] = None
     """SH degree written (ply, ply-compressed): higher pads with zeros (Inria's loader at degree
     3 wants all 45 f_rest_* properties), lower drops view-dependent colour (default: the scene's)."""
     out: Path | None = None
-    """The file written (default: beside the source, named by the up axis: scene.y_down.ply,
-    scene.y_down.splat, scene.z_up.compressed.ply, ...)."""
-    src_up: Literal["+z", "-y", "+y"] = "+z"
-    """The up axis of the source file (+z for gdbench's runs)."""
+    """The file written (default: beside the source, named by the up axis and, when it differs from
+    the scene's, the SH degree: scene.y_down.ply, scene.y_down.sh3.ply, scene.y_down.splat,
+    scene.z_up.compressed.ply, ...)."""
+    src_up: UpAxis | None = None
+    """The up axis of the source file (default: the one it records, as every file gdbench writes
+    does, else +z). One that differs from the recorded axis is refused: it would rotate the scene
+    twice."""
 
 
 def run_export(cmd: Export) -> dict:
     from gdbench.app.export import SUFFIXES, export_scene, load_scene
+    from gdbench.core.filetags import UP_NAMES, read_tags
 
     src = Path(cmd.src)
     path = src / "scene.ply" if src.is_dir() else src
     if not path.is_file():
         raise FileNotFoundError(f"src: no scene at {path} (pass a run folder, a .ply or a .splat file)")
+    scene = load_scene(path, up=cmd.src_up, flag="--src-up")  # checked before --out is decided
+    degree = scene.sh_degree if cmd.sh_degree is None or cmd.format == "splat" else cmd.sh_degree
     stem = path.name.removesuffix(".compressed.ply").removesuffix(".ply").removesuffix(".splat")
-    tag = {"+z": "z_up", "-y": "y_down", "+y": "y_up"}[cmd.up]
+    for name in UP_NAMES.values():  # scene.y_down -> scene: the name says the new axis alone
+        stem = stem.removesuffix(f".{name}")
+    shn = f".sh{degree}" if degree != scene.sh_degree else ""
     suffix = {"ply": ".ply", "splat": ".splat", "ply-compressed": ".compressed.ply"}[cmd.format]
-    out = Path(cmd.out) if cmd.out is not None else path.parent / f"{stem}.{tag}{suffix}"
+    out = Path(cmd.out) if cmd.out is not None else path.parent / f"{stem}.{UP_NAMES[cmd.up]}{shn}{suffix}"
     if out.suffix.lower() != SUFFIXES[cmd.format]:  # the API's rule (export._check_path), in the flags' names
         raise ValueError(f"out (--out): --format {cmd.format} writes a {suffix} file; got {str(out)!r}")
     if out.resolve() == path.resolve():
         raise ValueError(f"out: {out} is the source file; pass another --out")
-    scene = load_scene(path, up=cmd.src_up)
     if cmd.format == "splat" and scene.sh.shape[1] > 1:
         print(f"gdbench export: note: .splat holds the DC colour only; SH degree {scene.sh_degree} dropped")
-    written = export_scene(scene, out, fmt=cmd.format, up=cmd.up, sh_degree=cmd.sh_degree)
+    if cmd.format == "ply-compressed" and degree > scene.sh_degree:
+        print(
+            f"gdbench export: warning: SH degree {scene.sh_degree} padded to {degree} with zeros; SuperSplat's engine "
+            "reads a zero coefficient (byte 128) as 0.0157, not 0, so its colours shift slightly (docs/export.md)"
+        )
+    run = read_tags(path).run
+    written = export_scene(scene, out, fmt=cmd.format, up=cmd.up, sh_degree=cmd.sh_degree, run=run)
     size = written.stat().st_size
-    print(f"gdbench export: {len(scene)} Gaussians -> {written} ({cmd.format}, {cmd.up} up, {size / 1e6:.2f} MB)")
-    return {"path": str(written), "bytes": size, "gaussians": len(scene)}
+    print(
+        f"gdbench export: {len(scene)} Gaussians -> {written} ({cmd.format}, {cmd.up} up, SH degree {degree}, "
+        f"{size / 1e6:.2f} MB)"
+    )
+    return {"path": str(written), "bytes": size, "gaussians": len(scene), "up": cmd.up, "run": run}
 
 
 @dataclass
@@ -210,8 +229,10 @@ class View:
     """Port to serve on (viser takes the next free one when it is busy)."""
     host: str = "127.0.0.1"
     """Interface to listen on (0.0.0.0: every interface; default: this machine only)."""
-    up: Literal["+z", "-z", "+y", "-y", "+x", "-x"] = "+z"
-    """The scene's up direction (gdbench's runs: +z; Inria/COLMAP captures: -y)."""
+    up: UpAxis | None = None
+    """The up axis of the scene file (default: the one the file records, as every file gdbench
+    writes does, else +z): +z for gdbench's runs, -y for Inria/COLMAP captures. One that differs
+    from the file's recorded axis is refused."""
     frustums: bool = False
     """Show the run's training-view frustums at start (a checkbox toggles them)."""
 

@@ -22,10 +22,12 @@ gsplat's ``export_splats`` itself is not called: gsplat is a test-only dependenc
 order is not the viewer's, its zero-quaternion and constant-chunk cases divide by zero, and it
 writes the file in place (ours go through ``io.atomic_write``: a crash leaves no half file).
 
-``up`` rotates the scene (+Z up, docs/conventions.md) about the x axis so that +Z becomes -Y (the
-Inria / COLMAP convention most 3DGS viewers assume) or +Y; +X (an asset's front) stays +X.
-Means and quaternions rotate, and SH bands of degree 1..3 rotate with their real Wigner-D
-matrices (``rotate_scene``), so the rotated scene seen from the rotated camera is the same image.
+``up`` rotates the scene (+Z up, docs/conventions.md) by ``filetags.up_rotation`` (about the x
+axis for -Y, the Inria / COLMAP convention most 3DGS viewers assume, and +Y, so +X, an asset's
+front, stays +X). Means and quaternions rotate, and SH bands of degree 1..3 rotate with their
+real Wigner-D matrices (``rotate_scene``), so the rotated scene seen from the rotated camera is
+the same image. Every file records its up axis and the run it comes from (``core.filetags``: PLY
+header comments, a .splat's sidecar), and ``load_scene`` reads them back.
 
 Zero quaternions (the identity in our convention, ``renderers.splat.project.normalize_quats``)
 are written as (1, 0, 0, 0), which other readers understand.
@@ -33,6 +35,7 @@ are written as (1, 0, 0, 0), which other readers understand.
 
 from __future__ import annotations
 
+import json
 import math
 import numbers
 import os
@@ -44,13 +47,13 @@ import torch
 from torch import Tensor
 
 from gdbench.core.camera import quat_mul, rotmat_to_quat
+from gdbench.core.filetags import UP_AXES, UpAxis, ply_comments, resolve_up, sidecar, sidecar_json, up_rotation
 from gdbench.core.io import atomic_write, check_folder
 from gdbench.core.ply import CHUNK_SIZE, LOG_SCALE_RANGE, opacity_logit
 from gdbench.core.scene import GaussianScene
 from renderers.splat.sh import C0, sh_basis
 
 FORMATS = ("ply", "splat", "ply-compressed")
-UP_AXES = ("+z", "-y", "+y")
 SUFFIXES = {"ply": ".ply", "splat": ".splat", "ply-compressed": ".ply"}
 """The file name suffix each format wants (case-insensitive). A compressed PLY is conventionally
 named ``*.compressed.ply`` (SuperSplat's and splat-transform's name; readers tell it by its header)."""
@@ -69,18 +72,6 @@ def _choice(name: str, value, choices: tuple[str, ...]) -> str:
 
 
 # ------------------------------------------------------------------------------ rotations
-def up_rotation(up: Literal["+z", "-y", "+y"]) -> Tensor:
-    """The float64 [3, 3] rotation that takes our +Z-up world to a world with ``up`` up (a
-    rotation about x: +X stays, "-y" maps (x, y, z) to (x, -z, y), "+y" to (x, z, -y))."""
-    up = _choice("up", up, UP_AXES)
-    rows = {
-        "+z": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
-        "-y": [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
-        "+y": [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
-    }[up]
-    return torch.tensor(rows, dtype=torch.float64)
-
-
 def _fibonacci_dirs(n: int) -> Tensor:
     i = torch.arange(n, dtype=torch.float64) + 0.5
     z = 1.0 - 2.0 * i / n
@@ -230,14 +221,15 @@ def _pack_rotation(q: Tensor) -> Tensor:
     return (largest << 30) | (packed[:, 0] << 20) | (packed[:, 1] << 10) | packed[:, 2]
 
 
-def _compressed_ply_bytes(s: GaussianScene) -> bytes:
-    """SuperSplat's compressed PLY of a float32 CPU scene with canonical quaternions."""
+def _compressed_ply_bytes(s: GaussianScene, comments: list[str] = ()) -> bytes:
+    """SuperSplat's compressed PLY of a float32 CPU scene with canonical quaternions, ``comments``
+    in its header (SuperSplat writes one there too)."""
     n, k = len(s), s.sh.shape[1]
     nc = -(-n // CHUNK_SIZE)
     names = [f"{m}_{a}" for m in ("min", "max") for a in "xyz"]
     names += [f"{m}_scale_{a}" for m in ("min", "max") for a in "xyz"]
     names += [f"{m}_{c}" for m in ("min", "max") for c in "rgb"]
-    header = ["ply", "format binary_little_endian 1.0", f"element chunk {nc}"]
+    header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element chunk {nc}"]
     header += [f"property float {p}" for p in names]
     header += [f"element vertex {n}"] + [
         f"property uint packed_{p}" for p in ("position", "rotation", "scale", "color")
@@ -307,13 +299,16 @@ def export_scene(
     path: str | Path,
     *,
     fmt: Literal["ply", "splat", "ply-compressed"],
-    up: Literal["+z", "-y", "+y"] = "+z",
+    up: UpAxis = "+z",
     sh_degree: int | None = None,
+    run: str | None = None,
 ) -> Path:
     """Write ``scene`` to ``path`` in ``fmt`` (see the module docstring), atomically; returns the path.
 
-    ``up``: the axis that is up in the file ("+z", ours; "-y" for Inria / COLMAP-convention
-    viewers; "+y"), by ``up_rotation`` and ``rotate_scene`` (SH rotated exactly).
+    ``up``: the axis that is up in the file (``filetags.UP_AXES``: "+z", ours; "-y" for Inria /
+    COLMAP-convention viewers; "+y", ...), by ``filetags.up_rotation`` and ``rotate_scene`` (SH
+    rotated exactly). The file records it, and ``run`` (the id of the run the scene comes from),
+    as ``filetags`` describes: PLY header comments, or a ``.splat``'s sidecar ``<path>.json``.
     ``sh_degree``: the SH degree written (``ply`` and ``ply-compressed``): higher than the scene's
     pads with zero coefficients (same colours), lower truncates (drops view-dependent colour);
     None keeps the scene's. A ``.splat`` holds no SH bands, so there it must be None or 0.
@@ -323,7 +318,9 @@ def export_scene(
     if not isinstance(scene, GaussianScene):
         raise TypeError(f"scene: expected a GaussianScene, got {type(scene).__name__}")
     fmt = _choice("fmt", fmt, FORMATS)
-    rotation = up_rotation(up)
+    up = _choice("up", up, UP_AXES)
+    if run is not None and (not isinstance(run, str) or not run.strip() or any(c.isspace() for c in run)):
+        raise ValueError(f"run: expected None or a run id without spaces, got {run!r}")
     sh_degree = _check_sh_degree(sh_degree)
     if fmt == "splat" and sh_degree not in (None, 0):
         raise ValueError(f"sh_degree: a .splat file holds the DC colour only; expected None or 0, got {sh_degree}")
@@ -333,21 +330,29 @@ def export_scene(
         s = s.with_sh_degree(sh_degree)
     s = GaussianScene(s.means, _canonical_quats(s.quats), s.log_scales, s.opacity_logits, s.sh)
     if up != "+z":
-        s = rotate_scene(s, rotation)
+        s = rotate_scene(s, up_rotation(up))
+    comments = ply_comments(up, run)
     if fmt == "ply":
-        return s.save_ply(path)
-    data = _splat_bytes(s) if fmt == "splat" else _compressed_ply_bytes(s)
+        return s.save_ply(path, comments=comments)
+    if fmt == "ply-compressed":
+        data = _compressed_ply_bytes(s, comments)
+        return atomic_write(path, lambda f: f.write(data))
+    data = _splat_bytes(s)
+    tags = json.dumps(sidecar_json(up, run), indent=1) + "\n"
+    atomic_write(sidecar(path), lambda f: f.write(tags.encode()))  # first: a .splat never lacks its tags
     return atomic_write(path, lambda f: f.write(data))
 
 
-def load_scene(path: str | Path, *, up: Literal["+z", "-y", "+y"] = "+z") -> GaussianScene:
+def load_scene(path: str | Path, *, up: UpAxis | None = None, flag: str = "up") -> GaussianScene:
     """A scene from any file ``export_scene`` writes: a 3DGS PLY (padded or not), a compressed PLY
     (told apart by its header, ``ply.read_ply``) or a ``.splat`` (by its name: the format has no
-    header). ``up`` is the file's up axis; the scene is rotated back to +Z up. Errors name the file."""
+    header), rotated back to +Z up. ``up`` is the file's up axis; None takes the one the file
+    records (``filetags.read_tags``), else +z; one that differs from the recorded one is refused
+    (``filetags.resolve_up``; ``flag`` names the option in that error). Errors name the file."""
     path = Path(path)
-    rotation = up_rotation(up)
     if not path.is_file():
         raise FileNotFoundError(f"path: no file at {path}")
+    up = resolve_up(path, up, flag)
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic in (b"ply\n", b"ply\r"):
@@ -356,4 +361,4 @@ def load_scene(path: str | Path, *, up: Literal["+z", "-y", "+y"] = "+z") -> Gau
         scene = read_splat(path)
     else:
         raise ValueError(f"{path}: neither a PLY file (no 'ply' line first) nor named *.splat")
-    return scene if up == "+z" else rotate_scene(scene, rotation.T)
+    return scene if up == "+z" else rotate_scene(scene, up_rotation(up).T)

@@ -32,6 +32,8 @@ import numpy as np
 import torch
 
 from gdbench.core.camera import Cameras, SphericalPoses, rotmat_to_quat
+from gdbench.core.filetags import UP_AXES as FILE_UP_AXES
+from gdbench.core.filetags import up_rotation as up_rotation_named
 from gdbench.core.scene import GaussianScene
 from gdbench.core.turntable import RUN_TURNTABLE
 
@@ -41,15 +43,9 @@ if TYPE_CHECKING:
 VIEW_EXTRA = "pip install -e '.[view]' (or `make setup`)"
 """What installs the viewer's dependency, for error messages."""
 
-UP_AXES = {
-    "+x": (1.0, 0.0, 0.0),
-    "-x": (-1.0, 0.0, 0.0),
-    "+y": (0.0, 1.0, 0.0),
-    "-y": (0.0, -1.0, 0.0),
-    "+z": (0.0, 0.0, 1.0),
-    "-z": (0.0, 0.0, -1.0),
-}
-"""Named up directions (viser's names); gdbench's scenes are +Z up."""
+UP_AXES = {k: tuple(float(x) for x in up_rotation_named(k)[:, 2]) for k in FILE_UP_AXES}
+"""Named up directions (gdbench's ``filetags.UP_AXES``, viser's names) and their vectors;
+gdbench's scenes are +Z up."""
 
 TURNTABLE_FRAMES = 36
 """Turntable views when no run says otherwise (``TrainConfig.turntable_frames``'s default)."""
@@ -142,7 +138,12 @@ def up_vector(up: str | Sequence[float]) -> np.ndarray:
 
 def up_rotation(up: str | Sequence[float]) -> np.ndarray:
     """Rotation [3, 3] taking gdbench's +Z up to ``up`` (the smallest one; a half turn about +X for
-    -Z). The turntable and training cameras, defined with +Z up, are turned by it."""
+    -Z; for a named axis, ``filetags.up_rotation``'s). The turntable and training cameras, defined
+    with +Z up, are turned by it."""
+    if isinstance(up, str):
+        up_vector(up)  # the name checked, with this function's error
+        key = up.strip().lower()
+        return up_rotation_named(key if key[:1] in "+-" else "+" + key).numpy()
     u = up_vector(up)
     z = np.array([0.0, 0.0, 1.0])
     c = float(z @ u)
@@ -250,8 +251,11 @@ def viser_pose(
     )
 
 
-def resolve_inputs(scene_or_path, run_json: str | Path | None) -> tuple[GaussianScene, str, dict | None]:
-    """(scene, its description, run.json or None) from a scene, a PLY or a run folder. Unless
+def resolve_inputs(
+    scene_or_path, run_json: str | Path | None, up: str | None = None
+) -> tuple[GaussianScene, str, dict | None]:
+    """(scene, its description, run.json or None) from a scene, a PLY or a run folder; a file is
+    read with up axis ``up`` (None: the one it records, else +z) and turned to +Z up. Unless
     ``run_json`` is given, a ``scene.ply`` (a run folder's, or named directly) brings the
     ``run.json`` beside it when that names the same scene (its ``scene_sha256``, as ``gdbench
     render`` decides); any other PLY has none."""
@@ -268,7 +272,7 @@ def resolve_inputs(scene_or_path, run_json: str | Path | None) -> tuple[Gaussian
             raise FileNotFoundError(f"{scene_or_path}: expected a scene file (PLY, .splat) or a run folder")
         from gdbench.app.export import load_scene
 
-        scene, name = load_scene(path), str(path)  # 3DGS or compressed PLY, or .splat
+        scene, name = load_scene(path, up=up, flag="--up"), str(path)  # 3DGS or compressed PLY, .splat; +Z up
         found = run_json_of(path) if run_json is None else None
         if found is not None:
             run_json, run = found
@@ -352,7 +356,7 @@ def serve(
     *,
     host: str = "127.0.0.1",
     port: int = 8080,
-    up: str | Sequence[float] = "+z",
+    up: str | Sequence[float] | None = None,
     run_json: str | Path | None = None,
     frustums: bool = False,
     block: bool = True,
@@ -363,10 +367,13 @@ def serve(
     """Serve a Gaussian scene to the browser at ``http://host:port`` (viser; docs/viewer.md).
 
     ``scene_or_path``: a ``GaussianScene``, a 3DGS PLY, or a run folder (its ``scene.ply``, and its
-    ``run.json`` unless ``run_json`` names one). ``up``: the scene's up direction (gdbench: +Z; a
-    PLY from another tool may be '-y' or '+y'); the turntable and training cameras are turned with
-    it. ``run_json``: a run's run.json, whose config gives the turntable's frame count and the
-    training views; without one the training-views checkbox is disabled. ``frustums``: show the
+    ``run.json`` unless ``run_json`` names one). ``up``: the scene's up axis. For a file, a name
+    (``filetags.UP_AXES``) or None: the file is read with it (None: the axis the file records, else
+    +z; one that differs from the recorded axis is refused) and turned to +Z up. For a
+    ``GaussianScene``, or as three numbers, the direction the view keeps up: the turntable and
+    training cameras are turned with it (default +Z). ``run_json``: a run's run.json, whose config
+    gives the turntable's frame count and the training views; without one the training-views
+    checkbox is disabled. ``frustums``: show the
     training views at start. ``view``: the turntable view new browsers open at (and "Reset View"
     returns to). ``framed``: turntable about the scene's bounds at the distance that shows it whole
     (``framed_orbit``) instead of the run's orbit about the origin; by default for a PLY without
@@ -377,9 +384,13 @@ def serve(
     free port when ``port`` is taken (``Viewer.port``).
     """
     viser = import_viser()
-    scene, name, run = resolve_inputs(scene_or_path, run_json)
+    named = up is None or isinstance(up, str)
+    scene, name, run = resolve_inputs(scene_or_path, run_json, up if named else None)
     if len(scene) == 0:
         raise ValueError(f"{name}: the scene has no Gaussians to show")
+    if named and not isinstance(scene_or_path, GaussianScene):
+        up = "+z"  # the file was turned to +Z up as it was read
+    up = "+z" if up is None else up
     rotation = up_rotation(up)
     config = run["config"] if run is not None else None
     frames = int(config.get("turntable_frames", TURNTABLE_FRAMES)) if config else TURNTABLE_FRAMES

@@ -45,7 +45,8 @@ class TrainConfig:
     init_points: Annotated[int, AtLeast(1)] = 4096
     """Initial Gaussians (the paper: 4096)."""
     init_ply: Path | None = None
-    """init='ply': any point cloud Open3D reads."""
+    """init='ply': any point cloud Open3D reads. A file that records its up axis (every scene file
+    gdbench writes, an export included) is turned to +Z up; any other is taken as +Z up."""
     init_opacity: Annotated[float, Between(0, 1, open=True)] = 0.1
     """Opacity of every initial Gaussian (the paper: 0.1)."""
     init_color: Annotated[float, Between(0, 1)] = 0.5

@@ -95,9 +95,9 @@ class DensifyConfig:
     """No densification grows the scene beyond this many Gaussians (the hottest candidates go first)."""
     max_growth: Annotated[float, Positive()] = 0.3
     """One densification adds at most this share of the Gaussians it starts from (clones before
-    splits, the hottest first in each, as for ``max_gaussians``). Measured on the duck (docs/training.md, "Short runs"): the densifications
-    of 1000- to 5000-step runs add at most 0.26 (seeds 0-2), so it binds on none of them; those of
-    100- and 300-step runs add up to 0.40."""
+    splits, the hottest first in each, as for ``max_gaussians``). Measured on the duck
+    (docs/training.md, "Short runs"): the densifications of 1000- to 5000-step runs add at most
+    0.26 (seeds 0-2), so it binds on none of them; those of 100- and 300-step runs add up to 0.40."""
 
     def __post_init__(self) -> None:
         check_fields(self, "densify.")  # every field against its declared type and range

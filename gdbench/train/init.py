@@ -29,7 +29,11 @@ def from_points(points: torch.Tensor, colors: torch.Tensor, n: int, opacity: flo
 
 
 def from_ply_points(path: Path, n: int, opacity: float, *, generator) -> GaussianScene:
-    """A plain point cloud (any PLY/PCD Open3D reads) to n Gaussians; colours default to grey."""
+    """A plain point cloud (any PLY/PCD Open3D reads) to n Gaussians; colours default to grey. A
+    file that records its up axis (every scene file gdbench writes: ``core.filetags``) is turned
+    to +Z up; any other is taken as +Z up."""
+    from gdbench.core.filetags import read_tags, up_rotation
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"init_ply: no file at {path}")
@@ -41,6 +45,9 @@ def from_ply_points(path: Path, n: int, opacity: float, *, generator) -> Gaussia
     pts = torch.from_numpy(np.asarray(pc.points)).float() if len(pc.points) else torch.zeros(0, 3)
     if pts.shape[0] == 0:
         raise ValueError(f"init_ply: {path} holds no points")
+    up = read_tags(path).up
+    if up not in (None, "+z"):  # rows x R^T turn the file's up axis to +Z: x_ours = R^T x_file
+        pts = (pts.double() @ up_rotation(up)).float()
     cols = torch.from_numpy(np.asarray(pc.colors)).float() if pc.has_colors() else torch.full_like(pts, 0.5)
     return from_points(pts, cols, n, opacity, generator=generator)
 

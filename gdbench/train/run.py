@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from gdbench.core.filetags import ply_comments
 from gdbench.core.io import FolderLock, check_folder, probe_writable, read_json, sha256_file, sha256_json, write_json
 from gdbench.core.signals import RunInterrupted, defer_stop_signals
 from gdbench.train.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
@@ -38,7 +39,36 @@ RUN_OUTPUTS = (
     "colmap.log",
 )
 """What a run and the commands that write into its folder (``score``, ``render``) put there
-(removed before an overwrite)."""
+(removed before an overwrite, with the files ``files_of_run`` finds)."""
+
+
+def files_of_run(folder: Path, run: str) -> list[Path]:
+    """The files in ``folder`` (not below it) that gdbench made from run ``run``'s scene besides
+    ``RUN_OUTPUTS``: exports recording the run (``core.filetags``: a PLY's header comment, a
+    .splat's sidecar), those sidecars, and the turntables ``render`` made of those exports
+    (``<stem>_turntable.gif``, ``.mp4``, ``_sheet.png``). An export that records no run (made
+    before exports recorded it) is the run's when it bears ``gdbench export``'s default name for
+    the run's scene (scene.y_down.splat, scene.z_up.sh3.ply, ...)."""
+    import re
+
+    from gdbench.core.filetags import UP_NAMES, read_tags, sidecar
+
+    default = re.compile(r"scene\.(" + "|".join(UP_NAMES.values()) + r")(\.sh\d)?(\.compressed\.ply|\.ply|\.splat)")
+
+    found: list[Path] = []
+    for path in sorted(folder.iterdir()):
+        if path.name in RUN_OUTPUTS or not path.is_file() or path.suffix.lower() not in (".ply", ".splat"):
+            continue
+        try:
+            tags = read_tags(path)
+            mine = tags.run == run or (tags.run is None and default.fullmatch(path.name) is not None)
+        except (OSError, ValueError):
+            continue  # unreadable tags: not provably this run's, so left alone
+        if mine:
+            stem = path.name.removesuffix(path.suffix)
+            found += [path, sidecar(path)]
+            found += [folder / f"{stem}_turntable{end}" for end in (".gif", ".mp4", "_sheet.png")]
+    return [p for p in found if p.is_file()]
 
 
 @dataclass
@@ -102,11 +132,12 @@ def _check_finished(out: Path, cfg: TrainConfig, overwrite: bool, resume: bool) 
     run_json = out / "run.json"
     if not run_json.is_file():
         return
-    if overwrite:
-        for name in RUN_OUTPUTS:
-            (out / name).unlink(missing_ok=True)
-        return
     old = read_json(run_json, what="run.json")
+    if overwrite:
+        derived = files_of_run(out, old["run_id"]) if isinstance(old.get("run_id"), str) else []
+        for path in [*(out / name for name in RUN_OUTPUTS), *derived]:
+            path.unlink(missing_ok=True)
+        return
     same = old.get("run_id") == run_id(cfg)
     if same and resume and checkpoint_path(cfg).is_file():
         return  # the same run: resuming it rewrites the same outputs
@@ -258,7 +289,7 @@ def write_run_outputs(
     rid = run_id(cfg)
     scene = state.scene()
     t0 = time.perf_counter()
-    paths = {"ply": scene.save_ply(out / "scene.ply", comments=[f"gdbench run {rid}"])}
+    paths = {"ply": scene.save_ply(out / "scene.ply", comments=ply_comments("+z", rid))}
     if figures:
         tt = write_turntable(
             scene,
