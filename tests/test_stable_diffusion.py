@@ -257,7 +257,8 @@ def test_the_densification_statistic_is_per_rendered_pixel_for_every_prior(mode,
     from gdbench.train.config import preset
     from gdbench.train.trainer import apply_update, init_state, make_context, render_for_prior, sample_views
 
-    cfg = preset("sjc-gs", **_two_sd_steps(tmp_path, sd_mode=mode))
+    # a 2-step run densifies by default no more (densify.min_every): every step, so it gathers the statistic
+    cfg = preset("sjc-gs", **_two_sd_steps(tmp_path, sd_mode=mode), densify_every=1)
     ctx = make_context(cfg)
     state = init_state(ctx)
     views = sample_views(ctx, state)

@@ -154,18 +154,23 @@ def run_score(cmd: Score) -> dict:
 @dataclass
 class Export:
     """Write a run's scene (or any scene file) for other viewers and editors: the Inria 3DGS PLY
-    (padded to an SH degree for Inria's loader), antimatter15's .splat (web viewers) or
-    SuperSplat's compressed PLY; rotated so the viewer's up axis is up (docs/export.md)."""
+    (padded to an SH degree for Inria's loader), antimatter15's .splat (web viewers),
+    SuperSplat's compressed PLY, or a triangle mesh (.glb, .obj) by TSDF fusion of rendered depth;
+    rotated so the viewer's up axis is up (docs/export.md)."""
 
     src: tyro.conf.Positional[Path]
     """A run folder (its scene.ply), a PLY (3DGS or compressed) or a .splat file."""
-    format: Literal["ply", "splat", "ply-compressed"] = "ply"
+    format: Literal["ply", "splat", "ply-compressed", "glb", "obj"] = "ply"
     """ply: exact float32, read by Inria's code and most tools; splat: 32 bytes per Gaussian, DC
-    colour only; ply-compressed: about 16 bytes per Gaussian plus SH bands at 8 bits."""
-    up: UpAxis = "-y"
-    """The axis that is up in the file written: -y for Inria/COLMAP-convention viewers (SuperSplat,
-    the .splat viewers), +y, +z (gdbench's own), ... The file records it (and the run it comes
-    from), and gdbench's commands read it back."""
+    colour only; ply-compressed: about 16 bytes per Gaussian plus SH bands at 8 bits; glb, obj: a
+    mesh with vertex colours (TSDF fusion of 64 rendered views; needs Open3D; about 20 s)."""
+    up: UpAxis | None = None
+    """The axis that is up in the file written (default: -y for the Gaussian formats, the
+    Inria/COLMAP convention of SuperSplat and the .splat viewers; +y for meshes, glTF's). The
+    file records it (and the run it comes from), and gdbench's commands read it back."""
+    mesh_resolution: Annotated[int, Between(16, 512)] = 192
+    """glb, obj: voxels along each side of the fusion's cube (finer: more detail, cube-law memory:
+    about 240 MB at 192)."""
     sh_degree: Annotated[int | None, Between(0, 3)] = None
     """SH degree written (ply, ply-compressed): higher pads with zeros (Inria's loader at degree
     3 wants all 45 f_rest_* properties), lower drops view-dependent colour (default: the scene's)."""
@@ -188,17 +193,22 @@ def run_export(cmd: Export) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"src: no scene at {path} (pass a run folder, a .ply or a .splat file)")
     scene = load_scene(path, up=cmd.src_up, flag="--src-up")  # checked before --out is decided
-    degree = scene.sh_degree if cmd.sh_degree is None or cmd.format == "splat" else cmd.sh_degree
+    mesh = cmd.format in ("glb", "obj")
+    up = cmd.up or ("+y" if mesh else "-y")
+    degree = scene.sh_degree if cmd.sh_degree is None or cmd.format in ("splat", "glb", "obj") else cmd.sh_degree
     stem = path.name.removesuffix(".compressed.ply").removesuffix(".ply").removesuffix(".splat")
     for name in UP_NAMES.values():  # scene.y_down -> scene: the name says the new axis alone
         stem = stem.removesuffix(f".{name}")
     shn = f".sh{degree}" if degree != scene.sh_degree else ""
-    suffix = {"ply": ".ply", "splat": ".splat", "ply-compressed": ".compressed.ply"}[cmd.format]
-    out = Path(cmd.out) if cmd.out is not None else path.parent / f"{stem}.{UP_NAMES[cmd.up]}{shn}{suffix}"
-    if out.suffix.lower() != SUFFIXES[cmd.format]:  # the API's rule (export._check_path), in the flags' names
-        raise ValueError(f"out (--out): --format {cmd.format} writes a {suffix} file; got {str(out)!r}")
+    suffix = {"ply": ".ply", "splat": ".splat", "ply-compressed": ".compressed.ply", "glb": ".glb", "obj": ".obj"}
+    out = Path(cmd.out) if cmd.out is not None else path.parent / f"{stem}.{UP_NAMES[up]}{shn}{suffix[cmd.format]}"
+    want = SUFFIXES.get(cmd.format, suffix[cmd.format])
+    if out.suffix.lower() != want:  # the API's rule (export._check_path), in the flags' names
+        raise ValueError(f"out (--out): --format {cmd.format} writes a {suffix[cmd.format]} file; got {str(out)!r}")
     if out.resolve() == path.resolve():
         raise ValueError(f"out: {out} is the source file; pass another --out")
+    if mesh and cmd.sh_degree is not None:
+        raise ValueError(f"sh_degree (--sh-degree): --format {cmd.format} writes vertex colours, not SH bands")
     if cmd.format == "splat" and scene.sh.shape[1] > 1:
         print(f"gdbench export: note: .splat holds the DC colour only; SH degree {scene.sh_degree} dropped")
     if cmd.format == "ply-compressed" and degree > scene.sh_degree:
@@ -207,13 +217,18 @@ def run_export(cmd: Export) -> dict:
             "reads a zero coefficient (byte 128) as 0.0157, not 0, so its colours shift slightly (docs/export.md)"
         )
     run = read_tags(path).run
-    written = export_scene(scene, out, fmt=cmd.format, up=cmd.up, sh_degree=cmd.sh_degree, run=run)
+    if mesh:
+        from gdbench.app.mesh import extract_mesh, write_mesh
+
+        m = extract_mesh(scene, resolution=cmd.mesh_resolution)
+        written = write_mesh(m, out, up=up, run=run)
+        what = f"{len(m.vertices)} vertices, {len(m.faces)} faces"
+    else:
+        written = export_scene(scene, out, fmt=cmd.format, up=up, sh_degree=cmd.sh_degree, run=run)
+        what = f"SH degree {degree}"
     size = written.stat().st_size
-    print(
-        f"gdbench export: {len(scene)} Gaussians -> {written} ({cmd.format}, {cmd.up} up, SH degree {degree}, "
-        f"{size / 1e6:.2f} MB)"
-    )
-    return {"path": str(written), "bytes": size, "gaussians": len(scene), "up": cmd.up, "run": run}
+    print(f"gdbench export: {len(scene)} Gaussians -> {written} ({cmd.format}, {up} up, {what}, {size / 1e6:.2f} MB)")
+    return {"path": str(written), "bytes": size, "gaussians": len(scene), "up": up, "run": run}
 
 
 @dataclass

@@ -6,7 +6,9 @@ gdbench's scenes are +Z up. A file gdbench writes records its up axis and the ru
 - a PLY (3DGS or compressed): header comments ``gdbench run <run id>`` and ``gdbench up <axis>``;
 - a ``.splat`` (a headerless format): a sidecar ``<name>.json`` beside it,
   ``{"gdbench": {"up": ..., "run": ...}}``, and ``gdbench export``'s default name says the axis
-  too (``scene.y_down.splat``).
+  too (``scene.y_down.splat``);
+- a mesh: a ``.glb``'s glTF ``asset.extras.gdbench``, an ``.obj``'s first comment line
+  ``# gdbench {"up": ..., "run": ...}`` (``app.mesh.write_mesh``).
 
 ``read_tags`` reads them back: the header or the sidecar, else the axis in an export's name
 (``.y_down.``), else nothing (a file from elsewhere). ``resolve_up`` decides a command's up axis
@@ -93,6 +95,32 @@ def _name_axis(path: Path) -> str | None:
     return {v: k for k, v in UP_NAMES.items()}[m.group(1)] if m else None
 
 
+def _other_tags(path: Path) -> tuple[dict, str]:
+    """The tags dict of a .splat (its sidecar), .glb or .obj, and where they were ({}, '' if none)."""
+    try:
+        if path.suffix.lower() == ".splat":
+            if not sidecar(path).is_file():
+                return {}, ""
+            return dict(json.loads(sidecar(path).read_text()).get("gdbench", {})), "sidecar"
+        if path.suffix.lower() == ".obj":
+            with open(path, encoding="utf-8", errors="replace") as f:
+                for line in f:
+                    if line.startswith("# gdbench "):
+                        return dict(json.loads(line[len("# gdbench ") :])), "header"
+                    if not line.startswith("#"):
+                        break
+            return {}, ""
+        with open(path, "rb") as f:  # .glb: 12-byte header, then the JSON chunk (length, type, data)
+            head = f.read(20)
+            if head[:4] != b"glTF" or len(head) < 20:
+                return {}, ""
+            tree = json.loads(f.read(int.from_bytes(head[12:16], "little")))
+        return dict(tree.get("asset", {}).get("extras", {}).get("gdbench", {})), "header"
+    except (OSError, ValueError, TypeError, AttributeError) as e:
+        where = sidecar(path) if path.suffix.lower() == ".splat" else path
+        raise ValueError(f"{where}: its gdbench tags are unreadable ({e}); delete or fix it") from e
+
+
 def read_tags(path: str | Path) -> FileTags:
     """The tags of the scene file at ``path`` (see the module docstring). A gdbench run's
     ``scene.ply`` from before the up comment existed records its run alone and is +Z up."""
@@ -110,13 +138,10 @@ def read_tags(path: str | Path) -> FileTags:
                 up, source = value.strip(), "header"
         if up is None and run is not None and path.name == "scene.ply":
             up, source = "+z", "header"  # a run's own scene: always +Z up
-    elif path.suffix.lower() == ".splat" and sidecar(path).is_file():
-        try:
-            tags = json.loads(sidecar(path).read_text()).get("gdbench", {})
-        except (OSError, ValueError, AttributeError) as e:
-            raise ValueError(f"{sidecar(path)}: not the JSON tags of {path.name} ({e}); delete or fix it") from e
+    elif path.suffix.lower() in (".splat", ".glb", ".obj"):
+        tags, where = _other_tags(path)
         if tags.get("up") in UP_AXES:
-            up, source = tags["up"], "sidecar"
+            up, source = tags["up"], where
         run = tags.get("run") or None
     if up is None and (named := _name_axis(path)) is not None:
         up, source = named, "name"
@@ -133,7 +158,7 @@ def resolve_up(path: str | Path, asked: str | None, flag: str = "--up") -> str:
         return tags.up or "+z"
     check_up(asked, f"up ({flag})")
     if tags.up is not None and asked != tags.up:
-        where = {"header": "its PLY header", "sidecar": f"its sidecar {sidecar(path).name}", "name": "its name"}
+        where = {"header": "its header", "sidecar": f"its sidecar {sidecar(path).name}", "name": "its name"}
         raise ValueError(
             f"up ({flag}): {path} records up axis {tags.up} ({where[tags.source]}); reading it as {asked} would "
             f"turn the scene by the wrong rotation. Leave {flag} out (the file's axis is used) or pass {flag} {tags.up}"

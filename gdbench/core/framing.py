@@ -51,3 +51,20 @@ def frame(scene: GaussianScene, fovy: float) -> tuple[GaussianScene, float]:
     centre, radius = bounds(scene)
     moved = dataclasses.replace(scene, means=scene.means - centre)
     return moved, orbit_radius(radius, fovy)
+
+
+def sphere_cameras(centre: torch.Tensor, distance: float, views: int, size: int, fovy: float = 45.0):
+    """``views`` cameras on a Fibonacci lattice of the sphere of radius ``distance`` about
+    ``centre``, each looking at it, ``size`` px square (``core.camera.Cameras``)."""
+    from gdbench.core.camera import Cameras, intrinsics, look_at
+
+    i = torch.arange(views, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / views
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    r = torch.sqrt(1.0 - z * z)
+    dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+    c = centre.detach().to("cpu", torch.float64)
+    eyes = c + distance * dirs
+    viewmats = look_at(eyes, c.expand_as(eyes)).float()
+    Ks = intrinsics(torch.full((views,), fovy), size, size)
+    return Cameras(viewmats, Ks, size, size)

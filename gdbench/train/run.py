@@ -53,11 +53,17 @@ def files_of_run(folder: Path, run: str) -> list[Path]:
 
     from gdbench.core.filetags import UP_NAMES, read_tags, sidecar
 
-    default = re.compile(r"scene\.(" + "|".join(UP_NAMES.values()) + r")(\.sh\d)?(\.compressed\.ply|\.ply|\.splat)")
+    default = re.compile(
+        r"scene\.(" + "|".join(UP_NAMES.values()) + r")(\.sh\d)?(\.compressed\.ply|\.ply|\.splat|\.glb|\.obj)"
+    )
 
     found: list[Path] = []
     for path in sorted(folder.iterdir()):
-        if path.name in RUN_OUTPUTS or not path.is_file() or path.suffix.lower() not in (".ply", ".splat"):
+        if (
+            path.name in RUN_OUTPUTS
+            or not path.is_file()
+            or path.suffix.lower() not in (".ply", ".splat", ".glb", ".obj")
+        ):
             continue
         try:
             tags = read_tags(path)
