@@ -181,6 +181,8 @@ def test_overwrite_removes_what_was_made_from_the_old_run_and_nothing_else(tmp_p
     others = [run / "notes.txt", run / "mine.ply"]
     others[0].write_text("keep")
     export_scene(_scene(), others[1], fmt="ply", run="ffffffffffffffff")  # another run's export
+    inria = Path(main(Export(run, format="inria"))["path"])  # a folder, recording the run in its PLY
+    made.append(inria)
     found = set(files_of_run(run, "0123456789abcdef"))
     turntable = {sheet, run / "scene.y_down_turntable.gif"} | set(run.glob("scene.y_down_turntable.mp4"))
     assert found == {*made, *turntable, legacy}

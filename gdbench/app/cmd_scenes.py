@@ -42,6 +42,22 @@ class Render:
     """Where the frames are rendered: cpu (the C++ compositor), cuda (gsplat's CUDA kernels with
     gdbench's conventions, or the torch path where they cannot run) or auto (cuda when torch sees
     one)."""
+    outputs: str = "rgb"
+    """What to render, comma-separated: rgb, depth (expected depth, scene units; a turbo-coloured
+    turntable and its values in *_depth.npy), alpha (grey, and *_alpha.npy)."""
+    camera_path: Path | None = None
+    """A camera path in nerfstudio's camera_path.json format (what its viewer exports): its
+    cameras, size and fps replace the orbit (--frames, --size, --radius, --elevation, --fovy)."""
+
+
+def _outputs(value: str) -> tuple[str, ...]:
+    from gdbench.core.turntable import OUTPUTS
+
+    names = tuple(dict.fromkeys(o.strip() for o in value.replace(" ", ",").split(",") if o.strip()))
+    bad = [o for o in names if o not in OUTPUTS]
+    if bad or not names:
+        raise ValueError(f"outputs (--outputs): expected some of {','.join(OUTPUTS)}, comma-separated; got {value!r}")
+    return names
 
 
 def run_render(cmd: Render) -> dict:
@@ -54,6 +70,12 @@ def run_render(cmd: Render) -> dict:
     from gdbench.core.turntable import write_turntable
 
     device = resolve_device(cmd.device, "device (--device)")
+    outputs = _outputs(cmd.outputs)
+    cams, fps = None, 12
+    if cmd.camera_path is not None:
+        from gdbench.core.camera_path import read_camera_path
+
+        cams, fps = read_camera_path(cmd.camera_path)
     src = Path(cmd.run)
     ply = src / "scene.ply" if src.is_dir() else src
     if not ply.is_file():
@@ -61,6 +83,8 @@ def run_render(cmd: Render) -> dict:
     run = _run_turntable(ply)
     frames = cmd.frames or run.get("frames", 36)
     size = cmd.size or run.get("size", 256)
+    if cams is not None:
+        frames, size = len(cams), max(cams.width, cams.height)
     check_render_memory(size, frames)
     out = Path(cmd.out or ply.parent)
     # a run folder has one writer: not while a generate (--overwrite) or score writes there
@@ -69,7 +93,9 @@ def run_render(cmd: Render) -> dict:
         scene = load_scene(ply, up=cmd.up, flag="--up")  # a 3DGS or compressed PLY, or a .splat; +Z up
         radius = cmd.radius or run.get("radius")
         framing = ""
-        if radius is None:  # not a run's scene: centred on its bounds and framed whole
+        if cams is not None:
+            framing, radius = f", cameras from {cmd.camera_path}", radius or 1.0
+        elif radius is None:  # not a run's scene: centred on its bounds and framed whole
             from gdbench.core.framing import frame
 
             scene, radius = frame(scene, cmd.fovy)
@@ -83,10 +109,13 @@ def run_render(cmd: Render) -> dict:
             elevation=cmd.elevation,
             fovy=cmd.fovy,
             background=run.get("background", (1.0, 1.0, 1.0)),
-            stem=ply.stem + "_turntable",
+            stem=ply.stem + ("_camera_path" if cams is not None else "_turntable"),
+            cams=cams,
+            fps=fps,
+            outputs=outputs,
         )
     print(
-        f"gdbench render: {len(scene)} Gaussians, {frames} frames at {size}px{framing}, "
+        f"gdbench render: {len(scene)} Gaussians, {frames} frames at {size}px{framing} ({','.join(outputs)}), "
         f"median {1e3 * sorted(res.seconds_per_frame)[frames // 2]:.1f} ms per frame"
     )
     for k, v in res.paths.items():
@@ -160,10 +189,12 @@ class Export:
 
     src: tyro.conf.Positional[Path]
     """A run folder (its scene.ply), a PLY (3DGS or compressed) or a .splat file."""
-    format: Literal["ply", "splat", "ply-compressed", "glb", "obj"] = "ply"
+    format: Literal["ply", "splat", "ply-compressed", "glb", "obj", "inria"] = "ply"
     """ply: exact float32, read by Inria's code and most tools; splat: 32 bytes per Gaussian, DC
     colour only; ply-compressed: about 16 bytes per Gaussian plus SH bands at 8 bits; glb, obj: a
-    mesh with vertex colours (TSDF fusion of 64 rendered views; needs Open3D; about 20 s)."""
+    mesh with vertex colours (TSDF fusion of 64 rendered views; needs Open3D; about 20 s); inria:
+    an Inria model folder (point_cloud/iteration_N/point_cloud.ply, cameras.json, cfg_args and the
+    turntable views as its source) that the SIBR viewer and Inria's render.py load."""
     up: UpAxis | None = None
     """The axis that is up in the file written (default: -y for the Gaussian formats, the
     Inria/COLMAP convention of SuperSplat and the .splat viewers; +y for meshes, glTF's). The
@@ -177,7 +208,8 @@ class Export:
     out: Path | None = None
     """The file written (default: beside the source, named by the up axis and, when it differs from
     the scene's, the SH degree: scene.y_down.ply, scene.y_down.sh3.ply, scene.y_down.splat,
-    scene.z_up.compressed.ply, ...)."""
+    scene.z_up.compressed.ply, scene.y_up.glb, ...); for inria, the folder (default:
+    inria.y_down beside the source)."""
     src_up: UpAxis | None = None
     """The up axis of the source file (default: the one it records, as every file gdbench writes
     does, else +z). One that differs from the recorded axis is refused: it would rotate the scene
@@ -195,6 +227,10 @@ def run_export(cmd: Export) -> dict:
     scene = load_scene(path, up=cmd.src_up, flag="--src-up")  # checked before --out is decided
     mesh = cmd.format in ("glb", "obj")
     up = cmd.up or ("+y" if mesh else "-y")
+    if cmd.format == "inria" and cmd.sh_degree is not None:
+        raise ValueError("sh_degree (--sh-degree): --format inria writes SH degree 3, the Inria loader's")
+    if cmd.format == "inria":
+        return _export_inria(cmd, path, scene, up, read_tags(path).run)
     degree = scene.sh_degree if cmd.sh_degree is None or cmd.format in ("splat", "glb", "obj") else cmd.sh_degree
     stem = path.name.removesuffix(".compressed.ply").removesuffix(".ply").removesuffix(".splat")
     for name in UP_NAMES.values():  # scene.y_down -> scene: the name says the new axis alone
@@ -229,6 +265,43 @@ def run_export(cmd: Export) -> dict:
     size = written.stat().st_size
     print(f"gdbench export: {len(scene)} Gaussians -> {written} ({cmd.format}, {up} up, {what}, {size / 1e6:.2f} MB)")
     return {"path": str(written), "bytes": size, "gaussians": len(scene), "up": up, "run": run}
+
+
+def _export_inria(cmd: Export, path: Path, scene, up: str, run: str | None) -> dict:
+    """``export --format inria``: the model folder, seen from the run's turntable (a scene from
+    elsewhere: the same orbit about its bounds, at the distance that frames it)."""
+    import torch
+
+    from gdbench.app.inria import write_inria_model
+    from gdbench.core.camera import SphericalPoses
+    from gdbench.core.filetags import UP_NAMES
+    from gdbench.core.framing import bounds, orbit_radius
+    from gdbench.core.io import run_json_of
+    from gdbench.core.turntable import RUN_TURNTABLE
+
+    out = Path(cmd.out) if cmd.out is not None else path.parent / f"inria.{UP_NAMES[up]}"
+    if out.suffix.lower() in (".ply", ".splat", ".glb", ".obj", ".json"):
+        raise ValueError(f"out (--out): --format inria writes a folder; got the file name {str(out)!r}")
+    turntable = _run_turntable(path)
+    found = run_json_of(path)
+    if turntable:
+        orbit, centre = RUN_TURNTABLE, torch.zeros(3, dtype=torch.float64)
+        iteration = int(found[1].get("steps", 0)) or None
+    else:
+        c, r = bounds(scene)
+        centre = c.double()
+        orbit = RUN_TURNTABLE | {"radius": orbit_radius(r, RUN_TURNTABLE["fovy"])}
+        iteration = None
+    size = turntable.get("size", 256)
+    cams = SphericalPoses.orbit(turntable.get("frames", 36), **orbit).cameras(size, size)
+    shift = torch.eye(4, dtype=torch.float64)
+    shift[:3, 3] = -centre
+    cams = type(cams)((cams.viewmats.double() @ shift).float(), cams.Ks, size, size)
+    folder = write_inria_model(
+        scene, out, cams, up=up, run=run, iteration=iteration, background=turntable.get("background", (1.0, 1.0, 1.0))
+    )
+    print(f"gdbench export: {len(scene)} Gaussians -> {folder}/ (inria model folder, {up} up, {len(cams)} views)")
+    return {"path": str(folder), "gaussians": len(scene), "up": up, "run": run}
 
 
 @dataclass

@@ -75,6 +75,32 @@ def contact_sheet(frames: np.ndarray, columns: int = 6) -> np.ndarray:
     return sheet
 
 
+OUTPUTS = ("rgb", "depth", "alpha")
+"""What ``write_turntable`` renders: colour, expected depth (scene units along the view axis, 0
+where nothing is), alpha."""
+
+
+def _visual(name: str, x: torch.Tensor) -> torch.Tensor:
+    """[F, H, W] depth or alpha as [F, H, W, 3] images in [0, 1]: alpha grey (white: opaque),
+    depth by matplotlib's turbo over the covered pixels' 1st-99th percentile (near: red), empty
+    pixels white."""
+    if name == "alpha":
+        return x[..., None].expand(*x.shape, 3)
+    from matplotlib import colormaps
+
+    covered = x > 0
+    if not bool(covered.any()):
+        return torch.ones(*x.shape, 3)
+    v = x[covered].double()
+    lo, hi = (
+        float(q)
+        for q in torch.quantile(v[:: max(1, v.numel() // 1_000_000)], torch.tensor([0.01, 0.99], dtype=v.dtype))
+    )
+    t = ((x.double() - lo) / max(hi - lo, 1e-12)).clamp(0, 1)
+    rgb = torch.from_numpy(colormaps["turbo"](1.0 - t.numpy())[..., :3]).float()
+    return torch.where(covered[..., None], rgb, torch.ones_like(rgb))
+
+
 def write_turntable(
     scene: GaussianScene,
     out_dir: str | Path,
@@ -85,39 +111,79 @@ def write_turntable(
     elevation: float = 20.0,
     fovy: float = 45.0,
     background=(1.0, 1.0, 1.0),
-    fps: int = 12,
+    fps: float = 12,
     mp4: bool = True,
     stem: str = "turntable",
+    cams: Cameras | None = None,
+    outputs: tuple[str, ...] = ("rgb",),
 ) -> TurntableResult:
-    """Render ``frames`` views on a circle and write ``{stem}.gif``, ``.mp4`` and ``_sheet.png``."""
+    """Render ``frames`` views on a circle (or ``cams``, then frames, size, radius, elevation and
+    fovy are theirs) and write ``{stem}.gif``, ``.mp4`` and ``_sheet.png`` of each of ``outputs``
+    (``OUTPUTS``): rgb as ``{stem}.*``, depth and alpha as ``{stem}_depth.*`` and
+    ``{stem}_alpha.*`` (``_visual``), with their values as float32 [F, H, W] in ``{stem}_depth.npy``
+    and ``{stem}_alpha.npy``."""
     import imageio.v3 as iio
 
     from gdbench.core.io import atomic_path
 
+    bad = [o for o in outputs if o not in OUTPUTS]
+    if bad or not outputs:
+        raise ValueError(f"outputs: expected some of {', '.join(OUTPUTS)}, got {list(outputs)!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    cams = SphericalPoses.orbit(frames, radius=radius, elevation=elevation, fovy=fovy).cameras(size, size)
-    times, imgs = [], []
+    if cams is None:
+        cams = SphericalPoses.orbit(frames, radius=radius, elevation=elevation, fovy=fovy).cameras(size, size)
+    frames = len(cams)
+    want = {"rgb", "alpha"} | set(outputs)
+    times, imgs = [], {o: [] for o in OUTPUTS}
+    from renderers.splat import rasterize
+
+    bg = torch.as_tensor(background, dtype=scene.means.dtype, device=scene.means.device)
     for i in range(frames):
         t0 = time.perf_counter()
-        imgs.append(render_views(scene, cams[i], background=background))
+        c = cams[i].to(scene.means.device)
+        with torch.no_grad():
+            r = rasterize(
+                **scene.render_args(),
+                viewmats=c.viewmats,
+                Ks=c.Ks,
+                width=c.width,
+                height=c.height,
+                background=bg,
+                outputs=tuple(o for o in OUTPUTS if o in want),
+            )
+        imgs["rgb"].append(r.rgb.clamp(0, 1).cpu())
+        imgs["alpha"].append(r.alpha[..., 0].cpu())
+        if r.depth is not None:
+            imgs["depth"].append(r.depth[..., 0].cpu())
         times.append(time.perf_counter() - t0)
-    arr = to_uint8(torch.cat(imgs))
-    paths = {"gif": out_dir / f"{stem}.gif", "sheet": out_dir / f"{stem}_sheet.png"}
-    with atomic_path(paths["gif"]) as tmp:
-        iio.imwrite(tmp, arr, duration=1000 / fps, loop=0)
-    with atomic_path(paths["sheet"]) as tmp:
-        iio.imwrite(tmp, contact_sheet(arr[:: max(1, frames // 12)][:12]))
-    if mp4:
-        try:
-            with atomic_path(out_dir / f"{stem}.mp4") as tmp:
-                iio.imwrite(tmp, arr, fps=fps, codec="libx264", plugin="pyav")
-            paths["mp4"] = out_dir / f"{stem}.mp4"
-        except OSError:  # a full disk is the run's error, not a missing codec
-            raise
-        except Exception as e:  # pyav missing or without x264: the GIF is still there
-            print(f"note: MP4 not written ({type(e).__name__}: {e}); install `av` for MP4 output")
-    return TurntableResult(arr, times, paths)
+    paths: dict[str, Path] = {}
+    for name in outputs:
+        values = torch.cat(imgs[name])
+        tag = "" if name == "rgb" else f"_{name}"
+        if name != "rgb":
+            with atomic_path(out_dir / f"{stem}{tag}.npy") as tmp:
+                np.save(tmp, values.float().numpy())
+            paths[f"{name}_npy"] = out_dir / f"{stem}{tag}.npy"
+        arr = to_uint8(values if name == "rgb" else _visual(name, values))
+        key = lambda k, name=name: k if name == "rgb" else f"{name}_{k}"  # noqa: E731
+        paths[key("gif")] = out_dir / f"{stem}{tag}.gif"
+        paths[key("sheet")] = out_dir / f"{stem}{tag}_sheet.png"
+        with atomic_path(paths[key("gif")]) as tmp:
+            iio.imwrite(tmp, arr, duration=1000 / fps, loop=0)
+        with atomic_path(paths[key("sheet")]) as tmp:
+            iio.imwrite(tmp, contact_sheet(arr[:: max(1, frames // 12)][:12]))
+        if mp4:
+            try:
+                with atomic_path(out_dir / f"{stem}{tag}.mp4") as tmp:
+                    iio.imwrite(tmp, arr, fps=fps, codec="libx264", plugin="pyav")
+                paths[key("mp4")] = out_dir / f"{stem}{tag}.mp4"
+            except OSError:  # a full disk is the run's error, not a missing codec
+                raise
+            except Exception as e:  # pyav missing or without x264: the GIF is still there
+                print(f"note: MP4 not written ({type(e).__name__}: {e}); install `av` for MP4 output")
+                mp4 = False
+    return TurntableResult(to_uint8(torch.cat(imgs["rgb"])), times, paths)
 
 
 def demo(out: Path, *, frames: int = 36, size: int = 256, gaussians: int = 3000, seed: int = 0) -> dict:

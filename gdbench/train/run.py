@@ -10,6 +10,7 @@ run id (a hash of the config) and the scene's hash, ``scene.ply`` the run id in 
 
 from __future__ import annotations
 
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,48 +34,54 @@ RUN_OUTPUTS = (
     "turntable_sheet.png",
     "curves.png",
     "checkpoint.pt",
-    "scene_turntable.gif",
-    "scene_turntable.mp4",
-    "scene_turntable_sheet.png",
     "colmap.log",
+    *(
+        f"scene_{kind}{tag}{end}"
+        for kind in ("turntable", "camera_path")
+        for tag in ("", "_depth", "_alpha")
+        for end in (".gif", ".mp4", "_sheet.png", *((".npy",) if tag else ()))
+    ),
 )
 """What a run and the commands that write into its folder (``score``, ``render``) put there
 (removed before an overwrite, with the files ``files_of_run`` finds)."""
 
 
 def files_of_run(folder: Path, run: str) -> list[Path]:
-    """The files in ``folder`` (not below it) that gdbench made from run ``run``'s scene besides
+    """What in ``folder`` (not below it) gdbench made from run ``run``'s scene besides
     ``RUN_OUTPUTS``: exports recording the run (``core.filetags``: a PLY's header comment, a
-    .splat's sidecar), those sidecars, and the turntables ``render`` made of those exports
-    (``<stem>_turntable.gif``, ``.mp4``, ``_sheet.png``). An export that records no run (made
-    before exports recorded it) is the run's when it bears ``gdbench export``'s default name for
-    the run's scene (scene.y_down.splat, scene.z_up.sh3.ply, ...)."""
+    .splat's sidecar, a mesh's header), those sidecars, what ``render`` made of those exports
+    (``<stem>_turntable*``, ``<stem>_camera_path*``), and Inria model folders
+    (``cfg_args`` beside a ``point_cloud/iteration_*/point_cloud.ply`` recording the run). An
+    export that records no run (made before exports recorded it) is the run's when it bears
+    ``gdbench export``'s default name for the run's scene (scene.y_down.splat, ...)."""
     import re
 
     from gdbench.core.filetags import UP_NAMES, read_tags, sidecar
 
-    default = re.compile(
-        r"scene\.(" + "|".join(UP_NAMES.values()) + r")(\.sh\d)?(\.compressed\.ply|\.ply|\.splat|\.glb|\.obj)"
-    )
+    axes = "|".join(UP_NAMES.values())
+    default = re.compile(rf"scene\.({axes})(\.sh\d)?(\.compressed\.ply|\.ply|\.splat|\.glb|\.obj)")
+
+    def records(path: Path) -> bool:
+        try:
+            tags = read_tags(path)
+        except (OSError, ValueError):
+            return False  # unreadable tags: not provably this run's, so left alone
+        return tags.run == run or (tags.run is None and default.fullmatch(path.name) is not None)
 
     found: list[Path] = []
     for path in sorted(folder.iterdir()):
-        if (
-            path.name in RUN_OUTPUTS
-            or not path.is_file()
-            or path.suffix.lower() not in (".ply", ".splat", ".glb", ".obj")
-        ):
+        if path.is_dir() and (path / "cfg_args").is_file():  # an Inria model folder
+            if any(records(p) for p in path.glob("point_cloud/iteration_*/point_cloud.ply")):
+                found.append(path)
             continue
-        try:
-            tags = read_tags(path)
-            mine = tags.run == run or (tags.run is None and default.fullmatch(path.name) is not None)
-        except (OSError, ValueError):
-            continue  # unreadable tags: not provably this run's, so left alone
-        if mine:
+        exported = path.is_file() and path.suffix.lower() in (".ply", ".splat", ".glb", ".obj")
+        if path.name in RUN_OUTPUTS or not exported:
+            continue
+        if records(path):
             stem = path.name.removesuffix(path.suffix)
             found += [path, sidecar(path)]
-            found += [folder / f"{stem}_turntable{end}" for end in (".gif", ".mp4", "_sheet.png")]
-    return [p for p in found if p.is_file()]
+            found += [p for p in folder.iterdir() if p.name.startswith((f"{stem}_turntable", f"{stem}_camera_path"))]
+    return [p for p in found if p.is_file() or p.is_dir()]
 
 
 @dataclass
@@ -142,7 +149,10 @@ def _check_finished(out: Path, cfg: TrainConfig, overwrite: bool, resume: bool) 
     if overwrite:
         derived = files_of_run(out, old["run_id"]) if isinstance(old.get("run_id"), str) else []
         for path in [*(out / name for name in RUN_OUTPUTS), *derived]:
-            path.unlink(missing_ok=True)
+            if path.is_dir():
+                shutil.rmtree(path)
+            else:
+                path.unlink(missing_ok=True)
         return
     same = old.get("run_id") == run_id(cfg)
     if same and resume and checkpoint_path(cfg).is_file():
