@@ -1,6 +1,7 @@
 """The CLI's main job (demo turntable) and the package's import cost."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -378,10 +379,33 @@ def test_cache_list_and_clear(tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "c" / "banks").exists() and (tmp_path / "c" / "fixtures" / "f.pt").is_file()
     main(Cache("clear"))
     assert cache.entries()[0].kind == "mine" and len(cache.entries()) == 1
+    (tmp_path / "c" / "prebuild.log").write_text("gdbench cache: 'a corgi' ready (20.0 s)\n")
+    main(Cache("list"))
+    line = next(x for x in capsys.readouterr().out.splitlines() if "prebuild.log" in x)
+    assert "the log of the background bank build" in line and "not gdbench's" not in line
     with pytest.raises(ValueError, match="prompts: only for build"):
         main(Cache("list", prompts=("a corgi",)))
     with pytest.raises(ValueError, match="kinds: only for clear"):
         main(Cache("build", kinds=("banks",)))
+
+
+def test_a_background_build_is_found_by_its_pid_file_while_it_lives(tmp_path, monkeypatch):
+    """``prebuild.running``: the pid file of a live process names it; of a dead one, or of the
+    caller itself, nothing (``generate`` prints a note when it names a build)."""
+    from gdbench.app.prebuild import PID, running
+
+    monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path))
+    assert running() is None  # no file
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / PID).write_text(str(child.pid))
+        assert running() == child.pid
+    finally:
+        child.kill()
+        child.wait()
+    assert running() is None  # the process is gone
+    (tmp_path / PID).write_text(str(os.getpid()))
+    assert running() is None  # the caller is not a build beside itself
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from gdbench.core.constraints import AtLeast, Between
 from gdbench.core.io import prompt_slug
 from gdbench.train.config import PRESETS
 from gdbench.train.options import train_options
@@ -58,6 +59,13 @@ class GenerateBase:
     """Score the result against the asset (PSNR/SSIM and view metrics) into scores.json."""
     progress: bool = True
     """Report progress: a bar on a terminal, a plain line every few seconds in a log."""
+    view: bool = False
+    """Watch the run train in the browser viewer (viser; `pip install -e '.[view]'`): the scene is
+    sent every --view-every steps; the server stops when the run ends (docs/viewer.md)."""
+    view_every: Annotated[int, AtLeast(1)] = 100
+    """--view: send the scene to the viewer every this many steps."""
+    view_port: Annotated[int, Between(1, 65535)] = 8080
+    """--view: the viewer's port on 127.0.0.1 (the next free one when it is busy)."""
 
 
 def _with_options(base: type, train: type, name: str) -> type:
@@ -122,8 +130,31 @@ def run_generate(cmd) -> dict:
         else:
             what = f"{cfg.steps} steps into {out}"
         print(f"gdbench generate: prompt {cfg.prompt!r}{match}; {what}", flush=True)
+        from gdbench.app.prebuild import running
 
-    r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite, on_start=started)
+        pid = running()
+        if pid is not None:
+            from gdbench.core.cache import root
+
+            print(
+                f"gdbench generate: note: the assets' banks are being built in the background (gdbench cache build, "
+                f"pid {pid}; log {root() / 'prebuild.log'}); this run shares the machine with it and is slower "
+                "until it ends",
+                flush=True,
+            )
+
+    live = None
+    if cmd.view:
+        from gdbench.app.live_view import LiveView
+        from gdbench.app.viewer import import_viser
+
+        import_viser()  # its install hint now, not after the bank is built
+        live = LiveView(every=cmd.view_every, port=cmd.view_port)
+    try:
+        r = train(cfg, resume=cmd.resume, overwrite=cmd.overwrite, on_start=started, on_step=live)
+    finally:
+        if live is not None:
+            live.close()
     summary = r.summary()
     if cmd.score and r.caption is not None and r.state.step >= cfg.steps:
         from gdbench.metrics.run_scores import score_run

@@ -5,8 +5,13 @@ prompt check's palette), built ahead of the first run; scripts/setup.sh runs it 
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 import time
+
+PID = "prebuild.pid"
+"""Written into the cache folder while ``build`` runs (its process id), removed when it ends:
+``generate`` says so when it starts beside a build (``running``)."""
 
 PREBUILT = "prebuilt.json"
 """Written into the banks folder when ``build`` has built every asset (scripts/setup.sh looks for
@@ -18,9 +23,37 @@ def build(prompts: list[str] | None = None) -> list[str]:
     order: the prior's image bank, the view metrics' reference ring, the ground truth's held-out
     views and the prompt check's palette. Default: every asset, "a yellow duck" last (the demo
     builds its own in the meantime). Returns the captions built for; when all were, writes
-    ``PREBUILT``."""
-    from gdbench.assets.bank import ASSET_VERSION
+    ``PREBUILT``. While it runs, ``PID`` in the cache folder names its process."""
     from gdbench.assets.library import ASSETS
+    from gdbench.core.cache import root
+
+    everything = prompts is None
+    if everything:
+        prompts = sorted(ASSETS, key=lambda c: (c == "a yellow duck", c))
+    pid = root() / PID
+    pid.parent.mkdir(parents=True, exist_ok=True)
+    pid.write_text(str(os.getpid()))
+    try:
+        return _build(prompts, everything)
+    finally:
+        pid.unlink(missing_ok=True)
+
+
+def running() -> int | None:
+    """The process id of a ``gdbench cache build`` running now (its ``PID`` file names a live
+    process), else None."""
+    from gdbench.core.cache import root
+
+    try:
+        pid = int((root() / PID).read_text().strip())
+        os.kill(pid, 0)
+    except (OSError, ValueError):
+        return None
+    return pid if pid != os.getpid() else None
+
+
+def _build(prompts: list[str], everything: bool) -> list[str]:
+    from gdbench.assets.bank import ASSET_VERSION
     from gdbench.core.cache import root
     from gdbench.core.io import atomic_write
     from gdbench.metrics.gt import asset_views, heldout_poses
@@ -29,9 +62,6 @@ def build(prompts: list[str] | None = None) -> list[str]:
     from gdbench.priors.prompt_check import palette
     from gdbench.train.config import preset
 
-    everything = prompts is None
-    if everything:
-        prompts = sorted(ASSETS, key=lambda c: (c == "a yellow duck", c))
     done = []
     for prompt in prompts:
         t0 = time.perf_counter()

@@ -326,6 +326,18 @@ class Viewer:
     def stop(self) -> None:
         self.server.stop()
 
+    def update_scene(self, scene: GaussianScene) -> None:
+        """Replace the splats every browser shows with ``scene``'s (``generate --view``)."""
+        splats = splat_arrays(scene)
+        self.server.scene.add_gaussian_splats(
+            "/scene",
+            centers=splats.centers,
+            covariances=splats.covariances,
+            rgbs=splats.rgbs,
+            opacities=splats.opacities,
+            scale=splats.scale,
+        )
+
     # ------------------------------------------------------------------ GUI callbacks
     def _go(self, k: int) -> None:
         self._info.content = _describe(k, len(self.poses), self.radius)

@@ -24,6 +24,12 @@ KINDS = {
 }
 """Sub-folder -> what it holds."""
 
+FILES = {
+    "prebuild.log": "the log of the background bank build (scripts/setup.sh: gdbench cache build)",
+    "prebuild.pid": "the process id of the background bank build, while it runs",
+}
+"""gdbench's own files at the top of the cache -> what they are (``clear`` leaves them)."""
+
 
 def root() -> Path:
     """The cache folder: ``$GDBENCH_CACHE`` (an empty value counts as unset), else
@@ -84,7 +90,7 @@ def listing() -> str:
     lines = [f"gdbench cache: {root()} ({human(sum(e.bytes for e in es))} in {sum(e.files for e in es)} files)"]
     for e in es:
         age = "" if e.newest is None else f", newest {(time.time() - e.newest) / 86400:.0f} days old"
-        what = KINDS.get(e.kind, "not gdbench's (left alone by clear)")
+        what = KINDS.get(e.kind) or FILES.get(e.kind) or "not gdbench's (left alone by clear)"
         lines.append(f"  {e.kind:15s} {human(e.bytes):>9s} {e.files:6d} files{age}  {what}")
     if not es:
         lines.append("  (empty)")

@@ -172,12 +172,14 @@ def train(
     write_outputs: bool = True,
     overwrite: bool = False,
     on_start=None,
+    on_step=None,
     figures: bool = True,
 ) -> RunResult:
     """Train (or resume) the run in ``cfg.out``.
 
     ``on_start(ctx)``, if given, is called once the prompt is matched and the prior built, before
-    the first step (``gdbench generate`` prints the matched asset there).
+    the first step (``gdbench generate`` prints the matched asset there). ``on_step(state)``, if
+    given, is called after every step (``gdbench generate --view`` sends the scene to the viewer).
 
     ``stop_at`` ends the call after that many total steps with a checkpoint, as if the run had
     been killed there (for tests and time-sliced sweeps); calling again resumes it. On CPU a
@@ -203,7 +205,7 @@ def train(
         resumed_from = state.step if read else None
         setup_s = time.perf_counter() - t_start
         last = min(cfg.steps, stop_at) if stop_at is not None else cfg.steps
-        if _loop(state, ctx, ckpt, last) != state.step:  # the loop saved this step already, or not
+        if _loop(state, ctx, ckpt, last, on_step) != state.step:  # the loop saved this step already, or not
             save_checkpoint(state, ctx, ckpt)
         paths: dict[str, Path] = {"checkpoint": ckpt}
         # a run found finished (figures drawn later, scores made again) keeps its provenance: the
@@ -233,7 +235,7 @@ PROVENANCE = ("commit", "utc", "versions", "threads", "device", "timings", "resu
 written again."""
 
 
-def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> int | None:
+def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int, on_step=None) -> int | None:
     """Steps until ``last``; returns the step of the last checkpoint it saved (None if none). A stop
     signal (Ctrl-C, SIGTERM, SIGHUP) is deferred to the end of the step it lands in, so the
     checkpoint saved then holds a whole step, and the run resumes exactly where it stopped."""
@@ -258,6 +260,8 @@ def _loop(state: TrainState, ctx: Context, ckpt: Path, last: int) -> int | None:
                 if state.step % cfg.checkpoint_every == 0 and not interrupted:
                     save_checkpoint(state, ctx, ckpt)
                     saved = state.step
+                if on_step is not None:
+                    on_step(state)
         finally:
             if bar is not None:
                 bar.close()
