@@ -102,6 +102,6 @@ if [ "${GDBENCH_PREBUILD:-1}" != 0 ] \
   && ! grep -q "\"asset_version\": ${asset_version}[,}]" "$cache_root/banks/prebuilt.json" 2>/dev/null \
   && ! { command -v pgrep >/dev/null && pgrep -f "gdbench.app.cli cache build" >/dev/null; }; then
   mkdir -p "$cache_root"
-  echo "setup: building the assets' image banks in the background (low priority, about 4 minutes; log: $cache_root/prebuild.log)"
+  echo "setup: building the assets' image banks in the background (low priority: about 2 minutes on a quiet machine, longer under load; log: $cache_root/prebuild.log)"
   nohup nice -n 19 .venv/bin/python -m gdbench.app.cli cache build > "$cache_root/prebuild.log" 2>&1 < /dev/null &
 fi

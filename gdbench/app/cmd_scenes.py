@@ -155,7 +155,8 @@ class Score:
     gt: bool = True
     """Score against the procedural asset (empirical-prior runs)."""
     colmap: bool = True
-    """Run the COLMAP consistency metric (about 30 s on 2 cores)."""
+    """Run the COLMAP consistency metric (seconds on 2 cores; the measured times and their
+    conditions: docs/performance.md)."""
     views: Annotated[int, AtLeast(2)] = 100
     """COLMAP's: the number of turntable views rendered and registered."""
     size: Annotated[int, AtLeast(16, "px")] = 256

@@ -67,7 +67,8 @@ class SweepBase:
     workers: Annotated[int, AtLeast(1)] = 1
     """Cells run at once (one training already uses both cores of a small machine)."""
     colmap: bool = True
-    """Score cells with COLMAP consistency (the slow part: ~1 min per cell)."""
+    """Score cells with COLMAP consistency (seconds per cell on 2 cores, a share of a cell's time;
+    measured: docs/performance.md)."""
     colmap_views: Annotated[int, AtLeast(2)] = 100
     """Views on the circle rendered for COLMAP."""
     figures: bool = False
