@@ -1,0 +1,62 @@
+"""The world's procedural objects (gdbench.assets.families): at least 30 named objects of at least
+10 kinds, each fitted to the ball of radius 0.45, centred, with its marked front parts facing +X.
+
+Oracles: the mesh's own vertices (fit, centring), and pyrender's views of the marked parts alone
+(they show from the front and hide from the back: the front is where the caption says it is)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gdbench.assets.families import COLOURS, KINDS, WORLD, WORLD_FRONTS, Spec
+
+
+def test_the_default_set_is_at_least_30_objects_of_10_kinds_with_compositional_captions():
+    assert len(WORLD) >= 30 and len({s.kind for s in WORLD.values()}) >= 10
+    assert set(WORLD_FRONTS) == set(WORLD) and all(WORLD_FRONTS.values())
+    for caption, spec in WORLD.items():
+        words = caption.split()
+        assert words[0] in ("a", "an") and words[1] in COLOURS and words[2] == spec.kind, caption
+        if spec.hat or spec.scarf:
+            assert words[3:5] == ["wearing", "a"] and words[5] == (spec.hat or spec.scarf), caption
+
+
+@pytest.mark.parametrize("caption", sorted(WORLD))
+def test_every_object_is_fitted_centred_and_shows_its_front_at_plus_x(caption):
+    from gdbench.core.camera import SphericalPoses
+    from renderers.pyrender_points.mesh import render_mesh
+
+    mesh = WORLD[caption].build()
+    v = np.asarray(mesh.vertices)
+    assert np.linalg.norm(v, axis=1).max() == pytest.approx(0.45, abs=1e-9)  # combine's fit
+    lo, hi = v.min(0), v.max(0)
+    np.testing.assert_allclose((lo + hi) / 2, 0, atol=1e-9)
+    marks = np.asarray(mesh.metadata["front"], bool)
+    assert marks.any() and not marks.all()
+    rgba = np.zeros((len(v), 4), np.uint8)
+    rgba[:, 3] = 255
+    rgba[marks, :3] = 255
+    mesh.visual.vertex_colors = rgba
+    az = torch.tensor([0.0, 180.0], dtype=torch.float64)
+    poses = SphericalPoses(az, torch.full_like(az, 15.0), torch.ones_like(az), torch.full_like(az, 50.0))
+    pose_gl, K = poses.cameras(64, 64).to_opengl()
+    rgb, _, alpha = render_mesh(mesh, pose_gl.double().numpy(), K.double().numpy(), 64, 64,
+                                background=(0, 0, 0), ambient=1.0, headlight=0.0)  # fmt: skip
+    front, back = (rgb[..., 0] > 0.5).reshape(2, -1).sum(1)
+    assert alpha[1].sum() > 100  # the back view is not empty
+    assert front >= 20 and back <= 0.1 * front, (front, back)
+
+
+def test_same_spec_same_mesh_and_bad_specs_are_refused():
+    a, b = Spec("pig", "pink", hat="blue").build(), Spec("pig", "pink", hat="blue").build()
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.visual.vertex_colors, b.visual.vertex_colors)
+    assert not np.array_equal(Spec("pig", "pink").build().vertices.shape, a.vertices.shape)  # the hat is there
+    with pytest.raises(ValueError, match="kind: expected one of chick, owl"):
+        Spec("dragon", "red")
+    with pytest.raises(ValueError, match="colour: expected one of red, orange"):
+        Spec("cat", "vermilion")
+    with pytest.raises(ValueError, match="hat, scarf: one accessory per object"):
+        Spec("cat", "red", hat="blue", scarf="green")
+    assert set(KINDS) >= {"duck", "cat", "dog", "pig", "bear", "rabbit", "frog", "fish", "robot", "car", "teapot"}
