@@ -6,7 +6,7 @@
 parameters (a few hundred kilobytes: the only work on the training thread) and hands the copy to
 a worker thread, which builds viser's splat arrays and sends them (``Viewer.update_scene``). A
 copy that arrives while the worker is busy replaces the one waiting, so a slow browser never
-holds the run back. What the step pays was measured by ``gdbench.bench.bm_live_view``.
+holds the run back. What the step pays was measured by ``scripts/bench_live_view.py``.
 """
 
 from __future__ import annotations

@@ -4,10 +4,10 @@ steps, then in alternating blocks of ``block`` steps with and without the live v
 run, so both see the same scene sizes and the machine's phase moves both alike). The figure is
 the mean step (the sends are spikes: the mean, not the median, is what the run pays), watched
 over unwatched, per ``--view-every``; target: at most 1.05 at the default (100 steps). No
-browser is connected (viser still builds and queues each message for late joiners; a browser's
-socket writes happen on viser's own thread). Writes CSV and JSON with the machine's phase.
+browser is connected (a browser's socket writes are not measured). Writes CSV and JSON with the
+machine's phase.
 
-    python -m gdbench.bench.bm_live_view --out bench_results/live_view.csv
+    python scripts/bench_live_view.py --out bench_results/live_view.csv
 """
 
 from __future__ import annotations
