@@ -612,3 +612,8 @@ def test_a_resumed_run_says_so_in_its_first_line(tmp_path, capsys):
     again = capsys.readouterr().out.splitlines()
     assert again[0].endswith(f"; resuming the run in {out} from its checkpoint (3 steps in all)"), again[0]
     assert any("(resumed from step 3)" in line for line in again)
+    # --overwrite deletes the finished run with its checkpoint: a fresh run, and it says so
+    main(Generate("a yellow duck", out=out, score=False, progress=False, overwrite=True, train=small))
+    over = capsys.readouterr().out.splitlines()
+    assert "; 3 steps into " in over[0] and "resuming" not in over[0], over[0]
+    assert not any("resumed from step" in line for line in over)

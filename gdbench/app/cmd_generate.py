@@ -125,7 +125,8 @@ def run_generate(cmd) -> dict:
 
         caption, sim = getattr(ctx.cond, "caption", None), getattr(ctx.cond, "similarity", None)
         match = f" -> asset {caption!r} (cosine {sim:.2f})" if caption is not None else ""
-        if cmd.resume and checkpoint_path(cfg).is_file():  # said first, not only in the last line
+        replaced = cmd.overwrite and (out / "run.json").is_file()  # --overwrite deletes a finished run's checkpoint
+        if cmd.resume and checkpoint_path(cfg).is_file() and not replaced:  # said first, not only in the last line
             what = f"resuming the run in {out} from its checkpoint ({cfg.steps} steps in all)"
         else:
             what = f"{cfg.steps} steps into {out}"
