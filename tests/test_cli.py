@@ -114,7 +114,7 @@ def test_render_bad_path(tmp_path):
 
     from gdbench.app.cmd_scenes import Render
 
-    with pytest.raises(FileNotFoundError, match="run: no PLY"):
+    with pytest.raises(FileNotFoundError, match=r"run: no scene at .*nothing .pass a run folder, a .ply or a .splat"):
         main(Render(tmp_path / "nothing"))
 
 

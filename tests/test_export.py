@@ -471,7 +471,7 @@ def test_bad_paths(tmp_path):
     (tmp_path / "zero.splat").write_bytes(rows.tobytes())
     with pytest.raises(ValueError, match=r"zero.splat: scale of row 0"):
         load_scene(tmp_path / "zero.splat")
-    with pytest.raises(ValueError, match=r"up \(up\): expected one of \+z, -y, \+y, -z, \+x, -x, got '-w'"):
+    with pytest.raises(ValueError, match=r"up: expected one of \+z, -y, \+y, -z, \+x, -x, got '-w'"):
         load_scene(tmp_path / "x.bin", up="-w")
 
 

@@ -74,7 +74,7 @@ def test_every_written_file_records_its_axis_and_run_and_reads_back_upright(tmp_
 
 def test_an_axis_that_disagrees_with_the_file_is_refused_naming_the_flag(tmp_path):
     path = export_scene(_scene(), tmp_path / "s.splat", fmt="splat", up="-y")
-    want = r"up \(--src-up\): .*s\.splat records up axis -y \(its sidecar s\.splat\.json\)"
+    want = r"src_up \(--src-up\): .*s\.splat records up axis -y \(its sidecar s\.splat\.json\)"
     with pytest.raises(ValueError, match=want):
         resolve_up(path, "+z", "--src-up")
     assert resolve_up(path, "-y") == "-y" and resolve_up(path, None) == "-y"
@@ -121,7 +121,7 @@ def test_export_of_an_export_converts_once_and_render_reads_it_upright(tmp_path,
     back = GaussianScene.load_ply(z["path"])  # raw: +Z up as written
     torch.testing.assert_close(back.means, original.means, atol=1e-6, rtol=0)
     assert read_tags(z["path"]).run == "0123456789abcdef"  # the run travels with every conversion
-    with pytest.raises(ValueError, match=r"up \(--src-up\): .* records up axis -y"):
+    with pytest.raises(ValueError, match=r"src_up \(--src-up\): .* records up axis -y"):
         main(Export(Path(y["path"]), format="splat", up="+z", src_up="+z"))
     # render reads the axis: the exported file gives the run's own turntable
     a = main(Render(run, frames=2, size=24, radius=1.3, out=tmp_path / "a"))
@@ -178,9 +178,16 @@ def test_overwrite_removes_what_was_made_from_the_old_run_and_nothing_else(tmp_p
     sheet = Path(main(Render(made[1], frames=2, size=16))["sheet"])
     legacy = run / "scene.y_up.splat"  # an export from before exports recorded their run
     legacy.write_bytes(made[1].read_bytes())
-    others = [run / "notes.txt", run / "mine.ply"]
+    others = [
+        run / "notes.txt",
+        run / "mine.ply",
+        run / "old_scene_backup.ply",
+        run / "scene.y_down_turntable_todo.txt",
+    ]
     others[0].write_text("keep")
     export_scene(_scene(), others[1], fmt="ply", run="ffffffffffffffff")  # another run's export
+    export_scene(_scene(), others[2], fmt="ply", run="0123456789abcdef")  # this run's, under the user's name
+    others[3].write_text("keep: not a name render writes")
     inria = Path(main(Export(run, format="inria"))["path"])  # a folder, recording the run in its PLY
     made.append(inria)
     found = set(files_of_run(run, "0123456789abcdef"))
@@ -189,7 +196,7 @@ def test_overwrite_removes_what_was_made_from_the_old_run_and_nothing_else(tmp_p
     from gdbench.train.run import _check_finished
 
     _check_finished(run, None, overwrite=True, resume=False)
-    assert sorted(p.name for p in run.iterdir() if not p.name.startswith(".")) == ["mine.ply", "notes.txt"]
+    assert sorted(p.name for p in run.iterdir() if not p.name.startswith(".")) == sorted(p.name for p in others)
 
 
 def test_the_viewer_reads_the_axis_too(tmp_path):
@@ -202,3 +209,42 @@ def test_the_viewer_reads_the_axis_too(tmp_path):
     assert run is None and name == str(path)
     with pytest.raises(ValueError, match=r"up \(--up\): .* records up axis \+y"):
         resolve_inputs(path, None, "-y")
+
+
+def test_export_refuses_bad_out_names_before_any_work(tmp_path, monkeypatch):
+    from gdbench.app import mesh as mesh_mod
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_scenes import Export
+
+    run = _run_folder(tmp_path)
+    monkeypatch.setattr(mesh_mod, "extract_mesh", lambda *a, **k: pytest.fail("meshed before --out was checked"))
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(ValueError, match=r"out \(--out\): .*a_file is a file"):
+        main(Export(run, format="glb", out=tmp_path / "a_file" / "x.glb"))
+    (tmp_path / "d.obj").mkdir()
+    with pytest.raises(ValueError, match=r"out \(--out\): .*d\.obj is a folder"):
+        main(Export(run, format="obj", out=tmp_path / "d.obj"))
+    (tmp_path / "copy.ply").write_bytes((run / "scene.ply").read_bytes())
+    with pytest.raises(ValueError, match=r"out \(--out\): .*scene\.ply is one of the run's own outputs"):
+        main(Export(tmp_path / "copy.ply", format="ply", up="+z", out=run / "scene.ply"))
+    with pytest.raises(ValueError, match=r"out \(--out\): x\.compressed\.ply names a compressed PLY"):
+        main(Export(run, format="ply", out=tmp_path / "x.compressed.ply"))
+
+
+def test_an_unknown_recorded_axis_is_refused_not_read_as_z(tmp_path):
+    path = export_scene(_scene(), tmp_path / "s.splat", fmt="splat", up="-y")
+    sidecar(path).write_text(json.dumps({"gdbench": {"up": "+w", "run": None}}))
+    with pytest.raises(ValueError, match=r"s\.splat\.json: its gdbench tags name up axis '\+w'"):
+        load_scene(path)
+
+
+def test_the_command_line_names_a_bad_axis_in_one_line():
+    import subprocess
+    import sys
+
+    r = subprocess.run(
+        [sys.executable, "-m", "gdbench.app.cli", "render", "nowhere", "--up", "+q"], capture_output=True, text=True
+    )
+    assert r.returncode == 2 and r.stderr.strip() == (
+        "gdbench render: error: --up: unknown axis '+q'; expected one of +z, -y, +y, -z, +x, -x"
+    )

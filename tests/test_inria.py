@@ -132,3 +132,22 @@ def test_a_scene_from_elsewhere_is_framed_and_gets_inrias_last_iteration(tmp_pat
     assert 0.05 < covered < 0.9  # framed: the object fills part of the frame, not none or all
     with pytest.raises(ValueError, match=r"sh_degree \(--sh-degree\): --format inria writes SH degree 3"):
         main(Export(tmp_path / "far.ply", format="inria", sh_degree=1, out=tmp_path / "m2"))
+
+
+def test_writing_again_replaces_the_model_and_a_foreign_folder_is_refused(run_folder, tmp_path):
+    """Inria's loader takes the highest iteration: an export into a model folder written before
+    must leave only its own (a copy of the scene without its run writes iteration 30000, the run's
+    export 1234)."""
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_scenes import Export
+
+    first = main(Export(run_folder / "scene.ply", format="inria", out=tmp_path / "m", src_up="+z"))
+    (run_folder / "copy.ply").write_bytes((run_folder / "scene.ply").read_bytes())
+    main(Export(run_folder / "copy.ply", format="inria", out=tmp_path / "m"))
+    main(Export(run_folder, format="inria", out=tmp_path / "m"))
+    clouds = sorted(p.parent.name for p in (tmp_path / "m").glob("point_cloud/iteration_*/point_cloud.ply"))
+    assert first["path"] == str(tmp_path / "m") and clouds == ["iteration_1234"]
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"out \(--out\): .*other holds files and is not an Inria model folder"):
+        main(Export(run_folder, format="inria", out=tmp_path / "other"))

@@ -415,7 +415,7 @@ def test_an_unwritable_bank_cache_costs_the_cache_not_the_run(tmp_path, monkeypa
         (("generate", "a blue duck", "--steps", "1"), r"prompt: 'a blue duck' matched 'a yellow duck'.*asks for blue"),
         (("generate", "not a duck", "--steps", "1"), r"prompt: 'not a duck' matched .*negates"),
         (("score", "MISSING"), r"run: expected a run folder, got .*MISSING"),
-        (("render", "MISSING"), r"run: no PLY at .*MISSING"),
+        (("render", "MISSING"), r"run: no scene at .*MISSING"),
         (("render", "PLY", "--size", "40000"), r"size \(--size\): 40000 needs about \d+"),
         (
             ("compare", "--scene", "isotropic", "--out", "/sys/gdbench-compare", "--backends", "splat"),

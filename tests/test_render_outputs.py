@@ -92,9 +92,12 @@ def test_camera_path_round_trip_and_convention(tmp_path):
         ([], {}, "non-empty 'camera_path' list"),
         ([{"camera_to_world": [1, 0, 0], "fov": 40}], {}, r"camera_path\[0\]\.camera_to_world: expected 16 numbers"),
         ([_above(2.0) | {"fov": 0}], {}, r"camera_path\[0\]\.fov is 0"),
-        ([_above(2.0) | {"camera_to_world": (2 * np.eye(4)).reshape(-1).tolist()}], {}, "not a rotation"),
+        ([_above(2.0) | {"camera_to_world": np.diag([2.0, 2.0, 2.0, 1.0]).reshape(-1).tolist()}], {}, "not a rotation"),
         ([_above(2.0)], {"camera_type": "fisheye"}, "only 'perspective'"),
         ([_above(2.0)], {"render_width": 4}, "'render_width' is 4"),
+        ([_above(2.0) | {"camera_to_world": [*_above(2.0)["camera_to_world"][:15], 2.0]}], {}, "last row is"),
+        ([_above(2.0) | {"camera_to_world": [float("nan"), *_above(2.0)["camera_to_world"][1:]]}], {}, "non-finite"),
+        ([_above(2.0) | {"camera_to_world": ["1", *_above(2.0)["camera_to_world"][1:]]}], {}, "expected 16 numbers"),
     ],
 )
 def test_bad_camera_paths_are_refused_naming_the_field(tmp_path, entries, extra, match):
@@ -102,6 +105,15 @@ def test_bad_camera_paths_are_refused_naming_the_field(tmp_path, entries, extra,
 
     with pytest.raises(ValueError, match=rf"camera_path \(--camera-path\): .*{match}"):
         read_camera_path(_path_file(tmp_path, entries, **extra))
+
+
+def test_a_folder_or_a_missing_file_as_camera_path_is_named(tmp_path):
+    from gdbench.core.camera_path import read_camera_path
+
+    with pytest.raises(FileNotFoundError, match=r"camera_path \(--camera-path\): no file at"):
+        read_camera_path(tmp_path)
+    with pytest.raises(FileNotFoundError, match=r"camera_path \(--camera-path\): no file at"):
+        read_camera_path(tmp_path / "missing.json")
 
 
 def test_unknown_outputs_are_refused_before_any_work(tmp_path):

@@ -471,3 +471,15 @@ def test_view_ends_on_sigterm_with_one_line_and_143(tmp_path):
         proc.kill()
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert err.strip().splitlines()[-1] == "gdbench view: error: interrupted by SIGTERM", err
+
+
+def test_a_host_this_machine_cannot_listen_on_is_refused_at_once(tmp_path):
+    """viser takes any OSError for a busy port and tries the next, forever: the address is checked
+    first, naming --host."""
+    from gdbench.app.viewer import serve
+    from gdbench.core.builtin import demo_scene
+
+    demo_scene(50, seed=0).save_ply(tmp_path / "s.ply")
+    for host in ("999.1.1.1", "8.8.8.8"):
+        with pytest.raises(ValueError, match=r"host \(--host\): cannot listen on"):
+            serve(tmp_path / "s.ply", host=host, block=False, verbose=False)

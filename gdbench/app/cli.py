@@ -174,6 +174,11 @@ def entrypoint() -> None:
         except ValueError as e:
             print(f"gdbench {argv[0]}: error: {e}", file=sys.stderr)
             sys.exit(2)
+    try:
+        check_up_axes(argv)
+    except ValueError as e:
+        print(f"gdbench {argv[0]}: error: {e}", file=sys.stderr)
+        sys.exit(2)
     if config is not None:  # the file's options become the defaults the command line overrides
 
         def with_config() -> None:  # read under run_reporting: a bad file is one line, as any error
@@ -224,6 +229,19 @@ def check_presets(argv: list[str]) -> None:
     given = _option_value(argv[1:], "--preset")
     if given is not None and given not in PRESETS:
         raise ValueError(f"--preset: unknown preset {given!r}; expected one of {', '.join(PRESETS)}")
+
+
+def check_up_axes(argv: list[str]) -> None:
+    """A ValueError naming the flag and the six axes when render's, view's or export's --up (or
+    export's --src-up) is not one (the parser's message lists 'None' among them, in no fixed order)."""
+    from gdbench.core.filetags import UP_AXES
+
+    if argv[:1] not in (["render"], ["view"], ["export"]):
+        return
+    for flag in ("--up", "--src-up"):
+        given = _option_value(argv[1:], flag)
+        if given is not None and given not in UP_AXES:
+            raise ValueError(f"{flag}: unknown axis {given!r}; expected one of {', '.join(UP_AXES)}")
 
 
 def chosen_prior(argv: list[str]) -> str:

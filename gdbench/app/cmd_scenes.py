@@ -34,7 +34,7 @@ class Render:
     """Camera elevation above the scene's horizontal plane (+Z up), degrees."""
     fovy: Annotated[float, Between(1, 179, unit="degrees")] = 45.0
     """Vertical field of view, degrees."""
-    up: UpAxis | None = None
+    up: Annotated[UpAxis | None, tyro.conf.DisallowNone] = None
     """The up axis of the scene file (default: the one the file records, as every file gdbench
     writes does, else +z): +z for gdbench's runs, -y for Inria/COLMAP captures and `gdbench
     export`'s default. One that differs from the file's recorded axis is refused."""
@@ -48,6 +48,28 @@ class Render:
     camera_path: Path | None = None
     """A camera path in nerfstudio's camera_path.json format (what its viewer exports): its
     cameras, size and fps replace the orbit (--frames, --size, --radius, --elevation, --fovy)."""
+
+
+def _writable(out: Path, *, file: bool) -> Path:
+    """``out`` (--out) checked before any work: a file name whose folder can take files, or a
+    folder that can (``file=False``); errors name --out."""
+    from gdbench.core.io import check_folder, probe_writable
+
+    if file and out.is_dir():
+        raise ValueError(f"out (--out): {out} is a folder; expected a file name")
+    folder = out.parent if file else out
+    check_folder(folder, "out (--out)")
+    probe_writable(folder, "out (--out)")
+    return out
+
+
+def _axis_note(path: Path, asked: str | None, flag: str, command: str) -> None:
+    """One line when ``path`` was read as +Z up only because it records no axis (a file from
+    elsewhere, or a .splat copied without its sidecar)."""
+    from gdbench.core.filetags import read_tags
+
+    if asked is None and read_tags(path).up is None:
+        print(f"gdbench {command}: note: {path} records no up axis; read as +z (gdbench's); pass {flag} otherwise")
 
 
 def _outputs(value: str) -> tuple[str, ...]:
@@ -79,18 +101,24 @@ def run_render(cmd: Render) -> dict:
     src = Path(cmd.run)
     ply = src / "scene.ply" if src.is_dir() else src
     if not ply.is_file():
-        raise FileNotFoundError(f"run: no PLY at {ply} (pass a run folder or a .ply file)")
+        raise FileNotFoundError(f"run: no scene at {ply} (pass a run folder, a .ply or a .splat file)")
     run = _run_turntable(ply)
     frames = cmd.frames or run.get("frames", 36)
     size = cmd.size or run.get("size", 256)
     if cams is not None:
         frames, size = len(cams), max(cams.width, cams.height)
-    check_render_memory(size, frames)
-    out = Path(cmd.out or ply.parent)
+    try:
+        check_render_memory(size, frames)
+    except ValueError as e:
+        if cams is None:
+            raise
+        raise ValueError(f"camera_path (--camera-path): {cmd.camera_path}: render_width x render_height: {e}") from None
+    out = _writable(Path(cmd.out or ply.parent), file=False)
     # a run folder has one writer: not while a generate (--overwrite) or score writes there
     run_folder = (out / "run.json").is_file() or (out / FolderLock.NAME).is_file()
     with FolderLock(out) if run_folder else contextlib.nullcontext():
         scene = load_scene(ply, up=cmd.up, flag="--up")  # a 3DGS or compressed PLY, or a .splat; +Z up
+        _axis_note(ply, cmd.up, "--up", "render")
         radius = cmd.radius or run.get("radius")
         framing = ""
         if cams is not None:
@@ -118,22 +146,41 @@ def run_render(cmd: Render) -> dict:
         f"gdbench render: {len(scene)} Gaussians, {frames} frames at {size}px{framing} ({','.join(outputs)}), "
         f"median {1e3 * sorted(res.seconds_per_frame)[frames // 2]:.1f} ms per frame"
     )
+    width = max(map(len, res.paths))
     for k, v in res.paths.items():
-        print(f"  {k:5s} -> {v}")
+        print(f"  {k:{width}s} -> {v}")
     return {k: str(v) for k, v in res.paths.items()}
 
 
+def _run_of(path: Path) -> dict | None:
+    """The run.json (content) of the run whose scene ``path`` holds: a run's own scene.ply (its
+    run.json names the same scene), or a file in the run's folder that records the run's id
+    (an export, ``core.filetags``); None for any other file."""
+    from gdbench.core.filetags import read_tags
+    from gdbench.core.io import read_json, run_json_of
+
+    found = run_json_of(path)
+    if found is not None:
+        return found[1]
+    beside = path.parent / "run.json"
+    try:
+        run = read_tags(path).run
+        info = read_json(beside, what="run.json") if run and beside.is_file() else None
+    except (OSError, ValueError):
+        return None
+    return info if isinstance(info, dict) and info.get("run_id") == run else None
+
+
 def _run_turntable(ply: Path) -> dict:
-    """The turntable settings of the run whose scene ``ply`` is (its folder's run.json names the
-    same scene), so ``render`` shows it from ``generate``'s cameras; {} for any other PLY."""
-    from gdbench.core.io import run_json_of
+    """The turntable settings of the run whose scene ``ply`` holds (``_run_of``), so ``render``
+    shows it from ``generate``'s cameras; {} for any other file (framed from its bounds)."""
     from gdbench.core.turntable import RUN_TURNTABLE
     from gdbench.train.run import turntable_size
 
-    found = run_json_of(ply)
+    found = _run_of(ply)
     if found is None:  # not a run's scene, or a run.json of another scene: framed as any PLY
         return {}
-    config = found[1].get("config") or {}
+    config = found.get("config") or {}
     return {
         "frames": int(config.get("turntable_frames", 36)),
         "size": turntable_size(config.get("resolution", 128)),
@@ -196,7 +243,7 @@ class Export:
     mesh with vertex colours (TSDF fusion of 64 rendered views; needs Open3D; about 20 s); inria:
     an Inria model folder (point_cloud/iteration_N/point_cloud.ply, cameras.json, cfg_args and the
     turntable views as its source) that the SIBR viewer and Inria's render.py load."""
-    up: UpAxis | None = None
+    up: Annotated[UpAxis | None, tyro.conf.DisallowNone] = None
     """The axis that is up in the file written (default: -y for the Gaussian formats, the
     Inria/COLMAP convention of SuperSplat and the .splat viewers; +y for meshes, glTF's). The
     file records it (and the run it comes from), and gdbench's commands read it back."""
@@ -211,7 +258,7 @@ class Export:
     the scene's, the SH degree: scene.y_down.ply, scene.y_down.sh3.ply, scene.y_down.splat,
     scene.z_up.compressed.ply, scene.y_up.glb, ...); for inria, the folder (default:
     inria.y_down beside the source)."""
-    src_up: UpAxis | None = None
+    src_up: Annotated[UpAxis | None, tyro.conf.DisallowNone] = None
     """The up axis of the source file (default: the one it records, as every file gdbench writes
     does, else +z). One that differs from the recorded axis is refused: it would rotate the scene
     twice."""
@@ -226,10 +273,13 @@ def run_export(cmd: Export) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"src: no scene at {path} (pass a run folder, a .ply or a .splat file)")
     scene = load_scene(path, up=cmd.src_up, flag="--src-up")  # checked before --out is decided
+    _axis_note(path, cmd.src_up, "--src-up", "export")
     mesh = cmd.format in ("glb", "obj")
     up = cmd.up or ("+y" if mesh else "-y")
-    if cmd.format == "inria" and cmd.sh_degree is not None:
+    if cmd.format == "inria" and cmd.sh_degree not in (None, 3):
         raise ValueError("sh_degree (--sh-degree): --format inria writes SH degree 3, the Inria loader's")
+    if cmd.format == "splat" and cmd.sh_degree not in (None, 0):
+        raise ValueError(f"sh_degree (--sh-degree): a .splat holds the DC colour only (degree 0); got {cmd.sh_degree}")
     if cmd.format == "inria":
         return _export_inria(cmd, path, scene, up, read_tags(path).run)
     degree = scene.sh_degree if cmd.sh_degree is None or cmd.format in ("splat", "glb", "obj") else cmd.sh_degree
@@ -244,6 +294,15 @@ def run_export(cmd: Export) -> dict:
         raise ValueError(f"out (--out): --format {cmd.format} writes a {suffix[cmd.format]} file; got {str(out)!r}")
     if out.resolve() == path.resolve():
         raise ValueError(f"out: {out} is the source file; pass another --out")
+    from gdbench.train.run import RUN_OUTPUTS
+
+    if out.name in RUN_OUTPUTS and (out.parent / "run.json").is_file():
+        raise ValueError(f"out (--out): {out} is one of the run's own outputs; pass another name")
+    if cmd.format == "ply" and out.name.lower().endswith(".compressed.ply"):
+        raise ValueError(
+            f"out (--out): {out.name} names a compressed PLY; pass --format ply-compressed or another name"
+        )
+    _writable(out, file=True)
     if mesh and cmd.sh_degree is not None:
         raise ValueError(f"sh_degree (--sh-degree): --format {cmd.format} writes vertex colours, not SH bands")
     if cmd.format == "splat" and scene.sh.shape[1] > 1:
@@ -277,17 +336,16 @@ def _export_inria(cmd: Export, path: Path, scene, up: str, run: str | None) -> d
     from gdbench.core.camera import SphericalPoses
     from gdbench.core.filetags import UP_NAMES
     from gdbench.core.framing import bounds, orbit_radius
-    from gdbench.core.io import run_json_of
     from gdbench.core.turntable import RUN_TURNTABLE
 
     out = Path(cmd.out) if cmd.out is not None else path.parent / f"inria.{UP_NAMES[up]}"
     if out.suffix.lower() in (".ply", ".splat", ".glb", ".obj", ".json"):
         raise ValueError(f"out (--out): --format inria writes a folder; got the file name {str(out)!r}")
+    _writable(out, file=False)
     turntable = _run_turntable(path)
-    found = run_json_of(path)
     if turntable:
         orbit, centre = RUN_TURNTABLE, torch.zeros(3, dtype=torch.float64)
-        iteration = int(found[1].get("steps", 0)) or None
+        iteration = int(_run_of(path).get("steps", 0)) or None
     else:
         c, r = bounds(scene)
         centre = c.double()
@@ -318,7 +376,7 @@ class View:
     """Port to serve on (viser takes the next free one when it is busy)."""
     host: str = "127.0.0.1"
     """Interface to listen on (0.0.0.0: every interface; default: this machine only)."""
-    up: UpAxis | None = None
+    up: Annotated[UpAxis | None, tyro.conf.DisallowNone] = None
     """The up axis of the scene file (default: the one the file records, as every file gdbench
     writes does, else +z): +z for gdbench's runs, -y for Inria/COLMAP captures. One that differs
     from the file's recorded axis is refused."""

@@ -359,6 +359,11 @@ def load_scene(path: str | Path, *, up: UpAxis | None = None, flag: str = "up") 
         scene = GaussianScene.load_ply(path)
     elif path.suffix.lower() == ".splat":
         scene = read_splat(path)
+    elif path.suffix.lower() in (".glb", ".obj"):
+        raise ValueError(
+            f"path: {path} is a mesh, which gdbench writes for other tools but does not read; expected a 3DGS "
+            "PLY, a compressed PLY or a .splat"
+        )
     else:
         raise ValueError(f"{path}: neither a PLY file (no 'ply' line first) nor named *.splat")
     return scene if up == "+z" else rotate_scene(scene, up_rotation(up).T)

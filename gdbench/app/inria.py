@@ -92,6 +92,19 @@ def write_inria_model(
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"out (--out): {folder} is a file; --format inria writes a folder")
+    if folder.is_dir() and any(folder.iterdir()):
+        if not (folder / "cfg_args").is_file():
+            raise ValueError(
+                f"out (--out): {folder} holds files and is not an Inria model folder; pass a new or empty folder"
+            )
+        # a model folder written before: its files go, so no older iteration is left for Inria's
+        # loader to pick (it takes the highest) and no frame of another view count stays
+        import shutil
+
+        for name in ("point_cloud", "train"):
+            shutil.rmtree(folder / name, ignore_errors=True)
+        for name in ("cameras.json", "cfg_args", "transforms_train.json", "transforms_test.json"):
+            (folder / name).unlink(missing_ok=True)
     if len(set(np.asarray(cams.Ks[:, 0, 0]).round(6).tolist())) != 1 or cams.width != cams.height:
         raise ValueError("cams: the Blender source format has one field of view and square images for all views")
     iteration = INRIA_ITERATION if iteration is None else int(iteration)

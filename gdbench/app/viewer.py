@@ -291,6 +291,19 @@ def _set_camera(client, pose: ViserPose) -> None:
         cam.look_at = pose.look_at
 
 
+def _check_host(host: str) -> None:
+    """A ValueError naming --host unless this machine can listen on ``host`` (viser takes any
+    OSError for a busy port and tries the next one, forever, for an address it cannot have)."""
+    import socket
+
+    try:
+        family = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][0]
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.bind((host, 0))
+    except (OSError, UnicodeError) as e:
+        raise ValueError(f"host (--host): cannot listen on {host!r} ({getattr(e, 'strerror', None) or e})") from None
+
+
 class Viewer:
     """A running viewer (``serve``): the viser ``server``, its GUI handles and the turntable poses."""
 
@@ -395,6 +408,7 @@ def serve(
     once (``Viewer.stop``). viser moves to the next
     free port when ``port`` is taken (``Viewer.port``).
     """
+    _check_host(host)
     viser = import_viser()
     named = up is None or isinstance(up, str)
     scene, name, run = resolve_inputs(scene_or_path, run_json, up if named else None)

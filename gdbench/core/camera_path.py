@@ -22,6 +22,10 @@ from gdbench.core.camera import Cameras, intrinsics
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
+def _number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
 def _fail(path: Path, what: str) -> ValueError:
     return ValueError(f"camera_path (--camera-path): {path}: {what}")
 
@@ -30,12 +34,12 @@ def read_camera_path(path: str | Path) -> tuple[Cameras, float]:
     """(cameras, fps) of a nerfstudio camera path file (module docstring); errors name the file
     and the field."""
     path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"camera_path (--camera-path): no file at {path}")
     try:
         data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise FileNotFoundError(f"camera_path (--camera-path): no file at {path}") from None
-    except ValueError as e:
-        raise _fail(path, f"not JSON ({e})") from e
+    except (OSError, ValueError) as e:
+        raise _fail(path, f"not a readable JSON file ({e})") from e
     if not isinstance(data, dict) or not isinstance(data.get("camera_path"), list) or not data["camera_path"]:
         raise _fail(path, "expected an object with a non-empty 'camera_path' list (nerfstudio's format)")
     if data.get("camera_type", "perspective") != "perspective":
@@ -51,17 +55,24 @@ def read_camera_path(path: str | Path) -> tuple[Cameras, float]:
         raise _fail(path, f"'fps' is {fps!r}; expected a number in (0, 240]")
     viewmats, fovs = [], []
     for i, cam in enumerate(data["camera_path"]):
-        c2w = np.asarray(cam.get("camera_to_world") if isinstance(cam, dict) else None, dtype=object)
-        try:
-            c2w = np.asarray(c2w.tolist(), dtype=np.float64).reshape(4, 4)
-        except (TypeError, ValueError):
-            raise _fail(path, f"camera_path[{i}].camera_to_world: expected 16 numbers (a row-major 4x4)") from None
+        where = f"camera_path[{i}].camera_to_world"
+        raw = cam.get("camera_to_world") if isinstance(cam, dict) else None
+        flat = raw
+        if isinstance(raw, list) and raw and all(isinstance(r, list) for r in raw):
+            flat = [x for r in raw for x in r]  # a nested 4x4 is read too
+        if not isinstance(flat, list) or len(flat) != 16 or not all(_number(x) for x in flat):
+            raise _fail(path, f"{where}: expected 16 numbers (a row-major 4x4)")
+        c2w = np.asarray(flat, dtype=np.float64).reshape(4, 4)
+        if not np.all(np.isfinite(c2w)):
+            raise _fail(path, f"{where}: holds a non-finite number")
+        if not np.allclose(c2w[3], [0, 0, 0, 1], atol=1e-6):
+            raise _fail(path, f"{where}: its last row is {c2w[3].tolist()}; expected 0 0 0 1")
         fov = cam.get("fov")
-        if isinstance(fov, bool) or not isinstance(fov, (int, float)) or not 0 < fov < 180:
+        if not _number(fov) or not 0 < fov < 180:
             raise _fail(path, f"camera_path[{i}].fov is {fov!r}; expected vertical degrees in (0, 180)")
         r = c2w[:3, :3]
-        if not np.all(np.isfinite(c2w)) or abs(np.linalg.det(r) - 1) > 1e-3 or np.abs(r @ r.T - np.eye(3)).max() > 1e-3:
-            raise _fail(path, f"camera_path[{i}].camera_to_world: its 3x3 part is not a rotation")
+        if abs(np.linalg.det(r) - 1) > 1e-3 or np.abs(r @ r.T - np.eye(3)).max() > 1e-3:
+            raise _fail(path, f"{where}: its 3x3 part is not a rotation")
         viewmats.append(np.linalg.inv(c2w @ _GL_TO_CV))
         fovs.append(float(fov))
     w, h = size

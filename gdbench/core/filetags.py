@@ -134,13 +134,23 @@ def read_tags(path: str | Path) -> FileTags:
             key, _, value = c.partition(" ")[2].partition(" ") if c.startswith("gdbench ") else ("", "", "")
             if key == "run" and value:
                 run = value.strip()
-            elif key == "up" and value.strip() in UP_AXES:
+            elif key == "up":
+                if value.strip() not in UP_AXES:
+                    raise ValueError(
+                        f"{path}: its header records up axis {value.strip()!r}; expected one of {', '.join(UP_AXES)}"
+                    )
                 up, source = value.strip(), "header"
         if up is None and run is not None and path.name == "scene.ply":
             up, source = "+z", "header"  # a run's own scene: always +Z up
     elif path.suffix.lower() in (".splat", ".glb", ".obj"):
         tags, where = _other_tags(path)
-        if tags.get("up") in UP_AXES:
+        if "up" in tags and tags["up"] not in UP_AXES:
+            at = sidecar(path) if where == "sidecar" else path
+            raise ValueError(
+                f"{at}: its gdbench tags name up axis {tags['up']!r}; expected one of {', '.join(UP_AXES)} "
+                "(fix or delete it)"
+            )
+        if "up" in tags:
             up, source = tags["up"], where
         run = tags.get("run") or None
     if up is None and (named := _name_axis(path)) is not None:
@@ -156,11 +166,12 @@ def resolve_up(path: str | Path, asked: str | None, flag: str = "--up") -> str:
     tags = read_tags(path)
     if asked is None:
         return tags.up or "+z"
-    check_up(asked, f"up ({flag})")
+    label = f"{flag.lstrip('-').replace('-', '_')} ({flag})" if flag.startswith("--") else flag
+    check_up(asked, label)
     if tags.up is not None and asked != tags.up:
         where = {"header": "its header", "sidecar": f"its sidecar {sidecar(path).name}", "name": "its name"}
         raise ValueError(
-            f"up ({flag}): {path} records up axis {tags.up} ({where[tags.source]}); reading it as {asked} would "
+            f"{label}: {path} records up axis {tags.up} ({where[tags.source]}); reading it as {asked} would "
             f"turn the scene by the wrong rotation. Leave {flag} out (the file's axis is used) or pass {flag} {tags.up}"
         )
     return asked

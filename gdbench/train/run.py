@@ -41,19 +41,28 @@ RUN_OUTPUTS = (
         for tag in ("", "_depth", "_alpha")
         for end in (".gif", ".mp4", "_sheet.png", *((".npy",) if tag else ()))
     ),
-)
+)  # scene_* is what render writes of scene.ply (RENDERED below)
 """What a run and the commands that write into its folder (``score``, ``render``) put there
 (removed before an overwrite, with the files ``files_of_run`` finds)."""
 
 
+RENDERED = tuple(
+    f"_{kind}{tag}{end}"
+    for kind in ("turntable", "camera_path")
+    for tag in ("", "_depth", "_alpha")
+    for end in (".gif", ".mp4", "_sheet.png", *((".npy",) if tag else ()))
+)
+"""What ``gdbench render`` writes of a scene file ``<stem>.*``: ``<stem>`` + each of these."""
+
+
 def files_of_run(folder: Path, run: str) -> list[Path]:
-    """What in ``folder`` (not below it) gdbench made from run ``run``'s scene besides
-    ``RUN_OUTPUTS``: exports recording the run (``core.filetags``: a PLY's header comment, a
-    .splat's sidecar, a mesh's header), those sidecars, what ``render`` made of those exports
-    (``<stem>_turntable*``, ``<stem>_camera_path*``), and Inria model folders
-    (``cfg_args`` beside a ``point_cloud/iteration_*/point_cloud.ply`` recording the run). An
-    export that records no run (made before exports recorded it) is the run's when it bears
-    ``gdbench export``'s default name for the run's scene (scene.y_down.splat, ...)."""
+    """What in ``folder`` (not below it) ``gdbench export`` and ``render`` made of run ``run``'s
+    scene besides ``RUN_OUTPUTS``: exports under ``export``'s default names for the run's scene
+    (scene.y_down.splat, scene.z_up.sh3.ply, scene.y_up.glb, ...) that record this run, or no run
+    (made before exports recorded it); a .splat's sidecar; what ``render`` wrote of them
+    (``RENDERED``); and Inria model folders under the default name (``inria.<axis>``) whose
+    point cloud records the run. Files under other names (a renamed export, a backup copy, notes)
+    are the user's and stay."""
     import re
 
     from gdbench.core.filetags import UP_NAMES, read_tags, sidecar
@@ -61,26 +70,20 @@ def files_of_run(folder: Path, run: str) -> list[Path]:
     axes = "|".join(UP_NAMES.values())
     default = re.compile(rf"scene\.({axes})(\.sh\d)?(\.compressed\.ply|\.ply|\.splat|\.glb|\.obj)")
 
-    def records(path: Path) -> bool:
+    def records(path: Path, accept=(run, None)) -> bool:
         try:
-            tags = read_tags(path)
+            return read_tags(path).run in accept
         except (OSError, ValueError):
             return False  # unreadable tags: not provably this run's, so left alone
-        return tags.run == run or (tags.run is None and default.fullmatch(path.name) is not None)
 
     found: list[Path] = []
     for path in sorted(folder.iterdir()):
-        if path.is_dir() and (path / "cfg_args").is_file():  # an Inria model folder
-            if any(records(p) for p in path.glob("point_cloud/iteration_*/point_cloud.ply")):
-                found.append(path)
-            continue
-        exported = path.is_file() and path.suffix.lower() in (".ply", ".splat", ".glb", ".obj")
-        if path.name in RUN_OUTPUTS or not exported:
-            continue
-        if records(path):
-            stem = path.name.removesuffix(path.suffix)
-            found += [path, sidecar(path)]
-            found += [p for p in folder.iterdir() if p.name.startswith((f"{stem}_turntable", f"{stem}_camera_path"))]
+        if path.is_dir():  # an Inria model folder of this run, under export's default name
+            clouds = path.glob("point_cloud/iteration_*/point_cloud.ply")
+            if re.fullmatch(rf"inria\.({axes})", path.name) and (path / "cfg_args").is_file():
+                found += [path] if any(records(c, (run,)) for c in clouds) else []
+        elif default.fullmatch(path.name) and records(path):
+            found += [path, sidecar(path), *(folder / f"{path.stem}{r}" for r in RENDERED)]
     return [p for p in found if p.is_file() or p.is_dir()]
 
 
