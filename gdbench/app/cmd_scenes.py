@@ -232,8 +232,8 @@ def run_score(cmd: Score) -> dict:
 class Export:
     """Write a run's scene (or any scene file) for other viewers and editors: the Inria 3DGS PLY
     (padded to an SH degree for Inria's loader), antimatter15's .splat (web viewers),
-    SuperSplat's compressed PLY, or a triangle mesh (.glb, .obj) by TSDF fusion of rendered depth;
-    rotated so the viewer's up axis is up (docs/export.md)."""
+    SuperSplat's compressed PLY, a triangle mesh (.glb, .obj) by TSDF fusion of rendered depth, or
+    an Inria model folder; rotated so the viewer's up axis is up (docs/export.md)."""
 
     src: tyro.conf.Positional[Path]
     """A run folder (its scene.ply), a PLY (3DGS or compressed) or a .splat file."""
