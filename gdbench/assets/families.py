@@ -161,8 +161,8 @@ def cat(rgb, hat=None, scarf=None):
 
 
 def _contrast(rgb, f: float = 1.45):
-    """A lighter shade of a dark colour, a darker one of a light colour (a muzzle that shows)."""
-    return _shade(rgb, f) if sum(rgb) / 3 < 0.6 else _shade(rgb, 0.72)
+    """A lighter shade of a dark colour, a tan for a light one (a muzzle that shows)."""
+    return _shade(rgb, f) if sum(rgb) / 3 < 0.6 else (0.82, 0.62, 0.42)
 
 
 def dog(rgb, hat=None, scarf=None):
@@ -180,7 +180,7 @@ def dog(rgb, hat=None, scarf=None):
 
 
 def pig(rgb, hat=None, scarf=None):
-    snout = _shade(rgb, 0.72)
+    snout = _shade(rgb, 0.55)
     parts = _quadruped(rgb, 81, head_z=0.06, legs=0.1, body=(0.3, 0.18, 0.17)) + [
         S.front(S.cylinder((0.43, 0, 0.05), 0.055, 0.05, S.solid(snout), rotate=("y", 90))),  # snout
         S.front(S.ellipsoid((0.456, 0.022, 0.05), (0.01, 0.014, 0.02), S.solid(NOSE))),  # nostrils
