@@ -89,6 +89,7 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     (out / "results" / "world").mkdir(parents=True, exist_ok=True)
+    stamp = {"commit": _commit(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}  # before any write
     rows, tiles = [], []
     for caption, spec in WORLD.items():
         mesh = spec.build()
@@ -122,7 +123,6 @@ def main(argv: list[str] | None = None) -> None:
         sheet.paste(Image.fromarray((np.clip(tile, 0, 1) * 255).astype(np.uint8)), (x, y + 14))
         draw.text((x + 4, y + 1), caption, fill=(0, 0, 0))
     sheet.save(out / "figures" / "world_sheet.png")
-    stamp = {"commit": _commit(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     with open(out / "results" / "world" / "front_back.csv", "w", newline="") as f:
         wr = csv.DictWriter(f, [*rows[0], *stamp])
         wr.writeheader()
