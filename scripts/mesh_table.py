@@ -20,46 +20,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
-
-
-def _commit() -> str:
-    root = Path(__file__).resolve().parents[1]
-    try:
-        return subprocess.check_output(["git", "describe", "--always", "--dirty"], cwd=root, text=True).strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def surface_gaussians(mesh, n: int = 60000, seed: int = 3):
-    """Flat opaque Gaussians on ``mesh``'s surface along its normals, in its colours."""
-    import trimesh
-    from scipy.spatial.transform import Rotation
-
-    from gdbench.core.scene import GaussianScene
-
-    pts, faces = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    z = np.asarray(mesh.face_normals[faces], dtype=np.float64)
-    a = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    x = np.cross(a, z)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    xyzw = Rotation.from_matrix(np.stack([x, np.cross(z, x), z], -1)).as_quat()
-    colours = np.asarray(mesh.visual.face_colors[faces][:, :3], dtype=np.float32) / 255
-    return GaussianScene.from_activated(
-        torch.from_numpy(np.asarray(pts, dtype=np.float32)),
-        torch.tensor([0.006, 0.006, 0.0005]).expand(n, 3).clone(),
-        torch.full((n,), 0.95),
-        torch.from_numpy(colours),
-        quats=torch.from_numpy(xyzw[:, [3, 0, 1, 2]].astype(np.float32)),
-    )
+from gdbench.core.provenance import code_commit, utc_now
 
 
 def main(argv: list[str] | None = None) -> None:
     from gdbench.app.mesh import extract_mesh
     from gdbench.assets.library import ASSETS, build
     from gdbench.core.scene import GaussianScene
-    from gdbench.metrics.mesh_scores import mesh_scores
+    from gdbench.metrics.mesh_scores import mesh_scores, surface_gaussians
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--runs", required=True)
@@ -67,14 +35,14 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, stamp = [], {"commit": _commit()}
+    rows, stamp = [], {"commit": code_commit()}
     for caption in ASSETS:
         run = Path(args.runs) / caption.replace(" ", "_")
         if not (run / "run.json").is_file():
             cmd = [sys.executable, "-m", "gdbench.app.cli", "generate", caption, "--out", str(run), "--no-progress"]
             subprocess.run(cmd, check=True)
         ref = build(caption)
-        for kind, scene in (("on the surface", surface_gaussians(ref)), ("default run", None)):
+        for kind, scene in (("on the surface", surface_gaussians(ref, 60000, seed=3)), ("default run", None)):
             scene = scene if scene is not None else GaussianScene.load_ply(run / "scene.ply")
             t0 = time.perf_counter()
             mesh = extract_mesh(scene)
@@ -91,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
                 "chamfer_unturned": round(s.chamfer_unturned, 4),
                 "fuse_s": round(seconds, 1),
             }
-            rows.append(row | stamp | {"utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
+            rows.append(row | stamp | {"utc": utc_now()})
             print(" ".join(f"{k}={v}" for k, v in row.items()), flush=True)
     with open(out / "mesh.csv", "w", newline="") as f:
         w = csv.DictWriter(f, list(rows[0]))

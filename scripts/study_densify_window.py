@@ -16,27 +16,19 @@ reading (the share that grows, and the Jaccard overlap of the two sets), over ev
 non-overlapping window of k steps in the 200. ``events``: every densification of whole runs of
 several lengths, with the Gaussians before it and the clones and splits it adds.
 
-Each row records the commit (``git describe --always --dirty``) and the time.
+Each row records the commit (``core.provenance.code_commit``) and the time.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import subprocess
-import time
 from pathlib import Path
+
+from gdbench.core.provenance import code_commit, utc_now
 
 WINDOWS = (1, 2, 3, 5, 7, 10, 15, 20, 25, 30, 40, 50, 75, 100, 200)
 HOLD = 200
-
-
-def _commit() -> str:
-    root = Path(__file__).resolve().parents[1]
-    try:
-        return subprocess.check_output(["git", "describe", "--always", "--dirty"], cwd=root, text=True).strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def _context(steps: int, seed: int, views: int, out: Path, **overrides):
@@ -226,7 +218,7 @@ def plot(args) -> None:
 
 
 def _write(path: Path, rows: list[dict]) -> None:
-    stamp = {"commit": _commit(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    stamp = {"commit": code_commit(), "utc": utc_now()}
     with open(path, "w", newline="") as f:
         w = csv.DictWriter(f, [*rows[0], *stamp])
         w.writeheader()

@@ -23,19 +23,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
 
-
-def _commit() -> str:
-    root = Path(__file__).resolve().parents[1]
-    try:
-        return subprocess.check_output(["git", "describe", "--always", "--dirty"], cwd=root, text=True).strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+from gdbench.core.provenance import code_commit, utc_now
 
 
 def views(mesh, azimuths, size: int = 96) -> np.ndarray:
@@ -52,24 +44,14 @@ def views(mesh, azimuths, size: int = 96) -> np.ndarray:
 
 
 def front_mask(mesh, size: int = 96) -> np.ndarray:
-    """[H, W] bool: where the front view (azimuth 0) shows the mesh's marked front parts."""
+    """[H, W] bool: where the front view (azimuth 0, as ``views``) shows the mesh's marked front parts."""
     import torch
 
     from gdbench.core.camera import SphericalPoses
-    from renderers.pyrender_points.mesh import render_mesh
+    from gdbench.metrics.views import part_masks
 
-    m = mesh.copy()
-    rgba = np.zeros((len(m.vertices), 4), np.uint8)
-    rgba[:, 3] = 255
-    rgba[np.asarray(mesh.metadata["front"], bool), :3] = 255
-    m.visual.vertex_colors = rgba
     one = torch.ones(1, dtype=torch.float64)
-    poses = SphericalPoses(0 * one, 15 * one, one, 50 * one)
-    pose_gl, K = poses.cameras(size, size).to_opengl()
-    rgb, _, _ = render_mesh(
-        m, pose_gl.double().numpy(), K.double().numpy(), size, size, background=(0, 0, 0), ambient=1.0, headlight=0.0
-    )
-    return rgb[0, ..., 0] > 0.5
+    return part_masks(mesh, SphericalPoses(0 * one, 15 * one, one, 50 * one), size)[0]
 
 
 def _box(img: np.ndarray, k: int = 4) -> np.ndarray:
@@ -89,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     (out / "results" / "world").mkdir(parents=True, exist_ok=True)
-    stamp = {"commit": _commit(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}  # before any write
+    stamp = {"commit": code_commit(), "utc": utc_now()}  # before any write
     rows, tiles = [], []
     for caption, spec in WORLD.items():
         mesh = spec.build()

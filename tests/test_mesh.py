@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -21,28 +20,11 @@ def _sphere(radius: float, subdivisions: int = 5):
 
 
 def _surface_gaussians(mesh, n: int = 20000, colour_fn=None, seed: int = 0):
-    """Flat opaque Gaussians (1.5% of a unit across, 0.1% thick) on ``mesh``'s surface, facing
-    along its normals, coloured by ``colour_fn(points)`` (grey by default)."""
-    from scipy.spatial.transform import Rotation
+    """Flat opaque Gaussians on ``mesh``'s surface, coloured by ``colour_fn(points)`` (grey by default)."""
+    from gdbench.metrics.mesh_scores import surface_gaussians
 
-    from gdbench.core.scene import GaussianScene
-
-    pts, faces = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    z = np.asarray(mesh.face_normals[faces], dtype=np.float64)
-    a = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    x = np.cross(a, z)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    y = np.cross(z, x)
-    xyzw = Rotation.from_matrix(np.stack([x, y, z], -1)).as_quat()
-    colours = np.full((n, 3), 0.5) if colour_fn is None else colour_fn(pts)
-    s = GaussianScene.from_activated(
-        torch.from_numpy(np.asarray(pts, dtype=np.float32)),
-        torch.tensor([0.006, 0.006, 0.0005]).expand(n, 3).clone(),
-        torch.full((n,), 0.95),
-        torch.from_numpy(np.asarray(colours, dtype=np.float32)),
-        quats=torch.from_numpy(xyzw[:, [3, 0, 1, 2]].astype(np.float32)),
-    )
-    return s
+    grey = lambda p: np.full((len(p), 3), 0.5)  # noqa: E731
+    return surface_gaussians(mesh, n, colours=colour_fn or grey, seed=seed)
 
 
 def test_chamfer_of_concentric_spheres_is_the_difference_of_their_radii():

@@ -291,6 +291,19 @@ def _set_camera(client, pose: ViserPose) -> None:
         cam.look_at = pose.look_at
 
 
+def _add_splats(server, scene: GaussianScene) -> None:
+    """Show ``scene`` as the server's splats (``splat_arrays``), replacing any shown before."""
+    splats = splat_arrays(scene)
+    server.scene.add_gaussian_splats(
+        "/scene",
+        centers=splats.centers,
+        covariances=splats.covariances,
+        rgbs=splats.rgbs,
+        opacities=splats.opacities,
+        scale=splats.scale,
+    )
+
+
 def _check_host(host: str) -> None:
     """A ValueError naming --host unless this machine can listen on ``host`` (viser takes any
     OSError for a busy port and tries the next one, forever, for an address it cannot have)."""
@@ -341,15 +354,7 @@ class Viewer:
 
     def update_scene(self, scene: GaussianScene) -> None:
         """Replace the splats every browser shows with ``scene``'s (``generate --view``)."""
-        splats = splat_arrays(scene)
-        self.server.scene.add_gaussian_splats(
-            "/scene",
-            centers=splats.centers,
-            covariances=splats.covariances,
-            rgbs=splats.rgbs,
-            opacities=splats.opacities,
-            scale=splats.scale,
-        )
+        _add_splats(self.server, scene)
 
     # ------------------------------------------------------------------ GUI callbacks
     def _go(self, k: int) -> None:
@@ -432,21 +437,13 @@ def serve(
         train_cams, kept = training_cameras(config, steps)
     else:
         steps, train_cams, kept = 0, None, []
-    splats = splat_arrays(scene)
 
     server = viser.ViserServer(host=host, port=port, verbose=verbose)
     viewer = Viewer(server, poses, kept, radius)
     try:
         server.gui.configure_theme(show_share_button=False)  # the share link needs viser's relay
         server.scene.set_up_direction(up_vector(up))
-        server.scene.add_gaussian_splats(
-            "/scene",
-            centers=splats.centers,
-            covariances=splats.covariances,
-            rgbs=splats.rgbs,
-            opacities=splats.opacities,
-            scale=splats.scale,
-        )
+        _add_splats(server, scene)
         p = poses[view]
         server.initial_camera.fov = p.fov
         server.initial_camera.up = p.up

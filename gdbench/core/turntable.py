@@ -25,15 +25,21 @@ class TurntableResult:
     paths: dict[str, Path]
 
 
-def render_views_alpha(
-    scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Render cameras in batches without gradients, on the scene's device; returns (rgb [C, H, W, 3]
-    in [0, 1], alpha [C, H, W]) on the CPU, where outputs and scores are made."""
+def render_views_outputs(
+    scene: GaussianScene,
+    cams: Cameras,
+    background=(1.0, 1.0, 1.0),
+    batch: int = 8,
+    outputs: tuple[str, ...] = ("rgb", "alpha"),
+    **kwargs,
+) -> dict[str, torch.Tensor]:
+    """Render cameras in batches without gradients, on the scene's device; returns each of
+    ``outputs`` on the CPU, where outputs and scores are made: rgb [C, H, W, 3] in [0, 1], alpha
+    and depth [C, H, W]."""
     from renderers.splat import rasterize
 
     bg = torch.as_tensor(background, dtype=scene.means.dtype, device=scene.means.device)
-    rgb, alpha = [], []
+    out: dict[str, list] = {o: [] for o in outputs}
     with torch.no_grad():
         for i in range(0, len(cams), batch):
             c = cams[i : i + batch].to(scene.means.device)
@@ -44,12 +50,21 @@ def render_views_alpha(
                 width=c.width,
                 height=c.height,
                 background=bg,
-                outputs=("rgb", "alpha"),
+                outputs=outputs,
                 **kwargs,
             )
-            rgb.append(r.rgb.clamp(0, 1).cpu())
-            alpha.append(r.alpha[..., 0].cpu())
-    return torch.cat(rgb), torch.cat(alpha)
+            for o in outputs:
+                x = getattr(r, o)
+                out[o].append((x.clamp(0, 1) if o == "rgb" else x[..., 0]).cpu())
+    return {o: torch.cat(v) for o, v in out.items()}
+
+
+def render_views_alpha(
+    scene: GaussianScene, cams: Cameras, background=(1.0, 1.0, 1.0), batch: int = 8, **kwargs
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rgb [C, H, W, 3] in [0, 1], alpha [C, H, W]) of ``render_views_outputs``."""
+    r = render_views_outputs(scene, cams, background, batch, ("rgb", "alpha"), **kwargs)
+    return r["rgb"], r["alpha"]
 
 
 def render_views(
@@ -134,28 +149,13 @@ def write_turntable(
     if cams is None:
         cams = SphericalPoses.orbit(frames, radius=radius, elevation=elevation, fovy=fovy).cameras(size, size)
     frames = len(cams)
-    want = {"rgb", "alpha"} | set(outputs)
-    times, imgs = [], {o: [] for o in OUTPUTS}
-    from renderers.splat import rasterize
-
-    bg = torch.as_tensor(background, dtype=scene.means.dtype, device=scene.means.device)
+    want = tuple(o for o in OUTPUTS if o in {"rgb", "alpha", *outputs})
+    times, imgs = [], {o: [] for o in want}
     for i in range(frames):
         t0 = time.perf_counter()
-        c = cams[i].to(scene.means.device)
-        with torch.no_grad():
-            r = rasterize(
-                **scene.render_args(),
-                viewmats=c.viewmats,
-                Ks=c.Ks,
-                width=c.width,
-                height=c.height,
-                background=bg,
-                outputs=tuple(o for o in OUTPUTS if o in want),
-            )
-        imgs["rgb"].append(r.rgb.clamp(0, 1).cpu())
-        imgs["alpha"].append(r.alpha[..., 0].cpu())
-        if r.depth is not None:
-            imgs["depth"].append(r.depth[..., 0].cpu())
+        r = render_views_outputs(scene, cams[i], background, outputs=want)
+        for o in want:
+            imgs[o].append(r[o])
         times.append(time.perf_counter() - t0)
     paths: dict[str, Path] = {}
     for name in outputs:

@@ -113,3 +113,30 @@ def mesh_scores(mesh, reference, *, samples: int = 20000, seed: int = 0, step_de
 
     # the mesh turned back by t fits: it lies turned by -t against the reference
     return MeshScore(best[0], best[1], turned_deg(-best[2]), unturned)
+
+
+def surface_gaussians(mesh, n: int, *, colours=None, seed: int = 0):
+    """``n`` flat opaque Gaussians (0.006 across, 0.0005 thick, opacity 0.95) laid on ``mesh``'s
+    surface (area-uniform samples, seeded), facing along its face normals: a scene whose right
+    mesh is ``mesh``, the floor of what a fusion of its renders can give. Coloured by
+    ``colours(points)`` ([n, 3] in [0, 1]), or by the mesh's face colours."""
+    import torch
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    from gdbench.core.scene import GaussianScene
+
+    pts, faces = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    z = np.asarray(mesh.face_normals[faces], dtype=np.float64)
+    a = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    x = np.cross(a, z)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    xyzw = Rotation.from_matrix(np.stack([x, np.cross(z, x), z], -1)).as_quat()
+    rgb = colours(pts) if colours is not None else np.asarray(mesh.visual.face_colors[faces][:, :3]) / 255
+    return GaussianScene.from_activated(
+        torch.from_numpy(np.asarray(pts, dtype=np.float32)),
+        torch.tensor([0.006, 0.006, 0.0005]).expand(n, 3).clone(),
+        torch.full((n,), 0.95),
+        torch.from_numpy(np.asarray(rgb, dtype=np.float32)),
+        quats=torch.from_numpy(xyzw[:, [3, 0, 1, 2]].astype(np.float32)),
+    )

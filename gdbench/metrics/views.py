@@ -175,26 +175,35 @@ def front_masks(caption: str, size: int = SIZE, azimuth: tuple[float, ...] | Non
 
 @functools.lru_cache(maxsize=16)
 def _front_masks(caption: str, size: int, azimuth: tuple[float, ...]) -> Tensor:
-    import numpy as np
-
     from gdbench.assets.library import build
-    from renderers.pyrender_points.mesh import render_mesh
 
     mesh = build(caption)
     marks = mesh.metadata.get("front")
     if marks is None or not marks.any():
         raise ValueError(f"caption: {caption!r} marks no front parts (assets.library.FRONTS)")
-    rgba = np.zeros((len(mesh.vertices), 4), np.uint8)
-    rgba[:, 3] = 255
-    rgba[marks, :3] = 255
-    mesh.visual.vertex_colors = rgba
     n = len(azimuth)
     poses = SphericalPoses(torch.tensor(azimuth, dtype=torch.float64), torch.full((n,), ELEVATION, dtype=torch.float64),
                            torch.ones(n, dtype=torch.float64), torch.full((n,), FOVY, dtype=torch.float64))  # fmt: skip
+    return torch.from_numpy(part_masks(mesh, poses, size))
+
+
+def part_masks(mesh, poses: SphericalPoses, size: int):
+    """[A, H, W] bool (numpy): where each of ``poses`` sees the parts of ``mesh`` marked by
+    ``assets.shapes.front`` (its ``metadata['front']``), the rest of the mesh occluding them
+    (pyrender, flat white on black)."""
+    import numpy as np
+
+    from renderers.pyrender_points.mesh import render_mesh
+
+    m = mesh.copy()
+    rgba = np.zeros((len(m.vertices), 4), np.uint8)
+    rgba[:, 3] = 255
+    rgba[np.asarray(mesh.metadata["front"], bool), :3] = 255
+    m.visual.vertex_colors = rgba
     pose_gl, Ks = poses.cameras(size, size).to_opengl()
-    rgb, _, _ = render_mesh(mesh, pose_gl.double().numpy(), Ks.double().numpy(), size, size,
+    rgb, _, _ = render_mesh(m, pose_gl.double().numpy(), Ks.double().numpy(), size, size,
                             background=(0.0, 0.0, 0.0), ambient=1.0, headlight=0.0)  # fmt: skip
-    return torch.from_numpy(rgb[..., 0] > 0.5)
+    return rgb[..., 0] > 0.5
 
 
 def front_part_ratio(images: Tensor, ref: Reference, blur: int = PART_BLUR) -> Tensor:
