@@ -69,7 +69,7 @@ def test_bank_cache_hits_and_keys(tmp_path, monkeypatch):
 
 
 def test_bad_captions_and_configs():
-    with pytest.raises(ValueError, match="caption: unknown asset 'a spaceship'; known:"):
+    with pytest.raises(ValueError, match="caption: unknown asset 'a spaceship'; nearest: "):
         build("a spaceship")
     with pytest.raises(ValueError, match="caption: unknown asset"):
         load_bank("a spaceship")

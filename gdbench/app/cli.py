@@ -15,7 +15,18 @@ from gdbench.app.cmd_generate import GenerateBase, generate_command, load_mappin
 from gdbench.app.cmd_refs import Bench, Compare, run_bench, run_compare
 from gdbench.app.cmd_scenes import Export, Render, Score, View, run_export, run_render, run_score, run_view
 from gdbench.app.cmd_sweep import SweepBase, run_sweep, sweep_command, sweep_from_mapping
-from gdbench.app.cmd_tools import Cache, Demo, Noise, TrainPrior, run_cache, run_demo, run_noise, run_train_prior
+from gdbench.app.cmd_tools import (
+    Cache,
+    Demo,
+    Noise,
+    Prompts,
+    TrainPrior,
+    run_cache,
+    run_demo,
+    run_noise,
+    run_prompts,
+    run_train_prior,
+)
 from gdbench.core.constraints import check_fields
 from gdbench.priors.factory import PRIOR_CONFIGS
 
@@ -32,6 +43,7 @@ COMMANDS = {
     "view": (View, run_view),
     "export": (Export, run_export),
     "cache": (Cache, run_cache),
+    "prompts": (Prompts, run_prompts),
 }
 """Subcommand name -> (its options, the function that runs them); generate's and sweep's options
 are those of a --prior choice (``generate_command``, ``sweep_command``)."""

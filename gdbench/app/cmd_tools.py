@@ -1,5 +1,6 @@
 """The small commands: ``demo`` (the built-in scene's turntable), ``noise`` (a preview of the
-structured noise), ``train-prior`` (the learned prior's weights) and ``cache`` (the cache folder)."""
+structured noise), ``train-prior`` (the learned prior's weights), ``cache`` (the cache folder)
+and ``prompts`` (the captions the priors know)."""
 
 from __future__ import annotations
 
@@ -144,7 +145,21 @@ class Cache:
     kinds: tuple[Literal["banks", "fixtures", "learned_data", "clip_tokenizer", "ext"], ...] = ()
     """clear: only these parts (default: all of gdbench's)."""
     prompts: tuple[str, ...] = ()
-    """build: prompts (or asset captions) to build for (default: every asset, the duck last)."""
+    """build: prompts (or captions) to build for; `all` for every caption `gdbench prompts` lists,
+    `world` for the world's objects (default: the six paper assets, the duck last)."""
+
+
+def _prompt_set(prompts: tuple[str, ...]) -> list[str] | None:
+    """--prompts with `all` and `world` spelled out (None: the default six)."""
+    from gdbench.assets.families import WORLD
+    from gdbench.assets.library import CAPTIONS
+
+    out: list[str] = []
+    for p in prompts:
+        for c in {"all": CAPTIONS, "world": tuple(WORLD)}.get(p, (p,)):
+            if c not in out:
+                out.append(c)
+    return out or None
 
 
 def run_cache(cmd: Cache) -> dict:
@@ -157,10 +172,44 @@ def run_cache(cmd: Cache) -> dict:
     if cmd.action == "build":
         from gdbench.app.prebuild import build
 
-        built = build(list(cmd.prompts) or None)
+        built = build(_prompt_set(cmd.prompts))
         return {"root": str(cache.root()), "built": built}
     if cmd.action == "clear":
         files, size = cache.clear(list(cmd.kinds) or None)
         print(f"gdbench cache: removed {files} files ({cache.human(size)}) from {cache.root()}")
     print(cache.listing())
     return {"root": str(cache.root()), "entries": {e.kind: e.bytes for e in cache.entries()}}
+
+
+@dataclass
+class Prompts:
+    """List the captions the embedded priors know: the six paper assets and the world's objects,
+    each with its kind, what its front shows, which CPU priors know it and whether its image bank
+    is cached. Free text is matched to these (docs/world.md says how)."""
+
+    kind: str | None = None
+    """Only this kind ("duck", "cat", "car" ...; default: every kind)."""
+
+
+def run_prompts(cmd: Prompts) -> dict:
+    from gdbench.assets.bank import BankConfig, cached
+    from gdbench.assets.library import ASSETS, CAPTIONS, FRONTS, PARTS
+    from gdbench.priors.learned.data import captions as learned_captions
+
+    kinds = sorted({k for k, *_ in PARTS.values()})
+    if cmd.kind is not None and cmd.kind not in kinds:
+        raise ValueError(f"kind: expected one of {', '.join(kinds)}, got {cmd.kind!r}")
+    learned = set(learned_captions())
+    rows = []
+    for c in CAPTIONS:
+        kind = PARTS[c][0]
+        if cmd.kind in (None, kind):
+            priors = "empirical, learned" if c in learned else "empirical"
+            rows.append({"caption": c, "kind": kind, "front": FRONTS[c] or "(none)", "priors": priors,
+                         "bank": "cached" if cached(c, BankConfig()) else "-", "paper": c in ASSETS})  # fmt: skip
+    width = max(len(r["caption"]) for r in rows)
+    for r in rows:
+        print(f"{r['caption']:<{width}}  {r['kind']:<11}  {r['priors']:<17}  {r['bank']:<6}  {r['front']}")
+    n_kinds, fronts = len({r["kind"] for r in rows}), sum(FRONTS[r["caption"]] is not None for r in rows)
+    print(f"{len(rows)} objects ({fronts} with a front) in {n_kinds} kind{'s' * (n_kinds > 1)}", flush=True)
+    return {"captions": [r["caption"] for r in rows], "rows": rows}

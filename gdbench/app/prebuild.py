@@ -53,7 +53,7 @@ def running() -> int | None:
 
 
 def _build(prompts: list[str], everything: bool) -> list[str]:
-    from gdbench.assets.bank import ASSET_VERSION
+    from gdbench.assets.bank import ASSET_VERSION, cache_dir
     from gdbench.core.cache import root
     from gdbench.core.io import atomic_write
     from gdbench.metrics.gt import asset_views, heldout_poses
@@ -63,7 +63,8 @@ def _build(prompts: list[str], everything: bool) -> list[str]:
     from gdbench.train.config import preset
 
     done = []
-    for prompt in prompts:
+    for i, prompt in enumerate(prompts, 1):
+        before = _size(cache_dir())
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
             cfg = preset("gd", prompt=prompt, out=tmp, progress=False)
@@ -73,8 +74,16 @@ def _build(prompts: list[str], everything: bool) -> list[str]:
         asset_views(caption, heldout_poses(12), 64)
         palette(caption)
         done.append(caption)
-        print(f"gdbench cache: {caption!r} ready ({time.perf_counter() - t0:.1f} s)", flush=True)
+        added = (_size(cache_dir()) - before) / 2**20
+        count = f"[{i}/{len(prompts)}] " if len(prompts) > 1 else ""
+        took = time.perf_counter() - t0
+        print(f"gdbench cache: {count}{caption!r} ready ({took:.1f} s, +{added:.0f} MB)", flush=True)
     if everything:
         blob = json.dumps({"asset_version": ASSET_VERSION, "captions": done}).encode()
         atomic_write(root() / "banks" / PREBUILT, lambda f: f.write(blob))
     return done
+
+
+def _size(folder) -> int:
+    """Bytes of the files in ``folder`` (0 if it does not exist)."""
+    return sum(f.stat().st_size for f in folder.glob("*") if f.is_file()) if folder.is_dir() else 0

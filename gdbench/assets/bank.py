@@ -136,14 +136,23 @@ def render_bank(caption: str, config: BankConfig, variant: int = 0) -> Bank:
     )
 
 
+def bank_path(caption: str, config: BankConfig, variant: int = 0) -> Path:
+    """Where the bank of ``caption`` (variant ``variant``) is cached."""
+    return cache_dir() / f"{caption.replace(' ', '_')}-{bank_key(caption, config, variant)}.npz"
+
+
+def cached(caption: str, config: BankConfig, variant: int = 0) -> bool:
+    """Whether the bank is in the cache (not whether it reads: ``load_bank`` checks that)."""
+    return bank_path(caption, config, variant).is_file()
+
+
 def load_bank(caption: str, config: BankConfig | None = None, *, variant: int = 0, verbose: bool = True) -> Bank:
     """The bank of ``caption`` (variant ``variant``), from the cache or rendered (and cached atomically)."""
-    from gdbench.assets.library import ASSETS
+    from gdbench.assets.library import check_caption
 
     config = config or BankConfig()
-    if caption not in ASSETS:
-        raise ValueError(f"caption: unknown asset {caption!r}; known: {sorted(ASSETS)}")
-    path = cache_dir() / f"{caption.replace(' ', '_')}-{bank_key(caption, config, variant)}.npz"
+    check_caption(caption)
+    path = bank_path(caption, config, variant)
     if path.is_file():
         try:
             with np.load(path) as z:

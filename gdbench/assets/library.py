@@ -1,7 +1,11 @@
 """The paper's six prompts as procedural meshes: a corgi, a yellow duck, a hamburger, a Lego
 figure, a penguin and a sofa. World +Z is up and each asset's front faces +X (azimuth 0),
 so a result with its front on more than one side (the multi-face problem) can be detected.
-Each mesh fits in a ball of radius 0.45 around the origin."""
+Each mesh fits in a ball of radius 0.45 around the origin.
+
+The catalogue a prompt can name is these six (``ASSETS``, the default prompt set of sweeps,
+set-up and the shipped learned prior) and the world's objects (``families.WORLD``): ``CAPTIONS``,
+``build``, ``FRONTS`` and ``PARTS`` cover both."""
 
 from __future__ import annotations
 
@@ -9,6 +13,7 @@ import functools
 from collections.abc import Callable
 
 from gdbench.assets import shapes as S
+from gdbench.assets.families import WORLD, WORLD_FRONTS
 
 WHITE, BLACK = (0.96, 0.96, 0.94), (0.05, 0.05, 0.06)
 
@@ -151,6 +156,21 @@ ASSETS: dict[str, Callable] = {
 }
 """Captions (the paper's prompts) to mesh builders, written out by hand."""
 
+CAPTIONS: tuple[str, ...] = (*sorted(ASSETS), *WORLD)
+"""Every caption of the catalogue: the six, then the world's objects in their committed order."""
+
+PARTS: dict[str, tuple[str, str | None, str | None, str | None]] = {
+    "a corgi": ("corgi", None, None, None),
+    "a yellow duck": ("duck", "yellow", None, None),
+    "a hamburger": ("hamburger", None, None, None),
+    "a lego figure": ("lego figure", None, None, None),
+    "a penguin": ("penguin", None, None, None),
+    "a sofa": ("sofa", None, None, None),
+} | {c: (s.kind, s.colour, s.hat, s.scarf) for c, s in WORLD.items()}
+"""Caption -> (kind, body colour name or None, hat colour or None, scarf colour or None): what a
+compositional prompt is matched on (``priors.compose``). The six have no colour in their caption
+but the duck's."""
+
 
 FRONTS: dict[str, str | None] = {
     "a corgi": "the face: eyes, muzzle, nose and tongue",
@@ -159,11 +179,11 @@ FRONTS: dict[str, str | None] = {
     "a lego figure": "the face printed on the head and the print on the torso",
     "a penguin": "the white belly, the eyes and the orange beak",
     "a sofa": "the seat with its cushions, the back rest behind them",
-}
+} | WORLD_FRONTS
 """What each asset shows at its front (azimuth 0, +X), or None where it has none (the hamburger is
-the same from every side): the Janus classes need a front, and assets without one are left out
-of the Janus claims (docs/scoring.md). The builders mark these parts (``shapes.front``), so the
-metric's front test can look at them (``metrics.views.front_masks``)."""
+the same from every side), then every object of the world set: the Janus classes need a front,
+and assets without one are left out of the Janus claims (docs/scoring.md). The builders mark these
+parts (``shapes.front``), so the metric's front test can look at them (``metrics.views.front_masks``)."""
 
 
 def has_front(caption: str) -> bool:
@@ -176,14 +196,27 @@ def has_front(caption: str) -> bool:
 VARIANTS = 3
 """Procedural variants per caption (instance ambiguity, docs/training.md 'The embedded prior'): 0 the asset as
 written above; 1 longer front to back and squat, in a warmer, darker shade; 2 compact and tall,
-in a lighter shade, wearing a striped hat. Each is the same caption (same colours by name), and
+in a lighter shade, wearing a striped hat (the six only: a world object's hat or scarf is part of
+its caption, so its variant 2 wears none it does not name). Each is the same caption (same colours by name), and
 each differs from the others at every view, so a result can be matched to its instance."""
 
 
+def check_caption(caption: str) -> str:
+    """``caption`` if the catalogue has it, else a ValueError naming the nearest captions."""
+    if caption not in PARTS:
+        from difflib import get_close_matches
+
+        near = get_close_matches(str(caption), CAPTIONS, n=3, cutoff=0.0)
+        raise ValueError(
+            f"caption: unknown asset {caption!r}; nearest: {', '.join(map(repr, near))} "
+            f"(`gdbench prompts` lists all {len(CAPTIONS)})"
+        )
+    return caption
+
+
 def build(caption: str, variant: int = 0):
-    """The trimesh mesh (with vertex colours) of a caption in ``ASSETS``, as variant ``variant``."""
-    if caption not in ASSETS:
-        raise ValueError(f"caption: unknown asset {caption!r}; known: {sorted(ASSETS)}")
+    """The trimesh mesh (with vertex colours) of a caption of the catalogue, as variant ``variant``."""
+    check_caption(caption)
     if not 0 <= variant < VARIANTS:
         raise ValueError(f"variant: expected 0..{VARIANTS - 1}, got {variant}")
     return _built(caption, variant).copy()
@@ -191,11 +224,14 @@ def build(caption: str, variant: int = 0):
 
 @functools.lru_cache(maxsize=32)
 def _built(caption: str, variant: int):
-    mesh = ASSETS[caption]()
-    return mesh if variant == 0 else _variant(mesh, variant)
+    if caption in ASSETS:
+        mesh = ASSETS[caption]()
+        return mesh if variant == 0 else _variant(mesh, variant)
+    mesh = WORLD[caption].build()
+    return mesh if variant == 0 else _variant(mesh, variant, hat=False)
 
 
-def _variant(mesh, variant: int):
+def _variant(mesh, variant: int, hat: bool = True):
     import numpy as np
 
     m = mesh.copy()
@@ -207,8 +243,10 @@ def _variant(mesh, variant: int):
     else:
         m.apply_transform(np.diag([0.8, 0.95, 1.25, 1.0]))
         rgb = rgb + (1 - rgb) * 0.3  # lighter
+        parts = [m]
+    if variant == 2 and hat:
         top = m.vertices[np.argmax(m.vertices[:, 2])]
-        hat = S.cone((top[0], top[1], top[2] - 0.01), 0.09, 0.2, S.stripes((0.2, 0.3, 0.85), WHITE, 2, 0.04))
-        parts = [m, hat]
+        cap = S.cone((top[0], top[1], top[2] - 0.01), 0.09, 0.2, S.stripes((0.2, 0.3, 0.85), WHITE, 2, 0.04))
+        parts = [m, cap]
     m.visual.vertex_colors = np.concatenate([np.round(rgb * 255), np.full((len(rgb), 1), 255)], 1).astype(np.uint8)
     return S.combine(parts)

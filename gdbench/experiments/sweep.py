@@ -77,8 +77,8 @@ def validate_grid(
     """Everything a sweep could fail on, checked before the first cell trains: presets, repeated
     entries, cell folders two prompts would share, prompts no asset matches (or that contradict
     it), and each cell's config and device (Ray's tasks get no GPU)."""
-    from gdbench.assets.library import ASSETS
-    from gdbench.priors.prompt_check import contradiction
+    from gdbench.assets.library import CAPTIONS
+    from gdbench.priors.compose import resolve
     from gdbench.priors.text import CaptionMatcher
     from gdbench.train.config import PRESETS
 
@@ -107,12 +107,12 @@ def validate_grid(
                 f"prompts: {names[n]!r} and {pr!r} would share the cell folder {n!r}; list each prompt once"
             )
         names[n] = pr
-    matcher = CaptionMatcher(sorted(ASSETS))
+    matcher = CaptionMatcher(list(CAPTIONS))
     for pr in prompts:
-        caption, sim = matcher.match_scored(pr)
-        why = contradiction(pr, caption, matcher)
-        if why is not None:
-            raise ValueError(f"prompts: {pr!r} matched {caption!r} (cosine {sim:.2f}): {why}")
+        try:
+            resolve(pr, matcher)
+        except ValueError as e:
+            raise ValueError(f"prompts: {str(e).removeprefix('prompt: ')}") from None
 
 
 def inert_overrides(specs: list[CellSpec]) -> list[str]:

@@ -40,11 +40,11 @@ import torch
 from torch import Tensor
 
 from gdbench.assets.bank import Bank, BankConfig, load_bank
-from gdbench.assets.library import ASSETS
+from gdbench.assets.library import CAPTIONS
 from gdbench.assets.zoom import zoom_images
 from gdbench.core.constraints import AtLeast, Range
 from gdbench.priors import ve_sigmas_from_betas
-from gdbench.priors.prompt_check import contradiction
+from gdbench.priors.compose import resolve
 from gdbench.priors.text import CaptionMatcher
 
 ViewMode = Literal["none", "buckets", "window"]
@@ -195,7 +195,7 @@ class EmpiricalPrior:
         self.depth_weight = depth_weight
         self.bank_config = bank_config or BankConfig()
         self._banks = dict(banks or {})
-        self.matcher = CaptionMatcher(sorted(set(ASSETS) | set(self._banks)), threshold)
+        self.matcher = CaptionMatcher([*CAPTIONS, *sorted(set(self._banks) - set(CAPTIONS))], threshold)
         self.sigmas = ve_sigmas_from_betas().float()
         self.fov_step = fov_step
         self.cache_bytes = cache_bytes
@@ -204,10 +204,7 @@ class EmpiricalPrior:
     def encode(self, prompt: str) -> EmpiricalCond:
         """The condition of the caption nearest to ``prompt``; a prompt that contradicts that
         asset (a negation, or a colour the asset lacks) raises ValueError saying why."""
-        caption, similarity = self.matcher.match_scored(prompt)
-        why = contradiction(prompt, caption, self.matcher)
-        if why is not None:
-            raise ValueError(f"prompt: {prompt!r} matched {caption!r} (cosine {similarity:.2f}): {why}")
+        caption, similarity = resolve(prompt, self.matcher)
         bank = self._banks.get(caption) or load_bank(caption, self.bank_config)
         self._banks[caption] = bank
         banks = [bank] + [load_bank(caption, bank.config, variant=v) for v in range(1, self.variants)]

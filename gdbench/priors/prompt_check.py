@@ -189,20 +189,35 @@ def contradiction(prompt: str, caption: str, matcher=None) -> str | None:
                 kind = "the object" if need == DOMINANT else "a part"
                 return (
                     f"it asks for {name} ({kind}), but {share:.0%} of that asset's surface is near {name} "
-                    f"(needs {need:.0%}); the embedded prior has one appearance per asset"
+                    f"(needs {need * 100:g}%); the embedded prior has one appearance per asset"
                 )
     if matcher is not None:
         parts = [p.strip() for p in _SPLIT.split(head) if p.strip()]
         named = [p for p in parts if _content(p)]
         if len(named) > 1:
+            from gdbench.priors.compose import kind_of, kinds_named
+
+            kind = kind_of(caption)
             for p in named:
+                kinds = kinds_named(p)
+                if kinds:  # a part that names a kind must name the caption's
+                    if kind not in kinds:
+                        return f"it also names {p!r}, which is not {caption!r}; the embedded prior generates one asset"
+                    continue
                 scores = matcher.scores(p)
                 best = max(scores, key=scores.get)
-                if best != caption or scores[best] < matcher.threshold:
+                same = best == caption or (kind is not None and kind_of(best) == kind)
+                if not same or scores[best] < matcher.threshold:
                     if _is_depiction(matcher, p):
                         continue
                     return f"it also names {p!r}, which is not {caption!r}; the embedded prior generates one asset"
     return None
+
+
+def colour_category_name(name: str) -> str:
+    """The basic colour term (``BASIC``) a colour name of the lexicon falls in ("navy" -> "blue")."""
+    rgb = colour_lexicon()[tuple(name.split())]
+    return BASIC[int(category(_lab(np.asarray(rgb, dtype=np.float64))))]
 
 
 def _content(part: str) -> list[str]:

@@ -70,8 +70,10 @@ class CaptionMatcher:
         scores = self.scores(prompt)
         best = max(scores, key=scores.get)
         if scores[best] < self.threshold:
+            near = sorted(scores, key=lambda c: -scores[c])[:3]
             raise ValueError(
                 f"prompt: {prompt!r} matches no known asset (best: {best!r} at cosine {scores[best]:.2f} < "
-                f"{self.threshold}); known prompts: {', '.join(repr(c) for c in self.captions)}"
+                f"{self.threshold}); nearest: {', '.join(map(repr, near))} "
+                f"(`gdbench prompts` lists the {len(self.captions)} known)"
             )
         return best, scores[best]

@@ -198,12 +198,9 @@ class LearnedPrior:
         return x.permute(0, 2, 3, 1)
 
     def encode(self, prompt: str) -> LearnedCond:
-        from gdbench.priors.prompt_check import contradiction
+        from gdbench.priors.compose import resolve
 
-        caption, similarity = self.matcher.match_scored(prompt)
-        why = contradiction(prompt, caption, self.matcher)
-        if why is not None:
-            raise ValueError(f"prompt: {prompt!r} matched {caption!r} (cosine {similarity:.2f}): {why}")
+        caption, similarity = resolve(prompt, self.matcher)
         variant = 0 if self.variants == 1 else self.unet.config.variants
         return LearnedCond(caption, self.captions.index(caption), variant, similarity)
 

@@ -1,0 +1,235 @@
+"""Prompts taken apart: the kind of object a prompt names, its colour and what it wears, matched
+against the catalogue's captions (``assets.library.PARTS``: the six paper assets and the world's
+objects), with the contradiction checker of ``prompt_check`` deciding each candidate.
+
+``resolve(prompt, matcher)`` is what the priors call:
+
+1. An exact caption (after ``text.normalise``) is itself.
+2. Every word is read (``read_words``): words of the colour table, kinds, accessories, parts and
+   the declared modifiers (``MODIFIERS``: sizes, materials, styles, quality tags) are known. Any
+   other word is judged by meaning: the sentence model's cosine between the word and its nearest
+   colour name. At ``COLOUR_READ`` or more it is read as that colour ("vermilion" -> the colour
+   table's "vermillion"), between ``COLOUR_ASK`` and that it may be a colour and is refused naming
+   the word, below it is a modifier that names no colour (and the sentence model still weighs it).
+3. A prompt that names a kind (a kind word or synonym, ``KIND_WORDS``) is matched within that
+   kind: the candidates are the kind's captions that wear what the prompt asks them to wear
+   (a hat, a scarf) and that the contradiction checker accepts (colours judged on each
+   candidate's own surface); the first in catalogue order wins, an object wearing nothing the
+   prompt did not ask for first. "a blue duck" is the world's blue duck, "a navy duck" too (navy
+   is blue), "a duck" the paper's yellow duck, "a cat" the orange cat.
+4. A prompt that names no kind is matched by the sentence model as before (``CaptionMatcher``),
+   then checked.
+
+A refusal is one line naming why and the three nearest captions (``nearest``).
+"""
+
+from __future__ import annotations
+
+import functools
+
+COLOUR_READ = 0.84
+"""Cosine (MiniLM, word against colour name) at or above which an unknown word is read as that colour."""
+COLOUR_ASK = 0.72
+"""Cosine at or above which (and below ``COLOUR_READ``) an unknown word may name a colour: refused, naming it."""
+
+SYNONYMS = {
+    "burger": "hamburger", "cheeseburger": "hamburger", "couch": "sofa", "settee": "sofa",
+    "lego": "lego figure", "minifigure": "lego figure", "minifig": "lego figure",
+    "puppy": "dog", "kitten": "cat", "kitty": "cat", "bunny": "rabbit", "duckling": "duck",
+    "chicken": "chick", "automobile": "car", "armchair": "chair", "toad": "frog", "goldfish": "fish",
+    "android": "robot", "kettle": "teapot", "piglet": "pig", "teddy": "bear",
+}  # fmt: skip
+"""Words that name a kind of the catalogue by another name."""
+BROADER = {"corgi": "dog"}
+"""Kind -> the kind it is a sort of: "a corgi dog" names the corgi, not a dog of the world set."""
+ACCESSORIES = {
+    "hat": "hat", "cap": "hat", "beanie": "hat", "bonnet": "hat", "party hat": "hat", "top hat": "hat",
+    "scarf": "scarf", "muffler": "scarf", "shawl": "scarf",
+}  # fmt: skip
+"""Words for what the world's objects can wear, and which accessory each is."""
+PART_WORDS = frozenset(
+    "beak beaks eye eyes head heads leg legs tail tails ear ears nose snout tongue wing wings feet paws belly "
+    "face fur fins fin wheels wheel windows spout handle lid antenna antennae mouth whiskers arms hands torso "
+    "cushions cushion seat back backrest lettuce cheese tomato tomatoes bun buns patty sesame seeds stripes "
+    "spots pattern body".split()
+)
+"""Nouns of the objects' own parts (with-clauses name them: "a duck with an orange beak")."""
+MODIFIERS = frozenset(
+    "cute little small big large tiny giant huge fluffy fuzzy furry toy rubber plastic metal metallic wooden "
+    "soft comfy modern realistic photorealistic detailed highly high quality 3d render photo drawing painting "
+    "model cartoon style stylized 4k 8k hd standing sitting baby emperor welsh tasty juicy delicious living "
+    "room three seater person man figurine figure single one full shot view isometric studio lighting "
+    "beautiful pretty happy funny adorable fat chubby round simple clean".split()
+)
+"""Words declared to name no colour, no kind and no part (sizes, materials, styles, quality tags)."""
+_FUNCTION = frozenset(
+    "a an the of some one two with having wearing that has which is are its it in on and plus & + to "
+    "as well together next beside besides alongside by from at for".split()
+)
+
+
+def kind_of(caption: str) -> str | None:
+    """The kind of a catalogue caption ("a pink pig wearing a blue hat" -> "pig"), None for others."""
+    from gdbench.assets.library import PARTS
+
+    return PARTS[caption][0] if caption in PARTS else None
+
+
+@functools.cache
+def kind_words() -> dict[tuple[str, ...], str]:
+    """Word tuples (longest first) -> kind: every kind's name, its plural and ``SYNONYMS``."""
+    from gdbench.assets.library import PARTS
+
+    out = {}
+    for kind, *_ in PARTS.values():
+        out[tuple(kind.split())] = kind
+        out[tuple((kind + "s").split())] = kind
+    for word, kind in SYNONYMS.items():
+        out[(word,)] = kind
+        out[(word + "s",)] = kind
+    return dict(sorted(out.items(), key=lambda kv: -len(kv[0])))
+
+
+def _find(words: list[str], table: dict[tuple[str, ...], str]) -> list[tuple[int, int, str]]:
+    """(start, end, value) of the table's phrases in ``words``, longest first, each word used once."""
+    used: set[int] = set()
+    found = []
+    for phrase, value in table.items():
+        n = len(phrase)
+        for i in range(len(words) - n + 1):
+            if tuple(words[i : i + n]) == phrase and not used & set(range(i, i + n)):
+                found.append((i, i + n, value))
+                used |= set(range(i, i + n))
+    return sorted(found)
+
+
+def kinds_named(text: str) -> set[str]:
+    """The kinds a piece of (``prompt_check._words``-normalised) text names, the most specific of
+    each family ("corgi dog" -> {"corgi"})."""
+    kinds = {k for _, _, k in _find(text.split(), kind_words())}
+    return {k for k in kinds if not any(BROADER.get(o) == k for o in kinds)}
+
+
+def accessories_named(text: str) -> set[str]:
+    table = {tuple(w.split()): a for w, a in sorted(ACCESSORIES.items(), key=lambda kv: -len(kv[0].split()))}
+    return {a for _, _, a in _find(text.split(), table)}
+
+
+def read_words(prompt: str, matcher) -> tuple[str, dict[str, str]]:
+    """The prompt as ``prompt_check._words`` normalises it, with each unknown word that reads as a
+    colour replaced by that colour's name, and {word: colour name} of those read; a word that may
+    name a colour but not surely raises ValueError naming it (the module's docstring says the rule)."""
+    from gdbench.priors.prompt_check import _DEPICTION, NEGATION, _words, colour_lexicon
+
+    text = _words(prompt.replace("-", " "))
+    known = set(_FUNCTION) | MODIFIERS | PART_WORDS | {w for p in colour_lexicon() for w in p}
+    known |= {w for p in kind_words() for w in p} | {w for a in ACCESSORIES for w in a.split()}
+    known |= NEGATION | {w for d in _DEPICTION for w in d.split()}
+    unknown = sorted({w for w in text.split() if w not in known and not w.isdigit()})
+    if not unknown:
+        return text, {}
+    names, emb = _colour_embeddings(matcher)
+    sims = matcher._embed(unknown) @ emb.T
+    read = {}
+    for word, s in zip(unknown, sims):
+        best = int(s.argmax())
+        cos = float(s[best])
+        if cos >= COLOUR_READ:
+            read[word] = names[best]
+        elif cos >= COLOUR_ASK:
+            raise ValueError(
+                f"prompt: {prompt!r}: the word {word!r} may name a colour (nearest colour name {names[best]!r}, "
+                f"cosine {cos:.2f}) but not surely; name the colour with a common colour word or leave {word!r} out"
+            )
+    return " ".join(read.get(w, w) for w in text.split()), read
+
+
+def _colour_embeddings(matcher):
+    key = id(matcher)
+    if key not in _EMB:
+        from gdbench.priors.prompt_check import colour_lexicon
+
+        names = [" ".join(n) for n in colour_lexicon()]
+        _EMB[key] = (names, matcher._embed(names))
+    return _EMB[key]
+
+
+_EMB: dict[int, tuple] = {}
+
+
+def nearest(prompt_text: str, captions: list[str], n: int = 3) -> list[str]:
+    """The ``n`` captions nearest a prompt by its parts: the same kind counts 3, the same colour
+    category 2, the same accessory 1 (ties in catalogue order)."""
+    from gdbench.assets.library import PARTS
+    from gdbench.priors.prompt_check import _PART, colour_category_name, find_colours
+
+    pieces = _PART.split(prompt_text, maxsplit=1)
+    head = pieces[0]
+    kinds = kinds_named(head)
+    colours = {colour_category_name(c) for c in find_colours(head)}
+    acc = accessories_named(prompt_text)
+
+    def score(c: str) -> float:
+        kind, colour, hat, scarf = PARTS.get(c, (None, None, None, None))
+        s = 3.0 * (kind in kinds) + 2.0 * (colour is not None and colour_category_name(colour) in colours)
+        return s + ("hat" in acc and hat is not None) + ("scarf" in acc and scarf is not None)
+
+    return sorted(captions, key=lambda c: -score(c))[:n]
+
+
+def resolve(prompt: str, matcher) -> tuple[str, float]:
+    """(caption, cosine similarity) of ``prompt`` among ``matcher.captions``, or ValueError in one
+    line saying why not and naming the nearest captions (the module's docstring says how)."""
+    from gdbench.priors.prompt_check import _PART, _SPLIT, contradiction
+    from gdbench.priors.text import normalise
+
+    if not isinstance(prompt, str) or not prompt.strip():
+        raise ValueError(f"prompt: expected a non-empty string, got {prompt!r}")
+    for c in matcher.captions:
+        if normalise(c) == normalise(prompt):
+            return c, 1.0
+    text, read = read_words(prompt, matcher)
+    said = "".join(f" ({w!r} read as the colour {c!r})" for w, c in read.items())
+    pieces = _PART.split(text, maxsplit=1)
+    head, part = pieces[0], pieces[1] if len(pieces) > 1 else ""
+    per_part = [k for k in (kinds_named(p) for p in _SPLIT.split(head)) if k]
+    kinds = set().union(*per_part)
+    if not kinds:
+        caption, sim = matcher.match_scored(prompt)
+        why = contradiction(text, caption, matcher)
+        if why is not None:
+            raise ValueError(f"prompt: {prompt!r}{said} matched {caption!r} (cosine {sim:.2f}): {why}")
+        return caption, sim
+    named = " and ".join(f"a {k}" for k in sorted(set().union(*per_part)))
+    near = ", ".join(map(repr, nearest(text, matcher.captions)))
+    tail = f"; nearest: {near} (`gdbench prompts` lists the {len(matcher.captions)} this prior knows)"
+    if len(per_part) > 1:  # "a red car and a blue car" names two objects, of one kind or two
+        raise ValueError(f"prompt: {prompt!r}{said} names {len(per_part)} objects ({named}); the prior "
+                         f"generates one{tail}")  # fmt: skip
+    (kind,) = kinds
+    cands = [c for c in matcher.captions if kind_of(c) == kind]
+    if not cands:
+        raise ValueError(f"prompt: {prompt!r}{said} names a {kind}, which this prior does not know{tail}")
+    wears = accessories_named(part)
+    if "wearing" in text.split() and not wears:
+        worn = (part.split(" wearing ", 1)[-1] if " wearing " in part else part).strip()
+        raise ValueError(
+            f"prompt: {prompt!r}{said} asks the {kind} to wear {worn!r}; the set's objects wear a hat or a scarf{tail}"
+        )
+    from gdbench.assets.library import PARTS
+
+    def has(c, a):
+        return PARTS[c][2 if a == "hat" else 3] is not None
+
+    dressed = [c for c in cands if all(has(c, a) for a in wears)]
+    if not dressed:
+        raise ValueError(f"prompt: {prompt!r}{said} asks for a {kind} wearing a {' and a '.join(sorted(wears))}, "
+                         f"which no {kind} of the set does{tail}")  # fmt: skip
+    whys = {c: contradiction(text, c, matcher) for c in dressed}
+    ok = [c for c in dressed if whys[c] is None]
+    if not ok:
+        first = dressed[0]
+        raise ValueError(f"prompt: {prompt!r}{said} matches no {kind} of the set ({first!r}: {whys[first]}){tail}")
+    plain = [c for c in ok if not any(has(c, a) for a in ("hat", "scarf") if a not in wears)]
+    caption = (plain or ok)[0]
+    return caption, matcher.scores(prompt)[caption]
