@@ -116,13 +116,24 @@ class TrainPrior:
     """Where the model trains (auto: CUDA when present)."""
     progress: bool = True
     """Report progress (a bar on a terminal, a line every few seconds in a log)."""
+    catalogue: Literal["six", "world"] = "six"
+    """six: the paper's six assets, one embedding per caption (the shipped models); world: every
+    caption of `gdbench prompts`, each the sum of its kind's, colour's and accessory's embeddings,
+    with the world's held-out combinations never rendered (docs/learned_prior.md)."""
 
 
 def run_train_prior(cmd: TrainPrior) -> dict:
     from gdbench.priors.learned.data import DataConfig
-    from gdbench.priors.learned.training import PriorTrainConfig, train_prior
+    from gdbench.priors.learned.training import PriorTrainConfig, train_prior, world_config
     from gdbench.priors.learned.unet import UNetConfig
 
+    if cmd.catalogue == "world":
+        cfg = world_config(
+            out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
+            threads=cmd.threads, device=cmd.device, progress=cmd.progress, unet={"size": cmd.size},
+            data={"views": cmd.views, "resolution": cmd.resolution},
+        )  # fmt: skip
+        return train_prior(cfg)
     cfg = PriorTrainConfig(
         out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
         threads=cmd.threads, device=cmd.device, progress=cmd.progress, unet=UNetConfig(size=cmd.size),

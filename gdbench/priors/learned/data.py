@@ -38,8 +38,14 @@ class DataConfig:
     fovy_range: tuple[float, float] = (40.0, 70.0)
     elevation_range: tuple[float, float] = (-45.0, 45.0)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    captions: tuple[str, ...] = ()
+    """The captions rendered, in catalogue order (empty: the six paper assets, as the shipped models)."""
 
     def __post_init__(self) -> None:
+        from gdbench.assets.library import check_caption
+
+        for c in self.captions:
+            check_caption(c)
         if self.views < 1:
             raise ValueError(f"views: expected at least one camera per asset, got {self.views}")
         if self.resolution < 8:
@@ -64,11 +70,27 @@ class Dataset:
         return self.images.shape[0]
 
 
-def captions() -> tuple[str, ...]:
-    """The captions a learned prior knows, in the order of its class embedding."""
+def captions(config: DataConfig | None = None) -> tuple[str, ...]:
+    """The captions of a data set (default: the six paper assets, the shipped models' captions)."""
     from gdbench.assets.library import ASSETS
 
-    return tuple(sorted(ASSETS))
+    return tuple(config.captions) if config is not None and config.captions else tuple(sorted(ASSETS))
+
+
+def parts_of(caps: tuple[str, ...]) -> tuple[tuple[tuple[int, ...], ...], tuple[int, ...]]:
+    """(rows, sizes) of a compositional model's ``UNetConfig.parts`` for the captions ``caps``:
+    kind (over every kind of the catalogue, sorted), body colour, hat colour and scarf colour
+    (0: none, then the world's colour names in their order)."""
+    from gdbench.assets.families import COLOURS
+    from gdbench.assets.library import PARTS
+
+    kinds = sorted({k for k, *_ in PARTS.values()})
+    colours = [None, *COLOURS]
+    rows = []
+    for c in caps:
+        kind, colour, hat, scarf = PARTS[c]
+        rows.append((kinds.index(kind), colours.index(colour), colours.index(hat), colours.index(scarf)))
+    return tuple(rows), (len(kinds), len(colours), len(colours), len(colours))
 
 
 def data_dir() -> Path:
@@ -81,26 +103,49 @@ def data_key(config: DataConfig) -> str:
     from gdbench.assets.bank import ASSET_VERSION
     from gdbench.assets.library import VARIANTS
 
-    key = {"config": asdict(config), "asset_version": ASSET_VERSION, "captions": captions(), "variants": VARIANTS}
+    cfg = asdict(config)
+    if not config.captions:  # the six: the key as before the field existed
+        cfg.pop("captions")
+    key = {"config": cfg, "asset_version": ASSET_VERSION, "captions": captions(config), "variants": VARIANTS}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def render_dataset(config: DataConfig, *, progress: bool = True) -> Dataset:
-    """Render the data set (no cache). Each (caption, variant) draws its cameras from its own
-    generator, seeded from ``config.seed`` and its index, so a set is the same whatever renders first
-    (and ``render_subset`` gives one part of it alone)."""
+def render_dataset(config: DataConfig, *, progress: bool = True, parts: Path | None = None) -> Dataset:
+    """Render the data set. Each (caption, variant) draws its cameras from its own generator, seeded
+    from ``config.seed`` and its index, so a set is the same whatever renders first (and
+    ``render_subset`` gives one part of it alone). With ``parts`` (a folder), each part is kept
+    there as it is rendered and read back instead of rendered again: an interrupted render resumes."""
     from gdbench.assets.library import VARIANTS
 
-    caps = captions()
+    caps = captions(config)
     from gdbench.core.progress import progress as progress_bar
 
     total = len(caps) * VARIANTS * config.views
     bar = progress_bar(total, "rendering the learned prior's data", "view", disable=not progress)
-    parts = [render_subset(config, c, v, bar=bar) for c in caps for v in range(VARIANTS)]
+    fields = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
+    done = []
+    for c in caps:
+        for v in range(VARIANTS):
+            path = parts / f"{caps.index(c)}-{v}.npz" if parts is not None else None
+            if path is not None and path.is_file():
+                try:
+                    with np.load(path) as z:
+                        done.append(Dataset(**{k: torch.from_numpy(z[k]) for k in fields}, captions=caps))
+                    if bar is not None:
+                        bar.update(config.views)
+                    continue
+                except Exception:  # an unreadable part is rendered again
+                    pass
+            part = render_subset(config, c, v, bar=bar)
+            if path is not None:
+                from gdbench.core.io import atomic_write
+
+                path.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write(path, lambda f, p=part: np.savez(f, **{k: getattr(p, k).numpy() for k in fields}))
+            done.append(part)
     if bar is not None:
         bar.close()
-    fields = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
-    return Dataset(**{k: torch.cat([getattr(p, k) for p in parts]) for k in fields}, captions=caps)
+    return Dataset(**{k: torch.cat([getattr(p, k) for p in done]) for k in fields}, captions=caps)
 
 
 def render_subset(config: DataConfig, caption: str, variant: int, *, bar=None) -> Dataset:
@@ -109,7 +154,7 @@ def render_subset(config: DataConfig, caption: str, variant: int, *, bar=None) -
     from gdbench.core.camera import SphericalPoses
     from renderers.pyrender_points.mesh import render_mesh
 
-    caps = captions()
+    caps = captions(config)
     if caption not in caps:
         raise ValueError(f"caption: unknown asset {caption!r}; known: {list(caps)}")
     c = caps.index(caption)
@@ -160,16 +205,21 @@ def load_dataset(config: DataConfig | None = None, *, progress: bool = True) -> 
     if path.is_file():
         try:
             with np.load(path) as z:
-                return Dataset(**{k: torch.from_numpy(z[k]) for k in fields}, captions=captions())
+                return Dataset(**{k: torch.from_numpy(z[k]) for k in fields}, captions=captions(config))
         except Exception as e:  # a corrupt cache entry is rebuilt, never trusted
             print(f"learned-prior data cache {path} unreadable ({type(e).__name__}); rebuilding")
     t0 = time.perf_counter()
-    data = render_dataset(config, progress=progress)
+    parts = data_dir() / f"parts-{data_key(config)}"
+    data = render_dataset(config, progress=progress, parts=parts)
     print(f"rendered {len(data)} views at {config.resolution} px in {time.perf_counter() - t0:.0f} s -> {path}")
     try:
         atomic_write(path, lambda f: np.savez(f, **{k: getattr(data, k).numpy() for k in fields}))
     except OSError as e:
         print(f"GDBENCH_CACHE: cannot write {path.parent} ({e.strerror or e}); the data is rendered again next time")
+    else:
+        import shutil
+
+        shutil.rmtree(parts, ignore_errors=True)  # the whole set is cached: its parts are not needed
     return data
 
 

@@ -105,6 +105,8 @@ def load_model(model: str | Path, device: torch.device | str = "cpu"):
         raise ValueError(f"learned_model: {path} has no 'unet' settings in its metadata (not written by train-prior)")
     cfg = json.loads(meta["unet"])
     cfg["widths"] = tuple(cfg["widths"])
+    cfg["parts"] = tuple(tuple(r) for r in cfg.get("parts", ()))
+    cfg["part_sizes"] = tuple(cfg.get("part_sizes", ()))
     cfg.setdefault("prediction", "epsilon")  # models written before v prediction
     cfg.setdefault("coords", False)  # ... and before coordinates
     net = UNet(UNetConfig(**cfg))
@@ -153,14 +155,18 @@ class LearnedPrior:
         self.clip = clip
         self.view_mode = view_mode
         self.variants = variants
+        from gdbench.assets.library import PARTS
         from gdbench.priors.learned.data import captions
 
-        self.captions = captions()
-        known = json.loads(self.meta.get("captions", "null")) or list(self.captions)
-        if list(known) != list(self.captions) or self.unet.config.captions != len(self.captions):
+        self.captions = tuple(json.loads(self.meta.get("captions", "null")) or captions())
+        """The captions the model knows, in the order of its caption rows (its metadata's)."""
+        self.held_out = tuple(json.loads(self.meta.get("held_out", "[]")))
+        """Those of them it never saw in training (compositional models: the generalisation check)."""
+        unknown = [c for c in self.captions if c not in PARTS]
+        if unknown or self.unet.config.captions != len(self.captions):
             raise ValueError(
-                f"learned_model: {model} was trained on the captions {known}, this code has {list(self.captions)}; "
-                "retrain it with `gdbench train-prior`"
+                f"learned_model: {model} knows the captions {list(self.captions)}, of which this code's catalogue "
+                f"lacks {unknown}; retrain it with `gdbench train-prior`"
             )
         self.matcher = CaptionMatcher(list(self.captions), threshold)
         self.front_bias = float(json.loads(self.meta.get("train", "{}")).get("front_bias", 0.0))

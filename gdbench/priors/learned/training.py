@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 
 from gdbench.priors import sd_abar
-from gdbench.priors.learned.data import DataConfig, load_dataset, to_model_images, view_weights
+from gdbench.priors.learned.data import DataConfig, captions, load_dataset, to_model_images, view_weights
 from gdbench.priors.learned.unet import UNet, UNetConfig
 
 
@@ -72,6 +72,9 @@ class PriorTrainConfig:
     progress: bool = True
     unet: UNetConfig = field(default_factory=UNetConfig)
     data: DataConfig = field(default_factory=DataConfig)
+    held_out: tuple[str, ...] = ()
+    """Captions the model knows (a row of its compositional caption embedding) but never sees in
+    training: the generalisation check of held-out combinations (``world_config``)."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -90,6 +93,15 @@ class PriorTrainConfig:
         for name, ok, want in checks:
             if not ok:
                 raise ValueError(f"{name}: expected {want}, got {getattr(self, name)!r}")
+        caps = model_captions(self)
+        if self.unet.captions != len(caps):
+            raise ValueError(
+                f"unet.captions: expected {len(caps)} (the data's captions and held_out), got {self.unet.captions}"
+            )
+        if self.held_out and not self.unet.parts:
+            raise ValueError("held_out: only a compositional model (unet.parts) can know captions it never saw")
+        if set(self.held_out) & set(captions(self.data)):
+            raise ValueError(f"held_out: {sorted(set(self.held_out) & set(captions(self.data)))} are also in the data")
         if self.data.resolution % self.unet.size:
             raise ValueError(
                 f"unet.size: expected a divisor of the data's {self.data.resolution} px, got {self.unet.size}"
@@ -110,6 +122,37 @@ class PriorTrainConfig:
         return d
 
 
+def model_captions(cfg: PriorTrainConfig) -> tuple[str, ...]:
+    """The captions a model of ``cfg`` knows, in catalogue order: the data's and the held-out ones."""
+    from gdbench.assets.library import CAPTIONS
+
+    known = set(captions(cfg.data)) | set(cfg.held_out)
+    return tuple(c for c in CAPTIONS if c in known)
+
+
+WORLD_HELD_OUT = ("a blue duck", "a grey rabbit", "a white bear", "a red frog", "a blue car", "a white teapot")
+"""The world set's held-out colour x kind combinations (6 of its 32 objects, about 20%): each kind
+is seen in training in another colour (the white duck, the white rabbit, the brown bear, the green
+frog, the red and yellow cars, the blue teapot) and each colour on other kinds."""
+
+
+def world_config(**kw) -> PriorTrainConfig:
+    """A compositional model of the whole catalogue: the six and the world's objects, the world's
+    ``WORLD_HELD_OUT`` held out; ``kw`` as ``PriorTrainConfig`` (``data`` and ``unet`` fields may
+    be given as dicts of overrides)."""
+    from dataclasses import replace
+
+    from gdbench.assets.library import CAPTIONS
+    from gdbench.priors.learned.data import parts_of
+
+    held = tuple(kw.pop("held_out", WORLD_HELD_OUT))
+    train = tuple(c for c in CAPTIONS if c not in held)
+    data = replace(DataConfig(), **kw.pop("data", {}), captions=train)
+    rows, sizes = parts_of(tuple(c for c in CAPTIONS if c in set(train) | set(held)))
+    unet = replace(UNetConfig(), **kw.pop("unet", {}), captions=len(rows), parts=rows, part_sizes=sizes)
+    return PriorTrainConfig(data=data, unet=unet, held_out=held, **kw)
+
+
 def lr_at(cfg: PriorTrainConfig, step: int) -> float:
     """Learning rate at 0-based ``step``: linear warm-up, then cosine from ``lr`` to ``lr / 10``."""
     if step < cfg.warmup:
@@ -126,6 +169,9 @@ class Batches:
         self.weights = view_weights(data.azimuth, cfg.front_bias).float()
         self.abar = sd_abar().float()
         self.g = torch.Generator().manual_seed(cfg.seed + 1)
+        model = model_captions(cfg)
+        self.to_model = torch.tensor([model.index(c) for c in data.captions], dtype=torch.int64)
+        """A data caption index -> the model's (the same where nothing is held out)."""
 
     def draw(self) -> dict[str, torch.Tensor]:
         cfg, d, g, B = self.cfg, self.data, self.g, self.cfg.batch
@@ -137,7 +183,7 @@ class Batches:
         eps = torch.randn((B, *self.images.shape[1:]), generator=g)
         u = torch.rand(B, 3, generator=g)
         no_caption = u[:, 0] < cfg.caption_drop
-        caption = torch.where(no_caption, cfg.unet.captions, d.caption[idx])
+        caption = torch.where(no_caption, cfg.unet.captions, self.to_model[d.caption[idx]])
         variant = torch.where(no_caption | (u[:, 1] < cfg.variant_drop), cfg.unet.variants, d.variant[idx])
         camera_drop = no_caption | (u[:, 2] < cfg.camera_drop)
         camera = torch.stack([d.azimuth[idx], d.elevation[idx], d.fovy[idx]], 1)
@@ -260,21 +306,21 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
     if step < cfg.steps:
         return {"out": str(out), "steps": step, "final_loss": _final_loss(log), "weights": None}
     final = _final_loss(log)
-    _write_model(ema, out / "model.safetensors", cfg.unet, cfg.identity(), cfg.data, step, final)
+    _write_model(ema, out / "model.safetensors", cfg.unet, cfg.identity(), cfg, step, final)
     plot_loss(log, out / "loss.png", title=f"kappa={cfg.front_bias:g}")
     summary = {"out": str(out), "steps": step, "final_loss": final, "weights": str(out / "model.safetensors")}
     print(f"trained {step} steps, loss {final:.4f} (mean of the last tenth) -> {out / 'model.safetensors'}")
     return summary
 
 
-def _write_model(ema: UNet, path: Path, unet: UNetConfig, identity: dict, data: DataConfig, step: int, loss: float):
+def _write_model(ema: UNet, path: Path, unet: UNetConfig, identity: dict, cfg, step: int, loss: float):
     from gdbench.core.provenance import code_commit
-    from gdbench.priors.learned.data import captions, data_key
+    from gdbench.priors.learned.data import data_key
 
     meta = {
         "unet": json.dumps(asdict(unet)), "train": json.dumps(identity), "steps": str(step),
-        "commit": code_commit(), "final_loss": f"{loss:.6f}", "data_key": data_key(data),
-        "captions": json.dumps(captions()),
+        "commit": code_commit(), "final_loss": f"{loss:.6f}", "data_key": data_key(cfg.data),
+        "captions": json.dumps(model_captions(cfg)), "held_out": json.dumps(list(cfg.held_out)),
     }  # fmt: skip
     save_weights(ema, path, meta)
 
@@ -285,12 +331,15 @@ def export_weights(run: Path, path: Path | None = None) -> Path:
     run = Path(run)
     ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
     ident = ck["identity"]
-    unet = UNetConfig(**{**ident["unet"], "widths": tuple(ident["unet"]["widths"])})
+    u = ident["unet"]
+    unet = UNetConfig(**{**u, "widths": tuple(u["widths"]), "parts": tuple(tuple(r) for r in u.get("parts", ())),
+                         "part_sizes": tuple(u.get("part_sizes", ()))})  # fmt: skip
     data = DataConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in ident["data"].items()})
+    cfg = PriorTrainConfig(unet=unet, data=data, held_out=tuple(ident.get("held_out", ())))
     net = UNet(unet)
     net.load_state_dict(ck["ema"])
     path = Path(path) if path is not None else run / f"model-step{ck['step']}.safetensors"
-    _write_model(net, path, unet, ident, data, ck["step"], _final_loss(ck["log"]))
+    _write_model(net, path, unet, ident, cfg, ck["step"], _final_loss(ck["log"]))
     return path
 
 

@@ -50,6 +50,13 @@ class UNetConfig:
     """What the network predicts: 'v' (v = sqrt(abar) eps - sqrt(1 - abar) x0, Stable Diffusion 2's
     choice) or 'epsilon'; the prior converts either to epsilon."""
 
+    parts: tuple[tuple[int, ...], ...] = ()
+    """Compositional captions: one row per caption of part indices (kind, colour, hat, scarf; 0 is
+    "none" for the last three), the caption's embedding the sum of its parts' (so a caption held out
+    of training is still a sum of trained parts). Empty: one class embedding per caption."""
+    part_sizes: tuple[int, ...] = ()
+    """Vocabulary size of each part (its null row, the dropped caption, is index ``size``)."""
+
     def __post_init__(self) -> None:
         m = self.patch * 2 ** (len(self.widths) - 1)
         if self.patch < 1 or self.size % m:
@@ -58,6 +65,9 @@ class UNetConfig:
             raise ValueError(f"prediction: expected 'v' or 'epsilon', got {self.prediction!r}")
         if self.emb % 2:
             raise ValueError(f"emb: expected an even width (sine and cosine halves), got {self.emb}")
+        n = len(self.part_sizes)
+        if self.parts and (len(self.parts) != self.captions or any(len(r) != n for r in self.parts)):
+            raise ValueError(f"parts: expected {self.captions} rows of {n} indices, got {self.parts}")
         if any(w % self.groups for w in self.widths):
             raise ValueError(f"widths: expected multiples of groups={self.groups}, got {self.widths}")
 
@@ -127,7 +137,12 @@ class UNet(nn.Module):
         c = self.config = config or UNetConfig()
         E, G, W = c.emb, c.groups, c.widths
         self.t_mlp = nn.Sequential(nn.Linear(E, E), nn.SiLU(), nn.Linear(E, E))
-        self.caption_emb = nn.Embedding(c.captions + 1, E)  # the last row is "no caption"
+        if c.parts:  # a caption is the sum of its parts' embeddings; the null caption, of their null rows
+            self.part_embs = nn.ModuleList(nn.Embedding(n + 1, E) for n in c.part_sizes)
+            table = torch.tensor([*c.parts, c.part_sizes], dtype=torch.int64)
+            self.register_buffer("part_table", table, persistent=False)
+        else:
+            self.caption_emb = nn.Embedding(c.captions + 1, E)  # the last row is "no caption"
         self.variant_emb = nn.Embedding(c.variants + 1, E)
         self.cam_mlp = nn.Sequential(nn.Linear(4 * c.camera_frequencies + 2, E), nn.SiLU(), nn.Linear(E, E))
         self.cam_null = nn.Parameter(torch.zeros(E))
@@ -158,6 +173,13 @@ class UNet(nn.Module):
         nn.init.zeros_(self.conv_out.weight)
         nn.init.zeros_(self.conv_out.bias)
 
+    def caption_embedding(self, caption: Tensor) -> Tensor:
+        """[B, emb] of caption indices [B] (``captions``: the null caption)."""
+        if not self.config.parts:
+            return self.caption_emb(caption)
+        rows = self.part_table[caption]
+        return sum(emb(rows[:, j]) for j, emb in enumerate(self.part_embs))
+
     def embedding(
         self,
         t: Tensor,
@@ -170,7 +192,7 @@ class UNet(nn.Module):
         ``camera`` [B, 3] (azimuth, elevation, fovy in degrees) or None (all dropped);
         ``camera_drop`` [B] bool drops single rows."""
         c = self.config
-        e = self.t_mlp(timestep_embedding(t, c.emb)) + self.caption_emb(caption) + self.variant_emb(variant)
+        e = self.t_mlp(timestep_embedding(t, c.emb)) + self.caption_embedding(caption) + self.variant_emb(variant)
         if camera is None:
             return e + self.cam_null
         cam = self.cam_mlp(camera_features(camera[:, 0], camera[:, 1], camera[:, 2], c.camera_frequencies))
