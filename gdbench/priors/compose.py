@@ -25,28 +25,13 @@ A refusal is one line naming why and the three nearest captions (``nearest``).
 
 from __future__ import annotations
 
-import functools
+from gdbench.priors.kinds import ACCESSORIES, accessories_named, kind_of, kind_words, kinds_named
 
 COLOUR_READ = 0.84
 """Cosine (MiniLM, word against colour name) at or above which an unknown word is read as that colour."""
 COLOUR_ASK = 0.72
 """Cosine at or above which (and below ``COLOUR_READ``) an unknown word may name a colour: refused, naming it."""
 
-SYNONYMS = {
-    "burger": "hamburger", "cheeseburger": "hamburger", "couch": "sofa", "settee": "sofa",
-    "lego": "lego figure", "minifigure": "lego figure", "minifig": "lego figure",
-    "puppy": "dog", "kitten": "cat", "kitty": "cat", "bunny": "rabbit", "duckling": "duck",
-    "chicken": "chick", "automobile": "car", "armchair": "chair", "toad": "frog", "goldfish": "fish",
-    "android": "robot", "kettle": "teapot", "piglet": "pig", "teddy": "bear",
-}  # fmt: skip
-"""Words that name a kind of the catalogue by another name."""
-BROADER = {"corgi": "dog"}
-"""Kind -> the kind it is a sort of: "a corgi dog" names the corgi, not a dog of the world set."""
-ACCESSORIES = {
-    "hat": "hat", "cap": "hat", "beanie": "hat", "bonnet": "hat", "party hat": "hat", "top hat": "hat",
-    "scarf": "scarf", "muffler": "scarf", "shawl": "scarf",
-}  # fmt: skip
-"""Words for what the world's objects can wear, and which accessory each is."""
 PART_WORDS = frozenset(
     "beak beaks eye eyes head heads leg legs tail tails ear ears nose snout tongue wing wings feet paws belly "
     "face fur fins fin wheels wheel windows spout handle lid antenna antennae mouth whiskers arms hands torso "
@@ -66,53 +51,6 @@ _FUNCTION = frozenset(
     "a an the of some one two with having wearing that has which is are its it in on and plus & + to "
     "as well together next beside besides alongside by from at for".split()
 )
-
-
-def kind_of(caption: str) -> str | None:
-    """The kind of a catalogue caption ("a pink pig wearing a blue hat" -> "pig"), None for others."""
-    from gdbench.assets.library import PARTS
-
-    return PARTS[caption][0] if caption in PARTS else None
-
-
-@functools.cache
-def kind_words() -> dict[tuple[str, ...], str]:
-    """Word tuples (longest first) -> kind: every kind's name, its plural and ``SYNONYMS``."""
-    from gdbench.assets.library import PARTS
-
-    out = {}
-    for kind, *_ in PARTS.values():
-        out[tuple(kind.split())] = kind
-        out[tuple((kind + "s").split())] = kind
-    for word, kind in SYNONYMS.items():
-        out[(word,)] = kind
-        out[(word + "s",)] = kind
-    return dict(sorted(out.items(), key=lambda kv: -len(kv[0])))
-
-
-def _find(words: list[str], table: dict[tuple[str, ...], str]) -> list[tuple[int, int, str]]:
-    """(start, end, value) of the table's phrases in ``words``, longest first, each word used once."""
-    used: set[int] = set()
-    found = []
-    for phrase, value in table.items():
-        n = len(phrase)
-        for i in range(len(words) - n + 1):
-            if tuple(words[i : i + n]) == phrase and not used & set(range(i, i + n)):
-                found.append((i, i + n, value))
-                used |= set(range(i, i + n))
-    return sorted(found)
-
-
-def kinds_named(text: str) -> set[str]:
-    """The kinds a piece of (``prompt_check._words``-normalised) text names, the most specific of
-    each family ("corgi dog" -> {"corgi"})."""
-    kinds = {k for _, _, k in _find(text.split(), kind_words())}
-    return {k for k in kinds if not any(BROADER.get(o) == k for o in kinds)}
-
-
-def accessories_named(text: str) -> set[str]:
-    table = {tuple(w.split()): a for w, a in sorted(ACCESSORIES.items(), key=lambda kv: -len(kv[0].split()))}
-    return {a for _, _, a in _find(text.split(), table)}
 
 
 def read_words(prompt: str, matcher) -> tuple[str, dict[str, str]]:
@@ -188,6 +126,12 @@ def resolve(prompt: str, matcher) -> tuple[str, float]:
     for c in matcher.captions:
         if normalise(c) == normalise(prompt):
             return c, 1.0
+    from gdbench.priors.prompt_check import NEGATION, _words
+
+    neg = sorted(set(_words(prompt).split()) & NEGATION)
+    if neg:
+        raise ValueError(f"prompt: {prompt!r} negates ({neg[0]!r}); the prior generates what a prompt names, "
+                         "it cannot leave a thing out")  # fmt: skip
     text, read = read_words(prompt, matcher)
     said = "".join(f" ({w!r} read as the colour {c!r})" for w, c in read.items())
     pieces = _PART.split(text, maxsplit=1)

@@ -195,7 +195,7 @@ def contradiction(prompt: str, caption: str, matcher=None) -> str | None:
         parts = [p.strip() for p in _SPLIT.split(head) if p.strip()]
         named = [p for p in parts if _content(p)]
         if len(named) > 1:
-            from gdbench.priors.compose import kind_of, kinds_named
+            from gdbench.priors.kinds import kind_of, kinds_named
 
             kind = kind_of(caption)
             for p in named:
