@@ -617,3 +617,35 @@ def test_a_resumed_run_says_so_in_its_first_line(tmp_path, capsys):
     over = capsys.readouterr().out.splitlines()
     assert "; 3 steps into " in over[0] and "resuming" not in over[0], over[0]
     assert not any("resumed from step" in line for line in over)
+
+
+def test_prompts_lists_the_catalogue_and_filters_by_kind(tmp_path, monkeypatch, capsys):
+    """`gdbench prompts` lists every caption of the catalogue (oracle: library.CAPTIONS and PARTS)
+    with its kind, the priors that know it and its bank's state (oracle: the file on disk);
+    --kind keeps one kind; an unknown kind is refused naming the kinds."""
+    from gdbench.app.cmd_tools import Prompts, _prompt_set
+    from gdbench.assets.bank import BankConfig, bank_path
+    from gdbench.assets.families import WORLD
+    from gdbench.assets.library import ASSETS, CAPTIONS, PARTS
+
+    monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
+    path = bank_path("a blue duck", BankConfig())
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"x")
+    out = main(Prompts())
+    assert out["captions"] == list(CAPTIONS) and len(CAPTIONS) >= 36
+    rows = {r["caption"]: r for r in out["rows"]}
+    assert rows["a blue duck"]["bank"] == "cached" and rows["a white duck"]["bank"] == "-"
+    assert rows["a yellow duck"]["priors"] == "empirical, learned" and rows["a blue duck"]["priors"] == "empirical"
+    text = capsys.readouterr().out
+    assert (
+        f"{len(CAPTIONS)} objects ({len(CAPTIONS) - 1} with a front) in {len(set(k for k, *_ in PARTS.values()))} kinds"
+        in text
+    )
+    ducks = main(Prompts(kind="duck"))["captions"]
+    assert ducks == [c for c in CAPTIONS if PARTS[c][0] == "duck"] and len(ducks) == 3
+    with pytest.raises(ValueError, match=r"kind: expected one of bear, bird, .* got 'cow'"):
+        main(Prompts(kind="cow"))
+    assert _prompt_set(("all",)) == list(CAPTIONS) and _prompt_set(()) is None
+    assert _prompt_set(("a corgi", "world", "a corgi")) == ["a corgi", *WORLD]
+    assert set(ASSETS) <= set(CAPTIONS)

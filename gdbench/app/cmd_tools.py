@@ -116,6 +116,13 @@ class TrainPrior:
     """Where the model trains (auto: CUDA when present)."""
     progress: bool = True
     """Report progress (a bar on a terminal, a line every few seconds in a log)."""
+    widths: Annotated[tuple[int, ...], AtLeast(8)] = (64, 96, 128)
+    """Feature channels per level of the UNet (each a multiple of 8; each level halves the size)."""
+    emb: Annotated[int, AtLeast(2)] = 128
+    """Width of the conditioning embedding (even)."""
+    stop_at: Annotated[int | None, AtLeast(1)] = None
+    """End this call at that step with a checkpoint, the schedule still that of --steps (run the
+    command again to go on): a long training in sittings, or a look at its first steps."""
     catalogue: Literal["six", "world"] = "six"
     """six: the paper's six assets, one embedding per caption (the shipped models); world: every
     caption of `gdbench prompts`, each the sum of its kind's, colour's and accessory's embeddings,
@@ -130,16 +137,18 @@ def run_train_prior(cmd: TrainPrior) -> dict:
     if cmd.catalogue == "world":
         cfg = world_config(
             out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
-            threads=cmd.threads, device=cmd.device, progress=cmd.progress, unet={"size": cmd.size},
+            threads=cmd.threads, device=cmd.device, progress=cmd.progress,
+            unet={"size": cmd.size, "widths": tuple(cmd.widths), "emb": cmd.emb},
             data={"views": cmd.views, "resolution": cmd.resolution},
         )  # fmt: skip
-        return train_prior(cfg)
+        return train_prior(cfg, stop_at=cmd.stop_at)
     cfg = PriorTrainConfig(
         out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
-        threads=cmd.threads, device=cmd.device, progress=cmd.progress, unet=UNetConfig(size=cmd.size),
+        threads=cmd.threads, device=cmd.device, progress=cmd.progress,
+        unet=UNetConfig(size=cmd.size, widths=tuple(cmd.widths), emb=cmd.emb),
         data=DataConfig(views=cmd.views, resolution=cmd.resolution),
     )  # fmt: skip
-    return train_prior(cfg)
+    return train_prior(cfg, stop_at=cmd.stop_at)
 
 
 @dataclass
