@@ -162,7 +162,7 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     from gdbench.core.provenance import code_commit
     from gdbench.priors.empirical import EmpiricalPrior, bank_config_for
-    from gdbench.priors.learned.data import load_dataset
+    from gdbench.priors.learned.data import DataConfig, load_dataset
     from gdbench.priors.learned.evaluation import (
         denoising_error,
         mechanism,
@@ -220,10 +220,10 @@ def main(argv=None) -> int:
         print(f"camera done ({time.perf_counter() - t0:.0f} s)")
 
     if "denoising" in parts:
-        data = load_dataset()
         rows = []
         for name, m in models.items():
             prior = LearnedPrior(m, guidance_scale=1.0, view_mode="none")
+            data = load_dataset(DataConfig.from_dict(json.loads(prior.meta["train"])["data"]))  # its own views
             sig = [0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0]
             rows += [{"model": name, **r} for r in denoising_error(prior, data, sig, queries=48 // q)]
         write_csv(a.out / "denoising_error.csv", rows, commit)
@@ -266,6 +266,7 @@ def main(argv=None) -> int:
             grids = {}
             for camera in (True, False):
                 r, grid = sample_scores(prior, refs, ref_az, views=views, seeds=8 // q, camera=camera)
+                r = [{**x, "held_out": x["caption"] in prior.held_out} for x in r]
                 rows += [{"model": name, **x} for x in r]
                 mode = "camera given" if camera else "camera dropped (view prompting none)"
                 grids[mode] = grid
@@ -276,8 +277,20 @@ def main(argv=None) -> int:
                     "azimuth_ok": share("azimuth_ok"), "front": share("front"), "back": share("back"),
                     "front_where_back_asked": float(np.mean([x["front"] for x in back])), "n": len(r),
                 }  # fmt: skip
+                if prior.held_out:  # the generalisation check: the same rates on the held-out combinations
+                    held = [x for x in r if x["held_out"]]
+                    summary["samples"][f"{name}, {mode}, held out"] = {
+                        k: float(np.mean([x[k] for x in held])) for k in ("caption_ok", "variant_ok", "azimuth_ok")
+                    } | {"n": len(held)}
             plot_samples(grids, captions, views, a.figures / f"learned_prior_samples_{name}.png")
         write_csv(a.out / "samples.csv", rows, commit)
+        by = {}
+        for x in rows:  # per model, caption and camera mode: the rates a caption's row of the table reads
+            by.setdefault((x["model"], x["caption"], x["camera"], x["held_out"]), []).append(x)
+        write_csv(a.out / "samples_by_caption.csv", [
+            {"model": m, "caption": c, "camera": cam, "held_out": h, "n": len(v),
+             **{k: float(np.mean([x[k] for x in v])) for k in ("caption_ok", "variant_ok", "azimuth_ok")}}
+            for (m, c, cam, h), v in by.items()], commit)  # fmt: skip
         print(f"samples done ({time.perf_counter() - t0:.0f} s)")
 
     if "mechanism" in parts:

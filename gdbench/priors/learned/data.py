@@ -41,6 +41,11 @@ class DataConfig:
     captions: tuple[str, ...] = ()
     """The captions rendered, in catalogue order (empty: the six paper assets, as the shipped models)."""
 
+    @classmethod
+    def from_dict(cls, d: dict) -> DataConfig:
+        """The config of ``asdict(config)`` read back from JSON (lists -> tuples)."""
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
     def __post_init__(self) -> None:
         from gdbench.assets.library import check_caption
 

@@ -334,7 +334,7 @@ def export_weights(run: Path, path: Path | None = None) -> Path:
     u = ident["unet"]
     unet = UNetConfig(**{**u, "widths": tuple(u["widths"]), "parts": tuple(tuple(r) for r in u.get("parts", ())),
                          "part_sizes": tuple(u.get("part_sizes", ()))})  # fmt: skip
-    data = DataConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in ident["data"].items()})
+    data = DataConfig.from_dict(ident["data"])
     cfg = PriorTrainConfig(unet=unet, data=data, held_out=tuple(ident.get("held_out", ())))
     net = UNet(unet)
     net.load_state_dict(ck["ema"])
