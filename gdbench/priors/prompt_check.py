@@ -47,8 +47,12 @@ _DEPICTION = ("a 3d render", "a photo", "a drawing", "a painting", "high quality
 
 
 def _words(prompt: str) -> str:
+    """Lower case, n't and a missing apostrophe's nt as "not", & and + as "and" and "plus", other
+    punctuation as spaces."""
     t = prompt.lower().replace("n't", " not").replace("n’t", " not").replace("'", "").replace("’", "")
-    return re.sub(r"\s+", " ", re.sub(r"[^a-z0-9&+ ]+", " ", t)).strip()
+    t = re.sub(r"\b(is|are|was|were|do|does|did|has|have|had|ca|wo|should|could|would)nt\b", r"\1 not", t)
+    t = t.replace("&", " and ").replace("+", " plus ")
+    return re.sub(r"\s+", " ", re.sub(r"[^a-z0-9 ]+", " ", t)).strip()
 
 
 @functools.cache
