@@ -60,3 +60,42 @@ def test_same_spec_same_mesh_and_bad_specs_are_refused():
     with pytest.raises(ValueError, match="hat, scarf: one accessory per object"):
         Spec("cat", "red", hat="blue", scarf="green")
     assert set(KINDS) >= {"duck", "cat", "dog", "pig", "bear", "rabbit", "frog", "fish", "robot", "car", "teapot"}
+
+
+def test_world_turntables_script_writes_a_sheet_per_family_and_the_table(tmp_path):
+    """scripts/world_turntables.py on a two-cell sweep (a white duck and a blue duck, their sheets
+    drawn here): one figure for the duck family, and a table whose rows are the cells' own values."""
+    import csv
+    import importlib.util
+    from pathlib import Path
+
+    import matplotlib.pyplot as plt
+
+    from gdbench.experiments.sweep import cell_name
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("world_turntables", root / "scripts" / "world_turntables.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    sweep = tmp_path / "sweep"
+    fields = ["setting", "prompt", "preset", "seed", "gt_psnr", "gt_ssim", "multi_face_rate", "featureless_rate",
+              "floaters", "turned_deg", "gaussians", "train_commit", "score_commit"]  # fmt: skip
+    rows = [
+        ["easy", "a white duck", "gd", "0", "22.36", "0.554", "0", "1", "0.006", "5", "2097", "abc", "abc"],
+        ["easy", "a blue duck", "gd", "0", "28.27", "0.869", "0", "0", "0", "-25", "9504", "abc", "abc"],
+    ]
+    sweep.mkdir()
+    with open(sweep / "cells.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(fields)
+        w.writerows(rows)
+    for r in rows:
+        folder = sweep / "cells" / "easy" / cell_name(r[1]) / "gd" / "seed0"
+        folder.mkdir(parents=True)
+        plt.imsave(folder / "turntable_sheet.png", np.full((20, 60, 3), 0.5 if "white" in r[1] else 0.2))
+    assert mod.main(["--sweep", str(sweep), "--name", "t", "--figures", str(tmp_path / "f"), "--out",
+                     str(tmp_path / "o")]) == 0  # fmt: skip
+    assert [p.name for p in (tmp_path / "f").iterdir()] == ["world_turntables_t_duck.png"]
+    text = (tmp_path / "o" / "text_to_3d_t.md").read_text()
+    assert "| a white duck | 22.36 | 0.554 | 0.00 | 1.00 | 0.006 | 5 | 2097 |" in text
+    assert "| a blue duck | 28.27 | 0.869 | 0.00 | 0.00 | 0.000 | -25 | 9504 |" in text and "abc" in text
