@@ -131,7 +131,7 @@ def test_bad_configs(kw, error, match):
 def test_bad_prompt_and_paths(prior, tmp_path):
     with pytest.raises(ValueError, match="preset: unknown 'best'"):
         preset("best")
-    with pytest.raises(ValueError, match=r"prompt: .*matches no known asset.*known prompts"):
+    with pytest.raises(ValueError, match=r"prompt: .*matches no known asset.*; nearest: .*gdbench prompts"):
         train(tiny("gd", tmp_path, prompt="a nuclear submarine in a storm"), prior)
     assert not (tmp_path / "checkpoint.pt").exists()  # nothing written for a bad prompt
     with pytest.raises(FileNotFoundError, match="init_ply: no file"):
