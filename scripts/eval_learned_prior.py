@@ -119,7 +119,8 @@ def plot_samples(grids: dict[str, torch.Tensor], captions, views, out: Path) -> 
     import matplotlib.pyplot as plt
 
     modes = list(grids)
-    fig, axes = plt.subplots(1, len(modes), figsize=(6.5 * len(modes), 6.6))
+    C = len(captions)  # the panel's aspect is the sheet's: 12 thumbnails wide, C high (38 for the world model)
+    fig, axes = plt.subplots(1, len(modes), figsize=(6.5 * len(modes), max(6.6, 0.55 * C * 6.5 / 12 + 1.0)))
     for ax, mode in zip(np.atleast_1d(axes), modes):
         g = grids[mode][:, :, :3]  # [C, V, S, h, w, 3]
         C, V, S, h, w, _ = g.shape
