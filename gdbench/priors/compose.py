@@ -25,6 +25,7 @@ A refusal is one line naming why and the three nearest captions (``nearest``).
 
 from __future__ import annotations
 
+import functools
 import re
 
 from gdbench.priors.kinds import (
@@ -66,18 +67,28 @@ _FUNCTION = frozenset(
 )
 
 
+@functools.cache
+def _known_words() -> frozenset[str]:
+    """Words ``read_words`` knows without judging them: function words, modifiers, parts, colour
+    names, kinds (singular and plural), accessories, negations and depictions."""
+    from gdbench.priors.prompt_check import _DEPICTION, NEGATION, colour_lexicon
+
+    known = set(_FUNCTION) | MODIFIERS | PART_WORDS | {w for p in colour_lexicon() for w in p}
+    known |= {w for p in (*kind_words(), *plural_words()) for w in p} | {w for a in ACCESSORIES for w in a.split()}
+    known |= NEGATION | {w for d in _DEPICTION for w in d.split()}
+    return frozenset(known)
+
+
 def read_words(prompt: str, matcher) -> tuple[str, dict[str, str]]:
     """The prompt as ``prompt_check._words`` normalises it, with each unknown word that reads as a
     colour replaced by that colour's name, and {word: colour name} of those read; a word that may
     name a colour but not surely raises ValueError naming it (the module's docstring says the rule)."""
-    from gdbench.priors.prompt_check import _DEPICTION, NEGATION, _words, colour_lexicon
+    from gdbench.priors.prompt_check import _words
 
     text = _words(prompt.replace("-", " "))
     for phrase, said in REWRITES.items():  # "a polar bear" is a white bear
         text = f" {text} ".replace(f" {phrase} ", f" {said} ").strip()
-    known = set(_FUNCTION) | MODIFIERS | PART_WORDS | {w for p in colour_lexicon() for w in p}
-    known |= {w for p in (*kind_words(), *plural_words()) for w in p} | {w for a in ACCESSORIES for w in a.split()}
-    known |= NEGATION | {w for d in _DEPICTION for w in d.split()}
+    known = _known_words()
     unknown = sorted({w for w in text.split() if w not in known and not w.isdigit()})
     if not unknown:
         return text, {}
@@ -189,14 +200,17 @@ def resolve(prompt: str, matcher) -> tuple[str, float]:
     head, part = pieces[0], pieces[1] if len(pieces) > 1 else ""
     per_part = [k for k in (kinds_named(p) for p in _SPLIT.split(head)) if k] + [k for k in [kinds_named(part)] if k]
     kinds = set().union(*per_part)
-    near = ", ".join(map(repr, nearest(text, matcher.captions)))
-    tail = f"; nearest: {near} (`gdbench prompts` lists the {len(matcher.captions)} this prior knows)"
+
+    def tail() -> str:  # only a refusal needs the nearest captions
+        near = ", ".join(map(repr, nearest(text, matcher.captions)))
+        return f"; nearest: {near} (`gdbench prompts` lists the {len(matcher.captions)} this prior knows)"
+
     if not kinds:
         other = [p for p in NOT_KINDS if f" {p} " in f" {text} "]
         if other:  # "a hot dog": a kind's word in a name of something else
-            raise ValueError(f"prompt: {q}{said} names {_a(other[0])}, which is none of the set's objects{tail}")
+            raise ValueError(f"prompt: {q}{said} names {_a(other[0])}, which is none of the set's objects{tail()}")
         if not _content(text):  # "a blue", "a hat": nothing that names an object
-            raise ValueError(f"prompt: {q}{said} names no object (only colours, accessories or modifiers){tail}")
+            raise ValueError(f"prompt: {q}{said} names no object (only colours, accessories or modifiers){tail()}")
         caption, sim = matcher.match_scored(prompt)
         why = contradiction(text, caption, matcher)
         if why is not None:
@@ -205,16 +219,16 @@ def resolve(prompt: str, matcher) -> tuple[str, float]:
     several = plurals_named(text)
     if len(per_part) > 1 or len(kinds) > 1 or several:  # "a red car and a blue car", "a duck on a sofa", "two ducks"
         named = " and ".join(_a(k) for p in per_part for k in sorted(p)) if not several else repr(several[0])
-        raise ValueError(f"prompt: {q}{said} names more than one object ({named}); the prior generates one{tail}")
+        raise ValueError(f"prompt: {q}{said} names more than one object ({named}); the prior generates one{tail()}")
     (kind,) = kinds
     cands = [c for c in matcher.captions if kind_of(c) == kind]
     if not cands:
-        raise ValueError(f"prompt: {q}{said} names {_a(kind)}, which this prior does not know{tail}")
+        raise ValueError(f"prompt: {q}{said} names {_a(kind)}, which this prior does not know{tail()}")
     wears = accessories_named(part)
     if "wearing" in text.split() and not wears:
         worn = (part.split(" wearing ", 1)[-1] if " wearing " in part else part).strip()
         raise ValueError(f"prompt: {q}{said} asks the {kind} to wear {worn!r}; the set's objects wear a hat or a "
-                         f"scarf{tail}")  # fmt: skip
+                         f"scarf{tail()}")  # fmt: skip
 
     def has(c, a):
         return PARTS[c][2 if a == "hat" else 3] is not None
@@ -222,7 +236,7 @@ def resolve(prompt: str, matcher) -> tuple[str, float]:
     dressed = [c for c in cands if all(has(c, a) for a in wears)]
     if not dressed:
         raise ValueError(f"prompt: {q}{said} asks for {_a(kind)} wearing a {' and a '.join(sorted(wears))}, which no "
-                         f"{kind} of the set does{tail}")  # fmt: skip
+                         f"{kind} of the set does{tail()}")  # fmt: skip
     whys = {c: contradiction(text, c, matcher) for c in dressed}
     for a, colour in accessory_colours(part).items():  # the hat's colour is the hat's, not the body's
         for c in dressed:
@@ -232,7 +246,7 @@ def resolve(prompt: str, matcher) -> tuple[str, float]:
     ok = [c for c in dressed if whys[c] is None]
     if not ok:
         first = nearest(text, dressed, n=1)[0]
-        raise ValueError(f"prompt: {q}{said} matches no {kind} of the set ({first!r}: {whys[first]}){tail}")
+        raise ValueError(f"prompt: {q}{said} matches no {kind} of the set ({first!r}: {whys[first]}){tail()}")
     plain = [c for c in ok if not any(has(c, a) for a in ("hat", "scarf") if a not in wears)]
     caption = (plain or ok)[0]
     return caption, matcher.scores(prompt)[caption]

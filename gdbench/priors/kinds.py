@@ -107,5 +107,8 @@ def _kind_colours() -> tuple[str, ...]:
 
 
 def accessories_named(text: str) -> set[str]:
-    table = {tuple(w.split()): a for w, a in sorted(ACCESSORIES.items(), key=lambda kv: -len(kv[0].split()))}
-    return {a for _, _, a in _find(text.split(), table)}
+    return {a for _, _, a in _find(text.split(), _ACCESSORY_WORDS)}
+
+
+_ACCESSORY_WORDS = {tuple(w.split()): a for w, a in sorted(ACCESSORIES.items(), key=lambda kv: -len(kv[0].split()))}
+"""``ACCESSORIES`` as word tuples, longest first (what ``_find`` takes)."""
