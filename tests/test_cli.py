@@ -627,6 +627,7 @@ def test_prompts_lists_the_catalogue_and_filters_by_kind(tmp_path, monkeypatch, 
     from gdbench.assets.bank import BankConfig, bank_path
     from gdbench.assets.families import WORLD
     from gdbench.assets.library import ASSETS, CAPTIONS, PARTS
+    from gdbench.priors.learned.prior import LearnedPrior
 
     monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path / "c"))
     path = bank_path("a blue duck", BankConfig())
@@ -636,7 +637,12 @@ def test_prompts_lists_the_catalogue_and_filters_by_kind(tmp_path, monkeypatch, 
     assert out["captions"] == list(CAPTIONS) and len(CAPTIONS) >= 36
     rows = {r["caption"]: r for r in out["rows"]}
     assert rows["a blue duck"]["bank"] == "cached" and rows["a white duck"]["bank"] == "-"
-    assert rows["a yellow duck"]["priors"] == "empirical, learned" and rows["a blue duck"]["priors"] == "empirical"
+    # the learned column follows the shipped model's own caption rows (oracle: the loaded prior)
+    prior = LearnedPrior("uniform", device="cpu")
+    for c in CAPTIONS:
+        want = "empirical, learned" if c in prior.captions else "empirical"
+        assert rows[c]["priors"] == want + " (held out)" * (c in prior.held_out), c
+    assert rows["a yellow duck"]["priors"] == "empirical, learned"
     text = capsys.readouterr().out
     assert (
         f"{len(CAPTIONS)} objects ({len(CAPTIONS) - 1} with a front) in {len(set(k for k, *_ in PARTS.values()))} kinds"

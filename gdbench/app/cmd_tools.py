@@ -214,22 +214,23 @@ class Prompts:
 def run_prompts(cmd: Prompts) -> dict:
     from gdbench.assets.bank import BankConfig, cached
     from gdbench.assets.library import ASSETS, CAPTIONS, FRONTS, PARTS
-    from gdbench.priors.learned.data import captions as learned_captions
+    from gdbench.priors.learned.prior import model_captions
 
     kinds = sorted({k for k, *_ in PARTS.values()})
     if cmd.kind is not None and cmd.kind not in kinds:
         raise ValueError(f"kind: expected one of {', '.join(kinds)}, got {cmd.kind!r}")
-    learned = set(learned_captions())
+    learned, held_out = map(set, model_captions("uniform"))
     rows = []
     for c in CAPTIONS:
         kind = PARTS[c][0]
         if cmd.kind in (None, kind):
             priors = "empirical, learned" if c in learned else "empirical"
+            priors += " (held out)" * (c in held_out)
             rows.append({"caption": c, "kind": kind, "front": FRONTS[c] or "(none)", "priors": priors,
                          "bank": "cached" if cached(c, BankConfig()) else "-", "paper": c in ASSETS})  # fmt: skip
     width = max(len(r["caption"]) for r in rows)
     for r in rows:
-        print(f"{r['caption']:<{width}}  {r['kind']:<11}  {r['priors']:<17}  {r['bank']:<6}  {r['front']}")
+        print(f"{r['caption']:<{width}}  {r['kind']:<11}  {r['priors']:<28}  {r['bank']:<6}  {r['front']}")
     n_kinds, fronts = len({r["kind"] for r in rows}), sum(FRONTS[r["caption"]] is not None for r in rows)
     print(f"{len(rows)} objects ({fronts} with a front) in {n_kinds} kind{'s' * (n_kinds > 1)}", flush=True)
     return {"captions": [r["caption"] for r in rows], "rows": rows}

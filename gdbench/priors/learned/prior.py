@@ -91,6 +91,18 @@ def model_for_front_bias(front_bias: float) -> str:
     )
 
 
+def model_captions(model: str | Path = "uniform") -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(captions, held-out captions) a model knows, read from its metadata alone (no weights load);
+    models written before compositional captions know the six paper assets."""
+    from safetensors import safe_open
+
+    from gdbench.priors.learned.data import captions
+
+    with safe_open(str(model_path(model)), framework="pt") as f:
+        meta = dict(f.metadata() or {})
+    return tuple(json.loads(meta.get("captions", "null")) or captions()), tuple(json.loads(meta.get("held_out", "[]")))
+
+
 def load_model(model: str | Path, device: torch.device | str = "cpu"):
     """(UNet in float32 eval mode, metadata dict) of a shipped name or a weights path."""
     from safetensors import safe_open
