@@ -404,13 +404,14 @@ def test_denoising_error_against_the_exact_posterior_mean():
     from it in MSE, measured) the shipped uniform model's estimate of the duck (camera dropped, no
     guidance: its own posterior mean) lies within a quarter of that distance of the exact one
     (measured 0.0055 over the six captions; docs/learned_prior.md). The training views are
-    rendered here exactly as in the training set (1024 cameras of its seed, ~40 s)."""
+    rendered here exactly as in the model's training set (its data settings, read from its metadata:
+    512 or 1024 cameras of its seed, ~20-40 s)."""
     from gdbench.priors.learned.data import render_subset, to_model_images
     from gdbench.priors.learned.evaluation import exact_posterior_mean
     from gdbench.priors.learned.prior import LearnedPrior
 
     prior = LearnedPrior("uniform", guidance_scale=1.0, view_mode="none")
-    data = render_subset(DataConfig(), "a yellow duck", 0)
+    data = render_subset(DataConfig.from_dict(json.loads(prior.meta["train"])["data"]), "a yellow duck", 0)
     X = to_model_images(data.images, 32).permute(0, 2, 3, 1)
     g = torch.Generator().manual_seed(0)
     x0 = X[torch.randint(0, len(X), (32,), generator=g)]
