@@ -56,16 +56,18 @@ def family_sheets(rows: list[dict], name: str, figures: Path) -> list[Path]:
             ax.set_title(f"{r['prompt']}: {label(r)}", fontsize=7)
             ax.axis("off")
         fig.tight_layout()
-        path = figures / f"world_turntables_{name}_{kind}.png"
+        path = figures / f"world_turntables_{name}_{kind.replace(' ', '_')}.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)
         out.append(path)
     return out
 
 
-def table(rows: list[dict]) -> str:
-    lines = ["| object | GT PSNR dB | SSIM | second faces | featureless | floaters | turned deg | Gaussians |",
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+def table(rows: list[dict], labels: dict[str, str] | None = None) -> str:
+    """The per-object table; with ``labels`` (caption -> what a person saw) a last column "by eye"."""
+    eye = " by eye |" if labels else ""
+    lines = ["| object | GT PSNR dB | SSIM | second faces | featureless | floaters | turned deg | Gaussians |" + eye,
+             "|---|---|---|---|---|---|---|---|" + "---|" * bool(labels)]  # fmt: skip
 
     def g(r, k, fmt):
         return format(float(r[k]), fmt) if r.get(k) not in (None, "") else "n/a"
@@ -73,7 +75,8 @@ def table(rows: list[dict]) -> str:
     cols = (("gt_psnr", ".2f"), ("gt_ssim", ".3f"), ("multi_face_rate", ".2f"), ("featureless_rate", ".2f"),
             ("floaters", ".3f"), ("turned_deg", ".0f"), ("gaussians", ".0f"))  # fmt: skip
     for r in rows:
-        lines.append(f"| {r['prompt']} | " + " | ".join(g(r, k, fmt) for k, fmt in cols) + " |")
+        tail = f" {labels.get(r['prompt'], 'n/a')} |" if labels else ""
+        lines.append(f"| {r['prompt']} | " + " | ".join(g(r, k, fmt) for k, fmt in cols) + " |" + tail)
     return "\n".join(lines)
 
 
@@ -83,15 +86,23 @@ def main(argv=None) -> int:
     p.add_argument("--name", required=True, help="the prior's name in the file names (empirical, learned)")
     p.add_argument("--figures", type=Path, default=Path("docs/figures"))
     p.add_argument("--out", type=Path, default=Path("docs/results/world"))
+    p.add_argument("--labels", type=Path, help="a TSV of caption and what a person saw (labelled before the metrics)")
     a = p.parse_args(argv)
     if not (a.sweep / "cells.csv").is_file():
         p.error(f"--sweep: expected a finished sweep folder with cells.csv, got {a.sweep}")
     rows = cells(a.sweep)
+    labels = None
+    if a.labels is not None:
+        if not a.labels.is_file():
+            p.error(f"--labels: expected a TSV file of caption and label, got {a.labels}")
+        labels = dict(line.split("\t", 1) for line in a.labels.read_text().splitlines() if "\t" in line)
+        labels = {k: v.strip() for k, v in labels.items() if k != "caption"}
     a.figures.mkdir(parents=True, exist_ok=True)
     a.out.mkdir(parents=True, exist_ok=True)
     paths = family_sheets(rows, a.name, a.figures)
     commits = sorted({r["train_commit"] for r in rows} | {r["score_commit"] for r in rows})
-    text = f"Cells trained and scored at {', '.join(commits)} ({len(rows)} cells, {a.sweep}).\n\n{table(rows)}\n"
+    head = f"Cells trained and scored at {', '.join(commits)} ({len(rows)} cells, {a.sweep})."
+    text = f"{head}\n\n{table(rows, labels)}\n"
     (a.out / f"text_to_3d_{a.name}.md").write_text(text)
     print(text)
     print("\n".join(str(q) for q in paths))

@@ -99,3 +99,12 @@ def test_world_turntables_script_writes_a_sheet_per_family_and_the_table(tmp_pat
     text = (tmp_path / "o" / "text_to_3d_t.md").read_text()
     assert "| a white duck | 22.36 | 0.554 | 0.00 | 1.00 | 0.006 | 5 | 2097 |" in text
     assert "| a blue duck | 28.27 | 0.869 | 0.00 | 0.00 | 0.000 | -25 | 9504 |" in text and "abc" in text
+    # --labels adds what a person saw as a last column, n/a for a caption left unlabelled
+    labels = tmp_path / "eye.tsv"
+    labels.write_text("caption\tby eye\na white duck\tfaint blob\n")
+    assert mod.main(["--sweep", str(sweep), "--name", "t", "--figures", str(tmp_path / "f"), "--out",
+                     str(tmp_path / "o"), "--labels", str(labels)]) == 0  # fmt: skip
+    text = (tmp_path / "o" / "text_to_3d_t.md").read_text()
+    assert "| Gaussians | by eye |" in text and "| 2097 | faint blob |" in text and "| 9504 | n/a |" in text
+    with pytest.raises(SystemExit):
+        mod.main(["--sweep", str(sweep), "--name", "t", "--labels", str(tmp_path / "missing.tsv")])

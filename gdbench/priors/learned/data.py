@@ -39,7 +39,8 @@ class DataConfig:
     elevation_range: tuple[float, float] = (-45.0, 45.0)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     captions: tuple[str, ...] = ()
-    """The captions rendered, in catalogue order (empty: the six paper assets, as the shipped models)."""
+    """The captions rendered, in catalogue order (empty: the six paper assets, as the first shipped models;
+    the shipped world models name theirs in their metadata)."""
 
     @classmethod
     def from_dict(cls, d: dict) -> DataConfig:
@@ -76,7 +77,7 @@ class Dataset:
 
 
 def captions(config: DataConfig | None = None) -> tuple[str, ...]:
-    """The captions of a data set (default: the six paper assets, the shipped models' captions)."""
+    """The captions of a data set (default: the six paper assets)."""
     from gdbench.assets.library import ASSETS
 
     return tuple(config.captions) if config is not None and config.captions else tuple(sorted(ASSETS))
