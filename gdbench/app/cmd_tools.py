@@ -230,7 +230,7 @@ def run_prompts(cmd: Prompts) -> dict:
                          "bank": "cached" if cached(c, BankConfig()) else "-", "paper": c in ASSETS})  # fmt: skip
     width = max(len(r["caption"]) for r in rows)
     for r in rows:
-        print(f"{r['caption']:<{width}}  {r['kind']:<11}  {r['priors']:<28}  {r['bank']:<6}  {r['front']}")
+        print(f"{r['caption']:<{width}}  {r['kind']:<11}  {r['priors']:<29}  {r['bank']:<6}  {r['front']}")
     n_kinds, fronts = len({r["kind"] for r in rows}), sum(FRONTS[r["caption"]] is not None for r in rows)
     print(f"{len(rows)} objects ({fronts} with a front) in {n_kinds} kind{'s' * (n_kinds > 1)}", flush=True)
     return {"captions": [r["caption"] for r in rows], "rows": rows}
