@@ -67,7 +67,8 @@ def test_agreement_reads_the_runs_scores_and_names_an_unknown_run_in_one_line(tm
 def test_the_committed_label_files_are_valid_and_the_second_rater_labelled_the_same_results():
     """Every labels file under fixtures/labels reads (a run id and a class of LABELS per row), a
     hamburger is labelled blob or fine only (the rule: it has no front), and the second rater's
-    file names exactly the results of the three first-rater sets, each with the same asset."""
+    file names exactly the results of the three sets it rated again, each with the same asset; the
+    fourth set is new results."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent / "fixtures" / "labels"
@@ -77,6 +78,10 @@ def test_the_committed_label_files_are_valid_and_the_second_rater_labelled_the_s
     for name, rs in rows.items():
         assert all(r["label"] in ("blob", "fine") for r in rs if r["caption"] == "a hamburger"), name
         assert len({r["run_id"] for r in rs}) == len(rs), name  # one label per result
-    first = {r["run_id"]: r["caption"] for n, rs in rows.items() if n != "janus_labels_rater2.csv" for r in rs}
+    rated_twice = ("janus_labels.csv", "janus_labels_heldout.csv", "janus_labels_fresh.csv")
+    first = {r["run_id"]: r["caption"] for n in rated_twice for r in rows[n]}
     second = {r["run_id"]: r["caption"] for r in rows["janus_labels_rater2.csv"]}
     assert second == first and len(first) == 192
+    # the fourth set (one rater) names results of none of the others
+    fourth = {r["run_id"] for r in rows["janus_labels_set4.csv"]}
+    assert len(fourth) == 72 and not fourth & set(first)
