@@ -91,28 +91,35 @@ def model_for_front_bias(front_bias: float) -> str:
     )
 
 
-def model_captions(model: str | Path = "uniform") -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(captions, held-out captions) a model knows, read from its metadata alone (no weights load);
-    models written before compositional captions know the six paper assets."""
+def _metadata(path: Path) -> dict:
+    """The string metadata of a weights file (no tensors read)."""
     from safetensors import safe_open
 
+    with safe_open(str(path), framework="pt") as f:
+        return dict(f.metadata() or {})
+
+
+def _captions_of(meta: dict) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(captions, held-out captions) named by a model's metadata; models written before
+    compositional captions know the six paper assets."""
     from gdbench.priors.learned.data import captions
 
-    with safe_open(str(model_path(model)), framework="pt") as f:
-        meta = dict(f.metadata() or {})
     return tuple(json.loads(meta.get("captions", "null")) or captions()), tuple(json.loads(meta.get("held_out", "[]")))
+
+
+def model_captions(model: str | Path = "uniform") -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(captions, held-out captions) a model knows, read from its metadata alone (no weights load)."""
+    return _captions_of(_metadata(model_path(model)))
 
 
 def load_model(model: str | Path, device: torch.device | str = "cpu"):
     """(UNet in float32 eval mode, metadata dict) of a shipped name or a weights path."""
-    from safetensors import safe_open
     from safetensors.torch import load_file
 
     from gdbench.priors.learned.unet import UNet, UNetConfig
 
     path = model_path(model)
-    with safe_open(str(path), framework="pt") as f:
-        meta = dict(f.metadata() or {})
+    meta = _metadata(path)
     if "unet" not in meta:
         raise ValueError(f"learned_model: {path} has no 'unet' settings in its metadata (not written by train-prior)")
     cfg = json.loads(meta["unet"])
@@ -168,12 +175,10 @@ class LearnedPrior:
         self.view_mode = view_mode
         self.variants = variants
         from gdbench.assets.library import PARTS
-        from gdbench.priors.learned.data import captions
 
-        self.captions = tuple(json.loads(self.meta.get("captions", "null")) or captions())
-        """The captions the model knows, in the order of its caption rows (its metadata's)."""
-        self.held_out = tuple(json.loads(self.meta.get("held_out", "[]")))
-        """Those of them it never saw in training (compositional models: the generalisation check)."""
+        self.captions, self.held_out = _captions_of(self.meta)
+        """The captions the model knows, in the order of its caption rows (its metadata's), and those
+        of them it never saw in training (compositional models: the generalisation check)."""
         unknown = [c for c in self.captions if c not in PARTS]
         if unknown or self.unet.config.captions != len(self.captions):
             raise ValueError(
