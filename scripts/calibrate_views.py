@@ -17,7 +17,7 @@ from pathlib import Path
 
 METRICS = (
     "front_everywhere_rate", "multi_face_rate", "blob_rate", "janus_rate", "featureless_rate", "instance_consistency",
-    "majority_variant", "floaters", "turned_deg",
+    "majority_variant", "floaters", "turned_deg", "outline_side", "back_share",
 )  # fmt: skip
 
 

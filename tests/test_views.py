@@ -594,3 +594,32 @@ def test_every_fronted_asset_tells_its_front_from_its_back(caption):
             "spun": "blob"}  # fmt: skip
     got = {k: result_class(score_scene(failure_scene(caption, k), caption, ref=ref).as_dict()) for k in want}
     assert got == want
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("caption", ["a corgi", "a brown dog"])
+def test_the_end_on_outline_from_every_side_is_the_front_everywhere_face_or_no_face(caption):
+    """The labelling rule's faceless front_everywhere, built in 3D: the animal squeezed to its
+    width and spun, in its mean colour, shows a head over a body from every side; the same spun
+    without the squeeze shows its length from every side, a blob. Neither has a face, so only the
+    outline tells them apart."""
+    from gdbench.metrics.failures3d import failure_scene
+    from gdbench.metrics.views import OUTLINE_SIDE, reference, result_class, score_scene
+
+    ref = reference(caption)
+    outline, blob = (score_scene(failure_scene(caption, k), caption, ref=ref) for k in ("outline-everywhere", "blob"))
+    assert outline.outline_side < OUTLINE_SIDE <= blob.outline_side
+    assert result_class(outline.as_dict()) == "front_everywhere" and result_class(blob.as_dict()) == "blob"
+    assert outline.back_share == blob.back_share == 0
+
+
+def test_the_outline_aspect_is_a_silhouettes_width_over_height_and_ignores_floaters():
+    """A W x H rectangle's 5-95 % spans are 0.9 W and 0.9 H (+1 px, counted inclusive), and a
+    floater detached from it changes neither."""
+    from gdbench.metrics.views import _aspect
+
+    a = torch.zeros(2, 64, 64)
+    a[:, 10:50, 20:40] = 1.0  # 20 wide, 40 high
+    a[1, 2:4, 58:60] = 1.0  # a floater at the corner
+    spans = torch.tensor([0.9 * 20 + 1, 0.9 * 40 + 1])
+    assert _aspect(a).tolist() == pytest.approx([float(spans[0] / spans[1])] * 2, abs=0.03)

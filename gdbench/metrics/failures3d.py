@@ -25,6 +25,9 @@ views are the asset's under the bank's lighting. The failure fixtures cut and mo
   from every side and its front nowhere (a faceless result whose silhouette may still match
   the front's);
 - ``blob``: ``spun`` in the asset's mean colour (no view-dependent colour): no face anywhere;
+- ``outline-everywhere``: ``blob`` with the asset first squeezed along its front axis (x) to its
+  width (y) where it is longer than wide: the end-on outline (a head over a body) from every
+  side, and no face: the labelling rule's front_everywhere without a face;
 - ``blurred``: every Gaussian moved by 0.01 (each axis, normal) and widened to a ball of
   standard deviation 0.02 (1.2 px at 64 px), at opacity 0.5;
 - ``floaters``: the asset with 40 opaque grey blobs scattered around it (0.42-0.6 from the
@@ -60,6 +63,7 @@ KINDS = (
     "front-everywhere",
     "back-everywhere",
     "blob",
+    "outline-everywhere",
 )
 POINTS = 24000
 """Discs per asset: about 4 per pixel's area of surface at the metric's 64 px (the duck's surface
@@ -293,7 +297,11 @@ def failure_scene(caption: str, kind: str, *, n: int = POINTS, seed: int = 0) ->
         azimuth = torch.rad2deg(torch.atan2(front.means[:, 1], front.means[:, 0]).double())
         wedge = _turned(front, -azimuth / 2 if copies == 4 else -azimuth * (1 - 2 / copies))
         return GaussianScene.cat([_turned(wedge, 360.0 / copies * k) for k in range(copies)])
-    if kind == "blob":
+    if kind in ("blob", "outline-everywhere"):
+        if kind == "outline-everywhere":
+            xy = asset.means[:, :2]
+            squeeze = min(1.0, float((xy[:, 1].max() - xy[:, 1].min()) / (xy[:, 0].max() - xy[:, 0].min())))
+            asset = dataclasses.replace(asset, means=asset.means * torch.tensor([squeeze, 1.0, 1.0]))
         spun = _turned(asset, torch.rand(len(asset), generator=g, dtype=torch.float64) * 360.0)
         sh = torch.zeros_like(spun.sh)
         sh[:, 0] = spun.sh[:, 0].mean(0)  # the asset's mean colour, the same from every side
