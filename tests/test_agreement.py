@@ -68,7 +68,7 @@ def test_the_committed_label_files_are_valid_and_the_second_rater_labelled_the_s
     """Every labels file under fixtures/labels reads (a run id and a class of LABELS per row), a
     hamburger is labelled blob or fine only (the rule: it has no front), and the second rater's
     file names exactly the results of the three sets it rated again, each with the same asset; the
-    fourth set is new results."""
+    fourth and fifth sets are new results, the fifth of captions labelled nowhere else."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent / "fixtures" / "labels"
@@ -82,6 +82,10 @@ def test_the_committed_label_files_are_valid_and_the_second_rater_labelled_the_s
     first = {r["run_id"]: r["caption"] for n in rated_twice for r in rows[n]}
     second = {r["run_id"]: r["caption"] for r in rows["janus_labels_rater2.csv"]}
     assert second == first and len(first) == 192
-    # the fourth set (one rater) names results of none of the others
+    # the fourth and fifth sets (one rater) name results of none of the others
     fourth = {r["run_id"] for r in rows["janus_labels_set4.csv"]}
-    assert len(fourth) == 72 and not fourth & set(first)
+    fifth = {r["run_id"] for r in rows["janus_labels_set5.csv"]}
+    assert len(fourth) == len(fifth) == 72 and not (fourth | fifth) & set(first) and not fourth & fifth
+    assert {r["caption"] for r in rows["janus_labels_set5.csv"]}.isdisjoint(
+        r["caption"] for n in (*rated_twice, "janus_labels_set4.csv") for r in rows[n]
+    )  # its twelve captions were never labelled before
