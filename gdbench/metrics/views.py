@@ -151,7 +151,8 @@ class ViewScore:
     outline (0) and its profile (1) (``OUTLINE_SIDE``); None where the asset's outlines do not tell
     (``OUTLINE_CONTRAST``) or it has no front."""
     back_share: float | None
-    """The share of views that show the back's look where the front's parts belong (``BACK_SEEN``)."""
+    """The share of views that show the back's look where the front's parts belong (``BACK_SEEN``);
+    None for an asset without a front."""
     view_class: list[str]
     """Each view's class (``CLASSES``)."""
     front_share: float
@@ -379,6 +380,10 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     else:  # no part decides between variants: the whole views do
         majority = majority_view
         consistency = float((variant == majority).double().mean())
+
+    def rate(mask: Tensor) -> float:  # the share of views where ``mask`` holds
+        return float(mask.double().mean())
+
     # the front: a view shows it when its front parts' pixels look like the front's, not like the
     # back's (``front_part_ratio``); the result's own front is the view that shows it best, and a
     # view more than 90 degrees from there that shows it too is a Janus view; a front drawn
@@ -386,18 +391,17 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
     # outlines tell, a result with no profile shows the front's outline from every side unless it
     # shows the back (``OUTLINE_SIDE``); a result no view of which passes the part test shows no
     # front: its views are blobs
-    front_share = float((_circ(matched) <= 45.0).double().mean())
+    front_share = rate(_circ(matched) <= 45.0)
     outline_side = back_share = None
     end_on = faceless = back_everywhere = False
     if front:
         part = front_part_ratio(images, ref)
         passes = part < PART_RATIO
         seen, facing = passes & _centre_front(centre, ref.azimuth), truth[int(part.argmin())]
-        share = lambda m: float(m.double().mean())  # noqa: E731
-        plain = share(passes) >= PLAIN_PART_SHARE and share(featureless) >= PLAIN_SELF_SIMILAR
+        plain = rate(passes) >= PLAIN_PART_SHARE and rate(featureless) >= PLAIN_SELF_SIMILAR
         if plain and front_share >= PLAIN_FRONT_SHARE:
             seen = passes
-        back_share = share(part > 1.0 / PART_RATIO)
+        back_share = rate(part > 1.0 / PART_RATIO)
         position = _outline(alpha, ref)
         if position is not None:
             outline_side = float(position.quantile(0.9))
@@ -416,9 +420,6 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
         "front_everywhere" if fe else "blob" if b else "second_face" if sf else "fine"
         for fe, b, sf in zip(front_everywhere.tolist(), blob.tolist(), second_face.tolist())
     ]
-
-    def rate(mask: Tensor) -> float:
-        return float(mask.double().mean())
 
     return ViewScore(
         multi_face_rate=rate(second_face) if front else None,
