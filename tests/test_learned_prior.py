@@ -154,6 +154,30 @@ def test_guidance_is_classifier_free():
     assert (ec - eu).abs().mean() > 1e-3
 
 
+@pytest.mark.parametrize("guided", [True, False])
+def test_frozen_graph_is_the_eager_network_bit_for_bit(guided):
+    """The prior's epsilon runs as a frozen TorchScript graph traced at a batch of two: at other
+    batch sizes, ticks, captions and cameras (or none) it gives the eager module's bits."""
+    from gdbench.priors.learned.prior import LearnedPrior, _Epsilon
+
+    prior = LearnedPrior(_random_weights(perturb=True), guidance_scale=3.0)
+    g = torch.Generator().manual_seed(4)
+    for B, camera in itertools.product((1, 3, 5), (True, False)):
+        graph = prior._graph(guided, camera)
+        assert isinstance(graph, torch.jit.ScriptModule)
+        eager = _Epsilon(prior.unet, prior.abar, 3.0 if guided else 1.0, camera)
+        x = torch.randn(B, 3, 32, 32, generator=g)
+        t = torch.randint(0, 1000, (B,), generator=g)
+        cap = torch.randint(0, prior.unet.config.captions, (B,), generator=g)
+        var = torch.randint(0, 3, (B,), generator=g)
+        cam = (torch.rand(B, 3, generator=g) * torch.tensor([360.0, 60.0, 30.0]) + torch.tensor([-180.0, -30.0, 40.0]),)
+        args = (x, t, cap, var) + (cam if camera else ())
+        with torch.no_grad():
+            want = eager(*args)
+            assert torch.equal(graph(*args), want)
+        assert want.abs().mean() > 0.1  # a real output, not zeros
+
+
 def test_view_modes():
     from gdbench.priors.learned.prior import LearnedPrior
 
@@ -361,7 +385,7 @@ def test_v_prediction_converts_to_the_noise():
     """For x_t = sqrt(abar) x0 + sqrt(1 - abar) eps, the true v = sqrt(abar) eps - sqrt(1 - abar) x0
     converts back to eps exactly, and the training target is that v."""
     from gdbench.priors import sd_abar
-    from gdbench.priors.learned.prior import LearnedPrior
+    from gdbench.priors.learned.prior import LearnedPrior, _Epsilon
 
     prior = LearnedPrior(_random_weights())
     assert prior.unet.config.prediction == "v"
@@ -371,7 +395,8 @@ def test_v_prediction_converts_to_the_noise():
     a = sd_abar()[t].float()[:, None, None, None]
     x_t = a.sqrt() * x0 + (1 - a).sqrt() * eps
     v = a.sqrt() * eps - (1 - a).sqrt() * x0
-    torch.testing.assert_close(prior._to_eps(v, x_t, t), eps, rtol=1e-5, atol=1e-5)
+    to_eps = _Epsilon(prior.unet, sd_abar(), 1.0, camera=False)._to_eps
+    torch.testing.assert_close(to_eps(v, x_t, t), eps, rtol=1e-5, atol=1e-5)
     data = _fake_data(64)
     images = torch.rand(64, 3, 4, 4, generator=g) * 2 - 1
     b = Batches(PriorTrainConfig(batch=16), data, images).draw()
