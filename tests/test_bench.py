@@ -486,3 +486,38 @@ def test_paired_runs_script_reads_scores_and_gives_the_t_interval(tmp_path):
     assert [float(r["b_minus_a"]) for r in rows if r["quantity"] == "featureless_rate"][:4] == pytest.approx([0.05] * 4)
     with pytest.raises(SystemExit, match=r"--a/--b: no scores\.json"):
         paired.main(["--a", str(tmp_path / "x{s}.json"), "--b", str(out), "--seeds", "0", "--out", str(out)])
+
+
+def test_learned_scaling_counts_the_networks_operations():
+    """bm_train's model-size rows: the FLOPs an evaluation reports are the convolutions', linear
+    layers' and attention's multiply-adds counted independently by forward hooks, and a wider
+    network reports more of them."""
+    import re
+
+    from gdbench.bench import bm_train
+    from gdbench.priors.learned.unet import UNet, UNetConfig
+
+    widths = ((16, 24, 32), (32, 48, 64))
+    rows = bm_train.learned_scaling(widths, repeats=1, block=1)
+    reported = [float(re.search(r"(\d+) MFLOP", r["what"]).group(1)) for r in rows]
+    for w, mflop in zip(widths, reported):
+        net = UNet(UNetConfig(widths=w, captions=6)).eval()
+        count = []
+
+        def hook(m, inp, out, count=count):
+            if isinstance(m, torch.nn.Conv2d):
+                count.append(2 * out.numel() * m.in_channels * m.kernel_size[0] * m.kernel_size[1])
+            elif isinstance(m, torch.nn.Linear):
+                count.append(2 * out.numel() * m.in_features)
+            else:  # attention: q k^T and its weights times v, L x L x C each
+                B, C, H, W = out.shape
+                count.append(2 * 2 * B * (H * W) ** 2 * C)
+
+        mods = [m for m in net.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))] + [net.mid_attn]
+        for m in mods:
+            m.register_forward_hook(hook)
+        x = torch.zeros(1, 3, 32, 32)
+        with torch.no_grad():
+            net(x, net.embedding(torch.tensor([5]), torch.tensor([0]), torch.tensor([0]), torch.zeros(1, 3)))
+        assert mflop == pytest.approx(sum(count) / 1e6, abs=0.6)  # the row rounds to whole MFLOP
+    assert reported[1] > 3 * reported[0] and all(r["seconds"] > 0 for r in rows)

@@ -7,7 +7,8 @@ renderer's C++ kernels (the floor of any change outside them, with each kernel's
 machine's float32
 matrix product just before and after the run (the shared machine's phase moves every time here
 by up to 2x); and the training step with the empirical and the learned prior side by side (target
-for the learned prior with classifier-free guidance: 40 ms).
+for the learned prior with classifier-free guidance: 7.75 ms, half of issue 32's 15.5 ms), with the
+learned prior's network time at the shipped width and at 1.5 and 2 times wider.
 
     python -m gdbench.bench.bm_train --out bench_results/train.csv [--skip-run]
 """
@@ -28,7 +29,9 @@ from gdbench.bench.common import environment, kernel_clock, timeit, write_csv, w
 TARGET_DENOISE_S = 0.005
 TARGET_RUN_S = 120.0
 TARGET_STEP_S = 0.004  # issue 32 (issue 15: 8 ms, met in fast phases)
-TARGET_LEARNED_STEP_S = 0.040
+TARGET_LEARNED_STEP_S = 0.00775  # issue 56: half of 15.5 ms (issue 32's target was 40 ms)
+WIDTHS = ((64, 96, 128), (96, 144, 192), (128, 192, 256))
+"""UNet widths of ``learned_scaling``: the shipped models' and 1.5 and 2 times wider."""
 PARTS = ("t_views", "t_render", "t_noise", "t_prior", "t_update")
 
 
@@ -47,6 +50,46 @@ def denoise_time(view_mode: str = "window") -> dict:
         "target_s": TARGET_DENOISE_S,
         "met": t["median_s"] <= TARGET_DENOISE_S,
     }
+
+
+def learned_scaling(widths=WIDTHS, repeats: int = 5, block: int = 10) -> list[dict]:
+    """The learned prior's guided epsilon for one 32 px view (two network evaluations: the step's
+    prior) at the UNet ``widths``: median time (alternating blocks, an A/B across sizes), the
+    network's floating-point operations per evaluation (torch's FLOP counter: convolutions and
+    matrix products) and the rate they run at. Random weights: the time does not depend on them."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from gdbench.priors.learned.prior import _Epsilon, _freeze
+    from gdbench.priors.learned.unet import UNet, UNetConfig
+
+    g = torch.Generator().manual_seed(0)
+    x, t = torch.randn(1, 3, 32, 32, generator=g), torch.tensor([500])
+    cap, var, cam = torch.tensor([0]), torch.tensor([0]), torch.tensor([[30.0, 10.0, 55.0]])
+    cases = []
+    for w in widths:
+        net = UNet(UNetConfig(widths=tuple(w), captions=6)).eval().requires_grad_(False)
+        module = _Epsilon(net, torch.linspace(0.999, 0.01, 1000, dtype=torch.float64), 3.0, camera=True)
+        with torch.no_grad(), FlopCounterMode(display=False) as flops:
+            net(x, net.embedding(t, cap, var, cam))
+        graph = _freeze(module, torch.device("cpu"))
+        cases.append((w, graph, flops.get_total_flops(), sum(v.numel() for v in net.parameters()), []))
+    with torch.no_grad():
+        for _, graph, *_ in cases:
+            graph(x, t, cap, var, cam)  # the frozen graph's first runs optimise it
+            graph(x, t, cap, var, cam)
+        for _ in range(repeats):
+            for _, graph, _, _, times in cases:
+                for _ in range(block):
+                    t0 = time.perf_counter()
+                    graph(x, t, cap, var, cam)
+                    times.append(time.perf_counter() - t0)
+    rows = []
+    for w, _, flop, params, times in cases:
+        s = statistics.median(times)
+        rows.append({"what": f"learned prior's guided epsilon, UNet widths {'/'.join(map(str, w))} "
+                             f"({params / 1e6:.2f} M parameters, {flop / 1e6:.0f} MFLOP an evaluation)",
+                     "seconds": s, "gflops": 2 * flop / s / 1e9})  # fmt: skip
+    return rows
 
 
 def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -> list[dict]:
@@ -214,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = [denoise_time("window"), denoise_time("none")]
     rows.append({"what": "machine: float32 matrix product (GFLOP/s)", "seconds": float("nan"), "gflops": peak_gflops()})
     rows += prior_steps(args.out.parent / "bm_train_priors")
+    rows += learned_scaling()
     if not args.skip_run:
         rows += default_run(args.out.parent / "bm_train_run")
     for r in rows:
@@ -222,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
             tail = f" (target <= {r['target_s']} s) -> {'met' if r['met'] else 'NOT met'}"
         elif "share" in r:
             tail = f" ({100 * r['share']:.0f}% of the step)"
+        elif "gflops" in r and r["seconds"] == r["seconds"]:
+            tail = f" ({r['gflops']:.0f} GFLOP/s)"
         elif "gflops" in r:
             print(f"{r['what']}: {r['gflops']:.0f}")
             continue
