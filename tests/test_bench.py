@@ -486,6 +486,28 @@ def test_paired_runs_script_reads_scores_and_gives_the_t_interval(tmp_path):
     assert [float(r["b_minus_a"]) for r in rows if r["quantity"] == "featureless_rate"][:4] == pytest.approx([0.05] * 4)
     with pytest.raises(SystemExit, match=r"--a/--b: no scores\.json"):
         paired.main(["--a", str(tmp_path / "x{s}.json"), "--b", str(out), "--seeds", "0", "--out", str(out)])
+    # issue 56's rule: the interval above reaches below -0.2 dB, so the check fails on the PSNR
+    ab = ["--a", str(tmp_path / "a{s}/scores.json"), "--b", str(tmp_path / "b{s}/scores.json"), "--seeds", "0-3"]
+    assert ci.low < -0.2 and paired.main([*ab, "--out", str(out), "--check"]) == 1
+    # and a change that moves one seed's result from fine into the blob class (a rate of 0.25) fails too
+    for side in "ab":
+        for s in range(4):
+            f = tmp_path / f"{side}{s}" / "scores.json"
+            d = json.loads(f.read_text())
+            d["gt"]["psnr"] = 28.0 + (0.1 if side == "b" else 0.0) + 0.01 * s
+            blob = 1.0 if (side, s) == ("b", 2) else 0.0
+            d["views"] = {"featureless_rate": blob, "multi_face_rate": 0.0, "front_everywhere_rate": 0.0,
+                          "blob_rate": blob, "janus_rate": 0.0, "front_share": 0.3}  # fmt: skip
+            f.write_text(json.dumps(d))
+    assert paired.main([*ab, "--out", str(out), "--check"]) == 1
+    rows = list(csv.DictReader(open(out)))
+    rise = next(r for r in rows if r["seed"] == "mean b-a" and r["quantity"] == "result_blob")
+    assert float(rise["b_minus_a"]) == pytest.approx(0.25)
+    f = tmp_path / "b2" / "scores.json"
+    d = json.loads(f.read_text())
+    d["views"] |= {"featureless_rate": 0.0, "blob_rate": 0.0}
+    f.write_text(json.dumps(d))
+    assert paired.main([*ab, "--out", str(out), "--check"]) == 0  # +0.1 dB at every seed, no class moves
 
 
 def test_learned_scaling_counts_the_networks_operations():
