@@ -543,3 +543,35 @@ def test_learned_scaling_counts_the_networks_operations():
             net(x, net.embedding(torch.tensor([5]), torch.tensor([0]), torch.tensor([0]), torch.zeros(1, 3)))
         assert mflop == pytest.approx(sum(count) / 1e6, abs=0.6)  # the row rounds to whole MFLOP
     assert reported[1] > 3 * reported[0] and all(r["seconds"] > 0 for r in rows)
+
+
+@pytest.mark.slow
+def test_paired_quality_runs_both_checkouts_and_resumes(tmp_path):
+    """scripts/paired_quality.py: the runs of each seed from each checkout, scored, then compared;
+    one checkout against itself gives the same bits at every seed (differences of zero, the check
+    passes), the commit is recorded, and a second call runs nothing again."""
+    import csv
+    import importlib.util
+    import json
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    spec = importlib.util.spec_from_file_location("pq", root / "scripts" / "paired_quality.py")
+    pq = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pq)
+    argv = ["--old", str(root), "--new", str(root), "--out", str(tmp_path), "--seeds", "0-1",
+            "--priors", "empirical", "--steps", "30"]  # fmt: skip
+    assert pq.main(argv) == 0
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True).stdout
+    record = json.loads((tmp_path / "checkouts.json").read_text())
+    assert record["old"]["commit"].split("-")[0] == head.strip()[:12] and record["seeds"] == [0, 1]
+    rows = list(csv.DictReader(open(tmp_path / "paired_empirical.csv")))
+    psnr = [r for r in rows if r["quantity"] == "gt_psnr" and r["seed"] in ("0", "1")]
+    assert len(psnr) == 2 and all(float(r["a"]) > 5 and float(r["b_minus_a"]) == 0 for r in psnr)
+    assert float(psnr[0]["a"]) != float(psnr[1]["a"])  # two seeds, two runs
+    stamp = (tmp_path / "new" / "empirical" / "seed0" / "scores.json").stat().st_mtime_ns
+    assert pq.main(argv) == 0
+    assert (tmp_path / "new" / "empirical" / "seed0" / "scores.json").stat().st_mtime_ns == stamp
+    with pytest.raises(SystemExit, match="--priors"):
+        pq.main([*argv[:6], "--priors", "sd"])
