@@ -407,19 +407,24 @@ def test_bench_quick_runs_render_in_one_process_and_peers_as_asked(monkeypatch, 
 
 
 def test_bm_cell_breaks_a_cell_down_and_compares_a_peer_checkout(tmp_path):
-    """bm_cell on a 5-step cell, with this checkout as its own --peer: the phases it reports come
-    from the sweep's and the cell's own records (the training steps are the row's), none is
-    negative but 'other', they add up to the wall time, and two fresh processes of one checkout
-    write the same scene and scores (the check a speed change must pass against the code before)."""
+    """bm_cell on a 5-step cell of the learned prior (the empirical one's cells take the same path),
+    with this checkout as its own --peer and a folder that is no checkout refused: the phases it
+    reports come from the sweep's and the cell's own records (the training steps are the row's),
+    none is negative but 'other', they add up to the wall time, and two fresh processes of one
+    checkout write the same scene and scores (the check a speed change must pass against the code
+    before)."""
     import csv
 
     from gdbench.bench import bm_cell
 
     out = tmp_path / "cell.csv"
     root = bm_cell.ROOT
+    with pytest.raises(SystemExit):
+        bm_cell.main(["--peer", str(tmp_path), "--out", str(out)])
     assert bm_cell.main(["--steps", "5", "--rounds", "1", "--skip-colmap", "--skip-cold", "--peer", str(root),
-                         "--out", str(out)]) == 0  # fmt: skip
+                         "--priors", "learned", "--out", str(out)]) == 0  # fmt: skip
     rows = list(csv.DictReader(out.open()))
+    assert "on the learned prior" in rows[0]["what"] and rows[0]["prior"] == "learned"
     wall = float(rows[0]["seconds"])
     phases = {r["what"].removeprefix("  of which "): float(r["seconds"]) for r in rows if "of which" in r["what"]}
     assert {"training steps", "scores (ground truth, views)", "start-up and imports", "other"} <= set(phases)
@@ -575,3 +580,25 @@ def test_paired_quality_runs_both_checkouts_and_resumes(tmp_path):
     assert (tmp_path / "new" / "empirical" / "seed0" / "scores.json").stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit, match="--priors"):
         pq.main([*argv[:6], "--priors", "sd"])
+
+
+def test_bm_cell_peer_rows_name_their_baseline_and_why_they_are_missing(monkeypatch):
+    """A peer's row carries its prior's target only where the peer is that target's baseline commit
+    (41ef3aa for the empirical cell, 5b47c3f for the learned one), and a peer that could not run
+    the cell gives a row saying why, with no figure."""
+    from pathlib import Path
+
+    from gdbench.bench import bm_cell
+
+    ref = {"scene": b"s", "row": {"gt_psnr": "28.1"}}
+    got = [{"wall_s": 30.0, "scene": b"s", "row": {"gt_psnr": "28.1"}}]
+    monkeypatch.setattr(bm_cell, "checkout_commit", lambda root: "41ef3aa")
+    row = bm_cell._peer_row("empirical", Path("/x"), got, 10.0, ref, "wall_s", ("gt_psnr",))
+    assert row["ratio"] == 3.0 and row["target_ratio"] == 2.5 and row["met"] and row["same_scene"]
+    row = bm_cell._peer_row("learned", Path("/x"), got, 20.0, ref, "wall_s", ("gt_psnr",))
+    assert row["ratio"] == 1.5 and "target_ratio" not in row  # not the learned cell's baseline
+    monkeypatch.setattr(bm_cell, "checkout_commit", lambda root: "5b47c3f")
+    row = bm_cell._peer_row("learned", Path("/x"), got, 20.0, ref, "wall_s", ("gt_psnr",))
+    assert row["target_ratio"] == 2.0 and not row["met"]
+    row = bm_cell._peer_row("learned", Path("/x"), [{"error": "no such option: --prior"}], 20.0, ref, "wall_s", ())
+    assert row["seconds"] != row["seconds"] and "not run (no such option: --prior)" in bm_cell.line(row)

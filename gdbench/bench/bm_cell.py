@@ -1,15 +1,18 @@
 """The unit cost of the science: one scored sweep cell, as a user pays for it, written to CSV/JSON.
 
 A 1000-step gd cell on "a yellow duck" at 64 px, trained and scored with the ground truth and the
-view metrics, no COLMAP, through ``gdbench sweep`` in a fresh process with the bank cached: its
-wall time and where it went (start-up and imports, the grid's validation, the run's set-up, the
-training steps, the run's outputs, the scores, the tables; from the sweep's timings.json and the
-cell's cell.json). Beside it, in the same run:
+view metrics, no COLMAP, through ``gdbench sweep`` in a fresh process with the bank cached, on
+each ``--priors`` (the empirical and the learned prior): its wall time and where it went (start-up
+and imports, the grid's validation, the run's set-up, the training steps, the run's outputs, the
+scores, the tables; from the sweep's timings.json and the cell's cell.json). Beside it, in the
+same run:
 
-- ``--peer DIR``: the same command from another checkout (e.g. a clone at an earlier commit),
-  alternating with this one over ``--rounds``, so the ratio compares two versions in one phase of
-  the machine; and whether both wrote the same scene and scores (a speed change must not change
-  results).
+- ``--peer DIR`` (repeatable): the same command from other checkouts (e.g. clones at earlier
+  commits), alternating with this one over ``--rounds``, so each ratio compares two versions in
+  one phase of the machine; and whether both wrote the same scene and scores (a speed change that
+  keeps results must keep them bit for bit). A peer's ratio is checked against its prior's target
+  where the peer is that target's baseline (``BASELINES``: issue 56's 2.5x against 41ef3aa for
+  the empirical cell, 2x against 5b47c3f, the main before issue 56, for the learned one).
 - The next cell of a sweep: a two-cell sweep of the prompt (gd, then sjc-gs) in one process, and
   the second cell's own time (cells.csv's ``cell_s``: set-up, steps and scores; the process's
   start-up, the validation and the tables are paid once per sweep), with the peer's the same way.
@@ -20,7 +23,8 @@ cell's cell.json). Beside it, in the same run:
   (target: at most 5 s).
 - The machine's float32 matrix product before and after (GFLOP/s): the phase of the figures.
 
-    python -m gdbench.bench.bm_cell --out bench_results/cell.csv [--peer DIR] [--rounds 2]
+    python -m gdbench.bench.bm_cell --out bench_results/cell.csv [--peer DIR ...] [--rounds 2]
+        [--priors empirical learned]
 """
 
 from __future__ import annotations
@@ -41,8 +45,11 @@ from gdbench.bench.common import environment, write_csv, write_json
 PROMPT = "a yellow duck"
 TARGET_CELL_S = 14.2 / 2.5
 """The issue's target: 2.5x less than the 14.2 s one such cell took on a quiet machine before."""
-TARGET_RATIO = 2.5
-"""Against a ``--peer`` checkout of the code before (its wall time over this one's)."""
+TARGET_RATIO = {"empirical": 2.5, "learned": 2.0}
+"""Against a ``--peer`` checkout of the code before (its wall time over this one's), per prior."""
+BASELINES = {"empirical": "41ef3aa", "learned": "5b47c3f"}
+"""The commit each prior's ratio target is measured against (issue 56)."""
+PRIORS = ("empirical", "learned")
 TARGET_COLMAP_S = 6.0
 TARGET_COLD_S = 5.0
 ROOT = Path(__file__).resolve().parents[2]
@@ -57,11 +64,15 @@ def cli_module(root: Path) -> str | None:
     return None
 
 
-def run_sweep(root: Path, out: Path, presets: tuple[str, ...], steps: int, env: dict | None = None) -> float:
-    """Wall time of ``gdbench sweep`` of the prompt with ``presets`` (seed 0, no COLMAP) from
-    checkout ``root`` in a fresh process, into a fresh ``out``."""
+def run_sweep(
+    root: Path, out: Path, presets: tuple[str, ...], steps: int, env: dict | None = None, prior: str = "empirical"
+) -> float:
+    """Wall time of ``gdbench sweep`` of the prompt with ``presets`` (seed 0, no COLMAP) on
+    ``prior`` from checkout ``root`` in a fresh process, into a fresh ``out``."""
     cmd = [sys.executable, "-m", cli_module(root), "sweep", "--prompts", PROMPT, "--presets", *presets, "--seeds", "0",
            "--steps", str(steps), "--no-colmap", "--out", str(out)]  # fmt: skip
+    if prior != "empirical":  # the default in every checkout; older ones may not know the option
+        cmd += ["--prior", prior]
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     p = subprocess.run(cmd, cwd=root, capture_output=True, text=True, env=env)
@@ -76,10 +87,10 @@ def cell_dir(out: Path, preset: str) -> Path:
     return out / "cells" / "easy" / PROMPT.replace(" ", "_") / preset / "seed0"
 
 
-def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None) -> dict:
+def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None, prior: str = "empirical") -> dict:
     """Wall time of one-cell ``gdbench sweep`` from checkout ``root`` in a fresh process, with the
     phases the sweep and the cell record (where the checkout writes them)."""
-    wall = run_sweep(root, out, ("gd",), steps, env)
+    wall = run_sweep(root, out, ("gd",), steps, env, prior)
     cell = cell_dir(out, "gd")
     blob = json.loads((cell / "cell.json").read_text())
     row = {"wall_s": wall, "row": blob["row"], "scene": (cell / "scene.ply").read_bytes()}
@@ -99,12 +110,12 @@ def sweep_cell(root: Path, out: Path, steps: int, env: dict | None = None) -> di
     return row
 
 
-def next_cell(root: Path, out: Path, steps: int) -> dict:
+def next_cell(root: Path, out: Path, steps: int, prior: str = "empirical") -> dict:
     """The second cell of a two-cell sweep of one prompt (gd, then sjc-gs) from checkout ``root``:
     its ``cell_s`` from cells.csv (a column every checkout writes), and its row."""
     import csv
 
-    run_sweep(root, out, ("gd", "sjc-gs"), steps)
+    run_sweep(root, out, ("gd", "sjc-gs"), steps, prior=prior)
     with open(out / "cells.csv", newline="") as f:
         row = next(r for r in csv.DictReader(f) if r["preset"] == "sjc-gs")
     scene = cell_dir(out, "sjc-gs") / "scene.ply"
@@ -167,53 +178,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("bench_results/cell.csv"))
     ap.add_argument("--steps", type=int, default=1000, help="training steps of the cell (default 1000)")
     ap.add_argument("--rounds", type=int, default=2, help="timed cells of each checkout, alternating (default 2)")
-    ap.add_argument("--peer", type=Path, default=None, help="another checkout to time the same cell from")
+    ap.add_argument("--peer", type=Path, action="append", default=[],
+                    help="another checkout to time the same cells from (repeatable)")  # fmt: skip
+    ap.add_argument("--priors", nargs="+", choices=PRIORS, default=list(PRIORS),
+                    help="the cells' priors (default: both)")  # fmt: skip
     ap.add_argument("--skip-next-cell", action="store_true", help="leave out the next cell of a two-cell sweep")
     ap.add_argument("--skip-colmap", action="store_true", help="leave out the COLMAP timing")
     ap.add_argument("--skip-cold", action="store_true", help="leave out the cold first run")
     args = ap.parse_args(argv)
     if args.steps < 1 or args.rounds < 1:
         ap.error(f"--steps and --rounds: expected at least 1, got {args.steps} and {args.rounds}")
-    if args.peer is not None and cli_module(args.peer) is None:
-        ap.error(f"--peer: expected a gdbench checkout (gdbench/app/cli.py or, before 2026-11-27, gdbench/cli.py), "
-                 f"got {args.peer}")  # fmt: skip
+    for peer in args.peer:
+        if cli_module(peer) is None:
+            ap.error(f"--peer: expected a gdbench checkout (gdbench/app/cli.py or, before 2026-11-27, gdbench/cli.py), "
+                     f"got {peer}")  # fmt: skip
     from gdbench.bench.roofline import peak_gflops
 
     before = peak_gflops()
     rows: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="bm_cell_") as d:
         tmp = Path(d)
-        checkouts = {"this": ROOT} | ({"peer": args.peer.resolve()} if args.peer is not None else {})
-        print(f"bm_cell: warm-up cells (bank, caches, compiled files), then {args.rounds} round(s)", flush=True)
-        for name, root in checkouts.items():
-            sweep_cell(root, tmp / f"warm-{name}", 10)
-        runs: dict[str, list[dict]] = {k: [] for k in checkouts}
-        for r in range(args.rounds):
-            for name, root in checkouts.items():
-                runs[name].append(sweep_cell(root, tmp / f"{name}{r}", args.steps))
-                print(f"  round {r + 1}: {name} {runs[name][-1]['wall_s']:.2f} s", flush=True)
-        this = min(runs["this"], key=lambda x: x["wall_s"])
-        wall = statistics.median(x["wall_s"] for x in runs["this"])
-        rows.append({"what": f"one {args.steps}-step gd cell through gdbench sweep (fresh process, bank cached, "
-                     f"no COLMAP), median of {args.rounds}", "seconds": wall, "target_s": TARGET_CELL_S,
-                     "met": wall <= TARGET_CELL_S, "steps": args.steps})  # fmt: skip
-        for phase, s in this.get("phases", {}).items():
-            rows.append({"what": f"  of which {phase}", "seconds": s, "share": s / this["wall_s"]})
-        step = this["row"]["train_time_s"] / max(this["row"]["iterations"], 1)
-        rows.append({"what": "  mean training step of the cell", "seconds": step})
-        if "peer" in runs:
-            peer = statistics.median(x["wall_s"] for x in runs["peer"])
-            same = all(x["scene"] == this["scene"] for x in runs["peer"] + runs["this"])
-            metrics = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters")
-            same_row = all(x["row"][m] == this["row"][m] for x in runs["peer"] for m in metrics)
-            rows.append({"what": f"the same cell from --peer {args.peer} (commit {checkout_commit(args.peer)})",
-                         "seconds": peer, "ratio": peer / wall, "target_ratio": TARGET_RATIO,
-                         "met": peer / wall >= TARGET_RATIO, "same_scene": same, "same_scores": same_row})  # fmt: skip
-        if not args.skip_next_cell:
-            rows.extend(next_cells(checkouts, tmp, args.steps, args.rounds))
+        checkouts = {"this": ROOT} | {f"peer{i}": p.resolve() for i, p in enumerate(args.peer)}
+        for prior in args.priors:
+            rows.extend(prior_cells(prior, checkouts, tmp / prior, args.steps, args.rounds))
+            if not args.skip_next_cell:
+                rows.extend(next_cells(checkouts, tmp / prior, args.steps, args.rounds, prior))
         if not args.skip_colmap:
             print("bm_cell: COLMAP on the cell's scene", flush=True)
-            rows.extend(colmap_time(cell_dir(tmp / "this0", "gd") / "scene.ply"))
+            rows.extend(colmap_time(cell_dir(tmp / args.priors[0] / "this0", "gd") / "scene.ply"))
         if not args.skip_cold:
             print("bm_cell: cold first run", flush=True)
             rows.append(cold_first_run(tmp))
@@ -227,26 +219,89 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def next_cells(checkouts: dict[str, Path], tmp: Path, steps: int, rounds: int) -> list[dict]:
-    """The next cell of a sweep from each checkout, alternating over ``rounds``: medians, the ratio
-    against the peer, and whether both scored it alike."""
-    print(f"bm_cell: the next cell of a two-cell sweep, {rounds} round(s)", flush=True)
+def _alternate(checkouts: dict[str, Path], rounds: int, one, label: str) -> dict[str, list[dict]]:
+    """``one(name, root, round)`` for every checkout, alternating over ``rounds``; a peer that
+    cannot run it (an older checkout without the option) is dropped with its error kept."""
     got: dict[str, list[dict]] = {k: [] for k in checkouts}
     for r in range(rounds):
         for name, root in checkouts.items():
-            got[name].append(next_cell(root, tmp / f"pair-{name}{r}", steps))
-            print(f"  round {r + 1}: {name} {got[name][-1]['seconds']:.2f} s", flush=True)
+            if got.get(name) is None or (got[name] and "error" in got[name][0]):
+                continue
+            try:
+                got[name].append(one(name, root, r))
+            except RuntimeError as e:
+                if name == "this":
+                    raise
+                got[name] = [{"error": str(e).splitlines()[-1][:300]}]
+                continue
+            x = got[name][-1]
+            print(f"  {label} round {r + 1}: {name} {x.get('wall_s', x.get('seconds')):.2f} s", flush=True)
+    return got
+
+
+def _peer_row(prior: str, root: Path, got: list[dict], this: float, ref: dict, key: str, keys) -> dict:
+    """The row of one peer: its median, the ratio against this checkout's and whether it wrote the
+    same scene and scores (or why it has no figure)."""
+    commit = checkout_commit(root)
+    what = f"  the same from --peer {root} (commit {commit})"
+    if got and "error" in got[0]:
+        return {"what": f"{what}: not run ({got[0]['error']})", "seconds": float("nan")}
+    peer = statistics.median(x[key] for x in got)
+    row = {"what": what, "seconds": peer, "ratio": peer / this, "commit": commit,
+           "same_scene": all(x["scene"] == ref["scene"] for x in got),
+           "same_scores": all(x["row"][k] == ref["row"][k] for x in got for k in keys)}  # fmt: skip
+    if commit.startswith(BASELINES[prior]) or BASELINES[prior].startswith(commit):
+        row |= {"target_ratio": TARGET_RATIO[prior], "met": peer / this >= TARGET_RATIO[prior]}
+    return row
+
+
+def prior_cells(prior: str, checkouts: dict[str, Path], tmp: Path, steps: int, rounds: int) -> list[dict]:
+    """One gd cell on ``prior`` from each checkout (a warm-up cell each, then ``rounds`` timed ones,
+    alternating): this checkout's median wall time and phases, and each peer's row."""
+    print(f"bm_cell: {prior} prior: warm-up cells (bank, caches, compiled files), then {rounds} round(s)", flush=True)
+    ok = {}
+    for name, root in checkouts.items():
+        try:
+            sweep_cell(root, tmp / f"warm-{name}", 10, prior=prior)
+            ok[name] = root
+        except RuntimeError as e:
+            if name == "this":
+                raise
+            print(f"  {name} cannot run the {prior} cell: {str(e).splitlines()[-1][:200]}", flush=True)
+    runs = _alternate(ok, rounds, lambda n, root, r: sweep_cell(root, tmp / f"{n}{r}", steps, prior=prior), prior)
+    this = min(runs["this"], key=lambda x: x["wall_s"])
+    wall = statistics.median(x["wall_s"] for x in runs["this"])
+    row = {"what": f"one {steps}-step gd cell on the {prior} prior through gdbench sweep (fresh process, bank "
+           f"cached, no COLMAP), median of {rounds}", "seconds": wall, "steps": steps, "prior": prior}  # fmt: skip
+    if prior == "empirical":
+        row |= {"target_s": TARGET_CELL_S, "met": wall <= TARGET_CELL_S}
+    rows = [row]
+    for phase, s in this.get("phases", {}).items():
+        rows.append({"what": f"  of which {phase}", "seconds": s, "share": s / this["wall_s"]})
+    step = this["row"]["train_time_s"] / max(this["row"]["iterations"], 1)
+    rows.append({"what": "  mean training step of the cell", "seconds": step})
+    keys = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters")
+    for name, root in checkouts.items():
+        if name != "this":
+            got = runs.get(name) or [{"error": f"it cannot run a {prior} cell"}]
+            rows.append(_peer_row(prior, root, got, wall, this, "wall_s", keys))
+    return rows
+
+
+def next_cells(checkouts: dict[str, Path], tmp: Path, steps: int, rounds: int, prior: str = "empirical") -> list[dict]:
+    """The next cell of a sweep from each checkout, alternating over ``rounds``: medians, the ratio
+    against each peer, and whether they scored it alike."""
+    print(f"bm_cell: {prior} prior: the next cell of a two-cell sweep, {rounds} round(s)", flush=True)
+    got = _alternate(checkouts, rounds, lambda n, root, r: next_cell(root, tmp / f"pair-{n}{r}", steps, prior),
+                     f"{prior} next cell")  # fmt: skip
     this = statistics.median(x["seconds"] for x in got["this"])
-    rows = [{"what": f"the next cell of a sweep: sjc-gs after gd on the same prompt in one process ({steps} steps; "
-             f"its set-up, steps and scores), median of {rounds}", "seconds": this}]  # fmt: skip
-    if "peer" in got:
-        peer = statistics.median(x["seconds"] for x in got["peer"])
-        keys = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters", "gaussians")
-        ref = got["this"][0]
-        same = all(x["row"][k] == ref["row"][k] for x in got["peer"] + got["this"] for k in keys)
-        same_scene = all(x["scene"] == ref["scene"] for x in got["peer"] + got["this"])
-        rows.append({"what": "  the same from the peer", "seconds": peer, "ratio": peer / this,
-                     "same_scene": same_scene, "same_scores": same})  # fmt: skip
+    rows = [{"what": f"the next cell of a sweep on the {prior} prior: sjc-gs after gd on the same prompt in one "
+             f"process ({steps} steps; its set-up, steps and scores), median of {rounds}", "seconds": this,
+             "prior": prior}]  # fmt: skip
+    keys = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters", "gaussians")
+    for name, root in checkouts.items():
+        if name != "this":
+            rows.append(_peer_row(prior, root, got[name], this, got["this"][0], "seconds", keys))
     return rows
 
 
@@ -258,6 +313,8 @@ def checkout_commit(root: Path) -> str:
 def line(r: dict) -> str:
     if "gflops" in r:
         return f"{r['what']}: {r['gflops']:.0f}"
+    if r["seconds"] != r["seconds"]:  # a row that says why it holds no figure
+        return r["what"]
     text = f"{r['what']}: {r['seconds']:.3g} s"
     if "ratio" in r:
         text += f"; this checkout is {r['ratio']:.2f}x faster"
