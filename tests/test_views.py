@@ -178,6 +178,29 @@ def test_front_masks_are_the_marked_parts_seen_from_each_side():
         front_masks("a hamburger")
 
 
+def test_front_masks_cached_on_disk_are_the_rendered_ones(tmp_path, monkeypatch):
+    """The masks a fresh process reads from the cache are pyrender's, bit for bit: rendered into an
+    empty cache folder, then read back with the renderer gone (and with no per-process copy)."""
+    from gdbench.metrics import views
+
+    monkeypatch.setenv("GDBENCH_CACHE", str(tmp_path))
+    az = (0.0, 30.0, 180.0)
+    views._front_masks.cache_clear()
+    built = views.front_masks("a corgi", azimuth=az)
+    assert list(tmp_path.rglob("front_masks-*.npz")) and built[0].sum() > 20 and built[2].sum() == 0
+
+    def gone(*args, **kwargs):
+        raise AssertionError("the masks were rendered again")
+
+    monkeypatch.setattr(views, "part_masks", gone)
+    views._front_masks.cache_clear()
+    read = views.front_masks("a corgi", azimuth=az)
+    assert read.dtype == torch.bool and torch.equal(read, built)
+    with pytest.raises(AssertionError, match="rendered again"):  # another ring is another entry
+        views.front_masks("a corgi", azimuth=(10.0,))
+    views._front_masks.cache_clear()
+
+
 def test_a_blurred_asset_is_no_failure_of_any_class(scores):
     _quiet(scores["blurred"])
 

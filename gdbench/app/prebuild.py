@@ -1,5 +1,5 @@
 """``gdbench cache build``: what a default run of a prompt and its scores read from the cache
-(the prior's image bank, the view metrics' reference ring, the ground truth's held-out views, the
+(the prior's image bank, the view metrics' reference ring and its front masks, the ground truth's held-out views, the
 prompt check's palette), built ahead of the first run; scripts/setup.sh runs it in the background."""
 
 from __future__ import annotations

@@ -196,7 +196,8 @@ def reference(caption: str, variants: int = 1, size: int = SIZE, background=(1.0
 def front_masks(caption: str, size: int = SIZE, azimuth: tuple[float, ...] | None = None) -> Tensor:
     """[A, H, W] bool: the pixels where the asset's front parts (marked by ``assets.shapes.front``)
     are seen at the ring's azimuths (default every 5 degrees; elevation 20, fovy 55), the rest of
-    the asset occluding them. Cached per process."""
+    the asset occluding them. Cached beside the banks (``cached_arrays``: a fresh process reads
+    them instead of building the mesh and rendering 72 views with pyrender) and per process."""
     if azimuth is None:
         azimuth = tuple(float(a) for a in torch.arange(-180.0, 180.0, 5.0))
     return _front_masks(caption, size, azimuth).clone()
@@ -204,16 +205,23 @@ def front_masks(caption: str, size: int = SIZE, azimuth: tuple[float, ...] | Non
 
 @functools.lru_cache(maxsize=16)
 def _front_masks(caption: str, size: int, azimuth: tuple[float, ...]) -> Tensor:
-    from gdbench.assets.library import build
+    from gdbench.assets.bank import cached_arrays
 
-    mesh = build(caption)
-    marks = mesh.metadata.get("front")
-    if marks is None or not marks.any():
-        raise ValueError(f"caption: {caption!r} marks no front parts (assets.library.FRONTS)")
-    n = len(azimuth)
-    poses = SphericalPoses(torch.tensor(azimuth, dtype=torch.float64), torch.full((n,), ELEVATION, dtype=torch.float64),
-                           torch.ones(n, dtype=torch.float64), torch.full((n,), FOVY, dtype=torch.float64))  # fmt: skip
-    return torch.from_numpy(part_masks(mesh, poses, size))
+    def build() -> dict:
+        from gdbench.assets.library import build
+
+        mesh = build(caption)
+        marks = mesh.metadata.get("front")
+        if marks is None or not marks.any():
+            raise ValueError(f"caption: {caption!r} marks no front parts (assets.library.FRONTS)")
+        n = len(azimuth)
+        f64 = torch.float64
+        poses = SphericalPoses(torch.tensor(azimuth, dtype=f64), torch.full((n,), ELEVATION, dtype=f64),
+                               torch.ones(n, dtype=f64), torch.full((n,), FOVY, dtype=f64))  # fmt: skip
+        return {"masks": part_masks(mesh, poses, size)}
+
+    key = {"caption": caption, "size": size, "azimuth": list(azimuth), "elevation": ELEVATION, "fovy": FOVY}
+    return torch.from_numpy(cached_arrays("front_masks", key, build, version=1, fields=("masks",))["masks"])
 
 
 def part_masks(mesh, poses: SphericalPoses, size: int):
