@@ -6,7 +6,8 @@ each scored, then compared seed by seed by ``paired_runs.py --check``.
 
 Each run is ``python -m gdbench.app.cli generate`` in its checkout's root (that checkout's code,
 whatever this interpreter has installed), into OUT/{old,new}/{prior}/seed{s}; a run whose
-scores.json exists is not run again, so an interrupted check resumes. Writes
+scores.json exists and was made at the checkout's present commit (its made_by.txt) is not run
+again, so an interrupted check resumes, and a checkout that moved is run again. Writes
 OUT/paired_{prior}.csv, OUT/checkouts.json (the two commits) and prints each prior's verdict;
 the exit status is 1 when either fails.
 """
@@ -33,17 +34,26 @@ def _commit(checkout: Path) -> str:
     return r.stdout.strip()[:12] + ("-dirty" if dirty else "")
 
 
-def run_one(checkout: Path, out: Path, prompt: str, prior: str, seed: int, steps: int) -> float:
-    """Train and score one run in ``checkout`` (skipped when its scores.json exists); seconds taken."""
-    if (out / "scores.json").is_file():
+def run_one(checkout: Path, commit: str, out: Path, prompt: str, prior: str, seed: int, steps: int) -> float:
+    """Train and score one run in ``checkout`` (skipped when its scores.json exists and was made at
+    ``commit``: ``made_by.txt`` in the run folder); seconds taken."""
+    sys.path.insert(0, str(HERE.parent))
+    from gdbench.bench.bm_cell import cli_module
+
+    made_by = out / "made_by.txt"
+    if (out / "scores.json").is_file() and made_by.is_file() and made_by.read_text().strip() == commit:
         return 0.0
-    cmd = [sys.executable, "-m", "gdbench.app.cli", "generate", prompt, "--prior", prior, "--seed", str(seed),
+    module = cli_module(checkout)
+    if module is None:
+        raise SystemExit(f"--old/--new: {checkout} holds no gdbench command line")
+    cmd = [sys.executable, "-m", module, "generate", prompt, "--prior", prior, "--seed", str(seed),
            "--steps", str(steps), "--out", str(out.resolve()), "--overwrite", "--no-progress"]  # fmt: skip
     env = dict(os.environ, PYTHONPATH=str(checkout.resolve()))
     t0 = time.perf_counter()
     r = subprocess.run(cmd, cwd=checkout, env=env, capture_output=True, text=True)
     if r.returncode or not (out / "scores.json").is_file():
         raise SystemExit(f"run {out} failed (exit {r.returncode}):\n{r.stdout[-2000:]}{r.stderr[-2000:]}")
+    made_by.write_text(commit + "\n")
     return time.perf_counter() - t0
 
 
@@ -73,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "checkouts.json").write_text(json.dumps(record, indent=1) + "\n")
     jobs = [(p, s, arm) for p in priors for s in seeds for arm in arms]
     for i, (prior, seed, arm) in enumerate(jobs, 1):  # old and new of a seed side by side: one phase
-        seconds = run_one(arms[arm], args.out / arm / prior / f"seed{seed}", args.prompt, prior, seed, args.steps)
+        run = args.out / arm / prior / f"seed{seed}"
+        seconds = run_one(arms[arm], record[arm]["commit"], run, args.prompt, prior, seed, args.steps)
         print(f"[{i}/{len(jobs)}] {arm} {prior} seed {seed}: " + (f"{seconds:.0f} s" if seconds else "done before"))
     failed = False
     for prior in priors:

@@ -73,16 +73,26 @@ def _result_class(views: dict) -> str:
     return result_class(views)
 
 
-def check(summary: dict[str, tuple[float, float, float]]) -> list[str]:
-    """What fails issue 56's rule in the summary {quantity: (mean b - a, ci_lo, ci_hi)}."""
+def check(summary: dict[str, tuple[float, float, float]], one_sided: dict[str, list] | None = None) -> list[str]:
+    """What fails issue 56's rule in the summary {quantity: (mean b - a, ci_lo, ci_hi)}: the PSNR
+    interval (which needs two seeds or more) reaching -0.2 dB, a failure class's rate rising by
+    more than 0.05, or a quantity of either present on one side only at some seed (``one_sided``:
+    {quantity: those seeds}; a candidate that diverges to NaN or loses a block fails)."""
     failed = []
-    lo = summary["gt_psnr"][1]
-    if not lo > PSNR_FLOOR_DB:
+    lo = summary.get("gt_psnr", (math.nan,) * 3)[1]
+    if "gt_psnr" not in summary:
+        failed.append("gt_psnr: no seed has a GT PSNR on both sides")
+    elif lo != lo:
+        failed.append("gt_psnr: one seed gives no interval; expected two or more")
+    elif not lo > PSNR_FLOOR_DB:
         failed.append(f"gt_psnr: the 95% interval reaches {lo:+.3f} dB, below {PSNR_FLOOR_DB} dB")
     for q in FAILURES:
-        m = summary.get(q, (math.nan,))[0]  # NaN (no such rate in the files) raises nothing
+        m = summary.get(q, (math.nan,))[0]  # NaN on both sides (a frontless asset's classes) raises nothing
         if m > RATE_RISE:
             failed.append(f"{q}: rises by {m:+.3f}, more than {RATE_RISE}")
+    for q, seeds in (one_sided or {}).items():
+        if seeds and (q == "gt_psnr" or q in FAILURES):
+            failed.append(f"{q}: present on one side only at seeds {seeds}")
     return failed
 
 
@@ -106,14 +116,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="the CSV to write")
     ap.add_argument("--check", action="store_true", help="apply issue 56's rule; exit 1 when it fails")
     args = ap.parse_args(argv)
-    rows, diffs, summary = [], {}, {}
+    rows, diffs, summary, one_sided = [], {}, {}, {}
     for s in _seeds(args.seeds):
         a, b = _read(Path(args.a.format(s=s))), _read(Path(args.b.format(s=s)))
         for q in a:
             rows.append({"seed": s, "quantity": q, "a": a[q], "b": b[q], "b_minus_a": b[q] - a[q]})
             diffs.setdefault(q, []).append(b[q] - a[q])
+            if (a[q] == a[q]) != (b[q] == b[q]):  # NaN or missing on one side only
+                one_sided.setdefault(q, []).append(s)
     for q, d in diffs.items():
-        d = [x for x in d if x == x]  # a frontless asset has no class rates
+        d = [x for x in d if x == x]  # both sides NaN: a frontless asset has no class rates
         if not d:
             continue
         m, lo, hi = summary[q] = t_interval(d)
@@ -125,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         w.writeheader()
         w.writerows(rows)
     if args.check:
-        failed = check(summary)
+        failed = check(summary, one_sided)
         print("check (issue 56):", "passed" if not failed else "FAILED: " + "; ".join(failed))
         return 1 if failed else 0
     return 0

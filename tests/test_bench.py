@@ -513,6 +513,16 @@ def test_paired_runs_script_reads_scores_and_gives_the_t_interval(tmp_path):
     d["views"] |= {"featureless_rate": 0.0, "blob_rate": 0.0}
     f.write_text(json.dumps(d))
     assert paired.main([*ab, "--out", str(out), "--check"]) == 0  # +0.1 dB at every seed, no class moves
+    # a candidate that loses its PSNR at one seed, or its view block, fails (not skipped)
+    d["gt"]["psnr"] = float("nan")
+    f.write_text(json.dumps(d))
+    assert paired.main([*ab, "--out", str(out), "--check"]) == 1
+    d["gt"]["psnr"] = 28.12
+    del d["views"]
+    f.write_text(json.dumps(d))
+    assert paired.main([*ab, "--out", str(out), "--check"]) == 1
+    assert paired.check({}) == ["gt_psnr: no seed has a GT PSNR on both sides"]
+    assert "two or more" in paired.check({"gt_psnr": (0.1, float("nan"), float("nan"))})[0]
 
 
 def test_learned_scaling_counts_the_networks_operations():
@@ -600,5 +610,23 @@ def test_bm_cell_peer_rows_name_their_baseline_and_why_they_are_missing(monkeypa
     monkeypatch.setattr(bm_cell, "checkout_commit", lambda root: "5b47c3f")
     row = bm_cell._peer_row("learned", Path("/x"), got, 20.0, ref, "wall_s", ("gt_psnr",))
     assert row["target_ratio"] == 2.0 and not row["met"]
-    row = bm_cell._peer_row("learned", Path("/x"), [{"error": "no such option: --prior"}], 20.0, ref, "wall_s", ())
+    row = bm_cell._peer_row("learned", Path("/x"), got, 20.0, ref, "wall_s", ("gt_psnr",), target=False)
+    assert "target_ratio" not in row  # the next cell's rows carry no target
+    row = bm_cell._peer_row("learned", Path("/x"), [], 20.0, ref, "wall_s", (), error="no such option: --prior")
     assert row["seconds"] != row["seconds"] and "not run (no such option: --prior)" in bm_cell.line(row)
+    # a peer failing in its second round keeps its first; this checkout's failure is raised
+    calls = []
+
+    def one(name, root, r):
+        calls.append((name, r))
+        if name == "peer0" and r == 1:
+            raise KeyError("row")
+        return {"wall_s": 1.0 + r}
+
+    got, errors = bm_cell._alternate({"this": Path("/a"), "peer0": Path("/b")}, 3, one, "test")
+    assert got["peer0"] == [{"wall_s": 1.0}] and errors == {"peer0": "KeyError: 'row'"} and len(got["this"]) == 3
+    assert ("peer0", 2) not in calls
+    with pytest.raises(ZeroDivisionError):
+        bm_cell._alternate({"this": Path("/a")}, 1, lambda n, root, r: 1 / 0, "test")
+    assert bm_cell._same("nan", float("nan")) and bm_cell._same("28.1", "28.1") and not bm_cell._same("1", "2")
+    assert not bm_cell._same(None, "1")

@@ -154,28 +154,50 @@ def test_guidance_is_classifier_free():
     assert (ec - eu).abs().mean() > 1e-3
 
 
-@pytest.mark.parametrize("guided", [True, False])
-def test_frozen_graph_is_the_eager_network_bit_for_bit(guided):
+@pytest.mark.parametrize("model", ["random", "uniform"])
+def test_frozen_graph_is_the_eager_network_bit_for_bit(model):
     """The prior's epsilon runs as a frozen TorchScript graph traced at a batch of two: at other
-    batch sizes, ticks, captions and cameras (or none) it gives the eager module's bits."""
+    batch sizes, ticks, captions and cameras (or none), guided or not, and over repeated calls
+    (the executor optimises a graph after its first runs) it gives the eager module's bits; for a
+    network with one embedding per caption and for a shipped one whose captions are sums of parts."""
     from gdbench.priors.learned.prior import LearnedPrior, _Epsilon
 
-    prior = LearnedPrior(_random_weights(perturb=True), guidance_scale=3.0)
+    prior = LearnedPrior(_random_weights(perturb=True) if model == "random" else model, guidance_scale=3.0)
+    assert bool(prior.unet.config.parts) == (model == "uniform")
     g = torch.Generator().manual_seed(4)
-    for B, camera in itertools.product((1, 3, 5), (True, False)):
+    for guided, camera in itertools.product((True, False), (True, False)):
         graph = prior._graph(guided, camera)
         assert isinstance(graph, torch.jit.ScriptModule)
         eager = _Epsilon(prior.unet, prior.abar, 3.0 if guided else 1.0, camera)
-        x = torch.randn(B, 3, 32, 32, generator=g)
-        t = torch.randint(0, 1000, (B,), generator=g)
-        cap = torch.randint(0, prior.unet.config.captions, (B,), generator=g)
-        var = torch.randint(0, 3, (B,), generator=g)
-        cam = (torch.rand(B, 3, generator=g) * torch.tensor([360.0, 60.0, 30.0]) + torch.tensor([-180.0, -30.0, 40.0]),)
-        args = (x, t, cap, var) + (cam if camera else ())
-        with torch.no_grad():
-            want = eager(*args)
-            assert torch.equal(graph(*args), want)
-        assert want.abs().mean() > 0.1  # a real output, not zeros
+        for B in (1, 3, 1, 5, 3, 3):
+            x = torch.randn(B, 3, 32, 32, generator=g)
+            t = torch.randint(0, 1000, (B,), generator=g)
+            cap = torch.randint(0, prior.unet.config.captions, (B,), generator=g)
+            var = torch.randint(0, 3, (B,), generator=g)
+            cam = torch.rand(B, 3, generator=g) * torch.tensor([360.0, 60.0, 30.0]) - torch.tensor([180.0, 30.0, -40.0])
+            args = (x, t, cap, var) + ((cam,) if camera else ())
+            with torch.no_grad():
+                want = eager(*args)
+                assert torch.equal(graph(*args), want)
+            assert want.abs().mean() > 0.1  # a real output, not zeros
+    prior.guidance_scale = 5.0  # another scale is another graph, not the frozen 3
+    assert prior._graph(True, True) is not prior._graphs[True, True, 3.0]
+
+
+def test_a_trace_that_is_not_its_module_falls_back_to_the_module():
+    """A network that turns an input into a Python number is traced with that number frozen in:
+    the check after tracing sees the graph differ and the module itself is used, with a warning."""
+    from gdbench.priors.learned.prior import LearnedPrior, _Epsilon, _freeze
+
+    class Frozen(_Epsilon):
+        def forward(self, x_t, t, cap, var, cam=None):
+            return super().forward(x_t, t, cap, var, cam) * float(t[0])  # a value the trace keeps
+
+    prior = LearnedPrior(_random_weights(perturb=True))
+    module = Frozen(prior.unet, prior.abar, 3.0, camera=True)
+    with pytest.warns(UserWarning, match="differs from its module"):
+        assert _freeze(module, torch.device("cpu")) is module
+    assert isinstance(_freeze(_Epsilon(prior.unet, prior.abar, 3.0, True), torch.device("cpu")), torch.jit.ScriptModule)
 
 
 def test_view_modes():

@@ -21,7 +21,7 @@ import torch
 
 from gdbench.core.camera import SphericalPoses
 
-ASSET_VERSION = 3  # bump when the meshes or the lighting change: old caches are then ignored
+ASSET_VERSION = 3  # bump when the meshes, their front marks or the lighting change: old caches are then ignored
 
 
 @dataclass(frozen=True)

@@ -219,38 +219,56 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _alternate(checkouts: dict[str, Path], rounds: int, one, label: str) -> dict[str, list[dict]]:
-    """``one(name, root, round)`` for every checkout, alternating over ``rounds``; a peer that
-    cannot run it (an older checkout without the option) is dropped with its error kept."""
+def _alternate(checkouts: dict[str, Path], rounds: int, one, label: str) -> tuple[dict, dict[str, str]]:
+    """``one(name, root, round)`` for every checkout, alternating over ``rounds``: ({name: [results]},
+    {name: error}). A peer that fails (an older checkout without the option, another layout) keeps
+    the rounds it finished and runs no more; this checkout's failure is raised."""
     got: dict[str, list[dict]] = {k: [] for k in checkouts}
+    errors: dict[str, str] = {}
     for r in range(rounds):
         for name, root in checkouts.items():
-            if got.get(name) is None or (got[name] and "error" in got[name][0]):
+            if name in errors:
                 continue
             try:
                 got[name].append(one(name, root, r))
-            except RuntimeError as e:
+            except Exception as e:
                 if name == "this":
                     raise
-                got[name] = [{"error": str(e).splitlines()[-1][:300]}]
+                msg = str(e).strip()
+                errors[name] = f"{type(e).__name__}: {msg.splitlines()[-1][:300]}" if msg else type(e).__name__
+                print(f"  {label} round {r + 1}: {name} failed ({errors[name]})", flush=True)
                 continue
             x = got[name][-1]
             print(f"  {label} round {r + 1}: {name} {x.get('wall_s', x.get('seconds')):.2f} s", flush=True)
-    return got
+    return got, errors
 
 
-def _peer_row(prior: str, root: Path, got: list[dict], this: float, ref: dict, key: str, keys) -> dict:
+def _same(a, b) -> bool:
+    """Equal, NaN equal to NaN (a score neither run has), whatever the type (cells.csv gives text)."""
+    if a == b:
+        return True
+    try:
+        return float(a) != float(a) and float(b) != float(b)
+    except (TypeError, ValueError):
+        return False
+
+
+def _peer_row(prior: str, root: Path, got: list[dict], this: float, ref: dict, key: str, keys, *,
+              error: str | None = None, target: bool = True) -> dict:  # fmt: skip
     """The row of one peer: its median, the ratio against this checkout's and whether it wrote the
-    same scene and scores (or why it has no figure)."""
+    same scene and scores (or why it has no figure); with ``target``, its prior's target ratio where
+    the peer is that target's baseline commit."""
     commit = checkout_commit(root)
     what = f"  the same from --peer {root} (commit {commit})"
-    if got and "error" in got[0]:
-        return {"what": f"{what}: not run ({got[0]['error']})", "seconds": float("nan")}
+    if not got:
+        return {"what": f"{what}: not run ({error or 'no round finished'})", "seconds": float("nan"), "prior": prior}
+    if error:
+        what += f" ({len(got)} round(s) finished, then: {error})"
     peer = statistics.median(x[key] for x in got)
-    row = {"what": what, "seconds": peer, "ratio": peer / this, "commit": commit,
+    row = {"what": what, "seconds": peer, "ratio": peer / this, "commit": commit, "prior": prior,
            "same_scene": all(x["scene"] == ref["scene"] for x in got),
-           "same_scores": all(x["row"][k] == ref["row"][k] for x in got for k in keys)}  # fmt: skip
-    if commit.startswith(BASELINES[prior]) or BASELINES[prior].startswith(commit):
+           "same_scores": all(_same(x["row"].get(k), ref["row"].get(k)) for x in got for k in keys)}  # fmt: skip
+    if target and (commit.startswith(BASELINES[prior]) or BASELINES[prior].startswith(commit)):
         row |= {"target_ratio": TARGET_RATIO[prior], "met": peer / this >= TARGET_RATIO[prior]}
     return row
 
@@ -259,16 +277,13 @@ def prior_cells(prior: str, checkouts: dict[str, Path], tmp: Path, steps: int, r
     """One gd cell on ``prior`` from each checkout (a warm-up cell each, then ``rounds`` timed ones,
     alternating): this checkout's median wall time and phases, and each peer's row."""
     print(f"bm_cell: {prior} prior: warm-up cells (bank, caches, compiled files), then {rounds} round(s)", flush=True)
-    ok = {}
-    for name, root in checkouts.items():
-        try:
-            sweep_cell(root, tmp / f"warm-{name}", 10, prior=prior)
-            ok[name] = root
-        except RuntimeError as e:
-            if name == "this":
-                raise
-            print(f"  {name} cannot run the {prior} cell: {str(e).splitlines()[-1][:200]}", flush=True)
-    runs = _alternate(ok, rounds, lambda n, root, r: sweep_cell(root, tmp / f"{n}{r}", steps, prior=prior), prior)
+    _, errors = _alternate(checkouts, 1, lambda n, root, r: sweep_cell(root, tmp / f"warm-{n}", 10, prior=prior),
+                           f"{prior} warm-up")  # fmt: skip
+    ok = {k: v for k, v in checkouts.items() if k not in errors}
+    runs, later = _alternate(
+        ok, rounds, lambda n, root, r: sweep_cell(root, tmp / f"{n}{r}", steps, prior=prior), prior
+    )
+    errors |= later
     this = min(runs["this"], key=lambda x: x["wall_s"])
     wall = statistics.median(x["wall_s"] for x in runs["this"])
     row = {"what": f"one {steps}-step gd cell on the {prior} prior through gdbench sweep (fresh process, bank "
@@ -277,14 +292,13 @@ def prior_cells(prior: str, checkouts: dict[str, Path], tmp: Path, steps: int, r
         row |= {"target_s": TARGET_CELL_S, "met": wall <= TARGET_CELL_S}
     rows = [row]
     for phase, s in this.get("phases", {}).items():
-        rows.append({"what": f"  of which {phase}", "seconds": s, "share": s / this["wall_s"]})
+        rows.append({"what": f"  of which {phase}", "seconds": s, "share": s / this["wall_s"], "prior": prior})
     step = this["row"]["train_time_s"] / max(this["row"]["iterations"], 1)
-    rows.append({"what": "  mean training step of the cell", "seconds": step})
+    rows.append({"what": "  mean training step of the cell", "seconds": step, "prior": prior})
     keys = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters")
     for name, root in checkouts.items():
         if name != "this":
-            got = runs.get(name) or [{"error": f"it cannot run a {prior} cell"}]
-            rows.append(_peer_row(prior, root, got, wall, this, "wall_s", keys))
+            rows.append(_peer_row(prior, root, runs.get(name, []), wall, this, "wall_s", keys, error=errors.get(name)))
     return rows
 
 
@@ -292,8 +306,8 @@ def next_cells(checkouts: dict[str, Path], tmp: Path, steps: int, rounds: int, p
     """The next cell of a sweep from each checkout, alternating over ``rounds``: medians, the ratio
     against each peer, and whether they scored it alike."""
     print(f"bm_cell: {prior} prior: the next cell of a two-cell sweep, {rounds} round(s)", flush=True)
-    got = _alternate(checkouts, rounds, lambda n, root, r: next_cell(root, tmp / f"pair-{n}{r}", steps, prior),
-                     f"{prior} next cell")  # fmt: skip
+    got, errors = _alternate(checkouts, rounds, lambda n, root, r: next_cell(root, tmp / f"pair-{n}{r}", steps, prior),
+                             f"{prior} next cell")  # fmt: skip
     this = statistics.median(x["seconds"] for x in got["this"])
     rows = [{"what": f"the next cell of a sweep on the {prior} prior: sjc-gs after gd on the same prompt in one "
              f"process ({steps} steps; its set-up, steps and scores), median of {rounds}", "seconds": this,
@@ -301,7 +315,8 @@ def next_cells(checkouts: dict[str, Path], tmp: Path, steps: int, rounds: int, p
     keys = ("gt_psnr", "janus_failure_rate", "instance_inconsistency", "floaters", "gaussians")
     for name, root in checkouts.items():
         if name != "this":
-            rows.append(_peer_row(prior, root, got[name], this, got["this"][0], "seconds", keys))
+            rows.append(_peer_row(prior, root, got[name], this, got["this"][0], "seconds", keys,
+                                  error=errors.get(name), target=False))  # fmt: skip
     return rows
 
 

@@ -94,7 +94,7 @@ def learned_scaling(widths=WIDTHS, repeats: int = 5, block: int = 10) -> list[di
 
 def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -> list[dict]:
     """Median training step (gd preset, 64 px) with the empirical prior and with the learned prior
-    (classifier-free guidance: two network evaluations per view; target 40 ms), measured in one
+    (classifier-free guidance: two network evaluations per view; target 7.75 ms), measured in one
     process in alternating blocks of steps (an A/B: the machine's phase moves both alike), after
     ``warmup`` steps of each (the empirical prior's zoom levels fill its cache as they are met)."""
     from gdbench.train.config import preset

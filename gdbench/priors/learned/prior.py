@@ -190,7 +190,7 @@ class LearnedPrior:
         """kappa of the model's training views (from its metadata)."""
         self.abar = sd_abar()
         self.sigmas = ve_sigmas_from_betas().float()
-        self._graphs: dict[tuple[bool, bool], torch.nn.Module] = {}
+        self._graphs: dict[tuple[bool, bool, float], torch.nn.Module] = {}
 
     def check_cameras(self, radius: float, background, fovy_range, elevation_range) -> None:
         """ValueError naming the trainer's setting the model was not trained for: another camera
@@ -264,10 +264,13 @@ class LearnedPrior:
     def _graph(self, guided: bool, camera: bool) -> torch.nn.Module:
         """The guided epsilon (``_Epsilon``) as a frozen TorchScript graph on the CPU, traced at the
         first call of each kind: bit for bit the eager module's results, in less time (the network's
-        ~200 small operations run without Python between them); the eager module elsewhere."""
-        key = (guided, camera)
+        ~200 small operations run without Python between them); the eager module elsewhere. The
+        graph holds the weights and the guidance scale as constants: it is keyed by the scale, and
+        weights loaded into ``unet`` later need ``_graphs.clear()``."""
+        scale = self.guidance_scale if guided else 1.0
+        key = (guided, camera, scale)
         if key not in self._graphs:
-            module = _Epsilon(self.unet, self.abar.to(self.device), self.guidance_scale if guided else 1.0, camera)
+            module = _Epsilon(self.unet, self.abar.to(self.device), scale, camera)
             self._graphs[key] = _freeze(module, self.device) if self.device.type == "cpu" else module
         return self._graphs[key]
 
@@ -377,23 +380,38 @@ class _Epsilon(torch.nn.Module):
 
 
 def _freeze(module: _Epsilon, device: torch.device) -> torch.nn.Module:
-    """``module`` traced at a batch of two and frozen. Other batch sizes work: the trace records
-    sizes, not their values (tests/test_learned_graph.py checks batches of 1 to 5 against the eager
-    module bit for bit). ``torch.jit.trace`` is deprecated in favour of ``torch.compile``, whose
-    compile costs ~45 s a process here; where it is gone, the eager module."""
+    """``module`` traced at a batch of two and frozen, or ``module`` itself where the trace is not
+    the module: checked once against it at a batch of three on random inputs, bit for bit (a trace
+    records sizes, not their values, but a Python value computed from an input would be frozen in;
+    tests/test_learned_prior.py checks more batches, kinds and repeated calls). ``torch.jit.trace``
+    is deprecated in favour of ``torch.compile``, whose compile costs ~45 s a process here; where
+    it is gone, the eager module too."""
     import warnings
 
     c = module.unet.config
-    x = torch.zeros(2, c.channels, c.size, c.size, device=device)
-    idx = torch.zeros(2, dtype=torch.int64, device=device)
-    args = (x, idx, idx, idx) + ((torch.zeros(2, 3, device=device),) if module.camera else ())
+    g = torch.Generator().manual_seed(0)
+
+    def inputs(B: int) -> tuple:
+        x = torch.randn(B, c.channels, c.size, c.size, generator=g).to(device)
+        t, cap = torch.randint(0, 1000, (B,), generator=g), torch.randint(0, c.captions, (B,), generator=g)
+        var = torch.randint(0, c.variants, (B,), generator=g)
+        cam = torch.rand(B, 3, generator=g) * torch.tensor([360.0, 60.0, 30.0]) - torch.tensor([180.0, 30.0, -40.0])
+        return (x, t.to(device), cap.to(device), var.to(device)) + ((cam.to(device),) if module.camera else ())
+
     try:
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)
-            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # sizes checked by group norm: see above
-            return torch.jit.freeze(torch.jit.trace(module.eval(), args, check_trace=False))
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # group norm's size check; the check below
+            graph = torch.jit.freeze(torch.jit.trace(module.eval(), inputs(2), check_trace=False))
+        check = inputs(3)
+        with torch.no_grad():
+            same = torch.equal(graph(*check), module(*check))
     except (AttributeError, RuntimeError):
         return module
+    if not same:
+        warnings.warn("the learned prior's traced network differs from its module; running the module", stacklevel=3)
+        return module
+    return graph
 
 
 @dataclass(frozen=True)
