@@ -39,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
             p = ctx.prior
             for guided in (True, False):
                 for camera in (True, False):
-                    p._graphs[guided, camera] = _Epsilon(p.unet, p.abar, p.guidance_scale if guided else 1, camera)
+                    scale = p.guidance_scale if guided else 1.0
+                    p._graphs[guided, camera, scale] = _Epsilon(p.unet, p.abar, scale, camera)
         runs[name] = (ctx, init_state(ctx), [], [])
     before = peak_gflops()
     for _ in range(30):
@@ -53,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
                 steps.append(time.perf_counter() - t0)
                 priors.append(m["t_prior"])
     after = peak_gflops()
+    kinds = {name: {type(m).__name__ for m in ctx.prior._graphs.values()} for name, (ctx, *_) in runs.items()}
+    if kinds["eager"] != {"_Epsilon"} or "_Epsilon" in kinds["graph"]:
+        raise SystemExit(f"the A/B did not run what it names: {kinds}")
     a, b = runs["eager"][1].params, runs["graph"][1].params
     same = all(torch.equal(a[k], b[k]) for k in a)
     rows = [{"module": name, "step_s": statistics.median(s), "prior_s": statistics.median(p), "steps": len(s),

@@ -184,6 +184,27 @@ def test_frozen_graph_is_the_eager_network_bit_for_bit(model):
     assert prior._graph(True, True) is not prior._graphs[True, True, 3.0]
 
 
+def test_the_process_keeps_a_models_graphs_for_the_next_prior(tmp_path):
+    """A prior made again from the same weights file (the next cell of a sweep) reuses the graph
+    traced for the first; another guidance scale, or the file written anew, traces another."""
+    import shutil
+
+    from gdbench.priors.learned.prior import LearnedPrior
+
+    path = tmp_path / "model.safetensors"
+    shutil.copy(_random_weights(perturb=True), path)
+    first = LearnedPrior(path, guidance_scale=3.0)._graph(True, True)
+    assert LearnedPrior(path, guidance_scale=3.0)._graph(True, True) is first
+    assert LearnedPrior(path, guidance_scale=4.0)._graph(True, True) is not first
+    shutil.copy(_random_weights(perturb=False), path)  # other weights at the same path
+    again = LearnedPrior(path, guidance_scale=3.0)
+    assert again._graph(True, True) is not first
+    x = torch.zeros(1, 32, 32, 3)
+    want = LearnedPrior(_random_weights(perturb=False), guidance_scale=3.0)
+    cond = again.encode("a yellow duck")
+    assert torch.equal(again.denoise(x, torch.tensor([2.0]), cond), want.denoise(x, torch.tensor([2.0]), cond))
+
+
 def test_a_trace_that_is_not_its_module_falls_back_to_the_module():
     """A network that turns an input into a Python number is traced with that number frozen in:
     the check after tracing sees the graph differ and the module itself is used, with a warning."""

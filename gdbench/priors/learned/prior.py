@@ -162,6 +162,9 @@ class LearnedPrior:
             )
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.unet, self.meta = load_model(model, self.device)
+        path = model_path(model).resolve()
+        self._file = (str(path), path.stat().st_mtime_ns, path.stat().st_size)
+        """The weights file as loaded (the process's graphs are kept for it: ``_GRAPHS``)."""
         self.size = self.unet.config.size
         resolution = resolution or self.size
         if resolution % self.size:
@@ -265,13 +268,21 @@ class LearnedPrior:
         """The guided epsilon (``_Epsilon``) as a frozen TorchScript graph on the CPU, traced at the
         first call of each kind: bit for bit the eager module's results, in less time (the network's
         ~200 small operations run without Python between them); the eager module elsewhere. The
-        graph holds the weights and the guidance scale as constants: it is keyed by the scale, and
-        weights loaded into ``unet`` later need ``_graphs.clear()``."""
+        graph holds the weights and the guidance scale as constants: it is kept per process for the
+        weights file as it is on disk (``_GRAPHS``: the next cell of a sweep traces nothing) and the
+        scale; weights loaded into ``unet`` later need ``_graphs.clear()``."""
         scale = self.guidance_scale if guided else 1.0
         key = (guided, camera, scale)
         if key not in self._graphs:
-            module = _Epsilon(self.unet, self.abar.to(self.device), scale, camera)
-            self._graphs[key] = _freeze(module, self.device) if self.device.type == "cpu" else module
+            shared = self._file + (str(self.device), *key)
+            graph = _GRAPHS.pop(shared, None)
+            if graph is None:
+                module = _Epsilon(self.unet, self.abar.to(self.device), scale, camera)
+                graph = _freeze(module, self.device) if self.device.type == "cpu" else module
+            _GRAPHS[shared] = graph  # most recent last
+            while len(_GRAPHS) > 8:
+                _GRAPHS.pop(next(iter(_GRAPHS)))
+            self._graphs[key] = graph
         return self._graphs[key]
 
     @torch.no_grad()
@@ -336,6 +347,11 @@ class LearnedPrior:
         finally:
             self.view_mode = mode
         return x.clamp(-1, 1)
+
+
+_GRAPHS: dict[tuple, torch.nn.Module] = {}
+"""The process's traced graphs (``LearnedPrior._graph``), by weights file (path, mtime, size),
+device, kind and guidance scale: a prior made again for the next cell of a sweep reuses them."""
 
 
 class _Epsilon(torch.nn.Module):
