@@ -6,8 +6,8 @@ each scored, then compared seed by seed by ``paired_runs.py --check``.
 
 Each run is ``python -m gdbench.app.cli generate`` in its checkout's root (that checkout's code,
 whatever this interpreter has installed), into OUT/{old,new}/{prior}/seed{s}; a run whose
-scores.json exists and was made at the checkout's present commit (its made_by.txt) is not run
-again, so an interrupted check resumes, and a checkout that moved is run again. Writes
+scores.json exists and whose run.json names the checkout's present code is not run again, so an
+interrupted check resumes, and a checkout that moved is run again. Writes
 OUT/paired_{prior}.csv, OUT/checkouts.json (the two commits) and prints each prior's verdict;
 the exit status is 1 when either fails.
 """
@@ -23,25 +23,26 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # this checkout's gdbench, without the install
 
 
 def _commit(checkout: Path) -> str:
-    r = subprocess.run(["git", "-C", str(checkout), "rev-parse", "HEAD"], capture_output=True, text=True)
-    if r.returncode:
-        raise SystemExit(f"--old/--new: {checkout} is not a git checkout ({r.stderr.strip()})")
-    dirty = subprocess.run(["git", "-C", str(checkout), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()  # fmt: skip
-    return r.stdout.strip()[:12] + ("-dirty" if dirty else "")
+    """The code of ``checkout`` as a run made there records it in run.json (``checkout_code``)."""
+    from gdbench.core.provenance import checkout_code
+
+    if not (checkout / ".git").exists():
+        raise SystemExit(f"--old/--new: {checkout} is not a git checkout")
+    return checkout_code(checkout.resolve())
 
 
 def run_one(checkout: Path, commit: str, out: Path, prompt: str, prior: str, seed: int, steps: int) -> float:
-    """Train and score one run in ``checkout`` (skipped when its scores.json exists and was made at
-    ``commit``: ``made_by.txt`` in the run folder); seconds taken."""
-    sys.path.insert(0, str(HERE.parent))
+    """Train and score one run in ``checkout`` (skipped when its scores.json exists and its
+    run.json names ``commit``, the checkout's code); seconds taken."""
     from gdbench.bench.bm_cell import cli_module
 
-    made_by = out / "made_by.txt"
-    if (out / "scores.json").is_file() and made_by.is_file() and made_by.read_text().strip() == commit:
+    run_json = out / "run.json"
+    made_here = run_json.is_file() and json.loads(run_json.read_text()).get("commit") == commit
+    if made_here and (out / "scores.json").is_file():
         return 0.0
     module = cli_module(checkout)
     if module is None:
@@ -53,7 +54,6 @@ def run_one(checkout: Path, commit: str, out: Path, prompt: str, prior: str, see
     r = subprocess.run(cmd, cwd=checkout, env=env, capture_output=True, text=True)
     if r.returncode or not (out / "scores.json").is_file():
         raise SystemExit(f"run {out} failed (exit {r.returncode}):\n{r.stdout[-2000:]}{r.stderr[-2000:]}")
-    made_by.write_text(commit + "\n")
     return time.perf_counter() - t0
 
 

@@ -23,7 +23,11 @@ import csv
 import json
 import math
 import statistics
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's gdbench, without the install
+from gdbench.metrics.views import CLASSES, result_class
 
 QUANTITIES = {
     "gt_psnr": ("gt", "psnr"),
@@ -33,9 +37,8 @@ QUANTITIES = {
     "front_everywhere_rate": ("views", "front_everywhere_rate"),
     "blob_rate": ("views", "blob_rate"),
 }
-RESULT_CLASSES = ("front_everywhere", "second_face", "blob", "fine")
 FAILURES = ("multi_face_rate", "front_everywhere_rate", "blob_rate", "featureless_rate") + tuple(
-    f"result_{c}" for c in RESULT_CLASSES[:3]
+    f"result_{c}" for c in CLASSES if c != "fine"
 )
 """The quantities whose rise is a failure class's (``--check``)."""
 PSNR_FLOOR_DB, RATE_RISE = -0.2, 0.05
@@ -58,19 +61,10 @@ def _read(path: Path) -> dict[str, float]:
         value = (d.get(block) or {}).get(key) if block else d.get(key)
         out[q] = math.nan if value is None else float(value)
     views = d.get("views") or {}
-    got = _result_class(views) if views.get("janus_rate") is not None else None
-    for c in RESULT_CLASSES:
+    got = result_class(views) if views.get("janus_rate") is not None else None
+    for c in CLASSES:
         out[f"result_{c}"] = math.nan if got is None else float(got == c)
     return out
-
-
-def _result_class(views: dict) -> str:
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without the install
-    from gdbench.metrics.views import result_class
-
-    return result_class(views)
 
 
 def check(summary: dict[str, tuple[float, float, float]], one_sided: dict[str, list] | None = None) -> list[str]:
@@ -79,8 +73,8 @@ def check(summary: dict[str, tuple[float, float, float]], one_sided: dict[str, l
     more than 0.05, or a quantity of either present on one side only at some seed (``one_sided``:
     {quantity: those seeds}; a candidate that diverges to NaN or loses a block fails)."""
     failed = []
-    lo = summary.get("gt_psnr", (math.nan,) * 3)[1]
-    if "gt_psnr" not in summary:
+    lo = summary["gt_psnr"][1] if "gt_psnr" in summary else None
+    if lo is None:
         failed.append("gt_psnr: no seed has a GT PSNR on both sides")
     elif lo != lo:
         failed.append("gt_psnr: one seed gives no interval; expected two or more")

@@ -32,11 +32,15 @@ def _source_hash(root: Path) -> str:
 
 @functools.cache
 def code_commit() -> str:
-    """The code this package runs: the commit of its checkout (12 hex digits); when the code
-    (``CODE``) differs from it, ``<commit>-dirty-<hash of the changes>``, so the same edits give
-    the same name and other edits another. Where git cannot say (an installed copy, git missing
-    or refusing the folder): ``src-<hash of the source files>``."""
-    root = Path(__file__).resolve().parents[2]
+    """The code this package runs: ``checkout_code`` of its own checkout."""
+    return checkout_code(Path(__file__).resolve().parents[2])
+
+
+def checkout_code(root: Path) -> str:
+    """The code of the checkout at ``root``: its commit (12 hex digits); when the code (``CODE``)
+    differs from it, ``<commit>-dirty-<hash of the changes>``, so the same edits give the same
+    name and other edits another. Where git cannot say (an installed copy, git missing or refusing
+    the folder): ``src-<hash of the source files>``. What a run made there records as its commit."""
     if (root / ".git").exists():
         try:
             head = _git(root, "rev-parse", "--short=12", "HEAD")

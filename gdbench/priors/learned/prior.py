@@ -161,9 +161,10 @@ class LearnedPrior:
                 f"got {variants}"
             )
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-        self.unet, self.meta = load_model(model, self.device)
         path = model_path(model).resolve()
-        self._file = (str(path), path.stat().st_mtime_ns, path.stat().st_size)
+        self.unet, self.meta = load_model(path, self.device)
+        stat = path.stat()
+        self._file = (str(path), stat.st_mtime_ns, stat.st_size)
         """The weights file as loaded (the process's graphs are kept for it: ``_GRAPHS``)."""
         self.size = self.unet.config.size
         resolution = resolution or self.size
@@ -270,7 +271,7 @@ class LearnedPrior:
         ~200 small operations run without Python between them); the eager module elsewhere. The
         graph holds the weights and the guidance scale as constants: it is kept per process for the
         weights file as it is on disk (``_GRAPHS``: the next cell of a sweep traces nothing) and the
-        scale; weights loaded into ``unet`` later need ``_graphs.clear()``."""
+        scale, so weights loaded into ``unet`` later are not seen: make a prior from their file."""
         scale = self.guidance_scale if guided else 1.0
         key = (guided, camera, scale)
         if key not in self._graphs:
