@@ -368,11 +368,12 @@ def label(row: dict) -> str:
     return f"{group} / {setting}" if group else setting
 
 
-def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
+def evaluate(rows: list[dict], claims=CLAIMS, prompt_test: str = "t") -> list[dict]:
     """One result per (group, setting, claim) whose two presets ran there (instance claims only
     where the prior held several variants); p-values Holm-adjusted across the claims a test
     decides in the whole table (rows not measured, not testable or with too few pairs have no
-    adjusted p)."""
+    adjusted p). ``prompt_test``: the test across prompts Holm adjusts ("t" or "signflip":
+    ``across_prompts``)."""
     out, arms = [], []
     for group, setting in dict.fromkeys(where(r) for r in rows):
         sel = [r for r in rows if where(r) == (group, setting)]
@@ -410,7 +411,7 @@ def evaluate(rows: list[dict], claims=CLAIMS) -> list[dict]:
                     "margin_reason": why,
                     "p_equivalence": equivalence_p(d, margin) if keys and margin == margin else math.nan,
                     "pairs_for_80pct_power": pairs_for_power(d),
-                    **across_prompts(keys, d, margin),
+                    **across_prompts(keys, d, margin, prompt_test),
                     "by_prompt": by_prompt(keys, d),
                     "reversals": "",  # after the verdict (below)
                     "left_out": left_out(c.metric, set(va) & set(vb), keys),
@@ -435,40 +436,87 @@ MIN_PROMPTS = 3
 """Fewest prompts a difference across prompts is read from."""
 
 
-def across_prompts(keys: list[tuple], d: np.ndarray, margin: float) -> dict:
+def across_prompts(keys: list[tuple], d: np.ndarray, margin: float, test: str = "t") -> dict:
     """The claim with the prompt as the unit: the mean of the per-prompt mean differences, its
-    t interval and two-sided t p-value over the G prompts (G - 1 degrees of freedom), and the
-    t-TOST p against the margin. Pairs of one prompt share its asset and caption, so across
-    prompts they are not independent; this is the reading for prompts beyond the ones run."""
+    t interval, the two-sided t p-value over the G prompts (G - 1 degrees of freedom,
+    ``p_prompts_t``), the exact sign-flip p (``p_prompts_signflip``, ``sign_flip_p``) and the
+    t-TOST p against the margin; ``p_prompts`` (the one Holm adjusts) is the ``test``'s ("t" or
+    "signflip"). Pairs of one prompt share its asset and caption, so across prompts they are not
+    independent; this is the reading for prompts beyond the ones run."""
     from scipy import stats
 
+    if test not in ("t", "signflip"):
+        raise ValueError(f"test: expected 't' or 'signflip', got {test!r}")
     pm = np.array([np.mean(v) for v in per_prompt(keys, d).values()], dtype=np.float64)
     nan = {"prompts": len(pm), "prompt_mean_diff": math.nan, "prompt_ci_low": math.nan, "prompt_ci_high": math.nan,
-           "p_prompts": math.nan, "p_prompts_holm": math.nan, "p_prompts_equivalence": math.nan}  # fmt: skip
+           "p_prompts": math.nan, "p_prompts_holm": math.nan, "p_prompts_t": math.nan,
+           "p_prompts_signflip": math.nan, "p_prompts_equivalence": math.nan}  # fmt: skip
     if len(pm) < 2:
         return nan | ({"prompt_mean_diff": float(pm.mean())} if len(pm) else {})
     mean, se = float(pm.mean()), float(pm.std(ddof=1)) / math.sqrt(len(pm))
     t = stats.t(len(pm) - 1)
+    flip = sign_flip_p(pm)
     if np.all(pm == pm[0]):  # every prompt moved alike: the exact sign-flip p over the prompts
-        p, lo, hi = (1.0 if mean == 0 else 2.0 / 2 ** len(pm)), mean, mean
+        p, lo, hi = flip, mean, mean
     else:
         p = float(2 * t.sf(abs(mean) / se))
         lo, hi = mean - t.ppf(0.975) * se, mean + t.ppf(0.975) * se
-    return nan | {"prompt_mean_diff": mean, "prompt_ci_low": float(lo), "prompt_ci_high": float(hi), "p_prompts": p,
+    return nan | {"prompt_mean_diff": mean, "prompt_ci_low": float(lo), "prompt_ci_high": float(hi),
+                  "p_prompts": p if test == "t" else flip, "p_prompts_t": p, "p_prompts_signflip": flip,
                   "p_prompts_equivalence": equivalence_p(pm, margin) if margin == margin else math.nan}  # fmt: skip
+
+
+SIGN_FLIP_EXACT_UP_TO = 44
+"""Observations up to which ``sign_flip_p`` enumerates every sign pattern (two halves of at most
+2^22 sums each); beyond, 2^20 random patterns."""
+
+
+def sign_flip_p(x: np.ndarray, *, seed: int = 0) -> float:
+    """Two-sided sign-flip (permutation) p-value of mean(x) = 0: the share of the 2^G patterns of
+    signs on |x| whose sum is at least as far from 0 as the observed one (which is among them).
+    Exact, by meeting in the middle (the sums of each half's patterns, one half sorted and searched)
+    up to ``SIGN_FLIP_EXACT_UP_TO`` values; beyond, a Monte Carlo estimate ((k + 1) / (n + 1))
+    from 2^20 patterns drawn with ``seed``. Sums within 1e-9 of the observed count as ties."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.size == 0 or not np.all(np.isfinite(x)):
+        return math.nan
+    obs = abs(float(x.sum()))
+    tol = 1e-9 * max(1.0, float(np.abs(x).sum()))
+    if obs <= tol:
+        return 1.0
+    a = np.abs(x)
+    if a.size > SIGN_FLIP_EXACT_UP_TO:
+        rng = np.random.default_rng(seed)
+        n = 2**20
+        s = np.abs((rng.integers(0, 2, (n, a.size)) * 2 - 1) @ a)
+        return float(((s >= obs - tol).sum() + 1) / (n + 1))
+
+    def sums(v: np.ndarray) -> np.ndarray:
+        out = np.zeros(1)
+        for value in v:
+            out = np.concatenate([out + value, out - value])
+        return out
+
+    half = a.size // 2
+    left, right = np.sort(sums(a[:half])), sums(a[half:])
+    # pairs with left + right >= obs - tol, and pairs with left + right <= -(obs - tol): disjoint
+    above = left.size - np.searchsorted(left, obs - tol - right, side="left")
+    below = np.searchsorted(left, tol - obs - right, side="right")
+    return float((above.sum() + below.sum()) / 2.0**a.size)
 
 
 def verdict_prompts(row: dict) -> str:
     """The verdict words with the prompt as the unit (``across_prompts``; Holm over the same
     family): the pairs' words where they admit no test, the failure is too rare or fewer than six
-    pairs differ; otherwise holds / does not hold, no effect beyond +-m (t-TOST and the interval
+    pairs differ; otherwise holds / does not hold (the adjusted p under 5% and the t interval on
+    one side of 0), no effect beyond +-m (t-TOST and the interval
     inside the margin), too few prompts, or undecided."""
     words = row["verdict"]
     if words.startswith(("not measured", "not testable", "too few pairs")) or row["nonzero_pairs"] < MIN_PAIRS:
         return words  # (k < 6 non-tied pairs: a t test over their prompt means would be far too liberal)
     if row["prompts"] < MIN_PROMPTS:
         return f"too few prompts (G < {MIN_PROMPTS})"
-    if row["p_prompts_holm"] < ALPHA:
+    if row["p_prompts_holm"] < ALPHA and (row["prompt_ci_high"] < 0 or row["prompt_ci_low"] > 0):
         return "holds" if row["prompt_mean_diff"] < 0 else "does not hold"
     m = row["margin"]
     if row["p_prompts_equivalence"] < ALPHA and -m < row["prompt_ci_low"] <= row["prompt_ci_high"] < m:

@@ -161,10 +161,11 @@ def _size_note(v: dict) -> str:
     return f" (sizes differ {v['size_ratio']:.1f}x: growth confounds the pair)" if v["size_confounded"] else ""
 
 
-def tables(rows: list[dict], out: Path, figures: bool = True) -> dict[str, Path]:
-    """cells.csv, summary.csv, verdict.csv, summary.md and, with ``figures``, ablation.png."""
+def tables(rows: list[dict], out: Path, figures: bool = True, claims=None, prompt_test: str = "t") -> dict[str, Path]:
+    """cells.csv, summary.csv, verdict.csv, summary.md and, with ``figures``, ablation.png;
+    ``claims`` (default: every claim, ``claims.CLAIMS``) and ``prompt_test`` as ``claims.evaluate``."""
     from gdbench.core.io import write_csv
-    from gdbench.experiments.claims import evaluate
+    from gdbench.experiments.claims import CLAIMS, evaluate
 
     out.mkdir(parents=True, exist_ok=True)
     paths = {"cells_csv": write_csv(rows, out / "cells.csv")}
@@ -173,7 +174,7 @@ def tables(rows: list[dict], out: Path, figures: bool = True) -> dict[str, Path]
     from gdbench.core.provenance import code_commit
 
     tables_commit = code_commit()  # the statistics' code: the cells say which code made them
-    verdicts = [v | {"tables_commit": tables_commit} for v in evaluate(rows)]
+    verdicts = [v | {"tables_commit": tables_commit} for v in evaluate(rows, claims or CLAIMS, prompt_test)]
     paths["verdict_csv"] = write_csv(verdicts, out / "verdict.csv")
     (out / "summary.md").write_text(markdown(summary, verdicts, rows))
     paths["summary_md"] = out / "summary.md"

@@ -1,0 +1,206 @@
+"""The decisive experiment v3 (docs/decisive_v3.md): the Janus claims across prompts,
+pre-registered, with the mechanism isolated.
+
+    python -m gdbench.experiments.v3 prompts
+    python -m gdbench.experiments.v3 pilot --out runs/v3-pilot [--workers 2]
+    python -m gdbench.experiments.v3 design --out runs/v3-pilot --results docs/results/v3/pilot
+    python -m gdbench.experiments.v3 sweep --out runs/v3 [--workers 2] [--executor ray]
+    python -m gdbench.experiments.v3 report --out runs/v3 --results docs/results/v3
+
+``prompts`` lists the prompts the rule gives (every caption the learned prior was trained on that
+has a front). ``pilot`` runs every candidate block on a quarter of them at two seeds kept out of
+the sweep. ``design`` applies the rules fixed before the pilot ran (``DESIGN_RULES``) to its
+cells: which blocks the sweep runs, and the seeds per prompt from each main claim's between- and
+within-prompt spread (``across.power``). ``sweep`` runs the registered design (``REGISTERED``,
+set in the commit that adds the pre-registration) and refuses to run before it exists. ``report``
+reads the claims with the prompt as the unit first (exact sign-flip test, Holm over the family,
+t intervals), the pooled pairs second, and draws a forest plot per main claim. Resumable like
+every sweep: finished cells are skipped, a cell cut short resumes from its checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+from pathlib import Path
+
+from gdbench.experiments.decisive import Block, collect, run_blocks
+
+ARMS = ["gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked"]
+"""The Janus arms: the method, without structured noise, and the two controls (docs/decisive.md,
+section 5): persistence removed (redrawn every step), 3D correspondence removed (one 2D field per
+camera pose)."""
+STEPS = 1000
+"""Steps per cell: the 068b215 sweep's, whose 2000-step check gave the same Janus effects."""
+PILOT_SEEDS = [100, 101]
+"""The pilot's seeds: none of the sweep's, so no sweep cell was seen before the registration."""
+
+MAIN = ("janus_rate",)
+"""The main claims' metric: the views that show the front from every side or a second face."""
+
+
+def prompts() -> list[str]:
+    """Every caption the learned prior's front-biased model was trained on (not held out) whose
+    asset has a front, in the catalogue's order (``gdbench prompts``)."""
+    from gdbench.assets.library import CAPTIONS, has_front
+    from gdbench.priors.learned.prior import model_captions
+
+    known, held_out = model_captions("front")
+    return [c for c in CAPTIONS if c in set(known) - set(held_out) and has_front(c)]
+
+
+def pilot_prompts() -> list[str]:
+    """Every fourth prompt of ``prompts``, from the first: a quarter, chosen by position alone."""
+    return prompts()[::4]
+
+
+def pilot_blocks() -> list[Block]:
+    """Every block the sweep could run, at the pilot's prompts."""
+    ps = pilot_prompts()
+    return [
+        Block("janus-v1", ["learned-v1"], ["janus"], ARMS, steps=STEPS, prompts=ps),
+        # the four-view rule reads gd and gd-no-sn; the controls' spread is taken from one view
+        Block("janus-v4", ["learned-v4"], ["janus"], ["gd", "gd-no-sn"], steps=STEPS, prompts=ps),
+        Block("instance", ["learned-v1"], ["instance"], ["gd", "gd-no-sn"], steps=STEPS, prompts=ps),
+        # COLMAP registers none of the learned prior's results (docs/decisive.md, section 2)
+        Block("colmap", ["empirical-v1"], ["easy"], ["gd", "gd-no-sn", "sjc-gs"], colmap=True, steps=STEPS, prompts=ps),
+    ]
+
+
+def claims():
+    """The family Holm adjusts over: the three Janus claims (in each Janus group the sweep runs),
+    instance inconsistency and the two COLMAP claims (where their blocks run)."""
+    from gdbench.experiments.claims import CLAIMS
+
+    keep = {("gd", "gd-no-sn", "janus_rate"), ("gd", "gd-redraw-step", "janus_rate"),
+            ("gd", "gd-pose-locked", "janus_rate"), ("gd", "gd-no-sn", "instance_inconsistency"),
+            ("gd", "sjc-gs", "colmap_failure_rate"), ("gd", "gd-no-sn", "colmap_failure_rate")}  # fmt: skip
+    return tuple(c for c in CLAIMS if (c.a, c.b, c.metric) in keep)
+
+
+EFFECTS = {
+    ("learned-v1", "gd", "gd-no-sn", "janus_rate"): 0.19,  # half of -0.38
+    ("learned-v4", "gd", "gd-no-sn", "janus_rate"): 0.16,  # half of -0.32
+    ("learned-v1", "gd", "gd-redraw-step", "janus_rate"): 0.13,  # half of -0.26
+    ("learned-v1", "gd", "gd-no-sn", "instance_inconsistency"): 0.024,  # half of +0.047
+    ("empirical-v1", "gd", "sjc-gs", "colmap_failure_rate"): 0.04,  # half of -0.081
+}
+"""The effect each claim is powered for: half the 068b215 sweep's pooled effect (docs/decisive.md,
+section 4). Claims that sweep did not run take the nearest one's (``effect_for``)."""
+
+
+def effect_for(group: str, a: str, b: str, metric: str) -> float:
+    """``EFFECTS``' entry; for a claim 068b215 did not run: the pose-locked control and the v4
+    controls take the redraw control's 0.13 (the persistence effect a control is compared with),
+    gd against gd-no-sn under COLMAP the SJC comparison's 0.04."""
+    if (group, a, b, metric) in EFFECTS:
+        return EFFECTS[(group, a, b, metric)]
+    if metric == "janus_rate":
+        return EFFECTS[("learned-v1", "gd", "gd-redraw-step", "janus_rate")]
+    if metric == "colmap_failure_rate":
+        return EFFECTS[("empirical-v1", "gd", "sjc-gs", "colmap_failure_rate")]
+    return EFFECTS[("learned-v1", "gd", "gd-no-sn", "instance_inconsistency")]
+
+
+DESIGN_RULES = {
+    "margin": 0.05,
+    "power": 0.8,
+    "least_seeds": 2,
+    "most_seeds": 5,
+    "alpha": 0.05,
+}
+"""Fixed before the pilot ran (docs/decisive_v3.md, "The pilot's rules"): the four-view group is
+swept when the pilot's four-view cells change the Janus rate of gd or gd-no-sn against the same
+(prompt, seed) at one view by at least ``margin`` on average with a 95% t interval that excludes
+0; the instance block when gd-no-sn's mean inconsistency exceeds ``margin``; the COLMAP block when
+sjc-gs's mean failure rate exceeds ``margin`` and some cell registers; the seeds per prompt are the
+fewest (at least ``least_seeds``, so that every prompt's interval exists; at most ``most_seeds``)
+that give every main claim ``power`` at its ``effect_for`` with all ``prompts()``, at ``alpha``
+over the family's size (Holm's first step); the four-view controls, which the pilot does not run,
+take the one-view controls' spread."""
+
+REGISTERED: dict | None = None
+"""The registered design (docs/decisive_v3.md): set once, in the commit that adds the
+pre-registration; None until then (``sweep`` refuses to run)."""
+
+
+def sweep_blocks(reg: dict) -> list[Block]:
+    """The sweep's blocks of a registered design, at every prompt."""
+    ps = prompts()
+    janus = ["learned-v1", "learned-v4"] if reg["v4"] else ["learned-v1"]
+    blocks = [Block("janus", janus, ["janus"], ARMS, steps=STEPS, prompts=ps)]
+    if reg["instance"]:
+        blocks.append(Block("instance", ["learned-v1"], ["instance"], ["gd", "gd-no-sn"], steps=STEPS, prompts=ps))
+    if reg["colmap"]:
+        blocks.append(Block("colmap", ["empirical-v1"], ["easy"], ["gd", "gd-no-sn", "sjc-gs"], colmap=True,
+                            steps=STEPS, prompts=ps))  # fmt: skip
+    return blocks
+
+
+def prereg_commit(root: Path | None = None) -> str | None:
+    """The commit that added docs/decisive_v3.md's registration (its first commit carrying the
+    line '## Registered'), or None where git cannot say."""
+    root = root or Path(__file__).resolve().parents[2]
+    try:
+        out = subprocess.run(["git", "-C", str(root), "log", "--reverse", "--format=%h", "-S", "## Registered",
+                              "--", "docs/decisive_v3.md"], capture_output=True, text=True, check=True)  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    lines = out.stdout.split()
+    return lines[0] if lines else None
+
+
+def precedes(commit: str, later: str, root: Path | None = None) -> bool | None:
+    """Whether ``commit`` is an ancestor of (or is) ``later``; None where git cannot say."""
+    root = root or Path(__file__).resolve().parents[2]
+    r = subprocess.run(["git", "-C", str(root), "merge-base", "--is-ancestor", commit, later.split("-dirty")[0]],
+                       capture_output=True)  # fmt: skip
+    return {0: True, 1: False}.get(r.returncode)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("stage", choices=["prompts", "pilot", "design", "sweep", "report"])
+    p.add_argument("--out", type=Path, help="folder of the blocks' cells (pilot, design, sweep, report)")
+    p.add_argument("--results", type=Path, help="design, report: tables and figures go here")
+    p.add_argument("--executor", choices=["local", "ray"], default="local")
+    p.add_argument("--address", default="", help="Ray cluster address (empty: a local instance)")
+    p.add_argument("--workers", type=int, default=2, help="cells at once (default 2: one thread each here)")
+    p.add_argument("--rounds", type=int, default=0, help="sweep: seeds in this many rounds (default: one per seed)")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no line per cell")
+    a = p.parse_args(argv)
+    if a.workers < 1 or a.rounds < 0:
+        p.error(f"--workers, --rounds: expected an int >= 1 and one >= 0, got {a.workers} and {a.rounds}")
+    if a.stage == "prompts":
+        ps, pilot = prompts(), set(pilot_prompts())
+        for i, c in enumerate(ps):
+            print(f"{i:2d}  {c}{'  (pilot)' * (c in pilot)}")
+        print(f"{len(ps)} prompts, {len(pilot)} in the pilot")
+        return 0
+    if a.out is None:
+        p.error(f"{a.stage}: --out is required")
+    if a.stage in ("design", "report") and a.results is None:
+        p.error(f"{a.stage}: --results is required")
+    if a.stage == "pilot":
+        run_blocks(pilot_blocks(), PILOT_SEEDS, a.out, a, 1)
+    elif a.stage == "design":
+        from gdbench.experiments.v3_report import design
+
+        design(collect(a.out), a.results)
+    elif a.stage == "sweep":
+        if REGISTERED is None:
+            raise SystemExit(
+                "sweep: no design is registered yet (REGISTERED in gdbench/experiments/v3.py): run the pilot and "
+                "the design stage, then commit the pre-registration (docs/decisive_v3.md)"
+            )
+        seeds = list(range(REGISTERED["seeds"]))
+        run_blocks(sweep_blocks(REGISTERED), seeds, a.out, a, a.rounds or len(seeds))
+    else:
+        from gdbench.experiments.v3_report import report
+
+        report(collect(a.out), a.out, a.results)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

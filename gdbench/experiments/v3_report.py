@@ -1,0 +1,226 @@
+"""The v3 experiment's design (from its pilot) and report (from its sweep): docs/decisive_v3.md.
+
+``design`` applies ``v3.DESIGN_RULES`` to the pilot's cells and writes design.json, power.csv and
+design.md; ``report`` writes the verdict with the prompt as the unit first (exact sign-flip p,
+Holm over ``v3.claims()``; t intervals), the pooled pairs second, a forest plot per main claim,
+the share of gd's effect each control keeps, the prompts that go the other way, and checks that
+the pre-registration's commit precedes every cell's.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from gdbench.core.io import num
+
+
+def pairs(rows: list[dict], group: str, setting: str, a: str, b: str, metric: str) -> tuple[list[tuple], np.ndarray]:
+    """The (prompt, seed) keys both presets ran in (group, setting) with ``metric`` finite in both,
+    and the differences a - b (the pairing ``claims.evaluate`` uses)."""
+    from gdbench.experiments.claims import where
+
+    sel = [r for r in rows if where(r) == (group, setting)]
+    va = {(r["prompt"], r["seed"]): num(r.get(metric)) for r in sel if r["preset"] == a}
+    vb = {(r["prompt"], r["seed"]): num(r.get(metric)) for r in sel if r["preset"] == b}
+    keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
+    return keys, np.array([va[k] - vb[k] for k in keys], dtype=np.float64)
+
+
+def _t_mean(x: np.ndarray) -> tuple[float, float, float]:
+    from scipy import stats
+
+    if x.size < 2:
+        return (float(x.mean()) if x.size else math.nan), math.nan, math.nan
+    m, se = float(x.mean()), float(x.std(ddof=1)) / math.sqrt(x.size)
+    h = float(stats.t.ppf(0.975, x.size - 1)) * se
+    return m, m - h, m + h
+
+
+def across_groups(rows: list[dict], preset: str, metric: str, g1: str, g2: str, setting: str) -> dict:
+    """``metric`` of ``preset`` in group ``g2`` minus in ``g1`` at the same (prompt, seed): mean and
+    95% t interval (the four-view rule of ``v3.DESIGN_RULES``)."""
+
+    def of(g: str) -> dict:
+        sel = [r for r in rows if (r.get("group"), r.get("setting"), r["preset"]) == (g, setting, preset)]
+        return {(r["prompt"], r["seed"]): num(r.get(metric)) for r in sel}
+
+    v = {g1: of(g1), g2: of(g2)}
+    keys = sorted(k for k in set(v[g1]) & set(v[g2]) if v[g1][k] == v[g1][k] and v[g2][k] == v[g2][k])
+    m, lo, hi = _t_mean(np.array([v[g2][k] - v[g1][k] for k in keys], dtype=np.float64))
+    return {"preset": preset, "pairs": len(keys), "mean": m, "low": lo, "high": hi}
+
+
+def design(rows: list[dict], results: Path) -> dict:
+    """The sweep's design from the pilot's cells by ``v3.DESIGN_RULES`` (module docstring)."""
+    from gdbench.core.io import write_csv, write_json
+    from gdbench.core.provenance import code_commit
+    from gdbench.experiments.across import components, power, seeds_for_power
+    from gdbench.experiments.v3 import DESIGN_RULES, MAIN, claims, effect_for, prompts
+
+    if not rows:
+        raise SystemExit("design: no finished pilot cell (run the pilot stage first)")
+    rules = DESIGN_RULES
+    m = rules["margin"]
+    four = [across_groups(rows, p, "janus_rate", "learned-v1", "learned-v4", "janus") for p in ("gd", "gd-no-sn")]
+    v4 = any(abs(f["mean"]) >= m and (f["low"] > 0 or f["high"] < 0) for f in four if f["pairs"] >= 2)
+
+    def mean_of(group, setting, preset, metric):
+        vals = [num(r.get(metric)) for r in rows if (r.get("group"), r.get("setting"), r["preset"]) ==
+                (group, setting, preset)]  # fmt: skip
+        vals = [v for v in vals if v == v]
+        return float(np.mean(vals)) if vals else math.nan
+
+    inst_base = mean_of("learned-v1", "instance", "gd-no-sn", "instance_inconsistency")
+    colmap_base = mean_of("empirical-v1", "easy", "sjc-gs", "colmap_failure_rate")
+    registers = any(num(r.get("registration_rate")) > 0 for r in rows if r.get("group") == "empirical-v1")
+    instance, colmap = inst_base > m, colmap_base > m and registers
+    where = [("learned-v1", "janus")] + [("learned-v4", "janus")] * v4
+    where += [("learned-v1", "instance")] * instance + [("empirical-v1", "easy")] * colmap
+    settings_of = {"janus_rate": "janus", "instance_inconsistency": "instance", "colmap_failure_rate": "easy"}
+    family = [(g, s, c) for g, s in where for c in claims() if settings_of[c.metric] == s]
+    alpha = rules["alpha"] / len(family)
+    G = len(prompts())
+    out = []
+    for g, s, c in family:
+        keys, d = pairs(rows, g, s, c.a, c.b, c.metric)
+        if not keys and g == "learned-v4":  # the pilot ran only gd and gd-no-sn at four views
+            keys, d = pairs(rows, "learned-v1", s, c.a, c.b, c.metric)
+        comp = components(keys, d)
+        eff = effect_for(g, c.a, c.b, c.metric)
+        need = seeds_for_power(eff, comp["between"], comp["within"], G, alpha, rules["power"], rules["most_seeds"])
+        row = {"group": g, "setting": s, "a": c.a, "b": c.b, "metric": c.metric, "main": c.metric in MAIN,
+               "effect": eff, "pilot_pairs": comp["pairs"], "pilot_prompts": comp["prompts"],
+               "pilot_mean_diff": comp["mean"], "within_var": comp["within"], "between_var": comp["between"],
+               "prompts": G, "alpha": alpha, "seeds_needed": need if need is not None else math.nan}  # fmt: skip
+        for k in range(1, rules["most_seeds"] + 1):
+            row[f"power_{k}_seeds"] = power(eff, comp["between"], comp["within"], G, k, alpha)
+        out.append(row)
+    needs = [r["seeds_needed"] for r in out if r["main"]]
+    short = [r for r in out if r["main"] and r["seeds_needed"] != r["seeds_needed"]]
+    seeds = max([rules["least_seeds"], *[int(n) for n in needs if n == n]] + [rules["most_seeds"]] * bool(short))
+    cost = {}
+    for r in rows:
+        cost.setdefault((r.get("group"), r.get("setting")), []).append(num(r.get("cell_s")))
+    cell_s = {f"{g} / {s}": float(np.nanmedian(v)) for (g, s), v in cost.items()}
+    per_seed = sum(cell_s.get(f"{g} / {s}", math.nan) * len(ARMS_OF[s]) for g, s in where) * G
+    result = {"v4": bool(v4), "instance": bool(instance), "colmap": bool(colmap), "seeds": int(seeds),
+              "family": len(family), "alpha_first_step": alpha, "prompts": G, "four_view_change": four,
+              "instance_baseline": inst_base, "colmap_baseline": colmap_base, "colmap_registers": registers,
+              "underpowered": [f"{r['group']} {r['a']} vs {r['b']}" for r in short], "median_cell_s": cell_s,
+              "cell_hours": per_seed * seeds / 3600, "wall_hours_two_workers": per_seed * seeds / 7200,
+              "rules": rules, "pilot_cells": len(rows), "commit": code_commit(),
+              "pilot_commits": sorted({str(r.get("train_commit")) for r in rows})}  # fmt: skip
+    results.mkdir(parents=True, exist_ok=True)
+    write_csv(out, results / "power.csv")
+    write_json(result, results / "design.json")
+    print(f"design: {result['seeds']} seeds x {G} prompts; four-view group {'in' if v4 else 'out'}, instance "
+          f"{'in' if instance else 'out'}, COLMAP {'in' if colmap else 'out'}; family of {len(family)}; about "
+          f"{result['wall_hours_two_workers']:.1f} h on two workers -> {results}")  # fmt: skip
+    return result
+
+
+ARMS_OF = {"janus": ("gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked"), "instance": ("gd", "gd-no-sn"),
+           "easy": ("gd", "gd-no-sn", "sjc-gs")}  # fmt: skip
+"""The presets each setting's block runs (``v3.pilot_blocks``, ``v3.sweep_blocks``)."""
+
+
+def _f(x, digits: int = 2) -> str:
+    return "n/a" if x is None or x != x else f"{x:+.{digits}f}" if isinstance(x, float) and x < 0 else f"{x:.{digits}g}"
+
+
+def against(keys: list[tuple], d: np.ndarray, overall: float, margin: float) -> list[str]:
+    """The prompts whose mean difference lies beyond ``margin`` on the side opposite to ``overall``
+    (the across-prompts mean), e.g. 'a penguin +0.21 (3)'."""
+    from gdbench.experiments.claims import per_prompt
+
+    out = []
+    for p, v in per_prompt(keys, d).items():
+        m = float(np.mean(v))
+        if overall == overall and abs(m) > margin and np.sign(m) == -np.sign(overall):
+            out.append(f"{p} {m:+.2f} ({len(v)})")
+    return out
+
+
+def report(rows: list[dict], out: Path, results: Path) -> dict:
+    """Tables, forest plots, the controls' shares and report.md (module docstring)."""
+    from gdbench.core.io import write_csv, write_json
+    from gdbench.core.provenance import code_commit
+    from gdbench.experiments.across import forest, share_kept
+    from gdbench.experiments.claims import label
+    from gdbench.experiments.tables import tables
+    from gdbench.experiments.v3 import MAIN, claims, precedes, prereg_commit
+
+    if not rows:
+        raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
+    paths = tables(rows, results, figures=True, claims=claims(), prompt_test="signflip")
+    import csv
+
+    verdicts = list(csv.DictReader(open(paths["verdict_csv"])))
+    reg = prereg_commit()
+    commits = sorted({str(r.get("train_commit")) for r in rows})
+    before = {c: (precedes(reg, c) if reg else None) for c in commits}
+    figures = results / "figures"
+    forests, shares, lines = [], [], []
+    for v in verdicts:
+        if v["metric"] not in MAIN or v["verdict"] == "not measured":
+            continue
+        keys, d = pairs(rows, v["group"], v["setting"], v["a"], v["b"], v["metric"])
+        pooled = {k: float(v[k]) if v[k] not in ("", None) else math.nan
+                  for k in ("prompt_mean_diff", "prompt_ci_low", "prompt_ci_high")}  # fmt: skip
+        name = f"forest_{v['group']}_{v['a']}_vs_{v['b']}.png".replace(" ", "_")
+        forests.append(forest(keys, d, title=f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}",
+                              margin=float(v["margin"]), path=figures / name, pooled=pooled))  # fmt: skip
+        v["against"] = "; ".join(against(keys, d, pooled["prompt_mean_diff"], float(v["margin"]))) or "none"
+    for group in sorted({v["group"] for v in verdicts if v["metric"] in MAIN}):
+        sel = [r for r in rows if r.get("group") == group and r.get("setting") == "janus"]
+        for control in ("gd-redraw-step", "gd-pose-locked"):
+            s = share_kept(sel, control, "janus_rate")
+            shares.append({"group": group, "control": control} | s)
+            lines.append(f"- {group}: {control} gives {_f(s['share'])} of gd's effect on the Janus rate "
+                         f"[{_f(s['low'])}, {_f(s['high'])}] ({s['prompts']} prompts; gd's effect "
+                         f"{_f(s.get('effect', math.nan))}, the control's {_f(s.get('kept', math.nan))}).")  # fmt: skip
+    write_csv(shares, results / "shares.csv")
+    table = readme_table(verdicts)
+    (results / "verdict_readme.md").write_text(table)
+    hours = sum(num(r.get("cell_s")) for r in rows if num(r.get("cell_s")) == num(r.get("cell_s"))) / 3600
+    md = [f"# v3: the verdict ({len(rows)} cells)", "",
+          f"Pre-registration: {reg or 'not found'}; cells trained at {', '.join(commits)}; "
+          f"the registration precedes every cell: {all(before.values()) if reg else 'n/a'}; tables "
+          f"at {code_commit()}; {hours:.1f} hours of cell time.", "",
+          "## Across prompts first, then the pooled pairs", "", table, "",
+          "## The controls: the share of gd's effect each keeps", "", *lines, "",
+          "## Prompts beyond the margin on the other side", "",
+          *[f"- {label(v)}, {v['a']} vs {v['b']}: {v.get('against', 'none')}" for v in verdicts if "against" in v],
+          "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), ""]  # fmt: skip
+    (results / "report.md").write_text("\n".join(md))
+    write_json({"prereg_commit": reg, "train_commits": commits, "prereg_precedes": before, "cells": len(rows),
+                "cell_hours": hours, "tables_commit": code_commit()}, results / "provenance.json")  # fmt: skip
+    print(f"report: {len(rows)} cells -> {results / 'report.md'}")
+    return {"verdicts": verdicts, "shares": shares, "forests": forests}
+
+
+def readme_table(verdicts: list[dict]) -> str:
+    """The README's verdict table: across prompts first (G, the mean of the per-prompt means with its
+    t interval, the sign-flip p Holm-adjusted, the verdict), the pooled pairs second (BCa interval,
+    signed-rank p Holm-adjusted, verdict), GT PSNR and Gaussians of both arms beside."""
+    from gdbench.experiments.claims import label
+
+    def g(v, k, digits=2):
+        x = v.get(k)
+        return "n/a" if x in ("", None) or float(x) != float(x) else f"{float(x):.{digits}g}"
+
+    md = ["| group / setting | claim (a vs b), metric | prompts | across prompts: a - b [95% t] | sign-flip p (Holm) "
+          "| **across prompts** | pairs | pooled: a - b [95% BCa] | p (Holm) | on these prompts | GT PSNR a / b | "
+          "Gaussians a / b |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for v in verdicts:
+        if v["verdict"] == "not measured":
+            continue
+        md.append(f"| {label(v)} | {v['a']} vs {v['b']}, {v['metric']} | {v['prompts']} | {g(v, 'prompt_mean_diff')} "
+                  f"[{g(v, 'prompt_ci_low')}, {g(v, 'prompt_ci_high')}] | {g(v, 'p_prompts_holm')} | "
+                  f"**{v['verdict_prompts']}** | {v['pairs']} | {g(v, 'mean_diff')} [{g(v, 'ci_low')}, "
+                  f"{g(v, 'ci_high')}] | {g(v, 'p_holm')} | {v['verdict']} | {g(v, 'gt_psnr_a', 3)} / "
+                  f"{g(v, 'gt_psnr_b', 3)} | {g(v, 'gaussians_a', 4)} / {g(v, 'gaussians_b', 4)} |")  # fmt: skip
+    return "\n".join(md) + "\n"

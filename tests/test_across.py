@@ -1,0 +1,196 @@
+"""Statistics with the prompt as the unit (gdbench/experiments/across.py, the sign-flip test of
+claims.py) and the v3 experiment's design and report (gdbench/experiments/v3*.py): each against
+an independent oracle (every sign pattern enumerated, the binomial closed form, a simulated t
+test, variance components drawn at known values, the pre-stated design rules by hand)."""
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+
+def test_sign_flip_p_against_every_pattern_and_the_binomial():
+    """Exact by meeting in the middle: equal to enumerating all 2^G sign patterns (G up to 12);
+    with equal magnitudes the p is a binomial tail in closed form, also past the exact range
+    (Monte Carlo there, within 4 standard errors)."""
+    from scipy import stats
+
+    from gdbench.experiments.claims import SIGN_FLIP_EXACT_UP_TO, sign_flip_p
+
+    rng = np.random.default_rng(3)
+    for g in (1, 2, 3, 7, 12):
+        for _ in range(4):
+            x = np.round(rng.normal(0.05, 0.2, g), 2)  # rounded: ties between patterns happen
+            obs, a = abs(x.sum()), np.abs(x)
+            k = sum(abs(np.dot(s, a)) >= obs - 1e-9 for s in itertools.product((1, -1), repeat=g))
+            assert sign_flip_p(x) == pytest.approx(k / 2**g, abs=1e-12)
+    assert sign_flip_p(np.zeros(5)) == 1.0 and math.isnan(sign_flip_p(np.array([])))
+
+    def binomial(g: int, k: int) -> float:  # P(|2B - g| >= |2k - g|), B ~ Bin(g, 1/2)
+        b = np.arange(g + 1)
+        return float(stats.binom.pmf(b, g, 0.5)[np.abs(2 * b - g) >= abs(2 * k - g)].sum())
+
+    for g, k in ((20, 15), (31, 22), (SIGN_FLIP_EXACT_UP_TO + 6, 35)):
+        x = np.array([0.1] * k + [-0.1] * (g - k))
+        want, got = binomial(g, k), sign_flip_p(x)
+        tol = 1e-12 if g <= SIGN_FLIP_EXACT_UP_TO else 4 * math.sqrt(want * (1 - want) / 2**20) + 2**-20
+        assert got == pytest.approx(want, abs=tol), (g, k)
+
+
+def test_across_prompts_holds_on_the_sign_flip_test_when_asked():
+    """``prompt_test='signflip'`` puts the exact sign-flip p (of the per-prompt means) in the Holm
+    family; the t p stays beside it, and the default is the t test as before."""
+    from gdbench.experiments.claims import CLAIMS, evaluate, sign_flip_p
+
+    rng = np.random.default_rng(5)
+    rows = []
+    for i in range(8):
+        for s in range(3):
+            base = rng.uniform(0.4, 0.8)
+            rows += [{"setting": "janus", "preset": "gd-no-sn", "prompt": f"p{i}", "seed": s, "janus_rate": base},
+                     {"setting": "janus", "preset": "gd", "prompt": f"p{i}", "seed": s,
+                      "janus_rate": base - 0.2 + rng.normal(0, 0.1)}]  # fmt: skip
+    claims = [c for c in CLAIMS if (c.a, c.b, c.metric) == ("gd", "gd-no-sn", "janus_rate")]
+    (t_row,) = evaluate(rows, claims)
+    (f_row,) = evaluate(rows, claims, prompt_test="signflip")
+    pm = {}
+    for r in rows:
+        pm.setdefault(r["prompt"], []).append(r["janus_rate"] * (1 if r["preset"] == "gd" else -1))
+    means = np.array([np.sum(v) / 3 for v in pm.values()])
+    assert f_row["p_prompts"] == pytest.approx(sign_flip_p(means)) == pytest.approx(2 / 2**8)  # all 8 negative
+    assert t_row["p_prompts"] == pytest.approx(f_row["p_prompts_t"]) and t_row["p_prompts"] != f_row["p_prompts"]
+    assert f_row["verdict_prompts"] == "holds" and f_row["prompt_ci_high"] < 0
+    with pytest.raises(ValueError, match="test"):
+        evaluate(rows, claims, prompt_test="z")
+
+
+def test_variance_components_and_power_against_simulation():
+    """Random-effects data drawn at known between- and within-prompt variances give them back;
+    the noncentral-t power matches the rejection rate of simulated t tests across prompts."""
+    from scipy import stats
+
+    from gdbench.experiments.across import components, power, seeds_for_power
+
+    rng = np.random.default_rng(0)
+    keys, d = [], []
+    for p in range(400):
+        mu = rng.normal(0.1, 0.2)  # between: 0.04
+        for s in range(3):
+            keys.append((f"p{p}", s))
+            d.append(mu + rng.normal(0, 0.3))  # within: 0.09
+    c = components(keys, np.array(d))
+    assert c["within"] == pytest.approx(0.09, rel=0.1) and c["between"] == pytest.approx(0.04, rel=0.25)
+    g, s, effect, alpha = 31, 3, 0.12, 0.05 / 6
+    sims = rng.normal(effect, 0.2, (4000, g)) + rng.normal(0, 0.3, (4000, g, s)).mean(axis=2)
+    t = sims.mean(axis=1) / (sims.std(axis=1, ddof=1) / math.sqrt(g))
+    rate = float((np.abs(t) > stats.t.ppf(1 - alpha / 2, g - 1)).mean())
+    assert power(effect, 0.04, 0.09, g, s, alpha) == pytest.approx(rate, abs=0.03)
+    need = seeds_for_power(effect, 0.04, 0.09, g, alpha, 0.5)
+    assert need > 1 and power(effect, 0.04, 0.09, g, need, alpha) >= 0.5 > power(effect, 0.04, 0.09, g, need - 1, alpha)
+    assert seeds_for_power(0.01, 0.04, 0.09, g, alpha, most=5) is None  # the between spread caps it
+
+
+def _cells(effects: dict, prompts: int, seeds, rng, *, group="learned-v1", setting="janus", metric="janus_rate"):
+    """Rows of one (group, setting): each preset's rate = a prompt's baseline + its effect + noise."""
+    rows = []
+    for p in range(prompts):
+        base = rng.uniform(0.5, 0.9)
+        for s in seeds:
+            for preset, e in effects.items():
+                v = float(np.clip(base + e + rng.normal(0, 0.05), 0, 1))
+                rows.append({"group": group, "setting": setting, "preset": preset, "prompt": f"prompt {p}",
+                             "seed": s, metric: v, "gaussians": 1000.0, "gt_psnr": 20.0, "cell_s": 30.0,
+                             "registration_rate": 0.5, "train_commit": "abc", "variants": 3})  # fmt: skip
+    return rows
+
+
+def test_share_kept_by_a_control():
+    """A control built to keep half of gd's effect in every prompt reads 0.5, its interval about it."""
+    from gdbench.experiments.across import share_kept
+
+    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0, "gd-pose-locked": -0.15}, 12, [0, 1], np.random.default_rng(1))
+    s = share_kept(rows, "gd-pose-locked", "janus_rate")
+    assert s["prompts"] == 12 and s["share"] == pytest.approx(0.5, abs=0.08) and s["low"] < 0.5 < s["high"]
+
+
+def test_design_applies_the_pre_stated_rules(tmp_path, monkeypatch):
+    """The pilot's rules by hand: a four-view group that lowers both arms by 0.2 is swept, an
+    instance baseline under the margin is not, a COLMAP baseline above it is; the seeds are the
+    fewest that power every main claim (checked against ``power`` itself)."""
+    from gdbench.experiments import v3
+    from gdbench.experiments.across import power
+    from gdbench.experiments.v3_report import design
+
+    monkeypatch.setattr(v3, "prompts", lambda: [f"prompt {i}" for i in range(31)])
+    rng = np.random.default_rng(2)
+    arms = {"gd": -0.3, "gd-no-sn": 0.0, "gd-redraw-step": -0.1, "gd-pose-locked": -0.25}
+    rows = _cells(arms, 8, [100, 101], rng)
+    rows += [
+        r | {"group": "learned-v4", "janus_rate": r["janus_rate"] - 0.2}
+        for r in rows
+        if r["preset"] in ("gd", "gd-no-sn")
+    ]  # fmt: skip (the pilot's four-view block)
+    rows += _cells({"gd": 0.0, "gd-no-sn": 0.0}, 8, [100, 101], rng, setting="instance",
+                   metric="instance_inconsistency")  # fmt: skip
+    for r in rows[-32:]:
+        r["instance_inconsistency"] = 0.01
+    rows += _cells({"gd": 0.0, "gd-no-sn": 0.0, "sjc-gs": 0.0}, 8, [100, 101], rng, group="empirical-v1",
+                   setting="easy", metric="colmap_failure_rate")  # fmt: skip
+    got = design(rows, tmp_path)
+    assert (got["v4"], got["instance"], got["colmap"]) == (True, False, True)
+    assert got["family"] == 3 + 3 + 2 and got["alpha_first_step"] == pytest.approx(0.05 / 8)
+    table = [r for r in __import__("csv").DictReader(open(tmp_path / "power.csv")) if r["main"] == "True"]
+    assert len(table) == 6
+    v1, v4 = ({r["b"]: r for r in table if r["group"] == g} for g in ("learned-v1", "learned-v4"))
+    assert v4["gd-pose-locked"]["within_var"] == v1["gd-pose-locked"]["within_var"]  # the one-view spread
+    for r in table:
+        p = power(float(r["effect"]), float(r["between_var"]), float(r["within_var"]), 31, got["seeds"],
+                  got["alpha_first_step"])  # fmt: skip
+        assert p >= 0.8 or got["underpowered"]
+
+
+def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypatch):
+    """The report's across-prompts row equals the mean of the per-prompt means with the exact
+    sign-flip p; a prompt built to go the other way beyond the margin is named; one forest plot per
+    main claim is drawn with a row per prompt."""
+    from gdbench.experiments import v3
+    from gdbench.experiments.claims import sign_flip_p
+    from gdbench.experiments.v3_report import report
+
+    monkeypatch.setattr(v3, "prereg_commit", lambda root=None: None)
+    rng = np.random.default_rng(4)
+    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0, "gd-redraw-step": -0.1, "gd-pose-locked": -0.28}, 10, [0, 1, 2], rng)
+    for r in rows:  # prompt 9 goes the other way
+        if r["prompt"] == "prompt 9" and r["preset"] == "gd":
+            r["janus_rate"] += 0.5
+    got = report(rows, tmp_path, tmp_path / "results")
+    v = next(x for x in got["verdicts"] if x["b"] == "gd-no-sn")
+    per = {}
+    for r in rows:
+        if r["preset"] in ("gd", "gd-no-sn"):
+            per.setdefault(r["prompt"], []).append(r["janus_rate"] * (1 if r["preset"] == "gd" else -1))
+    means = np.array([sum(x) / 3 for x in per.values()])
+    assert float(v["prompt_mean_diff"]) == pytest.approx(means.mean())
+    assert float(v["p_prompts"]) == pytest.approx(sign_flip_p(means))
+    assert "prompt 9" in v["against"] and len(got["forests"]) == 3
+    md = (tmp_path / "results" / "report.md").read_text()
+    assert "gd-pose-locked gives" in md and "across prompts" in md
+    from PIL import Image
+
+    assert Image.open(got["forests"][0]).size[1] > 0.22 * 10 * 100  # a row per prompt at 100 dpi
+
+
+def test_registration_precedes_in_git_history():
+    """``precedes`` reads the repository's own history: a commit precedes its child, not the reverse."""
+    import subprocess
+    from pathlib import Path
+
+    from gdbench.experiments.v3 import precedes
+
+    root = Path(__file__).resolve().parents[1]
+    log = subprocess.run(["git", "-C", str(root), "log", "--format=%h", "-2"], capture_output=True, text=True)
+    if log.returncode != 0 or len(log.stdout.split()) < 2:
+        pytest.skip("no git history here")
+    child, parent = log.stdout.split()
+    assert precedes(parent, child) is True and precedes(child, parent) is False
