@@ -99,9 +99,9 @@ def _cells(effects: dict, prompts: int, seeds, rng, *, group="learned-v1", setti
         for s in seeds:
             for preset, e in effects.items():
                 v = float(np.clip(base + e + rng.normal(0, 0.05), 0, 1))
-                rows.append({"group": group, "setting": setting, "preset": preset, "prompt": f"prompt {p}",
-                             "seed": s, metric: v, "gaussians": 1000.0, "gt_psnr": 20.0, "cell_s": 30.0,
-                             "registration_rate": 0.5, "train_commit": "abc", "variants": 3})  # fmt: skip
+                row = {"group": group, "setting": setting, "preset": preset, "prompt": f"prompt {p}", "seed": s}
+                row |= {metric: v, "janus_failure_rate": v, "gaussians": 1000.0, "gt_psnr": 20.0, "cell_s": 30.0}
+                rows.append(row | {"registration_rate": 0.5, "train_commit": "abc", "variants": 3})
     return rows
 
 
@@ -139,10 +139,13 @@ def test_design_applies_the_pre_stated_rules(tmp_path, monkeypatch):
                    setting="easy", metric="colmap_failure_rate")  # fmt: skip
     got = design(rows, tmp_path)
     assert (got["v4"], got["instance"], got["colmap"]) == (True, False, True)
-    assert got["family"] == 3 + 3 + 2 and got["alpha_first_step"] == pytest.approx(0.05 / 8)
+    assert got["family"] == 6 + 6 + 2 and got["alpha_first_step"] == pytest.approx(0.05 / 14)
     table = [r for r in __import__("csv").DictReader(open(tmp_path / "power.csv")) if r["main"] == "True"]
-    assert len(table) == 6
-    v1, v4 = ({r["b"]: r for r in table if r["group"] == g} for g in ("learned-v1", "learned-v4"))
+    assert len(table) == 12
+    v1, v4 = (
+        {r["b"]: r for r in table if r["group"] == g and r["metric"] == "janus_rate"}
+        for g in ("learned-v1", "learned-v4")
+    )
     assert v4["gd-pose-locked"]["within_var"] == v1["gd-pose-locked"]["within_var"]  # the one-view spread
     for r in table:
         p = power(float(r["effect"]), float(r["between_var"]), float(r["within_var"]), 31, got["seeds"],
@@ -165,7 +168,7 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
         if r["prompt"] == "prompt 9" and r["preset"] == "gd":
             r["janus_rate"] += 0.5
     got = report(rows, tmp_path, tmp_path / "results")
-    v = next(x for x in got["verdicts"] if x["b"] == "gd-no-sn")
+    v = next(x for x in got["verdicts"] if x["b"] == "gd-no-sn" and x["metric"] == "janus_rate")
     per = {}
     for r in rows:
         if r["preset"] in ("gd", "gd-no-sn"):
@@ -173,7 +176,7 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
     means = np.array([sum(x) / 3 for x in per.values()])
     assert float(v["prompt_mean_diff"]) == pytest.approx(means.mean())
     assert float(v["p_prompts"]) == pytest.approx(sign_flip_p(means))
-    assert "prompt 9" in v["against"] and len(got["forests"]) == 3
+    assert "prompt 9" in v["against"] and len(got["forests"]) == 6  # three comparisons x two metrics
     md = (tmp_path / "results" / "report.md").read_text()
     assert "gd-pose-locked gives" in md and "across prompts" in md
     from PIL import Image

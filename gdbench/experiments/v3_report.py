@@ -64,7 +64,8 @@ def design(rows: list[dict], results: Path) -> dict:
         raise SystemExit("design: no finished pilot cell (run the pilot stage first)")
     rules = DESIGN_RULES
     m = rules["margin"]
-    four = [across_groups(rows, p, "janus_rate", "learned-v1", "learned-v4", "janus") for p in ("gd", "gd-no-sn")]
+    four = [across_groups(rows, p, metric, "learned-v1", "learned-v4", "janus") | {"metric": metric}
+            for p in ("gd", "gd-no-sn") for metric in MAIN]  # fmt: skip
     v4 = any(abs(f["mean"]) >= m and (f["low"] > 0 or f["high"] < 0) for f in four if f["pairs"] >= 2)
 
     def mean_of(group, setting, preset, metric):
@@ -79,7 +80,8 @@ def design(rows: list[dict], results: Path) -> dict:
     instance, colmap = inst_base > m, colmap_base > m and registers
     where = [("learned-v1", "janus")] + [("learned-v4", "janus")] * v4
     where += [("learned-v1", "instance")] * instance + [("empirical-v1", "easy")] * colmap
-    settings_of = {"janus_rate": "janus", "instance_inconsistency": "instance", "colmap_failure_rate": "easy"}
+    settings_of = {"janus_rate": "janus", "janus_failure_rate": "janus", "instance_inconsistency": "instance",
+                   "colmap_failure_rate": "easy"}  # fmt: skip
     family = [(g, s, c) for g, s in where for c in claims() if settings_of[c.metric] == s]
     alpha = rules["alpha"] / len(family)
     G = len(prompts())
@@ -146,6 +148,8 @@ def against(keys: list[tuple], d: np.ndarray, overall: float, margin: float) -> 
 
 def report(rows: list[dict], out: Path, results: Path) -> dict:
     """Tables, forest plots, the controls' shares and report.md (module docstring)."""
+    import itertools
+
     from gdbench.core.io import write_csv, write_json
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.across import forest, share_kept
@@ -170,16 +174,16 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
         keys, d = pairs(rows, v["group"], v["setting"], v["a"], v["b"], v["metric"])
         pooled = {k: float(v[k]) if v[k] not in ("", None) else math.nan
                   for k in ("prompt_mean_diff", "prompt_ci_low", "prompt_ci_high")}  # fmt: skip
-        name = f"forest_{v['group']}_{v['a']}_vs_{v['b']}.png".replace(" ", "_")
+        name = f"forest_{v['group']}_{v['metric']}_{v['a']}_vs_{v['b']}.png".replace(" ", "_")
         forests.append(forest(keys, d, title=f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}",
                               margin=float(v["margin"]), path=figures / name, pooled=pooled))  # fmt: skip
         v["against"] = "; ".join(against(keys, d, pooled["prompt_mean_diff"], float(v["margin"]))) or "none"
     for group in sorted({v["group"] for v in verdicts if v["metric"] in MAIN}):
         sel = [r for r in rows if r.get("group") == group and r.get("setting") == "janus"]
-        for control in ("gd-redraw-step", "gd-pose-locked"):
-            s = share_kept(sel, control, "janus_rate")
-            shares.append({"group": group, "control": control} | s)
-            lines.append(f"- {group}: {control} gives {_f(s['share'])} of gd's effect on the Janus rate "
+        for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN):
+            s = share_kept(sel, control, metric)
+            shares.append({"group": group, "control": control, "metric": metric} | s)
+            lines.append(f"- {group}: {control} gives {_f(s['share'])} of gd's effect on {metric} "
                          f"[{_f(s['low'])}, {_f(s['high'])}] ({s['prompts']} prompts; gd's effect "
                          f"{_f(s.get('effect', math.nan))}, the control's {_f(s.get('kept', math.nan))}).")  # fmt: skip
     write_csv(shares, results / "shares.csv")
