@@ -197,3 +197,27 @@ def test_registration_precedes_in_git_history():
         pytest.skip("no git history here")
     child, parent = log.stdout.split()
     assert precedes(parent, child) is True and precedes(child, parent) is False
+
+
+def test_v3_prompts_follow_the_rule_and_the_sweep_waits_for_a_registration():
+    """The prompts are every caption the front-biased model was trained on (held-out ones out) with
+    a front: at least 30, read here from the model's metadata and the catalogue independently of
+    ``v3.prompts``; the pilot's are every fourth; the sweep refuses to run before a design is
+    registered, and a registered design gives its blocks."""
+    from gdbench.assets.library import CAPTIONS, FRONTS
+    from gdbench.experiments import v3
+    from gdbench.priors.learned.prior import model_captions
+
+    known, held = model_captions("front")
+    want = [c for c in CAPTIONS if c in known and c not in held and FRONTS.get(c)]
+    assert v3.prompts() == want and len(want) >= 30 and "a hamburger" not in want
+    assert v3.pilot_prompts() == want[::4] and not set(held) & set(want)
+    if v3.REGISTERED is None:
+        with pytest.raises(SystemExit, match="registered"):
+            v3.main(["sweep", "--out", "unused"])
+    blocks = v3.sweep_blocks({"v4": True, "instance": False, "colmap": True, "seeds": 3})
+    assert [(b.name, b.groups) for b in blocks] == [
+        ("janus", ["learned-v1", "learned-v4"]),
+        ("colmap", ["empirical-v1"]),
+    ]
+    assert all(b.prompts == want and b.steps == v3.STEPS for b in blocks)
