@@ -1,89 +1,9 @@
-"""Blinded sheets for labelling results by eye (docs/scoring.md, "The Janus classes against
-labels"): every run folder under the given sweep folders, grouped by prompt and shuffled within
-it, drawn as one row of six turntable frames (azimuth 0, 60, ..., 300) under the asset's own
-views at the same azimuths, each row named only by a number. The key from number to run id (and
-arm) is written apart, to be read after labelling.
+"""Blinded sheets for labelling results by eye, moved to ``python -m gdbench.metrics.label_sheets``
+(2026-11-28); this runs it for the command lines recorded before."""
 
-    python scripts/label_sheets.py --runs SWEEP_DIR [...] --out DIR [--per-sheet 10] [--seed 0]
+import sys
 
-Writes DIR/sheet_<prompt>_<k>.png, DIR/key.json (number -> run id, run folder) and
-DIR/labels_template.csv (number, label) to fill in.
-"""
-
-from __future__ import annotations
-
-import argparse
-import csv
-import json
-import random
-from pathlib import Path
-
-import numpy as np
-
-FRAMES = (0, 6, 12, 18, 24, 30)
-"""Turntable frames (10 degrees apart) shown per result: azimuths 0, 60, ..., 300."""
-
-
-def asset_row(caption: str, size: int) -> np.ndarray:
-    """The asset's views at the sheet's azimuths, as the run turntables show them."""
-    from gdbench.core.camera import SphericalPoses
-    from gdbench.core.turntable import RUN_TURNTABLE, render_views_alpha
-    from gdbench.metrics.failures3d import asset_scene
-
-    # the run turntable's orbit at six of its 36 frames (azimuths 0, 60, ..., 300)
-    sub = SphericalPoses.orbit(len(FRAMES), **RUN_TURNTABLE).cameras(size, size)
-    rgb, _ = render_views_alpha(asset_scene(caption), sub, (1.0, 1.0, 1.0))
-    return (rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)
-
-
-def main(argv=None) -> int:
-    import imageio.v3 as iio
-    from PIL import Image, ImageDraw
-
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", type=Path, nargs="+", required=True)
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--per-sheet", type=int, default=10)
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    runs = []
-    for root in args.runs:
-        for p in sorted(root.rglob("run.json")):
-            if (p.parent / "turntable.gif").is_file():
-                info = json.loads(p.read_text())
-                runs.append({"run_id": info["run_id"], "run": str(p.parent), "caption": info.get("caption") or ""})
-    random.Random(args.seed).shuffle(runs)
-    args.out.mkdir(parents=True, exist_ok=True)
-    key, number = {}, 0
-    for caption in sorted({r["caption"] for r in runs}):
-        mine = [r for r in runs if r["caption"] == caption]
-        for k in range(0, len(mine), args.per_sheet):
-            rows = []
-            first = iio.imread(Path(mine[0]["run"]) / "turntable.gif")
-            size = first.shape[1]
-            rows.append(("asset", np.concatenate(list(asset_row(caption, size)), axis=1)))
-            for r in mine[k : k + args.per_sheet]:
-                number += 1
-                key[number] = r
-                frames = iio.imread(Path(r["run"]) / "turntable.gif")
-                rows.append((str(number), np.concatenate([frames[i][..., :3] for i in FRAMES], axis=1)))
-            pad = 70
-            h, w = rows[0][1].shape[:2]
-            sheet = Image.new("RGB", (w + pad, h * len(rows)), "white")
-            draw = ImageDraw.Draw(sheet)
-            for i, (name, img) in enumerate(rows):
-                sheet.paste(Image.fromarray(img), (pad, i * h))
-                draw.text((5, i * h + h // 2 - 5), name, fill="black")
-            sheet.save(args.out / f"sheet_{caption.replace(' ', '_')}_{k // args.per_sheet}.png")
-    (args.out / "key.json").write_text(json.dumps(key, indent=1))
-    with open(args.out / "labels_template.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["number", "label"])
-        for n in key:
-            w.writerow([n, ""])
-    print(f"{number} results on sheets in {args.out}")
-    return 0
-
+from gdbench.metrics.label_sheets import main
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main())

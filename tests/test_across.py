@@ -100,7 +100,8 @@ def _cells(effects: dict, prompts: int, seeds, rng, *, group="learned-v1", setti
             for preset, e in effects.items():
                 v = float(np.clip(base + e + rng.normal(0, 0.05), 0, 1))
                 row = {"group": group, "setting": setting, "preset": preset, "prompt": f"prompt {p}", "seed": s}
-                row |= {metric: v, "janus_failure_rate": v, "gaussians": 1000.0, "gt_psnr": 20.0, "cell_s": 30.0}
+                row |= {metric: v, "janus_failure_rate": v, "label_janus": round(v * 2) / 2, "gaussians": 1000.0}
+                row |= {"gt_psnr": 20.0, "cell_s": 30.0}
                 rows.append(row | {"registration_rate": 0.5, "train_commit": "abc", "variants": 3})
     return rows
 
@@ -139,13 +140,10 @@ def test_design_applies_the_pre_stated_rules(tmp_path, monkeypatch):
                    setting="easy", metric="colmap_failure_rate")  # fmt: skip
     got = design(rows, tmp_path)
     assert (got["v4"], got["instance"], got["colmap"]) == (True, False, True)
-    assert got["family"] == 6 + 6 + 2 and got["alpha_first_step"] == pytest.approx(0.05 / 14)
+    assert got["family"] == 3 + 3 and got["alpha_first_step"] == pytest.approx(0.05 / 6)  # the primary family
     table = [r for r in __import__("csv").DictReader(open(tmp_path / "power.csv")) if r["main"] == "True"]
-    assert len(table) == 12
-    v1, v4 = (
-        {r["b"]: r for r in table if r["group"] == g and r["metric"] == "janus_rate"}
-        for g in ("learned-v1", "learned-v4")
-    )
+    assert len(table) == 6 and {r["metric"] for r in table} == {"label_janus"}
+    v1, v4 = ({r["b"]: r for r in table if r["group"] == g} for g in ("learned-v1", "learned-v4"))
     assert v4["gd-pose-locked"]["within_var"] == v1["gd-pose-locked"]["within_var"]  # the one-view spread
     for r in table:
         p = power(float(r["effect"]), float(r["between_var"]), float(r["within_var"]), 31, got["seeds"],
@@ -176,7 +174,7 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
     means = np.array([sum(x) / 3 for x in per.values()])
     assert float(v["prompt_mean_diff"]) == pytest.approx(means.mean())
     assert float(v["p_prompts"]) == pytest.approx(sign_flip_p(means))
-    assert "prompt 9" in v["against"] and len(got["forests"]) == 6  # three comparisons x two metrics
+    assert "prompt 9" in v["against"] and len(got["forests"]) == 9  # three comparisons x three metrics
     md = (tmp_path / "results" / "report.md").read_text()
     assert "gd-pose-locked gives" in md and "across prompts" in md
     from PIL import Image
@@ -221,3 +219,39 @@ def test_v3_prompts_follow_the_rule_and_the_sweep_waits_for_a_registration():
         ("colmap", ["empirical-v1"]),
     ]
     assert all(b.prompts == want and b.steps == v3.STEPS for b in blocks)
+
+
+def test_raters_labels_unblinded_and_attached_as_shares(tmp_path):
+    """Numbered labels go through the sheets' key to run ids (a number outside the key, or a label
+    outside the classes, is an error naming it); each result's label shares are the share of the
+    raters that call it Janus (front everywhere or second face) or not fine; a result one rater
+    left out gets none."""
+    import json
+
+    from gdbench.experiments.v3 import attach_labels
+    from gdbench.metrics.label_sheets import unblind
+
+    key = {str(n): {"run_id": f"r{n}", "run": f"/x/{n}", "caption": "a corgi"} for n in (1, 2, 3)}
+    (tmp_path / "key.json").write_text(json.dumps(key))
+    raters = {"a": ["front_everywhere", "fine", "blob"], "b": ["second_face", "blob", "blob"]}
+    files = []
+    for name, labels in raters.items():
+        src = tmp_path / f"{name}.csv"
+        src.write_text("number,label,confidence\n" + "".join(f"{n},{lab},high\n" for n, lab in zip((1, 2, 3), labels)))
+        files.append(tmp_path / f"{name}_by_id.csv")
+        assert [r["run_id"] for r in unblind(src, tmp_path / "key.json", files[-1])] == ["r1", "r2", "r3"]
+    rows = [{"run_id": f"r{n}"} for n in (1, 2, 3, 4)]
+    got = attach_labels(rows, files)
+    assert [(r.get("label_janus"), r.get("label_failure")) for r in got] == [
+        (1.0, 1.0),
+        (0.0, 0.5),
+        (0.0, 1.0),
+        (None, None),
+    ]
+    bad = tmp_path / "bad.csv"
+    bad.write_text("number,label\n9,fine\n")
+    with pytest.raises(ValueError, match="'9'"):
+        unblind(bad, tmp_path / "key.json", tmp_path / "x.csv")
+    bad.write_text("number,label\n1,face\n")
+    with pytest.raises(ValueError, match="'face'"):
+        unblind(bad, tmp_path / "key.json", tmp_path / "x.csv")

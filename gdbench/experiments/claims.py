@@ -127,6 +127,8 @@ MARGINS = {
     "multi_face_rate": (0.05, "one view in twenty of the turntable"),
     "janus_rate": (0.05, "one view in twenty of the turntable"),
     "janus_failure_rate": (0.05, "one view in twenty of the turntable"),
+    "label_janus": (0.05, "one result in twenty labelled Janus by eye"),
+    "label_failure": (0.05, "one result in twenty labelled not fine by eye"),
     "instance_inconsistency": (0.05, "one view in twenty of the turntable"),
     "colmap_failure_rate": (0.05, "one view in twenty of COLMAP's circle"),
     "floaters": (0.01, "a tenth of the 40-floater 3D fixtures' 0.08-0.15 (every other fixture 0.000)"),
@@ -330,6 +332,9 @@ def reversals(keys: list[tuple], d: np.ndarray, *, decided: bool = True) -> str:
 
 
 JANUS_METRICS = ("janus_rate", "multi_face_rate", "front_everywhere_rate", "janus_failure_rate")
+JANUS_SETTING_METRICS = ("janus_rate", "janus_failure_rate", "label_janus", "label_failure")
+"""Metrics whose claims are read in the janus setting only (``_applies``); ``label_*``: the share of
+blind raters who labelled a result Janus (front everywhere or a second face) or not fine."""
 """Metrics of the Janus classes: defined only for assets with a front (``assets.library.FRONTS``)."""
 
 
@@ -349,7 +354,7 @@ def _applies(claim: Claim, rows: list[dict], setting: str) -> bool:
     """Instance consistency is only defined where the bank holds several variants; the Janus
     failure (a second face or none) only where view prompting is off (the janus setting), since
     with a view window a featureless result is a blur, not a pose ambiguity."""
-    if claim.metric in ("janus_rate", "janus_failure_rate"):
+    if claim.metric in JANUS_SETTING_METRICS:
         return setting == "janus"
     if claim.metric != "instance_inconsistency":
         return True

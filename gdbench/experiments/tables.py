@@ -163,7 +163,9 @@ def _size_note(v: dict) -> str:
 
 def tables(rows: list[dict], out: Path, figures: bool = True, claims=None, prompt_test: str = "t") -> dict[str, Path]:
     """cells.csv, summary.csv, verdict.csv, summary.md and, with ``figures``, ablation.png;
-    ``claims`` (default: every claim, ``claims.CLAIMS``) and ``prompt_test`` as ``claims.evaluate``."""
+    ``claims`` (default: every claim, ``claims.CLAIMS``) and ``prompt_test`` as ``claims.evaluate``;
+    ``claims`` may also be a dict of families (name -> claims), each Holm-adjusted on its own and
+    named in the verdict's ``family`` column."""
     from gdbench.core.io import write_csv
     from gdbench.experiments.claims import CLAIMS, evaluate
 
@@ -174,7 +176,12 @@ def tables(rows: list[dict], out: Path, figures: bool = True, claims=None, promp
     from gdbench.core.provenance import code_commit
 
     tables_commit = code_commit()  # the statistics' code: the cells say which code made them
-    verdicts = [v | {"tables_commit": tables_commit} for v in evaluate(rows, claims or CLAIMS, prompt_test)]
+    families = claims if isinstance(claims, dict) else {"": claims or CLAIMS}
+    verdicts = [
+        v | ({"family": name} if name else {}) | {"tables_commit": tables_commit}
+        for name, family in families.items()
+        for v in evaluate(rows, family, prompt_test)
+    ]
     paths["verdict_csv"] = write_csv(verdicts, out / "verdict.csv")
     (out / "summary.md").write_text(markdown(summary, verdicts, rows))
     paths["summary_md"] = out / "summary.md"

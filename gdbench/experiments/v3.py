@@ -35,10 +35,13 @@ STEPS = 1000
 PILOT_SEEDS = [100, 101]
 """The pilot's seeds: none of the sweep's, so no sweep cell was seen before the registration."""
 
-MAIN = ("janus_failure_rate", "janus_rate")
-"""The main claims' metrics: the views that are not whole objects (1 - the fine class: the front
-everywhere, a second face or a faceless blob; the 068b215 sweep's metric, and the split the
-classes read best) and, of them, the Janus kinds alone (the front everywhere or a second face)."""
+MAIN = ("label_janus",)
+"""The primary claims' metric: the share of two blind raters who label a result Janus (the front
+seen from every side, or a second face) from its turntable alone (docs/decisive_v3.md,
+"Registered": the view classes failed their calibration on the pilot)."""
+METRIC_MAIN = ("janus_failure_rate", "janus_rate")
+"""The view classes' rates the pilot's rules were written for (the four-view rule reads them), in
+the secondary family since the registration."""
 
 
 def prompts() -> list[str]:
@@ -69,25 +72,56 @@ def pilot_blocks() -> list[Block]:
     ]
 
 
-def claims():
-    """The family Holm adjusts over: the three Janus comparisons on both ``MAIN`` metrics (in each
-    Janus group the sweep runs), instance inconsistency and the two COLMAP claims (where their
-    blocks run)."""
+def claims() -> dict[str, tuple]:
+    """The two families Holm adjusts over, each on its own: ``primary``, the three Janus
+    comparisons (gd against gd-no-sn, gd-redraw-step and gd-pose-locked) on the raters' Janus
+    label; ``secondary``, the same comparisons on the raters' failure label (not fine) and on the
+    view classes' failure and Janus rates, instance inconsistency and the two COLMAP claims (where
+    their blocks run)."""
     from gdbench.experiments.claims import CLAIMS, Claim
+
+    pairs = (("gd", "gd-no-sn", "structured noise"), ("gd", "gd-redraw-step", "persistent noise, not its texture,"),
+             ("gd", "gd-pose-locked", "3D correspondence between views, not persistence alone,"))  # fmt: skip
+
+    def family(metric: str, what: str) -> tuple:
+        return tuple(Claim(f"{why} reduces {what}", a, b, metric, 1.0) for a, b, why in pairs)
 
     keep = {("gd", "gd-no-sn", "janus_rate"), ("gd", "gd-redraw-step", "janus_rate"),
             ("gd", "gd-pose-locked", "janus_rate"), ("gd", "gd-no-sn", "instance_inconsistency"),
             ("gd", "sjc-gs", "colmap_failure_rate"), ("gd", "gd-no-sn", "colmap_failure_rate")}  # fmt: skip
-    failures = tuple(
-        Claim(text, a, b, "janus_failure_rate", 1.0)
-        for text, a, b in (
-            ("structured noise reduces failures to be the whole object (front everywhere, second face or blob)",
-             "gd", "gd-no-sn"),
-            ("persistent noise, not the noise's texture, reduces those failures", "gd", "gd-redraw-step"),
-            ("3D correspondence between views, not persistence alone, reduces those failures", "gd", "gd-pose-locked"),
-        )
-    )  # fmt: skip
-    return failures + tuple(c for c in CLAIMS if (c.a, c.b, c.metric) in keep)
+    return {
+        "primary": family("label_janus", "the results labelled Janus by eye"),
+        "secondary": (
+            *family("label_failure", "the results labelled not fine by eye"),
+            *family("janus_failure_rate", "the views the classes call not fine"),
+            *(c for c in CLAIMS if (c.a, c.b, c.metric) in keep),
+        ),
+    }
+
+
+def attach_labels(rows: list[dict], files: list) -> list[dict]:
+    """``rows`` with ``label_janus`` and ``label_failure`` (the share of the label ``files`` that
+    call the result Janus, or not fine) where every file labels the row's run id; files are
+    labels by run id (``gdbench.metrics.label_sheets --unblind``)."""
+    import csv
+
+    from gdbench.metrics.agreement import LABELS
+
+    raters = []
+    for f in files:
+        labels = {r["run_id"]: r["label"].strip() for r in csv.DictReader(open(f))}
+        bad = sorted({v for v in labels.values() if v not in LABELS})
+        if bad:
+            raise ValueError(f"labels: {f} has labels {bad}; expected one of {LABELS}")
+        raters.append(labels)
+    out = []
+    for r in rows:
+        got = [lab.get(r.get("run_id")) for lab in raters]
+        if raters and all(got):
+            r = r | {"label_janus": sum(g in ("front_everywhere", "second_face") for g in got) / len(got),
+                     "label_failure": sum(g != "fine" for g in got) / len(got)}  # fmt: skip
+        out.append(r)
+    return out
 
 
 EFFECTS = {
@@ -107,7 +141,7 @@ def effect_for(group: str, a: str, b: str, metric: str) -> float:
     gd against gd-no-sn under COLMAP the SJC comparison's 0.04."""
     if (group, a, b, metric) in EFFECTS:
         return EFFECTS[(group, a, b, metric)]
-    if metric == "janus_failure_rate":  # 068b215's effects were measured on this metric
+    if metric in ("janus_failure_rate", "label_janus", "label_failure"):  # the same sizes of interest
         return effect_for(group, a, b, "janus_rate")
     if metric == "janus_rate":
         return EFFECTS[("learned-v1", "gd", "gd-redraw-step", "janus_rate")]
@@ -181,6 +215,13 @@ def main(argv=None) -> int:
     p.add_argument("--address", default="", help="Ray cluster address (empty: a local instance)")
     p.add_argument("--workers", type=int, default=2, help="cells at once (default 2: one thread each here)")
     p.add_argument("--rounds", type=int, default=0, help="sweep: seeds in this many rounds (default: one per seed)")
+    p.add_argument(
+        "--labels",
+        nargs="*",
+        default=[],
+        type=Path,
+        help="design, report: raters' labels by run id (gdbench.metrics.label_sheets --unblind)",
+    )
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no line per cell")
     a = p.parse_args(argv)
     if a.workers < 1 or a.rounds < 0:
@@ -200,7 +241,7 @@ def main(argv=None) -> int:
     elif a.stage == "design":
         from gdbench.experiments.v3_report import design
 
-        design(collect(a.out), a.results)
+        design(attach_labels(collect(a.out), a.labels), a.results)
     elif a.stage == "sweep":
         if REGISTERED is None:
             raise SystemExit(
@@ -212,7 +253,7 @@ def main(argv=None) -> int:
     else:
         from gdbench.experiments.v3_report import report
 
-        report(collect(a.out), a.out, a.results)
+        report(attach_labels(collect(a.out), a.labels), a.out, a.results)
     return 0
 
 

@@ -58,14 +58,14 @@ def design(rows: list[dict], results: Path) -> dict:
     from gdbench.core.io import write_csv, write_json
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.across import components, power, seeds_for_power
-    from gdbench.experiments.v3 import DESIGN_RULES, MAIN, claims, effect_for, prompts
+    from gdbench.experiments.v3 import DESIGN_RULES, METRIC_MAIN, claims, effect_for, prompts
 
     if not rows:
         raise SystemExit("design: no finished pilot cell (run the pilot stage first)")
     rules = DESIGN_RULES
     m = rules["margin"]
     four = [across_groups(rows, p, metric, "learned-v1", "learned-v4", "janus") | {"metric": metric}
-            for p in ("gd", "gd-no-sn") for metric in MAIN]  # fmt: skip
+            for p in ("gd", "gd-no-sn") for metric in METRIC_MAIN]  # fmt: skip
     v4 = any(abs(f["mean"]) >= m and (f["low"] > 0 or f["high"] < 0) for f in four if f["pairs"] >= 2)
 
     def mean_of(group, setting, preset, metric):
@@ -80,26 +80,30 @@ def design(rows: list[dict], results: Path) -> dict:
     instance, colmap = inst_base > m, colmap_base > m and registers
     where = [("learned-v1", "janus")] + [("learned-v4", "janus")] * v4
     where += [("learned-v1", "instance")] * instance + [("empirical-v1", "easy")] * colmap
-    settings_of = {"janus_rate": "janus", "janus_failure_rate": "janus", "instance_inconsistency": "instance",
-                   "colmap_failure_rate": "easy"}  # fmt: skip
-    family = [(g, s, c) for g, s in where for c in claims() if settings_of[c.metric] == s]
-    alpha = rules["alpha"] / len(family)
+    settings_of = {"instance_inconsistency": "instance", "colmap_failure_rate": "easy"}
+    families = {name: [(g, s, c) for g, s in where for c in fam if settings_of.get(c.metric, "janus") == s]
+                for name, fam in claims().items()}  # fmt: skip
     G = len(prompts())
     out = []
-    for g, s, c in family:
-        keys, d = pairs(rows, g, s, c.a, c.b, c.metric)
-        if not keys and g == "learned-v4":  # the pilot ran only gd and gd-no-sn at four views
-            keys, d = pairs(rows, "learned-v1", s, c.a, c.b, c.metric)
-        comp = components(keys, d)
-        eff = effect_for(g, c.a, c.b, c.metric)
-        need = seeds_for_power(eff, comp["between"], comp["within"], G, alpha, rules["power"], rules["most_seeds"])
-        row = {"group": g, "setting": s, "a": c.a, "b": c.b, "metric": c.metric, "main": c.metric in MAIN,
-               "effect": eff, "pilot_pairs": comp["pairs"], "pilot_prompts": comp["prompts"],
-               "pilot_mean_diff": comp["mean"], "within_var": comp["within"], "between_var": comp["between"],
-               "prompts": G, "alpha": alpha, "seeds_needed": need if need is not None else math.nan}  # fmt: skip
-        for k in range(1, rules["most_seeds"] + 1):
-            row[f"power_{k}_seeds"] = power(eff, comp["between"], comp["within"], G, k, alpha)
-        out.append(row)
+    for name, family in families.items():
+        alpha = rules["alpha"] / len(family)
+        for g, s, c in family:
+            keys, d = pairs(rows, g, s, c.a, c.b, c.metric)
+            if not keys and g == "learned-v4":  # the pilot ran only gd and gd-no-sn at four views
+                keys, d = pairs(rows, "learned-v1", s, c.a, c.b, c.metric)
+            comp = components(keys, d)
+            eff = effect_for(g, c.a, c.b, c.metric)
+            need = seeds_for_power(eff, comp["between"], comp["within"], G, alpha, rules["power"], rules["most_seeds"])
+            row = {"family": name, "group": g, "setting": s, "a": c.a, "b": c.b, "metric": c.metric,
+                   "main": name == "primary", "effect": eff, "pilot_pairs": comp["pairs"],
+                   "pilot_prompts": comp["prompts"], "pilot_mean_diff": comp["mean"], "within_var": comp["within"],
+                   "between_var": comp["between"], "prompts": G, "alpha": alpha,
+                   "seeds_needed": need if need is not None else math.nan}  # fmt: skip
+            for k in range(1, rules["most_seeds"] + 1):
+                row[f"power_{k}_seeds"] = power(eff, comp["between"], comp["within"], G, k, alpha)
+            out.append(row)
+    alpha = rules["alpha"] / len(families["primary"])
+    family = families["primary"]
     needs = [r["seeds_needed"] for r in out if r["main"]]
     short = [r for r in out if r["main"] and r["seeds_needed"] != r["seeds_needed"]]
     seeds = max([rules["least_seeds"], *[int(n) for n in needs if n == n]] + [rules["most_seeds"]] * bool(short))
@@ -155,7 +159,7 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
     from gdbench.experiments.across import forest, share_kept
     from gdbench.experiments.claims import label
     from gdbench.experiments.tables import tables
-    from gdbench.experiments.v3 import MAIN, claims, precedes, prereg_commit
+    from gdbench.experiments.v3 import MAIN, METRIC_MAIN, claims, precedes, prereg_commit
 
     if not rows:
         raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
@@ -169,7 +173,7 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
     figures = results / "figures"
     forests, shares, lines = [], [], []
     for v in verdicts:
-        if v["metric"] not in MAIN or v["verdict"] == "not measured":
+        if v["metric"] not in MAIN + METRIC_MAIN or v["verdict"] == "not measured":
             continue
         keys, d = pairs(rows, v["group"], v["setting"], v["a"], v["b"], v["metric"])
         pooled = {k: float(v[k]) if v[k] not in ("", None) else math.nan
@@ -178,9 +182,9 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
         forests.append(forest(keys, d, title=f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}",
                               margin=float(v["margin"]), path=figures / name, pooled=pooled))  # fmt: skip
         v["against"] = "; ".join(against(keys, d, pooled["prompt_mean_diff"], float(v["margin"]))) or "none"
-    for group in sorted({v["group"] for v in verdicts if v["metric"] in MAIN}):
+    for group in sorted({v["group"] for v in verdicts if v["setting"] == "janus"}):
         sel = [r for r in rows if r.get("group") == group and r.get("setting") == "janus"]
-        for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN):
+        for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN + METRIC_MAIN):
             s = share_kept(sel, control, metric)
             shares.append({"group": group, "control": control, "metric": metric} | s)
             lines.append(f"- {group}: {control} gives {_f(s['share'])} of gd's effect on {metric} "
@@ -216,15 +220,27 @@ def readme_table(verdicts: list[dict]) -> str:
         x = v.get(k)
         return "n/a" if x in ("", None) or float(x) != float(x) else f"{float(x):.{digits}g}"
 
-    md = ["| group / setting | claim (a vs b), metric | prompts | across prompts: a - b [95% t] | sign-flip p (Holm) "
-          "| **across prompts** | pairs | pooled: a - b [95% BCa] | p (Holm) | on these prompts | GT PSNR a / b | "
-          "Gaussians a / b |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    head = ("family", "group / setting", "claim (a vs b), metric", "prompts", "across prompts: a - b [95% t]",
+            "sign-flip p (Holm)", "**across prompts**", "pairs", "pooled: a - b [95% BCa]", "p (Holm)",
+            "on these prompts", "GT PSNR a / b", "Gaussians a / b")  # fmt: skip
+    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for v in verdicts:
         if v["verdict"] == "not measured":
             continue
-        md.append(f"| {label(v)} | {v['a']} vs {v['b']}, {v['metric']} | {v['prompts']} | {g(v, 'prompt_mean_diff')} "
-                  f"[{g(v, 'prompt_ci_low')}, {g(v, 'prompt_ci_high')}] | {g(v, 'p_prompts_holm')} | "
-                  f"**{v['verdict_prompts']}** | {v['pairs']} | {g(v, 'mean_diff')} [{g(v, 'ci_low')}, "
-                  f"{g(v, 'ci_high')}] | {g(v, 'p_holm')} | {v['verdict']} | {g(v, 'gt_psnr_a', 3)} / "
-                  f"{g(v, 'gt_psnr_b', 3)} | {g(v, 'gaussians_a', 4)} / {g(v, 'gaussians_b', 4)} |")  # fmt: skip
+        cells = (
+            v.get("family", ""),
+            label(v),
+            f"{v['a']} vs {v['b']}, {v['metric']}",
+            v["prompts"],
+            f"{g(v, 'prompt_mean_diff')} [{g(v, 'prompt_ci_low')}, {g(v, 'prompt_ci_high')}]",
+            g(v, "p_prompts_holm"),
+            f"**{v['verdict_prompts']}**",
+            v["pairs"],
+            f"{g(v, 'mean_diff')} [{g(v, 'ci_low')}, {g(v, 'ci_high')}]",
+            g(v, "p_holm"),
+            v["verdict"],
+            f"{g(v, 'gt_psnr_a', 3)} / {g(v, 'gt_psnr_b', 3)}",
+            f"{g(v, 'gaussians_a', 4)} / {g(v, 'gaussians_b', 4)}",
+        )
+        md.append("| " + " | ".join(str(c) for c in cells) + " |")
     return "\n".join(md) + "\n"
