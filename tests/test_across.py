@@ -70,7 +70,7 @@ def test_variance_components_and_power_against_simulation():
     the noncentral-t power matches the rejection rate of simulated t tests across prompts."""
     from scipy import stats
 
-    from gdbench.experiments.across import components, power, seeds_for_power
+    from gdbench.experiments.across import components, detectable, power, seeds_for_power
 
     rng = np.random.default_rng(0)
     keys, d = [], []
@@ -89,6 +89,8 @@ def test_variance_components_and_power_against_simulation():
     need = seeds_for_power(effect, 0.04, 0.09, g, alpha, 0.5)
     assert need > 1 and power(effect, 0.04, 0.09, g, need, alpha) >= 0.5 > power(effect, 0.04, 0.09, g, need - 1, alpha)
     assert seeds_for_power(0.01, 0.04, 0.09, g, alpha, most=5) is None  # the between spread caps it
+    mde = detectable(0.04, 0.09, g, 3, alpha)
+    assert power(mde, 0.04, 0.09, g, 3, alpha) == pytest.approx(0.8, abs=1e-6)
 
 
 def _cells(effects: dict, prompts: int, seeds, rng, *, group="learned-v1", setting="janus", metric="janus_rate"):

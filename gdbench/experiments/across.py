@@ -64,6 +64,18 @@ def seeds_for_power(effect: float, between: float, within: float, prompts: int, 
     return None
 
 
+def detectable(between: float, within: float, prompts: int, seeds: int, alpha: float, target: float = 0.8) -> float:
+    """The smallest effect ``power`` detects with probability ``target`` (bisection; NaN where
+    the spread is unknown)."""
+    if not (between == between and within == within) or prompts < 2:
+        return math.nan
+    lo, hi = 0.0, 10.0 * math.sqrt(between + within) + 1e-9
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if power(mid, between, within, prompts, seeds, alpha) < target else (lo, mid)
+    return hi
+
+
 def prompt_means(rows: list[dict], preset: str, metric: str) -> dict[str, float]:
     """Each prompt's mean of ``metric`` over its cells of ``preset`` (finite values only)."""
     per: dict[str, list[float]] = {}

@@ -57,7 +57,7 @@ def design(rows: list[dict], results: Path) -> dict:
     """The sweep's design from the pilot's cells by ``v3.DESIGN_RULES`` (module docstring)."""
     from gdbench.core.io import write_csv, write_json
     from gdbench.core.provenance import code_commit
-    from gdbench.experiments.across import components, power, seeds_for_power
+    from gdbench.experiments.across import components, detectable, power, seeds_for_power
     from gdbench.experiments.v3 import DESIGN_RULES, METRIC_MAIN, claims, effect_for, prompts
 
     if not rows:
@@ -107,6 +107,8 @@ def design(rows: list[dict], results: Path) -> dict:
     needs = [r["seeds_needed"] for r in out if r["main"]]
     short = [r for r in out if r["main"] and r["seeds_needed"] != r["seeds_needed"]]
     seeds = max([rules["least_seeds"], *[int(n) for n in needs if n == n]] + [rules["most_seeds"]] * bool(short))
+    for r in out:  # what the chosen design can see: the effect it detects with the target power
+        r["detectable_at_seeds"] = detectable(r["between_var"], r["within_var"], G, seeds, r["alpha"], rules["power"])
     cost = {}
     for r in rows:
         cost.setdefault((r.get("group"), r.get("setting")), []).append(num(r.get("cell_s")))
