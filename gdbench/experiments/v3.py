@@ -167,9 +167,9 @@ that give every main claim ``power`` at its ``effect_for`` with all ``prompts()`
 over the family's size (Holm's first step); the four-view controls, which the pilot does not run,
 take the one-view controls' spread."""
 
-REGISTERED: dict | None = None
-"""The registered design (docs/decisive_v3.md): set once, in the commit that adds the
-pre-registration; None until then (``sweep`` refuses to run)."""
+REGISTERED: dict | None = {"v4": False, "instance": True, "colmap": True, "seeds": 5}
+"""The registered design (docs/decisive_v3.md, "Registered"; docs/results/v3/pilot/design.json):
+set once, in the commit that adds the registration (``sweep`` refuses to run while it is None)."""
 
 
 def sweep_blocks(reg: dict) -> list[Block]:
