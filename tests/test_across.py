@@ -91,6 +91,40 @@ def test_variance_components_and_power_against_simulation():
     assert seeds_for_power(0.01, 0.04, 0.09, g, alpha, most=5) is None  # the between spread caps it
     mde = detectable(0.04, 0.09, g, 3, alpha)
     assert power(mde, 0.04, 0.09, g, 3, alpha) == pytest.approx(0.8, abs=1e-6)
+    assert math.isnan(detectable(0.04, 0.09, g, 0, alpha))  # no seeds: no design
+
+
+def test_components_with_unequal_seeds_and_power_at_few_prompts():
+    """With 1, 2 and 5 seeds per prompt the within variance is the pooled one-way ANOVA's (by hand)
+    and between is the prompt means' variance less within over the harmonic mean of the seeds; at
+    2-3 degrees of freedom the power equals the noncentral t's integral over the chi-square (quad),
+    also where scipy's far lower tail is NaN."""
+    from scipy import integrate, stats
+
+    from gdbench.experiments.across import components, power
+
+    per = {"a": [0.1], "b": [0.3, -0.1], "c": [0.5, 0.2, 0.4, 0.0, 0.6], "d": [0.2, 0.25]}
+    keys = [(p, i) for p, v in per.items() for i in range(len(v))]
+    c = components(keys, np.array([x for v in per.values() for x in v]))
+    ss = sum(((np.array(v) - np.mean(v)) ** 2).sum() for v in per.values())
+    within = ss / (1 + 4 + 1)
+    n_h = 4 / (1 + 1 / 2 + 1 / 5 + 1 / 2)
+    assert c["within"] == pytest.approx(within)
+    assert c["between"] == pytest.approx(max(0.0, np.var([np.mean(v) for v in per.values()], ddof=1) - within / n_h))
+
+    def by_quad(nc: float, df: int, alpha: float) -> float:
+        crit = stats.t.ppf(1 - alpha / 2, df)
+
+        def f(v):  # P(|Z + nc| > crit * sqrt(v / df)) weighted by the chi-square density of v
+            c = crit * math.sqrt(v / df)
+            return (stats.norm.sf(c - nc) + stats.norm.cdf(-c - nc)) * stats.chi2.pdf(v, df)
+
+        return integrate.quad(f, 0, np.inf, limit=200)[0]
+
+    for prompts, effect in ((3, 0.4), (3, 1.2), (4, 0.9), (2, 3.0)):
+        sd = math.sqrt(0.05 + 0.1 / 2)
+        nc = effect / (sd / math.sqrt(prompts))
+        assert power(effect, 0.05, 0.1, prompts, 2, 0.05) == pytest.approx(by_quad(nc, prompts - 1, 0.05), abs=2e-3)
 
 
 def _cells(effects: dict, prompts: int, seeds, rng, *, group="learned-v1", setting="janus", metric="janus_rate"):
@@ -115,6 +149,17 @@ def test_share_kept_by_a_control():
     rows = _cells({"gd": -0.3, "gd-no-sn": 0.0, "gd-pose-locked": -0.15}, 12, [0, 1], np.random.default_rng(1))
     s = share_kept(rows, "gd-pose-locked", "janus_rate")
     assert s["prompts"] == 12 and s["share"] == pytest.approx(0.5, abs=0.08) and s["low"] < 0.5 < s["high"]
+    # every arm read at the same seeds: a control missing seed 1 everywhere (its cells failed) and a
+    # baseline whose seed 1 is far off give the share of seed 0 alone
+    rows2 = [r for r in rows if not (r["preset"] == "gd-pose-locked" and r["seed"] == 1)]
+    rows2 = [r | {"janus_rate": r["janus_rate"] + 0.4} if (r["preset"], r["seed"]) == ("gd-no-sn", 1) else r
+             for r in rows2]  # fmt: skip
+    seed0 = share_kept([r for r in rows if r["seed"] == 0], "gd-pose-locked", "janus_rate")
+    assert share_kept(rows2, "gd-pose-locked", "janus_rate")["share"] == pytest.approx(seed0["share"])
+    # no effect to keep: resamples flip its sign, and the interval is unbounded, not made finite
+    flat = _cells({"gd": 0.0, "gd-no-sn": 0.0, "gd-pose-locked": 0.0}, 12, [0, 1], np.random.default_rng(2))
+    s = share_kept(flat, "gd-pose-locked", "janus_rate")
+    assert s["flipped"] > 0 and math.isnan(s["low"]) and math.isnan(s["high"])
 
 
 def test_design_applies_the_pre_stated_rules(tmp_path, monkeypatch):
@@ -147,10 +192,17 @@ def test_design_applies_the_pre_stated_rules(tmp_path, monkeypatch):
     assert len(table) == 6 and {r["metric"] for r in table} == {"label_janus"}
     v1, v4 = ({r["b"]: r for r in table if r["group"] == g} for g in ("learned-v1", "learned-v4"))
     assert v4["gd-pose-locked"]["within_var"] == v1["gd-pose-locked"]["within_var"]  # the one-view spread
-    for r in table:
-        p = power(float(r["effect"]), float(r["between_var"]), float(r["within_var"]), 31, got["seeds"],
-                  got["alpha_first_step"])  # fmt: skip
-        assert p >= 0.8 or got["underpowered"]
+
+    def p(r, seeds):
+        return power(
+            float(r["effect"]), float(r["between_var"]), float(r["within_var"]), 31, seeds, got["alpha_first_step"]
+        )
+
+    assert not got["underpowered"] and got["seeds"] >= 2
+    assert all(p(r, got["seeds"]) >= 0.8 for r in table)
+    assert got["seeds"] == 2 or any(p(r, got["seeds"] - 1) < 0.8 for r in table)  # the fewest
+    with pytest.raises(SystemExit, match="labels"):  # the primary outcome cannot be planned without them
+        design([{k: v for k, v in r.items() if k != "label_janus"} for r in rows], tmp_path / "none")
 
 
 def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypatch):
@@ -251,6 +303,11 @@ def test_raters_labels_unblinded_and_attached_as_shares(tmp_path):
         (None, None),
     ]
     bad = tmp_path / "bad.csv"
+    bad.write_text("number,label,run_id\n1,fine,x\n2,blob,x\n")  # 3 missing; a run_id column of its own
+    with pytest.raises(ValueError, match="3"):
+        unblind(bad, tmp_path / "key.json", tmp_path / "x.csv")
+    bad.write_text("number,label,run_id\n1,fine,x\n2,blob,x\n3,fine,x\n")
+    assert [r["run_id"] for r in unblind(bad, tmp_path / "key.json", tmp_path / "x.csv")] == ["r1", "r2", "r3"]
     bad.write_text("number,label\n9,fine\n")
     with pytest.raises(ValueError, match="'9'"):
         unblind(bad, tmp_path / "key.json", tmp_path / "x.csv")

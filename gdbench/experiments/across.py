@@ -48,10 +48,8 @@ def power(effect: float, between: float, within: float, prompts: int, seeds: int
         return 1.0 if effect != 0 else alpha
     df, nc = prompts - 1, abs(effect) / (sd / math.sqrt(prompts))
     crit = stats.t.ppf(1 - alpha / 2, df)
-    p = float(stats.nct.sf(crit, df, nc) + stats.nct.cdf(-crit, df, nc))
-    if p != p:  # scipy's noncentral t gives NaN far in its tail: the normal approximation there
-        p = float(stats.norm.sf(crit - nc) + stats.norm.cdf(-crit - nc))
-    return p
+    upper, lower = float(stats.nct.sf(crit, df, nc)), float(stats.nct.cdf(-crit, df, nc))
+    return upper + (lower if lower == lower else 0.0)  # scipy's far lower tail can be NaN: it is ~0 there
 
 
 def seeds_for_power(effect: float, between: float, within: float, prompts: int, alpha: float,
@@ -66,47 +64,53 @@ def seeds_for_power(effect: float, between: float, within: float, prompts: int, 
 
 def detectable(between: float, within: float, prompts: int, seeds: int, alpha: float, target: float = 0.8) -> float:
     """The smallest effect ``power`` detects with probability ``target`` (bisection; NaN where
-    the spread is unknown)."""
-    if not (between == between and within == within) or prompts < 2:
+    the spread is unknown, or where no effect up to 100 standard errors reaches the target)."""
+    if not (between == between and within == within) or prompts < 2 or seeds < 1:
         return math.nan
-    lo, hi = 0.0, 10.0 * math.sqrt(between + within) + 1e-9
+    lo, hi = 0.0, 100.0 * math.sqrt((between + within / seeds) / prompts) + 1e-12
+    if not power(hi, between, within, prompts, seeds, alpha) >= target:
+        return math.nan
     for _ in range(60):
         mid = (lo + hi) / 2
         lo, hi = (mid, hi) if power(mid, between, within, prompts, seeds, alpha) < target else (lo, mid)
     return hi
 
 
-def prompt_means(rows: list[dict], preset: str, metric: str) -> dict[str, float]:
-    """Each prompt's mean of ``metric`` over its cells of ``preset`` (finite values only)."""
-    per: dict[str, list[float]] = {}
-    for r in rows:
-        v = r.get(metric)
-        if r["preset"] == preset and v is not None and v == v:
-            per.setdefault(r["prompt"], []).append(float(v))
-    return {p: float(np.mean(v)) for p, v in per.items()}
-
-
 def share_kept(rows: list[dict], control: str, metric: str, *, treated: str = "gd", baseline: str = "gd-no-sn",
                n: int = 10_000, seed: int = 0) -> dict:  # fmt: skip
     """How much of ``treated``'s effect against ``baseline`` the ``control`` keeps:
-    (baseline - control) / (baseline - treated) over the prompts all three ran, the ratio of the
-    prompt-mean differences, with a percentile 95% interval from ``n`` resamples of the prompts
-    (``seed``). 1: the control does all the treatment does; 0: nothing. NaN where the treatment's
-    effect is 0."""
-    a, b, c = (prompt_means(rows, p, metric) for p in (treated, baseline, control))
-    prompts = sorted(set(a) & set(b) & set(c))
-    if len(prompts) < 2:
-        return {"prompts": len(prompts), "share": math.nan, "low": math.nan, "high": math.nan}
-    effect = np.array([b[p] - a[p] for p in prompts])
-    kept = np.array([b[p] - c[p] for p in prompts])
-    share = float(kept.mean() / effect.mean()) if effect.mean() != 0 else math.nan
-    idx = np.random.default_rng(seed).integers(0, len(prompts), (n, len(prompts)))
+    (baseline - control) / (baseline - treated), the ratio of the mean differences over the
+    prompts, each prompt's differences averaged over the seeds where all three arms have the
+    metric (so every arm is read at the same seeds), with a percentile 95% interval from ``n``
+    resamples of the prompts (``seed``). 1: the control does all the treatment does; 0: nothing.
+    NaN where the treatment's effect is 0; an unbounded interval (NaN ends, ``flipped`` > 0) where
+    resamples give the treatment's effect 0 or the other sign, since the ratio then has no bound."""
+    vals: dict[str, dict] = {treated: {}, baseline: {}, control: {}}
+    for r in rows:
+        v = r.get(metric)
+        if r["preset"] in vals and v is not None and v == v:
+            vals[r["preset"]][(r["prompt"], r["seed"])] = float(v)
+    keys = set(vals[treated]) & set(vals[baseline]) & set(vals[control])
+    per: dict[str, list[tuple[float, float]]] = {}
+    for k in sorted(keys):
+        b = vals[baseline][k]
+        per.setdefault(k[0], []).append((b - vals[treated][k], b - vals[control][k]))
+    nan = {"prompts": len(per), "share": math.nan, "low": math.nan, "high": math.nan, "flipped": 0}
+    if len(per) < 2:
+        return nan
+    effect = np.array([np.mean([e for e, _ in v]) for v in per.values()])
+    kept = np.array([np.mean([c for _, c in v]) for v in per.values()])
+    out = nan | {"effect": float(effect.mean()), "kept": float(kept.mean())}
+    if effect.mean() == 0:
+        return out
+    idx = np.random.default_rng(seed).integers(0, len(per), (n, len(per)))
     num, den = kept[idx].mean(axis=1), effect[idx].mean(axis=1)
-    ok = den != 0
-    ratios = num[ok] / den[ok]
-    lo, hi = np.percentile(ratios, [2.5, 97.5]) if ratios.size else (math.nan, math.nan)
-    return {"prompts": len(prompts), "share": share, "low": float(lo), "high": float(hi),
-            "effect": float(effect.mean()), "kept": float(kept.mean())}  # fmt: skip
+    flipped = int((np.sign(den) != np.sign(effect.mean())).sum())
+    out |= {"share": float(kept.mean() / effect.mean()), "flipped": flipped}
+    if flipped == 0:
+        lo, hi = np.percentile(num / den, [2.5, 97.5])
+        out |= {"low": float(lo), "high": float(hi)}
+    return out
 
 
 def forest(keys: list[tuple], d: np.ndarray, *, title: str, margin: float, path, pooled: dict | None = None):

@@ -461,13 +461,14 @@ def across_prompts(keys: list[tuple], d: np.ndarray, margin: float, test: str = 
     mean, se = float(pm.mean()), float(pm.std(ddof=1)) / math.sqrt(len(pm))
     t = stats.t(len(pm) - 1)
     flip = sign_flip_p(pm)
-    if np.all(pm == pm[0]):  # every prompt moved alike: the exact sign-flip p over the prompts
+    if np.all(pm == pm[0]):  # every prompt moved alike: the exact sign-flip p (no t: its se is 0)
         p, lo, hi = flip, mean, mean
     else:
         p = float(2 * t.sf(abs(mean) / se))
         lo, hi = mean - t.ppf(0.975) * se, mean + t.ppf(0.975) * se
     return nan | {"prompt_mean_diff": mean, "prompt_ci_low": float(lo), "prompt_ci_high": float(hi),
-                  "p_prompts": p if test == "t" else flip, "p_prompts_t": p, "p_prompts_signflip": flip,
+                  "p_prompts": p if test == "t" else flip, "p_prompts_signflip": flip,
+                  "p_prompts_t": math.nan if np.all(pm == pm[0]) else p,
                   "p_prompts_equivalence": equivalence_p(pm, margin) if margin == margin else math.nan}  # fmt: skip
 
 
@@ -491,10 +492,11 @@ def sign_flip_p(x: np.ndarray, *, seed: int = 0) -> float:
         return 1.0
     a = np.abs(x)
     if a.size > SIGN_FLIP_EXACT_UP_TO:
-        rng = np.random.default_rng(seed)
-        n = 2**20
-        s = np.abs((rng.integers(0, 2, (n, a.size)) * 2 - 1) @ a)
-        return float(((s >= obs - tol).sum() + 1) / (n + 1))
+        rng, n, k, chunk = np.random.default_rng(seed), 2**20, 0, 2**14
+        for _ in range(n // chunk):  # in chunks: a 2^20 x G sign matrix at once would take GBs
+            signs = rng.integers(0, 2, (chunk, a.size), dtype=np.int8) * 2 - 1
+            k += int((np.abs(signs @ a) >= obs - tol).sum())
+        return float((k + 1) / (n + 1))
 
     def sums(v: np.ndarray) -> np.ndarray:
         out = np.zeros(1)

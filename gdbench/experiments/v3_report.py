@@ -91,6 +91,9 @@ def design(rows: list[dict], results: Path) -> dict:
             keys, d = pairs(rows, g, s, c.a, c.b, c.metric)
             if not keys and g == "learned-v4":  # the pilot ran only gd and gd-no-sn at four views
                 keys, d = pairs(rows, "learned-v1", s, c.a, c.b, c.metric)
+            if not keys and name == "primary":
+                raise SystemExit(f"design: no pilot pair of {c.metric} for {c.a} vs {c.b} in {g} / {s}: the primary "
+                                 "outcome needs the raters' labels (--labels)")  # fmt: skip
             comp = components(keys, d)
             eff = effect_for(g, c.a, c.b, c.metric)
             need = seeds_for_power(eff, comp["between"], comp["within"], G, alpha, rules["power"], rules["most_seeds"])
@@ -189,8 +192,10 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
         for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN + METRIC_MAIN):
             s = share_kept(sel, control, metric)
             shares.append({"group": group, "control": control, "metric": metric} | s)
+            interval = (f"[{_f(s['low'])}, {_f(s['high'])}]" if not s["flipped"] else
+                        f"[unbounded: {s['flipped']} of 10,000 resamples give gd's effect the other sign]")  # fmt: skip
             lines.append(f"- {group}: {control} gives {_f(s['share'])} of gd's effect on {metric} "
-                         f"[{_f(s['low'])}, {_f(s['high'])}] ({s['prompts']} prompts; gd's effect "
+                         f"{interval} ({s['prompts']} prompts; gd's effect "
                          f"{_f(s.get('effect', math.nan))}, the control's {_f(s.get('kept', math.nan))}).")  # fmt: skip
     write_csv(shares, results / "shares.csv")
     table = readme_table(verdicts)

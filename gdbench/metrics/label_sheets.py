@@ -105,7 +105,8 @@ def main(argv=None) -> int:
 
 def unblind(labels: Path, key: Path, to: Path) -> list[dict]:
     """A rater's labels by sheet number (``number``, ``label`` and any other columns) as labels by
-    run id, through the sheets' ``key``; every number must be in the key, and none twice."""
+    run id, through the sheets' ``key``; every number must be in the key, none twice, and every
+    number of the key labelled."""
     from gdbench.core.io import write_csv
     from gdbench.metrics.agreement import LABELS
 
@@ -120,8 +121,12 @@ def unblind(labels: Path, key: Path, to: Path) -> list[dict]:
         seen.add(n)
         k = keys[n]
         rest = {c: v for c, v in r.items() if c not in ("number", "label")}
-        rows.append({"run_id": k["run_id"], "label": r["label"].strip(), "caption": k["caption"], "sheet_number": n}
-                    | rest)  # fmt: skip
+        rows.append(rest | {"run_id": k["run_id"], "label": r["label"].strip(), "caption": k["caption"],
+                            "sheet_number": n})  # fmt: skip
+    missing = sorted(set(keys) - seen, key=int)
+    if missing:
+        raise ValueError(f"labels: {labels} labels no result numbered {', '.join(missing[:10])}"
+                         f"{' ...' * (len(missing) > 10)} ({len(missing)} of the key's {len(keys)})")  # fmt: skip
     write_csv(rows, to)
     return rows
 
