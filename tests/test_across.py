@@ -166,7 +166,7 @@ def test_design_applies_the_pre_stated_rules(tmp_path, monkeypatch):
     """The pilot's rules by hand: a four-view group that lowers both arms by 0.2 is swept, an
     instance baseline under the margin is not, a COLMAP baseline above it is; the seeds are the
     fewest that power every main claim (checked against ``power`` itself)."""
-    from gdbench.experiments import v3
+    from gdbench.experiments import v3_design as v3
     from gdbench.experiments.across import power
     from gdbench.experiments.v3_report import design
 
@@ -209,7 +209,7 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
     """The report's across-prompts row equals the mean of the per-prompt means with the exact
     sign-flip p; a prompt built to go the other way beyond the margin is named; one forest plot per
     main claim is drawn with a row per prompt."""
-    from gdbench.experiments import v3
+    from gdbench.experiments import v3_design as v3
     from gdbench.experiments.claims import sign_flip_p
     from gdbench.experiments.v3_report import report
 
@@ -241,7 +241,7 @@ def test_registration_precedes_in_git_history():
     import subprocess
     from pathlib import Path
 
-    from gdbench.experiments.v3 import precedes
+    from gdbench.experiments.v3_design import precedes
 
     root = Path(__file__).resolve().parents[1]
     log = subprocess.run(["git", "-C", str(root), "log", "--format=%h", "-2"], capture_output=True, text=True)
@@ -257,7 +257,7 @@ def test_v3_prompts_follow_the_rule_and_the_sweep_waits_for_a_registration():
     ``v3.prompts``; the pilot's are every fourth; the sweep refuses to run before a design is
     registered, and a registered design gives its blocks."""
     from gdbench.assets.library import CAPTIONS, FRONTS
-    from gdbench.experiments import v3
+    from gdbench.experiments import v3_design as v3
     from gdbench.priors.learned.prior import model_captions
 
     known, held = model_captions("front")
@@ -265,8 +265,10 @@ def test_v3_prompts_follow_the_rule_and_the_sweep_waits_for_a_registration():
     assert v3.prompts() == want and len(want) >= 30 and "a hamburger" not in want
     assert v3.pilot_prompts() == want[::4] and not set(held) & set(want)
     if v3.REGISTERED is None:
+        from gdbench.experiments.v3 import main
+
         with pytest.raises(SystemExit, match="registered"):
-            v3.main(["sweep", "--out", "unused"])
+            main(["sweep", "--out", "unused"])
     blocks = v3.sweep_blocks({"v4": True, "instance": False, "colmap": True, "seeds": 3})
     assert [(b.name, b.groups) for b in blocks] == [
         ("janus", ["learned-v1", "learned-v4"]),
@@ -282,7 +284,7 @@ def test_raters_labels_unblinded_and_attached_as_shares(tmp_path):
     left out gets none."""
     import json
 
-    from gdbench.experiments.v3 import attach_labels
+    from gdbench.experiments.v3_design import attach_labels
     from gdbench.metrics.label_sheets import unblind
 
     key = {str(n): {"run_id": f"r{n}", "run": f"/x/{n}", "caption": "a corgi"} for n in (1, 2, 3)}

@@ -1,8 +1,8 @@
 """The v3 experiment's design (from its pilot) and report (from its sweep): docs/decisive_v3.md.
 
-``design`` applies ``v3.DESIGN_RULES`` to the pilot's cells and writes design.json, power.csv and
+``design`` applies ``v3_design.DESIGN_RULES`` to the pilot's cells and writes design.json, power.csv and
 design.md; ``report`` writes the verdict with the prompt as the unit first (exact sign-flip p,
-Holm over ``v3.claims()``; t intervals), the pooled pairs second, a forest plot per main claim,
+Holm over ``v3_design.claims()``; t intervals), the pooled pairs second, a forest plot per main claim,
 the share of gd's effect each control keeps, the prompts that go the other way, and checks that
 the pre-registration's commit precedes every cell's.
 """
@@ -41,7 +41,7 @@ def _t_mean(x: np.ndarray) -> tuple[float, float, float]:
 
 def across_groups(rows: list[dict], preset: str, metric: str, g1: str, g2: str, setting: str) -> dict:
     """``metric`` of ``preset`` in group ``g2`` minus in ``g1`` at the same (prompt, seed): mean and
-    95% t interval (the four-view rule of ``v3.DESIGN_RULES``)."""
+    95% t interval (the four-view rule of ``v3_design.DESIGN_RULES``)."""
 
     def of(g: str) -> dict:
         sel = [r for r in rows if (r.get("group"), r.get("setting"), r["preset"]) == (g, setting, preset)]
@@ -54,11 +54,11 @@ def across_groups(rows: list[dict], preset: str, metric: str, g1: str, g2: str, 
 
 
 def design(rows: list[dict], results: Path) -> dict:
-    """The sweep's design from the pilot's cells by ``v3.DESIGN_RULES`` (module docstring)."""
+    """The sweep's design from the pilot's cells by ``v3_design.DESIGN_RULES`` (module docstring)."""
     from gdbench.core.io import write_csv, write_json
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.across import components, detectable, power, seeds_for_power
-    from gdbench.experiments.v3 import DESIGN_RULES, METRIC_MAIN, claims, effect_for, prompts
+    from gdbench.experiments.v3_design import DESIGN_RULES, METRIC_MAIN, claims, effect_for, prompts
 
     if not rows:
         raise SystemExit("design: no finished pilot cell (run the pilot stage first)")
@@ -135,7 +135,7 @@ def design(rows: list[dict], results: Path) -> dict:
 
 ARMS_OF = {"janus": ("gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked"), "instance": ("gd", "gd-no-sn"),
            "easy": ("gd", "gd-no-sn", "sjc-gs")}  # fmt: skip
-"""The presets each setting's block runs (``v3.pilot_blocks``, ``v3.sweep_blocks``)."""
+"""The presets each setting's block runs (``v3_design.pilot_blocks``, ``v3_design.sweep_blocks``)."""
 
 
 def _f(x, digits: int = 2) -> str:
@@ -164,7 +164,7 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
     from gdbench.experiments.across import forest, share_kept
     from gdbench.experiments.claims import label
     from gdbench.experiments.tables import tables
-    from gdbench.experiments.v3 import MAIN, METRIC_MAIN, claims, precedes, prereg_commit
+    from gdbench.experiments.v3_design import MAIN, METRIC_MAIN, claims, precedes, prereg_commit
 
     if not rows:
         raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
