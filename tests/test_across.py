@@ -316,3 +316,37 @@ def test_raters_labels_unblinded_and_attached_as_shares(tmp_path):
     bad.write_text("number,label\n1,face\n")
     with pytest.raises(ValueError, match="'face'"):
         unblind(bad, tmp_path / "key.json", tmp_path / "x.csv")
+
+
+def test_raters_who_disagree_leave_the_primary_verdicts_undecided(tmp_path, monkeypatch):
+    """The registered rule: raters who agree at kappa < 0.4 on the Janus split make every primary
+    verdict 'undecided (the raters disagree)' however strong its p; raters who agree leave it. The
+    kappa is Cohen's, checked here against its formula on the two label lists."""
+    import csv
+
+    from gdbench.experiments import v3_design
+    from gdbench.experiments.v3_design import attach_labels, raters_kappa
+    from gdbench.experiments.v3_report import report
+
+    monkeypatch.setattr(v3_design, "prereg_commit", lambda root=None: None)
+    rng = np.random.default_rng(6)
+    rows = _cells({"gd": -0.4, "gd-no-sn": 0.0, "gd-redraw-step": 0.0, "gd-pose-locked": 0.0}, 10, [0, 1, 2], rng)
+    for i, r in enumerate(rows):
+        r["run_id"] = f"r{i}"
+    truth = ["front_everywhere" if r["janus_rate"] > 0.5 else "blob" for r in rows]  # gd mostly not Janus
+    noise = [str(rng.choice(["front_everywhere", "blob"])) for _ in rows]
+    for name, labels in (("a", truth), ("same", truth), ("random", noise)):
+        with open(tmp_path / f"{name}.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["run_id", "label"])
+            w.writerows((r["run_id"], lab) for r, lab in zip(rows, labels))
+    ids = {r["run_id"] for r in rows}
+    k = raters_kappa([tmp_path / "a.csv", tmp_path / "random.csv"], ids)["kappa_janus"]
+    ja, jb = np.array([t == "front_everywhere" for t in truth]), np.array([t == "front_everywhere" for t in noise])
+    pe = ja.mean() * jb.mean() + (1 - ja.mean()) * (1 - jb.mean())
+    assert k == pytest.approx(((ja == jb).mean() - pe) / (1 - pe)) and k < 0.4
+    for other, want in (("same", "holds"), ("random", "undecided (the raters disagree)")):
+        files = [tmp_path / "a.csv", tmp_path / f"{other}.csv"]
+        got = report(attach_labels(rows, files), tmp_path, tmp_path / other, files)
+        primary = [v for v in got["verdicts"] if v["family"] == "primary"]
+        assert len(primary) == 3 and all(v["verdict_prompts"] == want for v in primary), other

@@ -74,15 +74,15 @@ def main(argv=None) -> int:
     elif a.stage == "sweep":
         if REGISTERED is None:
             raise SystemExit(
-                "sweep: no design is registered yet (REGISTERED in gdbench/experiments/v3_design.py): run the pilot and "
-                "the design stage, then commit the pre-registration (docs/decisive_v3.md)"
+                "sweep: no design is registered yet (REGISTERED in gdbench/experiments/v3_design.py): run the "
+                "pilot and the design stage, then commit the pre-registration (docs/decisive_v3.md)"
             )
         seeds = list(range(REGISTERED["seeds"]))
         run_blocks(sweep_blocks(REGISTERED), seeds, a.out, a, a.rounds or len(seeds))
     else:
         from gdbench.experiments.v3_report import report
 
-        report(attach_labels(collect(a.out), a.labels), a.out, a.results)
+        report(attach_labels(collect(a.out), a.labels), a.out, a.results, a.labels)
     return 0
 
 

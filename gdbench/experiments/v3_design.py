@@ -82,6 +82,30 @@ def claims() -> dict[str, tuple]:
     }
 
 
+RATERS_MIN_KAPPA = 0.4
+"""Registered: below this Cohen's kappa between the two raters on the Janus split (over the sweep's
+labelled results), every primary verdict reads "undecided (the raters disagree)"."""
+
+
+def raters_kappa(files: list, run_ids: set) -> dict:
+    """Cohen's kappa between the first two label ``files`` on the Janus split (front_everywhere or
+    second_face against the rest) and over the four classes, over the ``run_ids`` both label."""
+    import csv
+
+    from gdbench.metrics.agreement import cohen_kappa
+
+    if len(files) < 2:
+        return {"results": 0, "kappa_janus": float("nan"), "kappa_classes": float("nan")}
+    a, b = ({r["run_id"]: r["label"].strip() for r in csv.DictReader(open(f))} for f in files[:2])
+    ids = sorted(set(a) & set(b) & set(run_ids))
+    if not ids:
+        return {"results": 0, "kappa_janus": float("nan"), "kappa_classes": float("nan")}
+    janus = ("front_everywhere", "second_face")
+    ja, jb = ([str(x[i] in janus) for i in ids] for x in (a, b))
+    return {"results": len(ids), "kappa_janus": cohen_kappa(ja, jb, labels=("True", "False")),
+            "kappa_classes": cohen_kappa([a[i] for i in ids], [b[i] for i in ids])}  # fmt: skip
+
+
 def attach_labels(rows: list[dict], files: list) -> list[dict]:
     """``rows`` with ``label_janus`` and ``label_failure`` (the share of the label ``files`` that
     call the result Janus, or not fine) where every file labels the row's run id; files are

@@ -155,8 +155,10 @@ def against(keys: list[tuple], d: np.ndarray, overall: float, margin: float) -> 
     return out
 
 
-def report(rows: list[dict], out: Path, results: Path) -> dict:
-    """Tables, forest plots, the controls' shares and report.md (module docstring)."""
+def report(rows: list[dict], out: Path, results: Path, labels: list | None = None) -> dict:
+    """Tables, forest plots, the controls' shares and report.md (module docstring); ``labels``: the
+    raters' files, whose agreement decides whether the primary verdicts can be read
+    (``v3_design.RATERS_MIN_KAPPA``)."""
     import itertools
 
     from gdbench.core.io import write_csv, write_json
@@ -164,7 +166,15 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
     from gdbench.experiments.across import forest, share_kept
     from gdbench.experiments.claims import label
     from gdbench.experiments.tables import tables
-    from gdbench.experiments.v3_design import MAIN, METRIC_MAIN, claims, precedes, prereg_commit
+    from gdbench.experiments.v3_design import (
+        MAIN,
+        METRIC_MAIN,
+        RATERS_MIN_KAPPA,
+        claims,
+        precedes,
+        prereg_commit,
+        raters_kappa,
+    )
 
     if not rows:
         raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
@@ -172,6 +182,12 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
     import csv
 
     verdicts = list(csv.DictReader(open(paths["verdict_csv"])))
+    raters = raters_kappa(list(labels or []), {r.get("run_id") for r in rows if r.get("setting") == "janus"})
+    if raters["kappa_janus"] == raters["kappa_janus"] and raters["kappa_janus"] < RATERS_MIN_KAPPA:
+        for v in verdicts:  # the registered rule: an outcome people do not agree on decides nothing
+            if v.get("family") == "primary" and v["verdict"] != "not measured":
+                v["verdict"] = v["verdict_prompts"] = "undecided (the raters disagree)"
+        write_csv(verdicts, paths["verdict_csv"])
     reg = prereg_commit()
     commits = sorted({str(r.get("train_commit")) for r in rows})
     before = {c: (precedes(reg, c) if reg else None) for c in commits}
@@ -205,14 +221,18 @@ def report(rows: list[dict], out: Path, results: Path) -> dict:
           f"Pre-registration: {reg or 'not found'}; cells trained at {', '.join(commits)}; "
           f"the registration precedes every cell: {all(before.values()) if reg else 'n/a'}; tables "
           f"at {code_commit()}; {hours:.1f} hours of cell time.", "",
+          f"Raters: Cohen's kappa {_f(raters['kappa_janus'])} on the Janus split, {_f(raters['kappa_classes'])} over "
+          f"the four classes, on {raters['results']} results (the primary verdicts are read at "
+          f"{RATERS_MIN_KAPPA} or more).", "",
           "## Across prompts first, then the pooled pairs", "", table, "",
           "## The controls: the share of gd's effect each keeps", "", *lines, "",
           "## Prompts beyond the margin on the other side", "",
           *[f"- {label(v)}, {v['a']} vs {v['b']}: {v.get('against', 'none')}" for v in verdicts if "against" in v],
           "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), ""]  # fmt: skip
     (results / "report.md").write_text("\n".join(md))
-    write_json({"prereg_commit": reg, "train_commits": commits, "prereg_precedes": before, "cells": len(rows),
-                "cell_hours": hours, "tables_commit": code_commit()}, results / "provenance.json")  # fmt: skip
+    prov = {"raters": raters, "prereg_commit": reg, "train_commits": commits, "prereg_precedes": before,
+            "cells": len(rows), "cell_hours": hours, "tables_commit": code_commit()}  # fmt: skip
+    write_json(prov, results / "provenance.json")
     print(f"report: {len(rows)} cells -> {results / 'report.md'}")
     return {"verdicts": verdicts, "shares": shares, "forests": forests}
 
