@@ -36,6 +36,18 @@ def components(keys: list[tuple], d: np.ndarray) -> dict:
             "within": within, "between": between}  # fmt: skip
 
 
+def t_interval(x: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
+    """Mean of ``x`` and its two-sided t interval ((mean, NaN, NaN) below two values)."""
+    from scipy import stats
+
+    x = np.asarray(x, dtype=np.float64)
+    if x.size < 2:
+        return (float(x.mean()) if x.size else math.nan), math.nan, math.nan
+    m, se = float(x.mean()), float(x.std(ddof=1)) / math.sqrt(x.size)
+    h = float(stats.t.ppf(0.5 + level / 2, x.size - 1)) * se
+    return m, m - h, m + h
+
+
 def power(effect: float, between: float, within: float, prompts: int, seeds: int, alpha: float) -> float:
     """Power of the two-sided paired t test over ``prompts`` per-prompt means (each of ``seeds``
     pairs) at level ``alpha`` against a true mean difference ``effect`` (noncentral t)."""
@@ -118,7 +130,6 @@ def forest(keys: list[tuple], d: np.ndarray, *, title: str, margin: float, path,
     over the seeds with a 95% t interval over them (none with one seed), and the across-prompts
     mean with its interval at the bottom (``pooled``: ``prompt_mean_diff``, ``prompt_ci_low``,
     ``prompt_ci_high``); 0 and the margin drawn."""
-    from scipy import stats
 
     from gdbench.core.plotting import pyplot, save
 
@@ -126,11 +137,9 @@ def forest(keys: list[tuple], d: np.ndarray, *, title: str, margin: float, path,
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 1.2 + 0.22 * (len(per) + 2)))
     for i, (_prompt, v) in enumerate(per):
-        v = np.asarray(v)
-        m = float(v.mean())
-        if v.size > 1 and v.std(ddof=1) > 0:
-            h = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size))
-            ax.plot([m - h, m + h], [i, i], color="0.45", lw=1.2)
+        m, lo, hi = t_interval(v)
+        if hi > lo:
+            ax.plot([lo, hi], [i, i], color="0.45", lw=1.2)
         ax.plot([m], [i], "o", color="C0" if m < 0 else "C3", ms=4)
     labels = [f"{p} ({len(v)})" for p, v in per]
     if pooled is not None and pooled.get("prompt_mean_diff") == pooled.get("prompt_mean_diff"):

@@ -373,6 +373,17 @@ def label(row: dict) -> str:
     return f"{group} / {setting}" if group else setting
 
 
+def by_pair(rows: list[dict], preset: str, metric: str) -> dict[tuple, float]:
+    """``metric`` of each ``preset`` cell of ``rows`` by its (prompt, seed) pair (NaN where missing)."""
+    return {(r["prompt"], r["seed"]): num(r.get(metric)) for r in rows if r["preset"] == preset}
+
+
+def paired(va: dict, vb: dict) -> tuple[list, np.ndarray, np.ndarray]:
+    """The keys both ``va`` and ``vb`` hold with finite values (sorted) and the two arrays of values."""
+    keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
+    return keys, np.array([va[k] for k in keys], dtype=np.float64), np.array([vb[k] for k in keys], dtype=np.float64)
+
+
 def evaluate(rows: list[dict], claims=CLAIMS, prompt_test: str = "t") -> list[dict]:
     """One result per (group, setting, claim) whose two presets ran there (instance claims only
     where the prior held several variants); p-values Holm-adjusted across the claims a test
@@ -386,11 +397,8 @@ def evaluate(rows: list[dict], claims=CLAIMS, prompt_test: str = "t") -> list[di
         for c in claims:
             if not {c.a, c.b} <= ran or not _applies(c, sel, setting):
                 continue
-            va = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.a}
-            vb = {(r["prompt"], r["seed"]): num(r.get(c.metric)) for r in sel if r["preset"] == c.b}
-            keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
-            a = np.array([va[k] for k in keys], dtype=np.float64)
-            b = np.array([vb[k] for k in keys], dtype=np.float64)
+            va, vb = (by_pair(sel, preset, c.metric) for preset in (c.a, c.b))
+            keys, a, b = paired(va, vb)
             d = a - b
             lo, hi = bca_ci(d)
             margin, why = MARGINS.get(c.metric, (math.nan, "no margin stated"))

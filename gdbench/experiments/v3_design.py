@@ -90,18 +90,15 @@ labelled results), every primary verdict reads "undecided (the raters disagree)"
 def raters_kappa(files: list, run_ids: set) -> dict:
     """Cohen's kappa between the first two label ``files`` on the Janus split (front_everywhere or
     second_face against the rest) and over the four classes, over the ``run_ids`` both label."""
-    import csv
-
-    from gdbench.metrics.agreement import cohen_kappa
+    from gdbench.metrics.agreement import JANUS, cohen_kappa, read_labels
 
     if len(files) < 2:
         return {"results": 0, "kappa_janus": float("nan"), "kappa_classes": float("nan")}
-    a, b = ({r["run_id"]: r["label"].strip() for r in csv.DictReader(open(f))} for f in files[:2])
+    a, b = ({r["run_id"]: r["label"] for r in read_labels(f)} for f in files[:2])
     ids = sorted(set(a) & set(b) & set(run_ids))
     if not ids:
         return {"results": 0, "kappa_janus": float("nan"), "kappa_classes": float("nan")}
-    janus = ("front_everywhere", "second_face")
-    ja, jb = ([str(x[i] in janus) for i in ids] for x in (a, b))
+    ja, jb = ([str(x[i] in JANUS) for i in ids] for x in (a, b))
     return {"results": len(ids), "kappa_janus": cohen_kappa(ja, jb, labels=("True", "False")),
             "kappa_classes": cohen_kappa([a[i] for i in ids], [b[i] for i in ids])}  # fmt: skip
 
@@ -110,22 +107,14 @@ def attach_labels(rows: list[dict], files: list) -> list[dict]:
     """``rows`` with ``label_janus`` and ``label_failure`` (the share of the label ``files`` that
     call the result Janus, or not fine) where every file labels the row's run id; files are
     labels by run id (``gdbench.metrics.label_sheets --unblind``)."""
-    import csv
+    from gdbench.metrics.agreement import JANUS, read_labels
 
-    from gdbench.metrics.agreement import LABELS
-
-    raters = []
-    for f in files:
-        labels = {r["run_id"]: r["label"].strip() for r in csv.DictReader(open(f))}
-        bad = sorted({v for v in labels.values() if v not in LABELS})
-        if bad:
-            raise ValueError(f"labels: {f} has labels {bad}; expected one of {LABELS}")
-        raters.append(labels)
+    raters = [{r["run_id"]: r["label"] for r in read_labels(f)} for f in files]
     out = []
     for r in rows:
         got = [lab.get(r.get("run_id")) for lab in raters]
         if raters and all(got):
-            r = r | {"label_janus": sum(g in ("front_everywhere", "second_face") for g in got) / len(got),
+            r = r | {"label_janus": sum(g in JANUS for g in got) / len(got),
                      "label_failure": sum(g != "fine" for g in got) / len(got)}  # fmt: skip
         out.append(r)
     return out

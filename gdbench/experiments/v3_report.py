@@ -19,37 +19,25 @@ from gdbench.core.io import num
 
 def pairs(rows: list[dict], group: str, setting: str, a: str, b: str, metric: str) -> tuple[list[tuple], np.ndarray]:
     """The (prompt, seed) keys both presets ran in (group, setting) with ``metric`` finite in both,
-    and the differences a - b (the pairing ``claims.evaluate`` uses)."""
-    from gdbench.experiments.claims import where
+    and the differences a - b (``claims.evaluate``'s pairing)."""
+    from gdbench.experiments.claims import by_pair, paired, where
 
     sel = [r for r in rows if where(r) == (group, setting)]
-    va = {(r["prompt"], r["seed"]): num(r.get(metric)) for r in sel if r["preset"] == a}
-    vb = {(r["prompt"], r["seed"]): num(r.get(metric)) for r in sel if r["preset"] == b}
-    keys = sorted(k for k in set(va) & set(vb) if va[k] == va[k] and vb[k] == vb[k])
-    return keys, np.array([va[k] - vb[k] for k in keys], dtype=np.float64)
-
-
-def _t_mean(x: np.ndarray) -> tuple[float, float, float]:
-    from scipy import stats
-
-    if x.size < 2:
-        return (float(x.mean()) if x.size else math.nan), math.nan, math.nan
-    m, se = float(x.mean()), float(x.std(ddof=1)) / math.sqrt(x.size)
-    h = float(stats.t.ppf(0.975, x.size - 1)) * se
-    return m, m - h, m + h
+    keys, va, vb = paired(by_pair(sel, a, metric), by_pair(sel, b, metric))
+    return keys, va - vb
 
 
 def across_groups(rows: list[dict], preset: str, metric: str, g1: str, g2: str, setting: str) -> dict:
     """``metric`` of ``preset`` in group ``g2`` minus in ``g1`` at the same (prompt, seed): mean and
     95% t interval (the four-view rule of ``v3_design.DESIGN_RULES``)."""
+    from gdbench.experiments.across import t_interval
+    from gdbench.experiments.claims import by_pair, paired
 
     def of(g: str) -> dict:
-        sel = [r for r in rows if (r.get("group"), r.get("setting"), r["preset"]) == (g, setting, preset)]
-        return {(r["prompt"], r["seed"]): num(r.get(metric)) for r in sel}
+        return by_pair([r for r in rows if (r.get("group"), r.get("setting")) == (g, setting)], preset, metric)
 
-    v = {g1: of(g1), g2: of(g2)}
-    keys = sorted(k for k in set(v[g1]) & set(v[g2]) if v[g1][k] == v[g1][k] and v[g2][k] == v[g2][k])
-    m, lo, hi = _t_mean(np.array([v[g2][k] - v[g1][k] for k in keys], dtype=np.float64))
+    keys, v1, v2 = paired(of(g1), of(g2))
+    m, lo, hi = t_interval(v2 - v1)
     return {"preset": preset, "pairs": len(keys), "mean": m, "low": lo, "high": hi}
 
 
