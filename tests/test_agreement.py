@@ -118,3 +118,9 @@ def test_the_v3_label_files_pair_up_by_batch():
         assert set().union(*again) == ids["A"] | ids["B"]
     else:
         assert set().union(*again) < ids["A"] | ids["B"]
+    # the files the report reads: each pass's batches C-F, every Janus result of the sweep once
+    for p in (1, 2):
+        whole = read_labels(root / f"v3_rater{p}.csv")
+        parts = [r for b in "CDEF" for r in read_labels(root / f"v3_rater{p}_{b}.csv")]
+        assert [(r["run_id"], r["label"]) for r in whole] == [(r["run_id"], r["label"]) for r in parts]
+        assert len({r["run_id"] for r in whole}) == len(whole) == 620
