@@ -1,8 +1,8 @@
 """Carry a long sweep's finished cells from one sitting to the next.
 
-    python scripts/carry_cells.py pack runs/v3 docs/results/v3/carry/cells.tar.xz
-    python scripts/carry_cells.py unpack docs/results/v3/carry/cells.tar.xz runs/v3
-    PYTHONPATH=<clone at the sweep's commit> python scripts/carry_cells.py resume runs/v3
+    python scripts/carry_cells.py pack /work/runs/v3 docs/results/v3/carry/cells.tar.xz
+    python scripts/carry_cells.py unpack docs/results/v3/carry/cells.tar.xz /work/runs/v3
+    PYTHONPATH=<clone at the sweep's commit> python scripts/carry_cells.py resume /work/runs/v3
 
 A sitting's machine keeps only what is committed; a sweep's run folders (turntables, checkpoints:
 about 0.7 MB a cell) are too large to commit, its cells' results are not. ``pack`` stores each
