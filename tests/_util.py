@@ -278,3 +278,22 @@ def option_helps(command: str, prior: str = "empirical") -> dict[str, str]:
         else:
             name = None
     return helps
+
+
+TINY_CELL = {"resolution": 16, "init_points": 150, "checkpoint_every": 2, "turntable_frames": 2}
+"""A sweep cell's overrides that train and score in seconds."""
+
+
+def script(name: str):
+    """scripts/<name>.py as a module (registered in sys.modules as gdbench_script_<name>, where
+    dataclasses look their module up)."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"gdbench_script_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault(spec.name, module)
+    spec.loader.exec_module(module)
+    return module

@@ -10,6 +10,7 @@ import torch
 
 from gdbench.bench.common import random_cloud, timeit
 from gdbench.refcheck import bm_render
+from tests._util import script
 
 
 def test_quick_sweep_writes_rows_summary_and_plot(tmp_path):
@@ -290,16 +291,11 @@ def test_train_benchmark_says_why_it_has_no_kernel_floor(monkeypatch):
 
 
 def test_cell_kernels_script_counts_a_cells_steps_kernels(tmp_path):
-    import importlib.util
-    from pathlib import Path
 
     from ._util import require_cpp
 
     require_cpp()
-    path = Path(__file__).parents[1] / "scripts" / "cell_kernels.py"
-    spec = importlib.util.spec_from_file_location("cell_kernels", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = script("cell_kernels")
     out = tmp_path / "ck.csv"
     assert module.main(["--rounds", "1", "--steps", "3", "--out", str(out)]) == 0
     rows = {r["kernel"]: r for r in csv.DictReader(out.open())}
@@ -463,15 +459,11 @@ def test_paired_runs_script_reads_scores_and_gives_the_t_interval(tmp_path):
     """scripts/paired_runs.py (the paired quality checks): per-seed differences read from two sets
     of scores.json, and the mean's 95% interval equal to scipy's one-sample t interval."""
     import csv
-    import importlib.util
     import json
-    from pathlib import Path
 
     from scipy.stats import ttest_1samp
 
-    spec = importlib.util.spec_from_file_location("paired", Path(__file__).parents[1] / "scripts" / "paired_runs.py")
-    paired = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(paired)
+    paired = script("paired_runs")
     psnr = {"a": [28.1, 29.0, 27.5, 28.8], "b": [28.4, 28.7, 27.9, 29.3]}
     for side, values in psnr.items():
         for s, p in enumerate(values):
@@ -566,15 +558,12 @@ def test_paired_quality_runs_both_checkouts_and_resumes(tmp_path):
     one checkout against itself gives the same bits at every seed (differences of zero, the check
     passes), the commit is recorded, and a second call runs nothing again."""
     import csv
-    import importlib.util
     import json
     import subprocess
     from pathlib import Path
 
     root = Path(__file__).parents[1]
-    spec = importlib.util.spec_from_file_location("pq", root / "scripts" / "paired_quality.py")
-    pq = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(pq)
+    pq = script("paired_quality")
     argv = ["--old", str(root), "--new", str(root), "--out", str(tmp_path), "--seeds", "0-1",
             "--priors", "empirical", "--steps", "30"]  # fmt: skip
     assert pq.main(argv) == 0

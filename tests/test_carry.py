@@ -2,32 +2,24 @@
 then finds each cell finished with the row it had (without figures), and asks for it again where
 the figures are wanted (the turntable GIF is not carried)."""
 
-import importlib.util
 import json
 import shutil
 import tarfile
-from pathlib import Path
 
 import pytest
 
 from gdbench.experiments.sweep import CellSpec, SweepConfig, _done, sweep
-
-TINY = {"resolution": 16, "init_points": 150, "checkpoint_every": 2, "turntable_frames": 2}
-
-
-def _carry():
-    spec = importlib.util.spec_from_file_location("carry", Path(__file__).parents[1] / "scripts" / "carry_cells.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from tests._util import TINY_CELL, script
 
 
 def test_packed_cells_come_back_finished_with_their_rows(tmp_path):
-    carry = _carry()
+    carry = script("carry_cells")
     out = tmp_path / "sweep"
-    cfg = SweepConfig(["a yellow duck"], ["gd"], [0], steps=4, out=out, colmap=False, overrides=TINY, progress=False)
+    cfg = SweepConfig(
+        ["a yellow duck"], ["gd"], [0], steps=4, out=out, colmap=False, overrides=TINY_CELL, progress=False
+    )
     (row,) = sweep(cfg)
-    spec = CellSpec("a yellow duck", "gd", 0, 4, str(out), colmap=False, overrides=TINY)
+    spec = CellSpec("a yellow duck", "gd", 0, 4, str(out), colmap=False, overrides=TINY_CELL)
     cell = json.loads((spec.dir / "cell.json").read_text())
     archive = tmp_path / "carry" / "cells.tar.xz"
     assert carry.pack(out, archive) == 1
@@ -45,7 +37,7 @@ def test_packed_cells_come_back_finished_with_their_rows(tmp_path):
 
 
 def test_unpack_refuses_paths_outside_the_sweep_folder(tmp_path):
-    carry = _carry()
+    carry = script("carry_cells")
     bad = tmp_path / "bad.tar.xz"
     (tmp_path / "x.json").write_text("{}")
     with tarfile.open(bad, "w:xz") as tar:

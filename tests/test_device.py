@@ -11,7 +11,7 @@ import torch
 from gdbench.core.devices import resolve_device
 from gdbench.priors.empirical import EmpiricalPrior
 from gdbench.train.run import run_id, train
-from tests._util import CAPTION, cli, one_line, tiny, tiny_bank
+from tests._util import CAPTION, TINY_CELL, cli, one_line, tiny, tiny_bank
 
 CUDA = torch.cuda.is_available()
 NO_CUDA = "needs a CUDA GPU (torch sees none)"
@@ -271,7 +271,7 @@ def test_a_two_cell_sweep_on_cuda(tmp_path):
     their GT PSNR is close to the same cells on the CPU (a few steps: within 1 dB)."""
     from gdbench.experiments.sweep import SweepConfig, sweep
 
-    tiny_cfg = {"resolution": 16, "init_points": 150, "checkpoint_every": 2, "turntable_frames": 2}
+    tiny_cfg = TINY_CELL
     rows = {}
     for dev in ("cpu", "cuda"):
         grid = SweepConfig(["a yellow duck"], ["gd", "sjc-gs"], [0], steps=4, out=tmp_path / dev, colmap=False,

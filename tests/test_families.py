@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from gdbench.assets.families import COLOURS, KINDS, WORLD, WORLD_FRONTS, Spec
+from tests._util import script
 
 
 def test_the_default_set_is_at_least_30_objects_of_10_kinds_with_compositional_captions():
@@ -66,17 +67,12 @@ def test_world_turntables_script_writes_a_sheet_per_family_and_the_table(tmp_pat
     """scripts/world_turntables.py on a two-cell sweep (a white duck and a blue duck, their sheets
     drawn here): one figure for the duck family, and a table whose rows are the cells' own values."""
     import csv
-    import importlib.util
-    from pathlib import Path
 
     import matplotlib.pyplot as plt
 
     from gdbench.experiments.sweep import cell_name
 
-    root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("world_turntables", root / "scripts" / "world_turntables.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = script("world_turntables")
     sweep = tmp_path / "sweep"
     fields = ["setting", "prompt", "preset", "seed", "gt_psnr", "gt_ssim", "multi_face_rate", "featureless_rate",
               "floaters", "turned_deg", "gaussians", "train_commit", "score_commit"]  # fmt: skip

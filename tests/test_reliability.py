@@ -15,7 +15,7 @@ from gdbench.core.signals import RunInterrupted
 from gdbench.priors.empirical import EmpiricalPrior
 from gdbench.train.densify import PARAM_NAMES
 from gdbench.train.run import train
-from tests._util import CAPTION, PACED_RUN, cli, one_line, tiny, tiny_bank
+from tests._util import CAPTION, PACED_RUN, cli, one_line, script, tiny, tiny_bank
 
 
 @pytest.fixture(scope="module")
@@ -650,14 +650,10 @@ def test_compositor_loads_the_built_library_directly_and_ignores_stale_locks(tmp
 def test_every_listed_mutation_applies_to_the_current_code():
     """`make mutants` applies each mutation to a copy; a snippet the code no longer holds (or
     holds twice) would make the mutant meaningless, so the list must follow the code."""
-    import importlib.util
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("gdbench_mutants", root / "scripts" / "mutants.py")
-    mutants = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("gdbench_mutants", mutants)  # dataclasses look their module up there
-    spec.loader.exec_module(mutants)
+    mutants = script("mutants")  # registered in sys.modules: dataclasses look their module up there
     assert len(mutants.MUTATIONS) >= 16
     for m in mutants.MUTATIONS:
         text = (root / m.file).read_text()

@@ -18,9 +18,10 @@ from gdbench.app.cmd_sweep import Sweep
 from gdbench.experiments.sweep import CellSpec, SweepConfig, cell_config, run_cell, sweep
 from gdbench.metrics.run_scores import score_run
 from gdbench.train.run import train
+from tests._util import TINY_CELL
 
 PROMPT = "a yellow duck"
-TINY = {"resolution": 16, "init_points": 150, "checkpoint_every": 2, "turntable_frames": 2}
+TINY = TINY_CELL
 
 
 def _read_csv(path):
