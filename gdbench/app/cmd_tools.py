@@ -114,6 +114,9 @@ class TrainPrior:
     """torch CPU threads (0: torch's default); a result reproduces for one thread count."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Where the model trains (auto: CUDA when present)."""
+    data_workers: Annotated[int, AtLeast(1)] = 1
+    """Processes rendering the data on first use, each its own part (the same data whatever the
+    count; with PYOPENGL_PLATFORM=egl on a GPU machine they render on the GPU)."""
     progress: bool = True
     """Report progress (a bar on a terminal, a line every few seconds in a log)."""
     widths: Annotated[tuple[int, ...], AtLeast(8)] = (64, 96, 128)
@@ -137,14 +140,14 @@ def run_train_prior(cmd: TrainPrior) -> dict:
     if cmd.catalogue == "world":
         cfg = world_config(
             out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
-            threads=cmd.threads, device=cmd.device, progress=cmd.progress,
+            threads=cmd.threads, device=cmd.device, data_workers=cmd.data_workers, progress=cmd.progress,
             unet={"size": cmd.size, "widths": tuple(cmd.widths), "emb": cmd.emb},
             data={"views": cmd.views, "resolution": cmd.resolution},
         )  # fmt: skip
         return train_prior(cfg, stop_at=cmd.stop_at)
     cfg = PriorTrainConfig(
         out=cmd.out, front_bias=cmd.front_bias, steps=cmd.steps, batch=cmd.batch, lr=cmd.lr, seed=cmd.seed,
-        threads=cmd.threads, device=cmd.device, progress=cmd.progress,
+        threads=cmd.threads, device=cmd.device, data_workers=cmd.data_workers, progress=cmd.progress,
         unet=UNetConfig(size=cmd.size, widths=tuple(cmd.widths), emb=cmd.emb),
         data=DataConfig(views=cmd.views, resolution=cmd.resolution),
     )  # fmt: skip

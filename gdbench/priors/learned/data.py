@@ -116,19 +116,51 @@ def data_key(config: DataConfig) -> str:
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def render_dataset(config: DataConfig, *, progress: bool = True, parts: Path | None = None) -> Dataset:
+FIELDS = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
+"""The arrays of a data set's .npz files (the whole set and its parts)."""
+
+
+def _save_part(path: Path, part: Dataset) -> None:
+    from gdbench.core.io import atomic_write
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda f: np.savez(f, **{k: getattr(part, k).numpy() for k in FIELDS}))
+
+
+def _render_part(job: tuple[DataConfig, str, int, Path]) -> int:
+    """A worker's job: one (caption, variant) part rendered and kept at its path."""
+    config, caption, variant, path = job
+    torch.set_num_threads(1)  # the workers share the cores
+    part = render_subset(config, caption, variant)
+    _save_part(path, part)
+    return len(part)
+
+
+def render_dataset(
+    config: DataConfig, *, progress: bool = True, parts: Path | None = None, workers: int = 1
+) -> Dataset:
     """Render the data set. Each (caption, variant) draws its cameras from its own generator, seeded
     from ``config.seed`` and its index, so a set is the same whatever renders first (and
     ``render_subset`` gives one part of it alone). With ``parts`` (a folder), each part is kept
-    there as it is rendered and read back instead of rendered again: an interrupted render resumes."""
+    there as it is rendered and read back instead of rendered again: an interrupted render resumes.
+    ``workers`` > 1 (with ``parts``) renders the missing parts in that many processes, each with its
+    own pyrender context: the same set, in about 1 / workers of the time where there are the cores
+    (or a GPU, with ``PYOPENGL_PLATFORM=egl``). The workers are spawned, so they import the caller's
+    main module: a script needs an ``if __name__ == "__main__":`` guard, and one read from stdin
+    cannot use them."""
     from gdbench.assets.library import VARIANTS
 
+    if workers < 1:
+        raise ValueError(f"workers: expected an int >= 1, got {workers}")
+    if workers > 1 and parts is None:
+        raise ValueError("workers: rendering in several processes needs a parts folder (parts=...)")
     caps = captions(config)
     from gdbench.core.progress import progress as progress_bar
 
     total = len(caps) * VARIANTS * config.views
     bar = progress_bar(total, "rendering the learned prior's data", "view", disable=not progress)
-    fields = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
+    pooled = _render_parts_in_pool(config, caps, parts, workers, bar) if workers > 1 else set()
+    fields = FIELDS
     done = []
     for c in caps:
         for v in range(VARIANTS):
@@ -137,21 +169,44 @@ def render_dataset(config: DataConfig, *, progress: bool = True, parts: Path | N
                 try:
                     with np.load(path) as z:
                         done.append(Dataset(**{k: torch.from_numpy(z[k]) for k in fields}, captions=caps))
-                    if bar is not None:
+                    if bar is not None and path not in pooled:  # the pool counted its own
                         bar.update(config.views)
                     continue
                 except Exception:  # an unreadable part is rendered again
                     pass
             part = render_subset(config, c, v, bar=bar)
             if path is not None:
-                from gdbench.core.io import atomic_write
-
-                path.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write(path, lambda f, p=part: np.savez(f, **{k: getattr(p, k).numpy() for k in fields}))
+                _save_part(path, part)
             done.append(part)
     if bar is not None:
         bar.close()
     return Dataset(**{k: torch.cat([getattr(p, k) for p in done]) for k in fields}, captions=caps)
+
+
+def _render_parts_in_pool(config: DataConfig, caps: tuple[str, ...], parts: Path, workers: int, bar) -> set[Path]:
+    """The parts not yet in ``parts`` rendered by a pool of ``workers`` processes (spawned: none
+    inherits the parent's GL state); the caller then reads every part back, in order. Each job's
+    views count on ``bar`` as it finishes; returns the paths rendered here (the caller does not
+    count them again)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from gdbench.assets.library import VARIANTS
+
+    jobs = [
+        (config, c, v, parts / f"{caps.index(c)}-{v}.npz")
+        for c in caps
+        for v in range(VARIANTS)
+        if not (parts / f"{caps.index(c)}-{v}.npz").is_file()
+    ]
+    if not jobs:
+        return set()
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as pool:
+        for fut in as_completed([pool.submit(_render_part, j) for j in jobs]):
+            n = fut.result()  # a worker's error is raised here, with the parts done so far kept
+            if bar is not None:
+                bar.update(n)
+    return {j[3] for j in jobs}
 
 
 def render_subset(config: DataConfig, caption: str, variant: int, *, bar=None) -> Dataset:
@@ -201,13 +256,14 @@ def render_subset(config: DataConfig, caption: str, variant: int, *, bar=None) -
     )
 
 
-def load_dataset(config: DataConfig | None = None, *, progress: bool = True) -> Dataset:
-    """The data set of ``config``, from the cache or rendered and cached atomically."""
+def load_dataset(config: DataConfig | None = None, *, progress: bool = True, workers: int = 1) -> Dataset:
+    """The data set of ``config``, from the cache or rendered (in ``workers`` processes) and cached
+    atomically."""
     from gdbench.core.io import atomic_write
 
     config = config or DataConfig()
     path = data_dir() / f"views-{data_key(config)}.npz"
-    fields = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
+    fields = FIELDS
     if path.is_file():
         try:
             with np.load(path) as z:
@@ -216,7 +272,7 @@ def load_dataset(config: DataConfig | None = None, *, progress: bool = True) -> 
             print(f"learned-prior data cache {path} unreadable ({type(e).__name__}); rebuilding")
     t0 = time.perf_counter()
     parts = data_dir() / f"parts-{data_key(config)}"
-    data = render_dataset(config, progress=progress, parts=parts)
+    data = render_dataset(config, progress=progress, parts=parts, workers=workers)
     print(f"rendered {len(data)} views at {config.resolution} px in {time.perf_counter() - t0:.0f} s -> {path}")
     try:
         atomic_write(path, lambda f: np.savez(f, **{k: getattr(data, k).numpy() for k in fields}))

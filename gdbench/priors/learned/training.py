@@ -67,6 +67,8 @@ class PriorTrainConfig:
     """torch CPU threads (0: torch's default). Results are reproducible for one thread count."""
     device: str = "auto"
     """'auto' (CUDA when present), 'cpu' or 'cuda'."""
+    data_workers: int = 1
+    """Processes rendering the data on first use (the same data whatever the count)."""
     checkpoint_every: int = 500
     log_every: int = 50
     progress: bool = True
@@ -85,6 +87,7 @@ class PriorTrainConfig:
             ("ema", 0 <= self.ema < 1, "a decay in [0, 1)"),
             ("front_bias", math.isfinite(self.front_bias) and self.front_bias >= 0, "kappa >= 0"),
             ("checkpoint_every", self.checkpoint_every >= 1, "an int >= 1"),
+            ("data_workers", self.data_workers >= 1, "an int >= 1"),
             ("log_every", self.log_every >= 1, "an int >= 1"),
             ("device", self.device in ("auto", "cpu", "cuda"), "'auto', 'cpu' or 'cuda'"),
         ]
@@ -117,7 +120,7 @@ class PriorTrainConfig:
         ``steps`` (a finished run can be extended; its cosine schedule then follows the new length
         from where it stands, so the result differs from a run made at that length at once)."""
         d = self.to_dict()
-        for k in ("out", "steps", "threads", "device", "checkpoint_every", "log_every", "progress"):
+        for k in ("out", "steps", "threads", "device", "data_workers", "checkpoint_every", "log_every", "progress"):
             d.pop(k)
         return d
 
@@ -224,7 +227,7 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
-    data = load_dataset(cfg.data, progress=cfg.progress)
+    data = load_dataset(cfg.data, progress=cfg.progress, workers=cfg.data_workers)
     images = to_model_images(data.images, cfg.unet.size)
     torch.manual_seed(cfg.seed)  # the initial weights (nn.Module initialises from the global generator)
     model = UNet(cfg.unet).to(device)
