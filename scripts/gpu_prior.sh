@@ -32,7 +32,7 @@ vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 
 stamp "EGL probe (8 views of the duck, kept for a comparison with the CPU's OSMesa renders)"
-python3 - "$P/egl_sample.npz" "$VIEWS" > "$P/probe.log" 2>&1 <<'PY' || { stamp "EGL probe failed"; cat "$P/probe.log"; exit 1; }
+python3 - "$P/egl_sample.npz" "$VIEWS" > "$P/probe.log" 2>&1 <<'PY' || stamp "EGL probe failed"
 import sys, time
 import numpy as np
 from gdbench.priors.learned.data import render_subset
@@ -44,6 +44,10 @@ print(f"EGL: {len(part)} views of the duck in {time.perf_counter() - t:.1f} s")
 np.savez(sys.argv[1], images=part.images[:8].numpy(), azimuth=part.azimuth[:8].numpy())
 PY
 cat "$P/probe.log"
+if [ ! -f "$P/egl_sample.npz" ]; then  # what the EGL loader saw
+  { ldconfig -p | grep -i -E 'libEGL|libOpenGL'; ls /usr/local/nvidia/share/glvnd/egl_vendor.d /usr/share/glvnd/egl_vendor.d; } 2>&1 | tee -a "$P/probe.log"
+  exit 1
+fi
 
 stamp "the world data ($VIEWS cameras per caption and variant, $WORKERS processes)"
 # a file, not stdin, with a main guard: the render's worker processes are spawned and import it

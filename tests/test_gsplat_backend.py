@@ -129,7 +129,24 @@ def _gsplat_on_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width,
     images = {"RGB": out.rgb, "ED": out.depth, "RGB+ED": torch.cat([out.rgb, out.depth], -1)}[render_mode]
     radii = out.radii if out.radii.dim() == 3 else out.radii[..., None].expand(*out.radii.shape, 2)
     unset = 1000.0 * (radii == 0).any(-1, keepdim=True)  # garbage where culled, as the CUDA kernel leaves it
-    return images, out.alpha, {"radii": radii, "means2d": out.means2d + unset}
+    out.means2d.data.add_(unset)  # in place: meta's means2d is, as gsplat's, the one the images came from
+    return images, out.alpha, {"radii": radii, "means2d": out.means2d}
+
+
+def _screen_gradients_agree(a, b, alpha_max):
+    """Densification's screen-space gradients: the backend's ``means2d`` keeps the gradient of a
+    loss of its images (it is the tensor they were rasterised from), equal to the torch path's on
+    the Gaussians both see."""
+    for r in (a, b):
+        r.means2d.retain_grad()
+    w = torch.linspace(0.5, 1.5, a.alpha.numel()).reshape(a.alpha.shape)
+    (a.alpha * w).sum().backward(retain_graph=True)
+    (b.alpha * w).sum().backward(retain_graph=True)
+    assert a.means2d.grad is not None, "the backend's means2d lies off the images' graph"
+    both = a.visible & b.visible
+    scale = float(b.means2d.grad[both].abs().max())
+    assert scale > 0
+    torch.testing.assert_close(a.means2d.grad[both], b.means2d.grad[both], rtol=1e-4, atol=1e-5 * scale)
 
 
 @pytest.mark.parametrize("sh_degree", [None, 2])
@@ -149,6 +166,7 @@ def test_the_backend_maps_outputs_modes_and_background_as_the_torch_path(sh_degr
     gs = random_gaussians(120, seed=1, sh_degree=sh_degree, opacity=(0.3, 1.0))
     gs["quats"][:5] = 0.0
     gs["means"][5] = torch.tensor([0.0, 0.0, 5.0])  # behind the first camera: culled there
+    gs = {k: v.requires_grad_(True) for k, v in gs.items()}  # the screen-space gradients
     cams = ring_cameras(2, 32, 24)
     bg = torch.tensor([0.2, 0.5, 0.9])
     for outputs in [("rgb", "alpha", "depth"), ("rgb",), ("alpha",), ("depth",), ("alpha", "means2d", "visible")]:
@@ -166,6 +184,7 @@ def test_the_backend_maps_outputs_modes_and_background_as_the_torch_path(sh_degr
                 elif k == "means2d":
                     torch.testing.assert_close(x[a.visible], y[a.visible], rtol=1e-5, atol=1e-3)
                     assert float(x[~a.visible].abs().max()) == 0.0
+                    _screen_gradients_agree(a, b, alpha_max)
                 else:  # float rounding against the cap's own image; the cap's residual against ours
                     assert float((x - y).abs().max()) <= 1e-4, (k, outputs, alpha_max)
                     if k in ("rgb", "alpha"):

@@ -1,13 +1,17 @@
-"""Lazy import of pyrender for offscreen rendering (OSMesa), with the two known fixes.
+"""Lazy import of pyrender for offscreen rendering (OSMesa, or EGL), with the three known fixes.
 
 - ``PYOPENGL_PLATFORM`` defaults to ``osmesa`` when no display is set (needs Debian's
-  ``libosmesa6``);
-- numpy 2 removed ``np.infty``, which pyrender 0.1.45 still uses: it is aliased to ``np.inf``.
+  ``libosmesa6``; ``egl`` renders on a GPU through its driver's EGL);
+- numpy 2 removed ``np.infty``, which pyrender 0.1.45 still uses: it is aliased to ``np.inf``;
+- pyrender imports its interactive viewer, whose pyglet needs X11's libraries: on a machine
+  without them (a GPU server) the import is retried with the viewer stubbed out, which offscreen
+  rendering never uses.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from types import ModuleType
 
 _INSTALL = (
@@ -27,7 +31,36 @@ def import_pyrender() -> ModuleType:
     try:
         import pyrender
     except Exception as e:  # ImportError, or OpenGL failing to find libOSMesa
-        raise ImportError(f"{_INSTALL} ({type(e).__name__}: {e})") from e
+        if not _raised_by_the_viewer(e):
+            raise ImportError(f"{_INSTALL} ({type(e).__name__}: {e})") from e
+        try:
+            pyrender = _import_without_viewer()
+        except Exception as e2:
+            raise ImportError(f"{_INSTALL} ({type(e2).__name__}: {e2})") from e2
+    return pyrender
+
+
+def _raised_by_the_viewer(e: BaseException) -> bool:
+    """Whether the import failed inside pyrender's viewer module or the pyglet it imports."""
+    tb = e.__traceback__
+    while tb is not None:
+        name = tb.tb_frame.f_code.co_filename.replace(os.sep, "/")
+        if name.endswith("pyrender/viewer.py") or "/pyglet/" in name:
+            return True
+        tb = tb.tb_next
+    return False
+
+
+def _import_without_viewer() -> ModuleType:
+    """pyrender imported with ``pyrender.viewer`` stubbed (``Viewer`` is None): the offscreen
+    renderer does not use it."""
+    for name in [m for m in sys.modules if m == "pyrender" or m.startswith("pyrender.")]:
+        del sys.modules[name]
+    stub = ModuleType("pyrender.viewer")
+    stub.Viewer = None  # type: ignore[attr-defined]
+    sys.modules["pyrender.viewer"] = stub
+    import pyrender
+
     return pyrender
 
 

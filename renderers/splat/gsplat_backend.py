@@ -172,7 +172,11 @@ def rasterize_gsplat(
         out["radii"] = radii.to(means.dtype)
     if "visible" in want:
         out["visible"] = visible
-    if "means2d" in want:  # gsplat leaves culled Gaussians' entries unset: 0 there, in the graph
+    if "means2d" in want:  # gsplat leaves culled Gaussians' entries unset (at::empty): 0 there
         m2d = meta["means2d"]
-        out["means2d"] = torch.where(visible[..., None], m2d, torch.zeros((), dtype=m2d.dtype, device=m2d.device))
+        # The tensor the images were rasterised from, so that its retained gradient is densification's
+        # (a copy, say torch.where's, lies off the loss's path: its .grad stays None). Zeroed through
+        # .data, which autograd does not version: no kernel reads a culled Gaussian's entry.
+        m2d.data.masked_fill_(~visible[..., None], 0.0)
+        out["means2d"] = m2d
     return RenderOutput(**out)
