@@ -5,6 +5,8 @@
 # the one GPU. Run by scripts/gpu_check.sh when GPU_STAGES names `prior` (beside the
 # other stages), or alone: `bash scripts/gpu_prior.sh WORK OUT`. Needs what scripts/gpu_prepare.sh
 # carries (.whl/ with pyrender and PyOpenGL, .gl/ with libglvnd's EGL loader).
+# PRIOR_RUNS picks the runs (default: the four; world<size>-<uniform|front>), PRIOR_STEPS, PRIOR_BATCH,
+# PRIOR_VIEWS, PRIOR_WORKERS and PRIOR_DEVICE the rest (the defaults are the runs of 2026-11-28).
 # WORK/prior gets the logs, the runs and a sample of the EGL-rendered data; OUT gets one
 # prior_<run>.tgz per run (weights, loss.csv, loss.png, config.json, log; no checkpoint). The
 # trainings stop at PRIOR_DEADLINE_S after this script's start (SIGTERM: a checkpoint at the end of
@@ -67,7 +69,7 @@ PY
 python3 "$P/data.py" "$VIEWS" "$WORKERS" > "$P/data.log" 2>&1 || { stamp "data failed"; tail -20 "$P/data.log"; exit 1; }
 cat "$P/data.log"
 
-RUNS="world64-uniform world64-front world32-uniform world32-front"
+RUNS=${PRIOR_RUNS:-world64-uniform world64-front world32-uniform world32-front}  # world<size>-<uniform|front>
 stamp "training: $RUNS ($STEPS steps of batch $BATCH, at once)"
 train() {
   local name=$1
@@ -78,10 +80,13 @@ train() {
     > "$P/$name.log" 2>&1
   echo "rc $?" >> "$P/$name.log"
 }
-train world64-uniform --size 64 --front-bias 0 &
-train world64-front --size 64 --front-bias 2 &
-train world32-uniform --size 32 --front-bias 0 &
-train world32-front --size 32 --front-bias 2 &
+for name in $RUNS; do
+  size=${name#world}
+  size=${size%%-*}
+  bias=0
+  [[ $name == *-front ]] && bias=2
+  train "$name" --size "$size" --front-bias "$bias" &
+done
 wait
 stamp "training ended"
 for name in $RUNS; do

@@ -350,3 +350,27 @@ def test_densify_false_on_the_command_line_trains_without_densification(tmp_path
     assert run["gaussians"] == 4096  # nothing cloned, split or pruned
     with pytest.raises(ValueError, match=r"--densify-every acts only with densification \(this run: --no-densify\)"):
         main(Generate("a yellow duck", out=tmp_path / "x", train=GenerateTrain(densify=False, densify_every=5)))
+
+
+def test_a_render_without_screen_gradients_is_named_not_silently_counted():
+    """The statistic is |d loss / d means2d| per view in units of half the image (the closed form
+    below), summed over views with their counts; a ``means2d`` that lies off the loss's graph (the
+    gsplat backend's bug of 9ca308a: a copy, whose retained gradient stays None) leaves the state as
+    it was and says so in a warning, instead of letting no Gaussian grow without a word."""
+    strat = DensifyStrategy(DensifyConfig(start=0, every=1), steps=10)
+    state = strat.init_state(3)
+    leaf = torch.zeros(2, 3, 2, requires_grad=True)
+    m2d = leaf * 1.0
+    m2d.retain_grad()
+    (m2d * torch.tensor([[1.0, 2.0]]).expand(2, 3, 2)).sum().backward()
+    visible = torch.tensor([[True, True, False], [True, False, False]])
+    got = strat.accumulate(state, m2d, visible, 8, 4)
+    per_view = ((1.0 * 4 * 2) ** 2 + (2.0 * 2 * 2) ** 2) ** 0.5  # grad (1, 2) scaled by (W/2, H/2) and C = 2
+    assert got.grad2d.tolist() == pytest.approx([2 * per_view, per_view, 0.0])
+    assert got.count.tolist() == [2.0, 1.0, 0.0]
+    off = leaf * 1.0
+    off.retain_grad()
+    (m2d.detach() * leaf).sum().backward()  # the loss does not pass through ``off``
+    with pytest.warns(RuntimeWarning, match="no gradient, so no Gaussian can grow"):
+        same = strat.accumulate(state, off, visible, 8, 4)
+    assert same is state

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from dataclasses import dataclass, fields
 from typing import Annotated, ClassVar, Literal
 
@@ -254,7 +255,13 @@ class DensifyStrategy:
         DefaultStrategy does the same), which makes the statistic per view whatever the number of
         views per step, and ``grad_threshold`` mean what it means in 3DGS (one view, a loss
         averaged over its pixels). ``means2d`` [C, N, 2] must have its ``.grad``; ``visible`` [C, N]."""
-        if means2d.grad is None:
+        if means2d.grad is None:  # a renderer whose means2d lies off the loss's graph (9ca308a did)
+            warnings.warn(
+                "densification: the render's means2d has no gradient, so no Gaussian can grow; is the "
+                "renderer's means2d the tensor its images were rasterised from?",
+                RuntimeWarning,
+                stacklevel=2,
+            )
             return state
         C = means2d.shape[0]
         g = means2d.grad.detach().clone()
