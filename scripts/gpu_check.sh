@@ -21,6 +21,13 @@ export PYTHONUNBUFFERED=1 GDBENCH_CACHE=$PWD/.devcache TORCH_CUDA_ARCH_LIST=${TO
 export TORCH_EXTENSIONS_DIR=/tmp/torch_extensions
 STAGES=",${GPU_STAGES:-builds,tests,paired,bm},"
 has() { [[ $STAGES == *",$1,"* ]]; }
+for st in ${GPU_STAGES//,/ }; do
+  case $st in builds | tests | paired | bm | prior) ;; *)
+    echo "GPU_STAGES: unknown stage '$st' (expected a comma-separated list of builds, tests, paired, bm, prior)"
+    exit 2
+    ;;
+  esac
+done
 stamp() { echo "== $(date +%T) $*" | tee -a "$R/stages.log"; }
 pack() { tar -czf "$OUT/gpu_results.tgz" -C "$R" --exclude='*.safetensors' --exclude=checkpoint.pt --exclude='*.ply' . 2>/dev/null; }
 
@@ -84,7 +91,9 @@ if has paired; then
     cp "runs/paired_$s/scene.ply" "$R/paired_${s}_scene.ply" 2>/dev/null  # to re-score on the CPU
   done
   cp runs/paired_0/turntable_sheet.png "$R/paired_0_turntable_sheet.png" 2>/dev/null
-  tar -czf "$OUT/paired_scenes.tgz" -C "$R" $(cd "$R" && ls paired_*_scene.ply 2>/dev/null) 2>/dev/null
+  scenes=()
+  for s in $(seq 0 $((SEEDS - 1))); do [ -f "$R/paired_${s}_scene.ply" ] && scenes+=("paired_${s}_scene.ply"); done
+  [ ${#scenes[@]} -gt 0 ] && tar -czf "$OUT/paired_scenes.tgz" -C "$R" "${scenes[@]}"
 fi
 pack
 

@@ -17,8 +17,11 @@ python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 -
   tyro==1.0.17 docstring-parser typeguard plyfile==1.1.5 trimesh==5.2.0 gsplat==1.5.3 diffusers==0.42.1 importlib_metadata \
   pyrender==0.1.45 PyOpenGL==3.1.10 pyglet==2.1.19 freetype-py==2.5.1
 mkdir -p .gl /tmp/amd64/partial
-o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
-apt-get $o update -qq >/dev/null && (cd .gl && apt-get $o download -qq libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
+if ! { apt-get "${o[@]}" update -qq >/dev/null && (cd .gl && apt-get "${o[@]}" download -qq libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2); }; then
+  echo "gpu_prepare.sh: could not download libglvnd's packages into .gl/ (apt-get); the prior stage needs them" >&2
+  exit 1
+fi
 export GDBENCH_CACHE=$PWD/.devcache
 tmp=$(mktemp -d)
 G=(.venv/bin/python -m gdbench.app.cli generate "a yellow duck" --no-progress)

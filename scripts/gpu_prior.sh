@@ -12,8 +12,8 @@
 # trainings stop at PRIOR_DEADLINE_S after this script's start (SIGTERM: a checkpoint at the end of
 # the step), and a stopped run's weights are exported from that checkpoint (model-step<N>).
 set -u
-R=$1
-OUT=$2
+R=${1:?usage: bash scripts/gpu_prior.sh WORK OUT}
+OUT=${2:?usage: bash scripts/gpu_prior.sh WORK OUT}
 START=$(date +%s)
 P=$R/prior
 mkdir -p "$P"
@@ -34,7 +34,7 @@ vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 
 stamp "EGL probe (8 views of the duck, kept for a comparison with the CPU's OSMesa renders)"
-python3 - "$P/egl_sample.npz" "$VIEWS" > "$P/probe.log" 2>&1 <<'PY' || stamp "EGL probe failed"
+timeout 120 python3 - "$P/egl_sample.npz" "$VIEWS" > "$P/probe.log" 2>&1 <<'PY' || stamp "EGL probe failed"
 import sys, time
 import numpy as np
 from gdbench.priors.learned.data import render_subset
@@ -66,7 +66,8 @@ if __name__ == "__main__":
     data = load_dataset(cfg, progress=False, workers=int(sys.argv[2]))
     print(f"{len(data)} views, key {data_key(cfg)}, in {time.perf_counter() - t:.0f} s")
 PY
-python3 "$P/data.py" "$VIEWS" "$WORKERS" > "$P/data.log" 2>&1 || { stamp "data failed"; tail -20 "$P/data.log"; exit 1; }
+timeout $((DEADLINE - $(date +%s))) python3 "$P/data.py" "$VIEWS" "$WORKERS" > "$P/data.log" 2>&1 \
+  || { stamp "data failed"; tail -20 "$P/data.log"; exit 1; }
 cat "$P/data.log"
 
 RUNS=${PRIOR_RUNS:-world64-uniform world64-front world32-uniform world32-front}  # world<size>-<uniform|front>
@@ -76,7 +77,8 @@ train() {
   shift
   local left=$((DEADLINE - $(date +%s)))
   timeout -s TERM "$((left > 10 ? left : 10))" python3 -m gdbench.app.cli train-prior --catalogue world \
-    --views "$VIEWS" --steps "$STEPS" --batch "$BATCH" --device "$DEVICE" --threads 2 --out "$P/$name" "$@" \
+    --views "$VIEWS" --steps "$STEPS" --batch "$BATCH" --device "$DEVICE" --threads 2 --data-workers "$WORKERS" \
+    --out "$P/$name" "$@" \
     > "$P/$name.log" 2>&1
   echo "rc $?" >> "$P/$name.log"
 }

@@ -124,11 +124,10 @@ def test_data_rendered_by_several_workers_is_the_one_process_render(tmp_path):
     from gdbench.priors.learned.data import render_dataset
 
     cfg = DataConfig(views=2, resolution=16, captions=("a white duck", "a red car"))
-    one = render_dataset(cfg, progress=False)
+    one = render_dataset(cfg, progress=False, parts=tmp_path / "p0")  # one process, its parts kept
     parts = tmp_path / "parts"
     parts.mkdir()
     kept = parts / "0-1.npz"
-    render_dataset(DataConfig(views=2, resolution=16, captions=cfg.captions), progress=False, parts=tmp_path / "p0")
     (tmp_path / "p0" / "0-1.npz").rename(kept)
     stamp = kept.stat().st_mtime_ns
     two = render_dataset(cfg, progress=False, parts=parts, workers=2)

@@ -34,7 +34,7 @@ def import_pyrender() -> ModuleType:
         if not _raised_by_the_viewer(e):
             raise ImportError(f"{_INSTALL} ({type(e).__name__}: {e})") from e
         try:
-            pyrender = _import_without_viewer()
+            pyrender = _import_without_viewer(f"{type(e).__name__}: {e}")
         except Exception as e2:
             raise ImportError(f"{_INSTALL} ({type(e2).__name__}: {e2})") from e2
     return pyrender
@@ -51,13 +51,18 @@ def _raised_by_the_viewer(e: BaseException) -> bool:
     return False
 
 
-def _import_without_viewer() -> ModuleType:
-    """pyrender imported with ``pyrender.viewer`` stubbed (``Viewer`` is None): the offscreen
-    renderer does not use it."""
+def _import_without_viewer(why: str) -> ModuleType:
+    """pyrender imported with ``pyrender.viewer`` stubbed: the offscreen renderer does not use it,
+    and its ``Viewer`` raises ImportError with ``why`` (the viewer's own import error)."""
     for name in [m for m in sys.modules if m == "pyrender" or m.startswith("pyrender.")]:
         del sys.modules[name]
+
+    class Viewer:
+        def __init__(self, *args, **kwargs):
+            raise ImportError(f"pyrender's interactive Viewer cannot start here: pyglet failed to import ({why})")
+
     stub = ModuleType("pyrender.viewer")
-    stub.Viewer = None  # type: ignore[attr-defined]
+    stub.Viewer = Viewer  # type: ignore[attr-defined]
     sys.modules["pyrender.viewer"] = stub
     import pyrender
 

@@ -121,16 +121,29 @@ FIELDS = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
 
 
 def _save_part(path: Path, part: Dataset) -> None:
+    """A data set (or one part of it) as .npz, atomically."""
     from gdbench.core.io import atomic_write
 
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda f: np.savez(f, **{k: getattr(part, k).numpy() for k in FIELDS}))
 
 
+def _part_path(parts: Path, caps: tuple[str, ...], caption: str, variant: int) -> Path:
+    return parts / f"{caps.index(caption)}-{variant}.npz"
+
+
+def _one_thread() -> None:
+    """A render worker's initializer: one torch thread, and one llvmpipe thread for OSMesa (which
+    otherwise starts one per core in every worker; the pixels do not depend on it)."""
+    import os
+
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+    torch.set_num_threads(1)
+
+
 def _render_part(job: tuple[DataConfig, str, int, Path]) -> int:
     """A worker's job: one (caption, variant) part rendered and kept at its path."""
     config, caption, variant, path = job
-    torch.set_num_threads(1)  # the workers share the cores
     part = render_subset(config, caption, variant)
     _save_part(path, part)
     return len(part)
@@ -159,28 +172,30 @@ def render_dataset(
 
     total = len(caps) * VARIANTS * config.views
     bar = progress_bar(total, "rendering the learned prior's data", "view", disable=not progress)
-    pooled = _render_parts_in_pool(config, caps, parts, workers, bar) if workers > 1 else set()
-    fields = FIELDS
-    done = []
-    for c in caps:
-        for v in range(VARIANTS):
-            path = parts / f"{caps.index(c)}-{v}.npz" if parts is not None else None
-            if path is not None and path.is_file():
-                try:
-                    with np.load(path) as z:
-                        done.append(Dataset(**{k: torch.from_numpy(z[k]) for k in fields}, captions=caps))
-                    if bar is not None and path not in pooled:  # the pool counted its own
-                        bar.update(config.views)
-                    continue
-                except Exception:  # an unreadable part is rendered again
-                    pass
-            part = render_subset(config, c, v, bar=bar)
-            if path is not None:
-                _save_part(path, part)
-            done.append(part)
-    if bar is not None:
-        bar.close()
-    return Dataset(**{k: torch.cat([getattr(p, k) for p in done]) for k in fields}, captions=caps)
+    try:
+        pooled = _render_parts_in_pool(config, caps, parts, workers, bar) if workers > 1 else set()
+        done = []
+        for c in caps:
+            for v in range(VARIANTS):
+                path = _part_path(parts, caps, c, v) if parts is not None else None
+                counted = path in pooled  # the pool counted its own parts' views
+                if path is not None and path.is_file():
+                    try:
+                        with np.load(path) as z:
+                            done.append(Dataset(**{k: torch.from_numpy(z[k]) for k in FIELDS}, captions=caps))
+                        if bar is not None and not counted:
+                            bar.update(config.views)
+                        continue
+                    except Exception:  # an unreadable part is rendered again
+                        pass
+                part = render_subset(config, c, v, bar=None if counted else bar)
+                if path is not None:
+                    _save_part(path, part)
+                done.append(part)
+    finally:
+        if bar is not None:
+            bar.close()
+    return Dataset(**{k: torch.cat([getattr(p, k) for p in done]) for k in FIELDS}, captions=caps)
 
 
 def _render_parts_in_pool(config: DataConfig, caps: tuple[str, ...], parts: Path, workers: int, bar) -> set[Path]:
@@ -193,19 +208,18 @@ def _render_parts_in_pool(config: DataConfig, caps: tuple[str, ...], parts: Path
 
     from gdbench.assets.library import VARIANTS
 
-    jobs = [
-        (config, c, v, parts / f"{caps.index(c)}-{v}.npz")
-        for c in caps
-        for v in range(VARIANTS)
-        if not (parts / f"{caps.index(c)}-{v}.npz").is_file()
-    ]
+    paths = [(c, v, _part_path(parts, caps, c, v)) for c in caps for v in range(VARIANTS)]
+    jobs = [(config, c, v, path) for c, v, path in paths if not path.is_file()]
     if not jobs:
         return set()
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn"), initializer=_one_thread)
+    try:
         for fut in as_completed([pool.submit(_render_part, j) for j in jobs]):
             n = fut.result()  # a worker's error is raised here, with the parts done so far kept
             if bar is not None:
                 bar.update(n)
+    finally:  # an error or a stop signal: the queued parts are cancelled, not rendered to the end
+        pool.shutdown(wait=True, cancel_futures=True)
     return {j[3] for j in jobs}
 
 
@@ -259,15 +273,12 @@ def render_subset(config: DataConfig, caption: str, variant: int, *, bar=None) -
 def load_dataset(config: DataConfig | None = None, *, progress: bool = True, workers: int = 1) -> Dataset:
     """The data set of ``config``, from the cache or rendered (in ``workers`` processes) and cached
     atomically."""
-    from gdbench.core.io import atomic_write
-
     config = config or DataConfig()
     path = data_dir() / f"views-{data_key(config)}.npz"
-    fields = FIELDS
     if path.is_file():
         try:
             with np.load(path) as z:
-                return Dataset(**{k: torch.from_numpy(z[k]) for k in fields}, captions=captions(config))
+                return Dataset(**{k: torch.from_numpy(z[k]) for k in FIELDS}, captions=captions(config))
         except Exception as e:  # a corrupt cache entry is rebuilt, never trusted
             print(f"learned-prior data cache {path} unreadable ({type(e).__name__}); rebuilding")
     t0 = time.perf_counter()
@@ -275,7 +286,7 @@ def load_dataset(config: DataConfig | None = None, *, progress: bool = True, wor
     data = render_dataset(config, progress=progress, parts=parts, workers=workers)
     print(f"rendered {len(data)} views at {config.resolution} px in {time.perf_counter() - t0:.0f} s -> {path}")
     try:
-        atomic_write(path, lambda f: np.savez(f, **{k: getattr(data, k).numpy() for k in fields}))
+        _save_part(path, data)
     except OSError as e:
         print(f"GDBENCH_CACHE: cannot write {path.parent} ({e.strerror or e}); the data is rendered again next time")
     else:
