@@ -14,7 +14,9 @@ cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
 TORCH_SPEC=${TORCH_SPEC:-torch==2.13.0}
-# libllvm19: Dr.Jit's LLVM backend (Mitsuba); libosmesa6: pyrender offscreen;
+# libllvm19: Dr.Jit's LLVM backend (Mitsuba); libosmesa6: pyrender offscreen (on an NVIDIA machine
+# PYOPENGL_PLATFORM=egl renders through the driver instead, with libglvnd's libegl1 and libopengl0;
+# where pyglet cannot load X11 there, pyrender is imported with its viewer stubbed out);
 # libusb-1.0-0, libvulkan1, mesa-vulkan-drivers: Open3D (open3d-cpu) import and offscreen rendering.
 DEBS="libllvm19 libosmesa6 libusb-1.0-0 libvulkan1 mesa-vulkan-drivers"
 
