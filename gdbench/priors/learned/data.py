@@ -120,12 +120,18 @@ FIELDS = ("images", "caption", "variant", "azimuth", "elevation", "fovy")
 """The arrays of a data set's .npz files (the whole set and its parts)."""
 
 
-def _save_part(path: Path, part: Dataset) -> None:
+def _write_npz(path: Path, data: Dataset) -> None:
     """A data set (or one part of it) as .npz, atomically."""
     from gdbench.core.io import atomic_write
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda f: np.savez(f, **{k: getattr(part, k).numpy() for k in FIELDS}))
+    atomic_write(path, lambda f: np.savez(f, **{k: getattr(data, k).numpy() for k in FIELDS}))
+
+
+def _read_npz(path: Path, caps: tuple[str, ...]) -> Dataset:
+    """The data set (or part) ``_write_npz`` wrote, its captions ``caps``."""
+    with np.load(path) as z:
+        return Dataset(**{k: torch.from_numpy(z[k]) for k in FIELDS}, captions=caps)
 
 
 def _part_path(parts: Path, caps: tuple[str, ...], caption: str, variant: int) -> Path:
@@ -145,7 +151,7 @@ def _render_part(job: tuple[DataConfig, str, int, Path]) -> int:
     """A worker's job: one (caption, variant) part rendered and kept at its path."""
     config, caption, variant, path = job
     part = render_subset(config, caption, variant)
-    _save_part(path, part)
+    _write_npz(path, part)
     return len(part)
 
 
@@ -181,8 +187,7 @@ def render_dataset(
                 counted = path in pooled  # the pool counted its own parts' views
                 if path is not None and path.is_file():
                     try:
-                        with np.load(path) as z:
-                            done.append(Dataset(**{k: torch.from_numpy(z[k]) for k in FIELDS}, captions=caps))
+                        done.append(_read_npz(path, caps))
                         if bar is not None and not counted:
                             bar.update(config.views)
                         continue
@@ -190,7 +195,7 @@ def render_dataset(
                         pass
                 part = render_subset(config, c, v, bar=None if counted else bar)
                 if path is not None:
-                    _save_part(path, part)
+                    _write_npz(path, part)
                 done.append(part)
     finally:
         if bar is not None:
@@ -277,8 +282,7 @@ def load_dataset(config: DataConfig | None = None, *, progress: bool = True, wor
     path = data_dir() / f"views-{data_key(config)}.npz"
     if path.is_file():
         try:
-            with np.load(path) as z:
-                return Dataset(**{k: torch.from_numpy(z[k]) for k in FIELDS}, captions=captions(config))
+            return _read_npz(path, captions(config))
         except Exception as e:  # a corrupt cache entry is rebuilt, never trusted
             print(f"learned-prior data cache {path} unreadable ({type(e).__name__}); rebuilding")
     t0 = time.perf_counter()
@@ -286,7 +290,7 @@ def load_dataset(config: DataConfig | None = None, *, progress: bool = True, wor
     data = render_dataset(config, progress=progress, parts=parts, workers=workers)
     print(f"rendered {len(data)} views at {config.resolution} px in {time.perf_counter() - t0:.0f} s -> {path}")
     try:
-        _save_part(path, data)
+        _write_npz(path, data)
     except OSError as e:
         print(f"GDBENCH_CACHE: cannot write {path.parent} ({e.strerror or e}); the data is rendered again next time")
     else:
