@@ -231,6 +231,7 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
     assert "prompt 9" in v["against"] and len(got["forests"]) == 9  # three comparisons x three metrics
     md = (tmp_path / "results" / "report.md").read_text()
     assert "gd-pose-locked gives" in md and "across prompts" in md
+    assert "gd vs gd-no-sn, janus_rate: prompt 9 +" in md  # the reversal names its metric
     from PIL import Image
 
     assert Image.open(got["forests"][0]).size[1] > 0.22 * 10 * 100  # a row per prompt at 100 dpi

@@ -129,7 +129,8 @@ def forest(keys: list[tuple], d: np.ndarray, *, title: str, margin: float, path,
     """The forest plot of one claim: every prompt a row (sorted by its mean difference), its mean
     over the seeds with a 95% t interval over them (none with one seed), and the across-prompts
     mean with its interval at the bottom (``pooled``: ``prompt_mean_diff``, ``prompt_ci_low``,
-    ``prompt_ci_high``); 0 and the margin drawn."""
+    ``prompt_ci_high``); 0 and the margin drawn, the prompts beyond it blue (a < b) or red (a > b),
+    those within it grey."""
 
     from gdbench.core.plotting import pyplot, save
 
@@ -140,7 +141,8 @@ def forest(keys: list[tuple], d: np.ndarray, *, title: str, margin: float, path,
         m, lo, hi = t_interval(v)
         if hi > lo:
             ax.plot([lo, hi], [i, i], color="0.45", lw=1.2)
-        ax.plot([m], [i], "o", color="C0" if m < 0 else "C3", ms=4)
+        side = "C0" if m < -margin else "C3" if m > margin else "0.35"  # margin NaN: every prompt grey
+        ax.plot([m], [i], "o", color=side, ms=4)
     labels = [f"{p} ({len(v)})" for p, v in per]
     if pooled is not None and pooled.get("prompt_mean_diff") == pooled.get("prompt_mean_diff"):
         y = len(per) + 0.8

@@ -182,15 +182,18 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
     figures = results / "figures"
     forests, shares, lines = [], [], []
     for v in verdicts:
-        if v["metric"] not in MAIN + METRIC_MAIN or v["verdict"] == "not measured":
+        if v["verdict"] == "not measured":
             continue
         keys, d = pairs(rows, v["group"], v["setting"], v["a"], v["b"], v["metric"])
         pooled = {k: float(v[k]) if v[k] not in ("", None) else math.nan
                   for k in ("prompt_mean_diff", "prompt_ci_low", "prompt_ci_high")}  # fmt: skip
-        name = f"forest_{v['group']}_{v['metric']}_{v['a']}_vs_{v['b']}.png".replace(" ", "_")
-        forests.append(forest(keys, d, title=f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}",
-                              margin=float(v["margin"]), path=figures / name, pooled=pooled))  # fmt: skip
         v["against"] = "; ".join(against(keys, d, pooled["prompt_mean_diff"], float(v["margin"]))) or "none"
+        if v["metric"] not in MAIN + METRIC_MAIN:
+            continue
+        name = f"forest_{v['group']}_{v['metric']}_{v['a']}_vs_{v['b']}.png".replace(" ", "_")
+        title = (f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}, {v.get('verdict_prompts', '')} across prompts\n"
+                 f"cells trained at {', '.join(c[:7] for c in commits)}, tables at {code_commit()[:7]}")  # fmt: skip
+        forests.append(forest(keys, d, title=title, margin=float(v["margin"]), path=figures / name, pooled=pooled))
     for group in sorted({v["group"] for v in verdicts if v["setting"] == "janus"}):
         sel = [r for r in rows if r.get("group") == group and r.get("setting") == "janus"]
         for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN + METRIC_MAIN):
@@ -215,7 +218,7 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
           "## Across prompts first, then the pooled pairs", "", table, "",
           "## The controls: the share of gd's effect each keeps", "", *lines, "",
           "## Prompts beyond the margin on the other side", "",
-          *[f"- {label(v)}, {v['a']} vs {v['b']}: {v.get('against', 'none')}" for v in verdicts if "against" in v],
+          *[f"- {label(v)}, {v['a']} vs {v['b']}, {v['metric']}: {v['against']}" for v in verdicts if "against" in v],
           "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), ""]  # fmt: skip
     (results / "report.md").write_text("\n".join(md))
     prov = {"raters": raters, "prereg_commit": reg, "train_commits": commits, "prereg_precedes": before,
