@@ -351,3 +351,36 @@ def test_raters_who_disagree_leave_the_primary_verdicts_undecided(tmp_path, monk
         got = report(attach_labels(rows, files), tmp_path, tmp_path / other, files)
         primary = [v for v in got["verdicts"] if v["family"] == "primary"]
         assert len(primary) == 3 and all(v["verdict_prompts"] == want for v in primary), other
+
+
+def test_example_turntables_are_chosen_by_rule_and_stacked(tmp_path):
+    """The report's example prompts follow the rule (the most negative mean, a prompt Janus in every
+    cell, the most positive mean above 0), and their turntables stack into one sheet, a grid per
+    prompt (each row a preset, its frames taken from the cells' GIFs)."""
+    import imageio.v3 as iio
+    from PIL import Image
+
+    from gdbench.experiments.v3_report import example_prompts, example_turntables, pairs
+
+    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0}, 4, [0, 1], np.random.default_rng(2), metric="label_janus")
+    for r in rows:
+        r["label_janus"] = {"prompt 0": 0.0 if r["preset"] == "gd" else 1.0, "prompt 1": 1.0,
+                            "prompt 2": 0.5 if r["preset"] == "gd" else 0.0, "prompt 3": 0.5}[r["prompt"]]  # fmt: skip
+    keys, d = pairs(rows, "learned-v1", "janus", "gd", "gd-no-sn", "label_janus")
+    chosen = example_prompts(rows, keys, d, "label_janus")
+    assert chosen == {
+        "the largest effect": "prompt 0",
+        "Janus in every arm": "prompt 1",
+        "the largest reversal": "prompt 2",
+    }
+    blocks = tmp_path / "janus"
+    assert example_turntables(blocks, chosen, 0, tmp_path / "t.webp") is None  # no GIF kept: no sheet
+    rng = np.random.default_rng(0)
+    for prompt in ("prompt_0", "prompt_1"):
+        for preset in ("gd", "gd-no-sn"):
+            gif = blocks / "cells" / "learned-v1" / "janus" / prompt / preset / "seed0" / "turntable.gif"
+            gif.parent.mkdir(parents=True)
+            iio.imwrite(gif, rng.integers(0, 255, (12, 32, 32, 3), dtype=np.uint8), extension=".gif")
+    got = example_turntables(blocks, chosen, 0, tmp_path / "t.webp")
+    one = example_turntables(blocks, {"x": "prompt 0"}, 0, tmp_path / "one.webp")
+    assert Image.open(got).height == 2 * Image.open(one).height  # two prompts have GIFs, the third none

@@ -143,6 +143,54 @@ def against(keys: list[tuple], d: np.ndarray, overall: float, margin: float) -> 
     return out
 
 
+def example_prompts(rows: list[dict], keys: list[tuple], d: np.ndarray, metric: str) -> dict[str, str]:
+    """The prompts the report shows turntables of, chosen by rule from the first primary claim's
+    per-prompt means ``d`` over ``keys``: the largest effect (the most negative mean), a ceiling
+    (every Janus cell of every arm at 1 on ``metric``) and the largest reversal (the most positive
+    mean above 0); ties go to the first name. A kind with no prompt is left out."""
+    from gdbench.experiments.claims import per_prompt
+
+    means = sorted((float(np.mean(v)), p) for p, v in per_prompt(keys, d).items())
+    out = {"the largest effect": means[0][1]} if means and means[0][0] < 0 else {}
+    cells: dict[str, list[float]] = {}
+    for r in rows:
+        if r.get("setting") == "janus":
+            cells.setdefault(r["prompt"], []).append(num(r.get(metric)))
+    ceiling = sorted(p for p, v in cells.items() if v and all(x == 1 for x in v))
+    if ceiling:
+        out["Janus in every arm"] = ceiling[0]
+    top = max(m for m, _ in means) if means else 0.0
+    if top > 0:
+        out["the largest reversal"] = min(p for m, p in means if m == top)
+    return out
+
+
+def example_turntables(blocks: Path, chosen: dict[str, str], seed: int, path: Path) -> Path | None:
+    """Seed ``seed``'s turntables of the ``chosen`` prompts (kind -> prompt), every Janus arm a row,
+    one figure per prompt stacked into ``path``; None when no cell kept its turntable."""
+    from PIL import Image
+
+    from gdbench.experiments.sweep import turntable_grid
+
+    parts = []
+    for kind, prompt in chosen.items():
+        grid = turntable_grid(
+            blocks, prompt, seed=seed, path=path.with_name(f"{path.stem}_{kind.replace(' ', '_')}.png")
+        )
+        if grid is not None:
+            parts.append(Image.open(grid).convert("RGB"))
+            grid.unlink()
+    if not parts:
+        return None
+    sheet = Image.new("RGB", (max(im.width for im in parts), sum(im.height for im in parts)), "white")
+    y = 0
+    for im in parts:
+        sheet.paste(im, (0, y))
+        y += im.height
+    sheet.save(path, quality=90)  # WebP or JPEG by the suffix: a photo-like sheet, a tenth of its PNG
+    return path
+
+
 def report(rows: list[dict], out: Path, results: Path, labels: list | None = None) -> dict:
     """Tables, forest plots, the controls' shares and report.md (module docstring); ``labels``: the
     raters' files, whose agreement decides whether the primary verdicts can be read
@@ -205,6 +253,13 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
                          f"{interval} ({s['prompts']} prompts; gd's effect "
                          f"{_f(s.get('effect', math.nan))}, the control's {_f(s.get('kept', math.nan))}).")  # fmt: skip
     write_csv(shares, results / "shares.csv")
+    first = next((v for v in verdicts if v.get("family") == "primary" and v["verdict"] != "not measured"), None)
+    chosen, turntables = {}, None
+    if first is not None:
+        chosen = example_prompts(rows, *pairs(rows, first["group"], first["setting"], first["a"], first["b"],
+                                              first["metric"]), first["metric"])  # fmt: skip
+        seed = min(int(num(r["seed"])) for r in rows if r.get("setting") == "janus")
+        turntables = example_turntables(out / "blocks" / "janus", chosen, seed, results / "turntables.webp")
     table = readme_table(verdicts)
     (results / "verdict_readme.md").write_text(table)
     hours = sum(num(r.get("cell_s")) for r in rows if num(r.get("cell_s")) == num(r.get("cell_s"))) / 3600
@@ -219,13 +274,16 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
           "## The controls: the share of gd's effect each keeps", "", *lines, "",
           "## Prompts beyond the margin on the other side", "",
           *[f"- {label(v)}, {v['a']} vs {v['b']}, {v['metric']}: {v['against']}" for v in verdicts if "against" in v],
-          "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), ""]  # fmt: skip
+          "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), "",
+          *([f"Turntables at seed {seed} ([turntables.webp](turntables.webp)), chosen by rule from the first "
+             f"primary claim's prompts: " + "; ".join(f"{k}: {p}" for k, p in chosen.items()) + ".", ""]
+            if turntables else [])]  # fmt: skip
     (results / "report.md").write_text("\n".join(md))
     prov = {"raters": raters, "prereg_commit": reg, "train_commits": commits, "prereg_precedes": before,
             "cells": len(rows), "cell_hours": hours, "tables_commit": code_commit()}  # fmt: skip
     write_json(prov, results / "provenance.json")
     print(f"report: {len(rows)} cells -> {results / 'report.md'}")
-    return {"verdicts": verdicts, "shares": shares, "forests": forests}
+    return {"verdicts": verdicts, "shares": shares, "forests": forests, "examples": chosen, "turntables": turntables}
 
 
 def readme_table(verdicts: list[dict]) -> str:
