@@ -384,3 +384,45 @@ def test_example_turntables_are_chosen_by_rule_and_stacked(tmp_path):
     got = example_turntables(blocks, chosen, 0, tmp_path / "t.webp")
     one = example_turntables(blocks, {"x": "prompt 0"}, 0, tmp_path / "one.webp")
     assert Image.open(got).height == 2 * Image.open(one).height  # two prompts have GIFs, the third none
+
+
+def test_what_the_raters_saw_counts_each_label_per_arm(tmp_path):
+    """The raters' make-up per arm equals a direct count of their files by the cells' presets, and
+    each prompt's share labelled Janus per arm is the mean of its cells' ``label_janus``, the rows
+    sorted by gd minus the first baseline."""
+    import collections
+    import csv
+
+    from gdbench.experiments.v3_design import attach_labels
+    from gdbench.experiments.v3_report import what_raters_saw
+
+    rng = np.random.default_rng(5)
+    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0}, 3, [0, 1, 2], rng)
+    for i, r in enumerate(rows):
+        r["run_id"] = f"r{i:03d}"
+    files = []
+    for k in range(2):
+        f = tmp_path / f"rater{k}.csv"
+        labs = rng.choice(["front_everywhere", "second_face", "blob", "fine"], size=len(rows))
+        with open(f, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["run_id", "label"])
+            w.writerows([(r["run_id"], lab) for r, lab in zip(rows, labs)] + [("elsewhere", "blob")])
+        files.append(f)
+    rows = attach_labels(rows, files)
+    counts, prompts = what_raters_saw(rows, files, ("gd", "gd-no-sn"))
+    preset = {r["run_id"]: r["preset"] for r in rows}
+    for k, f in enumerate(files, start=1):
+        direct = collections.Counter(
+            (preset[r["run_id"]], r["label"]) for r in csv.DictReader(open(f)) if r["run_id"] in preset
+        )
+        for c in (c for c in counts if c["rater"] == k):
+            assert c["results"] == 9 and all(
+                c[lab] == direct[c["preset"], lab] for lab in ("blob", "fine", "second_face")
+            )
+    for p in prompts:
+        for arm in ("gd", "gd-no-sn"):
+            want = np.mean([r["label_janus"] for r in rows if r["prompt"] == p["prompt"] and r["preset"] == arm])
+            assert p[arm] == pytest.approx(want)
+    d = [p["gd"] - p["gd-no-sn"] for p in prompts]
+    assert d == sorted(d) and len(prompts) == 3

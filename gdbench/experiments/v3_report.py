@@ -191,6 +191,43 @@ def example_turntables(blocks: Path, chosen: dict[str, str], seed: int, path: Pa
     return path
 
 
+def what_raters_saw(rows: list[dict], files: list, presets: tuple) -> tuple[list[dict], list[dict]]:
+    """What a person would see, per Janus arm: each rater's count of the four labels over the arm's
+    results (a row per rater and preset), and each prompt's mean ``label_janus`` in every arm (a
+    row per prompt, sorted by gd minus the first baseline; '' where an arm has no labelled cell)."""
+    from gdbench.metrics.agreement import LABELS, read_labels
+
+    janus = [r for r in rows if r.get("setting") == "janus"]
+    preset_of = {r.get("run_id"): r["preset"] for r in janus}
+    counts = []
+    for i, f in enumerate(files, start=1):
+        got = [(preset_of[r["run_id"]], r["label"]) for r in read_labels(f) if r["run_id"] in preset_of]
+        for preset in presets:
+            counts.append({"rater": i, "preset": preset, "results": sum(p == preset for p, _ in got)}
+                          | {lab: sum(x == (preset, lab) for x in got) for lab in LABELS})  # fmt: skip
+    per: dict[tuple, list[float]] = {}
+    for r in janus:
+        if num(r.get("label_janus")) == num(r.get("label_janus")):
+            per.setdefault((r["prompt"], r["preset"]), []).append(num(r["label_janus"]))
+    prompts = []
+    for prompt in sorted({r["prompt"] for r in janus}):
+        row = {"prompt": prompt} | {p: float(np.mean(per[prompt, p])) if (prompt, p) in per else "" for p in presets}
+        prompts.append(row)
+    a, b = presets[0], presets[1]
+    prompts.sort(key=lambda r: (r[a] - r[b]) if "" not in (r[a], r[b]) else math.inf)
+    return counts, prompts
+
+
+def _md(rows: list[dict]) -> list[str]:
+    """A markdown table of ``rows`` (their first row's keys as the head, floats to 2 decimals)."""
+    if not rows:
+        return []
+    head = list(rows[0])
+    cell = lambda x: f"{x:.2f}" if isinstance(x, float) else str(x)  # noqa: E731
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+            *["| " + " | ".join(cell(r[k]) for k in head) + " |" for r in rows]]  # fmt: skip
+
+
 def report(rows: list[dict], out: Path, results: Path, labels: list | None = None) -> dict:
     """Tables, forest plots, the controls' shares and report.md (module docstring); ``labels``: the
     raters' files, whose agreement decides whether the primary verdicts can be read
@@ -253,6 +290,12 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
                          f"{interval} ({s['prompts']} prompts; gd's effect "
                          f"{_f(s.get('effect', math.nan))}, the control's {_f(s.get('kept', math.nan))}).")  # fmt: skip
     write_csv(shares, results / "shares.csv")
+    arms = tuple(p for p in ("gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked")
+                 if any(r["preset"] == p and r.get("setting") == "janus" for r in rows))  # fmt: skip
+    counts, by_prompt = what_raters_saw(rows, list(labels or []), arms) if len(arms) >= 2 else ([], [])
+    for table, name in ((counts, "labels_by_arm.csv"), (by_prompt, "label_janus_by_prompt.csv")):
+        if table:
+            write_csv(table, results / name)
     first = next((v for v in verdicts if v.get("family") == "primary" and v["verdict"] != "not measured"), None)
     chosen, turntables = {}, None
     if first is not None:
@@ -272,6 +315,9 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
           f"{RATERS_MIN_KAPPA} or more).", "",
           "## Across prompts first, then the pooled pairs", "", table, "",
           "## The controls: the share of gd's effect each keeps", "", *lines, "",
+          *(["## What the raters saw, per arm (counts of results)", "", *_md(counts), ""] if counts else []),
+          *([f"## The share labelled Janus, per prompt and arm (sorted by {arms[0]} - {arms[1]})", "",
+             *_md(by_prompt), ""] if by_prompt else []),
           "## Prompts beyond the margin on the other side", "",
           *[f"- {label(v)}, {v['a']} vs {v['b']}, {v['metric']}: {v['against']}" for v in verdicts if "against" in v],
           "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), "",
