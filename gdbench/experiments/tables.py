@@ -201,16 +201,17 @@ def plot(rows: list[dict], path: Path) -> Path:
     settings = list(dict.fromkeys(where(r) for r in rows))
     prompts = list(dict.fromkeys(r["prompt"] for r in rows))
     panels = [c for c in COLUMNS if c[0] not in ("train_time_s", "gaussians")]
-    fig, axes = plt.subplots(
-        len(settings), len(panels), figsize=(2.6 * len(panels), 2.6 * len(settings)), squeeze=False
-    )
+    spread = min(0.08, 0.6 / max(len(prompts) - 1, 1))  # a preset's prompts side by side within +-0.3
+    ncol = 1 + len(prompts) // 16  # the legend's columns, 1.8 inches each beside the panels
+    width = 2.6 * len(panels) + 1.8 * ncol
+    fig, axes = plt.subplots(len(settings), len(panels), figsize=(width, 2.6 * len(settings)), squeeze=False)
     for si, setting in enumerate(settings):
         sel = [r for r in rows if where(r) == setting]
         presets = list(dict.fromkeys(r["preset"] for r in sel))
         for ax, (key, name, log) in zip(axes[si], panels):
             for j, pr in enumerate(prompts):
                 pts = [
-                    (i + 0.08 * (j - (len(prompts) - 1) / 2), float(r[key]))
+                    (i + spread * (j - (len(prompts) - 1) / 2), float(r[key]))
                     for i, p in enumerate(presets)
                     for r in sel
                     if r["preset"] == p and r["prompt"] == pr and _finite([r.get(key)])
@@ -227,6 +228,8 @@ def plot(rows: list[dict], path: Path) -> Path:
             elif log and any(v > 0 for v in vals):
                 ax.set_yscale("log")
             ax.grid(True, axis="y", alpha=0.3)
-    if axes[0][0].get_legend_handles_labels()[0]:
-        axes[0][0].legend(fontsize=6)
+    handles, names = axes[0][0].get_legend_handles_labels()
+    if handles:  # the prompts' colours beside the panels, not over the first one
+        fig.tight_layout(rect=(0, 0, 1 - 1.8 * ncol / width, 1))
+        fig.legend(handles, names, loc="center right", fontsize=6, ncol=ncol, frameon=False)
     return save(fig, path, dpi=100)
