@@ -426,3 +426,25 @@ def test_what_the_raters_saw_counts_each_label_per_arm(tmp_path):
             assert p[arm] == pytest.approx(want)
     d = [p["gd"] - p["gd-no-sn"] for p in prompts]
     assert d == sorted(d) and len(prompts) == 3
+
+
+def test_size_and_label_is_pearson_within_prompts():
+    """The exploratory size check equals Pearson's r of the prompt-centred Gaussians and labels
+    (scipy on the centred arrays), and reads about 1 where a label is built to follow the size."""
+    from scipy import stats
+
+    from gdbench.experiments.v3_report import size_and_label
+
+    rng = np.random.default_rng(6)
+    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0}, 6, range(5), rng)
+    for r in rows:
+        r["gaussians"] = 1000.0 + 400 * int(r["prompt"][-1]) + rng.normal(0, 50)
+        r["label_janus"] = float(rng.uniform()) if r["preset"] == "gd" else (r["gaussians"] % 400) / 400
+    got = {x["preset"]: x for x in size_and_label(rows, ("gd", "gd-no-sn"))}
+    sel = [r for r in rows if r["preset"] == "gd"]
+    mean = lambda p, k: np.mean([r[k] for r in sel if r["prompt"] == p])  # noqa: E731
+    centre = {p: (mean(p, "gaussians"), mean(p, "label_janus")) for p in {r["prompt"] for r in sel}}
+    g = [r["gaussians"] - centre[r["prompt"]][0] for r in sel]
+    y = [r["label_janus"] - centre[r["prompt"]][1] for r in sel]
+    assert got["gd"]["cells"] == 30 and got["gd"]["r_within_prompt"] == pytest.approx(stats.pearsonr(g, y)[0])
+    assert got["gd-no-sn"]["r_within_prompt"] > 0.95  # the label follows the size there

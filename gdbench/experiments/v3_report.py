@@ -218,6 +218,25 @@ def what_raters_saw(rows: list[dict], files: list, presets: tuple) -> tuple[list
     return counts, prompts
 
 
+def size_and_label(rows: list[dict], presets: tuple, metric: str = "label_janus") -> list[dict]:
+    """An exploratory look (not registered): per Janus arm, Pearson's r between a cell's Gaussians
+    and its ``metric`` within prompts (both centred on their prompt's mean over the arm's seeds),
+    i.e. whether the larger of two results of one prompt and arm is labelled differently."""
+    out = []
+    for preset in presets:
+        sel = [r for r in rows if r.get("setting") == "janus" and r["preset"] == preset
+               and num(r.get(metric)) == num(r.get(metric))]  # fmt: skip
+        by: dict[str, list[tuple[float, float]]] = {}
+        for r in sel:
+            by.setdefault(r["prompt"], []).append((num(r["gaussians"]), num(r[metric])))
+        g, y = (np.concatenate([np.array(v)[:, k] - np.mean(np.array(v)[:, k]) for v in by.values()]) for k in (0, 1))
+        ok = len(g) > 2 and g.std() > 0 and y.std() > 0
+        out.append(
+            {"preset": preset, "cells": len(sel), "r_within_prompt": float(np.corrcoef(g, y)[0, 1]) if ok else math.nan}
+        )
+    return out
+
+
 def _md(rows: list[dict]) -> list[str]:
     """A markdown table of ``rows`` (their first row's keys as the head, floats to 2 decimals)."""
     if not rows:
@@ -318,6 +337,10 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
           *(["## What the raters saw, per arm (counts of results)", "", *_md(counts), ""] if counts else []),
           *([f"## The share labelled Janus, per prompt and arm (sorted by {arms[0]} - {arms[1]})", "",
              *_md(by_prompt), ""] if by_prompt else []),
+          *(["## Exploratory, not registered: does a result's size track its label?", "",
+             "Pearson's r between a cell's Gaussians and its label_janus within prompts (each centred on "
+             "its prompt's mean in the arm): near 0, the larger results of a prompt and arm are not the "
+             "ones labelled differently.", "", *_md(size_and_label(rows, arms)), ""] if by_prompt else []),
           "## Prompts beyond the margin on the other side", "",
           *[f"- {label(v)}, {v['a']} vs {v['b']}, {v['metric']}: {v['against']}" for v in verdicts if "against" in v],
           "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), "",
