@@ -140,3 +140,26 @@ def test_data_rendered_by_several_workers_is_the_one_process_render(tmp_path):
         render_dataset(cfg, progress=False, parts=parts, workers=0)
     with pytest.raises(ValueError, match=r"workers: .*needs a parts folder"):
         render_dataset(cfg, progress=False, workers=2)
+
+
+def test_a_worker_error_is_raised_and_the_finished_parts_resume(tmp_path):
+    """A worker that cannot keep its part (a folder stands at the part's path, so the rename fails)
+    raises its error in the caller, naming the path; no temporary file is left in the parts folder.
+    Once the obstacle is gone, the same call renders only what is missing, and the set equals the
+    one-process render."""
+    from gdbench.priors.learned.data import render_dataset
+
+    cfg = DataConfig(views=2, resolution=16, captions=("a white duck", "a red car"))
+    one = render_dataset(cfg, progress=False)
+    parts = tmp_path / "parts"
+    (parts / "1-2.npz").mkdir(parents=True)  # the last part's path is taken by a folder
+    with pytest.raises(OSError, match=r"1-2\.npz"):
+        render_dataset(cfg, progress=False, parts=parts, workers=2)
+    assert not [p.name for p in parts.iterdir() if p.name.startswith(".")]  # no temporary file left behind
+    finished = {p.name: p.stat().st_mtime_ns for p in parts.glob("*.npz") if p.is_file()}
+    assert len(finished) >= 4  # the failing part is the last of six: two workers finished four before it began
+    (parts / "1-2.npz").rmdir()
+    two = render_dataset(cfg, progress=False, parts=parts, workers=2)
+    assert all((parts / n).stat().st_mtime_ns == t for n, t in finished.items())  # kept, not rendered again
+    for k in ("images", "caption", "variant", "azimuth", "elevation", "fovy"):
+        assert torch.equal(getattr(one, k), getattr(two, k)), k
