@@ -232,6 +232,10 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
     md = (tmp_path / "results" / "report.md").read_text()
     assert "gd-pose-locked gives" in md and "across prompts" in md
     assert "gd vs gd-no-sn, janus_rate: prompt 9 +" in md  # the reversal names its metric
+    assert "## What the raters saw" not in md and got["turntables"] is None  # no rater files, no GIFs
+    bare = [{k: v for k, v in r.items() if k != "label_janus"} for r in rows]  # before any label: no crash
+    report(bare, tmp_path, tmp_path / "unlabelled")
+    assert "## The share labelled Janus" not in (tmp_path / "unlabelled" / "report.md").read_text()
     from PIL import Image
 
     assert Image.open(got["forests"][0]).size[1] > 0.22 * 10 * 100  # a row per prompt at 100 dpi
@@ -354,25 +358,34 @@ def test_raters_who_disagree_leave_the_primary_verdicts_undecided(tmp_path, monk
 
 
 def test_example_turntables_are_chosen_by_rule_and_stacked(tmp_path):
-    """The report's example prompts follow the rule (the most negative mean, a prompt Janus in every
-    cell, the most positive mean above 0), and their turntables stack into one sheet, a grid per
-    prompt (each row a preset, its frames taken from the cells' GIFs)."""
+    """The report's example prompts follow the rule (the most negative mean, the first prompt Janus
+    in every cell of every arm, the most positive mean above 0, ties to the first name), none where
+    no mean qualifies; their turntables stack into one sheet, a grid per prompt (each row a preset,
+    its frames from the cells' GIFs), and the grids in between are removed."""
     import imageio.v3 as iio
     from PIL import Image
 
     from gdbench.experiments.v3_report import example_prompts, example_turntables, pairs
 
-    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0}, 4, [0, 1], np.random.default_rng(2), metric="label_janus")
+    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0}, 7, [0, 1], np.random.default_rng(2), metric="label_janus")
+    lab = {  # prompt: (gd, gd-no-sn); the differences -1, 0 (ceiling), +0.5, 0, -0.5, +0.5 (a tie), -1 (a tie)
+        "prompt 0": (0.0, 1.0), "prompt 1": (1.0, 1.0), "prompt 2": (0.5, 0.0), "prompt 3": (0.5, 0.5),
+        "prompt 4": (0.5, 1.0), "prompt 5": (1.0, 0.5), "prompt 6": (0.0, 1.0),
+    }  # fmt: skip
     for r in rows:
-        r["label_janus"] = {"prompt 0": 0.0 if r["preset"] == "gd" else 1.0, "prompt 1": 1.0,
-                            "prompt 2": 0.5 if r["preset"] == "gd" else 0.0, "prompt 3": 0.5}[r["prompt"]]  # fmt: skip
+        r["label_janus"] = lab[r["prompt"]][r["preset"] == "gd-no-sn"]
     keys, d = pairs(rows, "learned-v1", "janus", "gd", "gd-no-sn", "label_janus")
-    chosen = example_prompts(rows, keys, d, "label_janus")
+    chosen = example_prompts(rows, keys, d, "label_janus", "learned-v1", ("gd", "gd-no-sn"))
     assert chosen == {
         "the largest effect": "prompt 0",
         "Janus in every arm": "prompt 1",
         "the largest reversal": "prompt 2",
     }
+    # a ceiling needs every arm: without gd-no-sn's cells prompt 1 is no ceiling; nothing reverses where all gain
+    gd_only = [r for r in rows if not (r["prompt"] == "prompt 1" and r["preset"] == "gd-no-sn")]
+    assert "Janus in every arm" not in example_prompts(gd_only, keys, d, "label_janus", None, ("gd", "gd-no-sn"))
+    assert example_prompts(rows, keys, -np.abs(d), "label_janus").get("the largest reversal") is None
+    assert example_prompts(rows, keys, np.abs(d), "label_janus").get("the largest effect") is None
     blocks = tmp_path / "janus"
     assert example_turntables(blocks, chosen, 0, tmp_path / "t.webp") is None  # no GIF kept: no sheet
     rng = np.random.default_rng(0)
@@ -381,51 +394,58 @@ def test_example_turntables_are_chosen_by_rule_and_stacked(tmp_path):
             gif = blocks / "cells" / "learned-v1" / "janus" / prompt / preset / "seed0" / "turntable.gif"
             gif.parent.mkdir(parents=True)
             iio.imwrite(gif, rng.integers(0, 255, (12, 32, 32, 3), dtype=np.uint8), extension=".gif")
-    got = example_turntables(blocks, chosen, 0, tmp_path / "t.webp")
+    got = example_turntables(blocks, chosen, 0, tmp_path / "t.webp", "learned-v1")
     one = example_turntables(blocks, {"x": "prompt 0"}, 0, tmp_path / "one.webp")
     assert Image.open(got).height == 2 * Image.open(one).height  # two prompts have GIFs, the third none
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["janus", "one.webp", "t.webp"]  # no grid left behind
 
 
 def test_what_the_raters_saw_counts_each_label_per_arm(tmp_path):
-    """The raters' make-up per arm equals a direct count of their files by the cells' presets, and
-    each prompt's share labelled Janus per arm is the mean of its cells' ``label_janus``, the rows
-    sorted by gd minus the first baseline."""
+    """The raters' make-up per arm equals a direct count of their files by the cells' presets (all
+    four labels), and each prompt's share labelled Janus per arm is the mean of its cells'
+    ``label_janus``; the rows are sorted by gd minus the first baseline (not by name), a prompt
+    missing an arm last; without labels there are no rows."""
     import collections
     import csv
 
     from gdbench.experiments.v3_design import attach_labels
     from gdbench.experiments.v3_report import what_raters_saw
+    from gdbench.metrics.agreement import LABELS
 
     rng = np.random.default_rng(5)
-    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0}, 3, [0, 1, 2], rng)
+    rows = _cells({"gd": -0.3, "gd-no-sn": 0.0}, 4, [0, 1, 2], rng)
     for i, r in enumerate(rows):
         r["run_id"] = f"r{i:03d}"
+    rows = [r for r in rows if not (r["prompt"] == "prompt 0" and r["preset"] == "gd-no-sn")]  # an arm missing
     files = []
     for k in range(2):
         f = tmp_path / f"rater{k}.csv"
-        labs = rng.choice(["front_everywhere", "second_face", "blob", "fine"], size=len(rows))
+        labs = rng.choice(list(LABELS), size=len(rows))
         with open(f, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["run_id", "label"])
             w.writerows([(r["run_id"], lab) for r, lab in zip(rows, labs)] + [("elsewhere", "blob")])
         files.append(f)
+    bare = [{k: v for k, v in r.items() if k != "label_janus"} for r in rows]
+    assert what_raters_saw(bare, [], ("gd", "gd-no-sn")) == ([], [])  # no labels: nothing to show
     rows = attach_labels(rows, files)
     counts, prompts = what_raters_saw(rows, files, ("gd", "gd-no-sn"))
     preset = {r["run_id"]: r["preset"] for r in rows}
     for k, f in enumerate(files, start=1):
-        direct = collections.Counter(
-            (preset[r["run_id"]], r["label"]) for r in csv.DictReader(open(f)) if r["run_id"] in preset
-        )
-        for c in (c for c in counts if c["rater"] == k):
-            assert c["results"] == 9 and all(
-                c[lab] == direct[c["preset"], lab] for lab in ("blob", "fine", "second_face")
+        with open(f, newline="") as fh:
+            direct = collections.Counter(
+                (preset[r["run_id"]], r["label"]) for r in csv.DictReader(fh) if r["run_id"] in preset
             )
+        for c in (c for c in counts if c["rater"] == k):
+            assert c["results"] == sum(c[lab] for lab in LABELS) == (12 if c["preset"] == "gd" else 9)
+            assert all(c[lab] == direct[c["preset"], lab] for lab in LABELS)
     for p in prompts:
         for arm in ("gd", "gd-no-sn"):
-            want = np.mean([r["label_janus"] for r in rows if r["prompt"] == p["prompt"] and r["preset"] == arm])
-            assert p[arm] == pytest.approx(want)
-    d = [p["gd"] - p["gd-no-sn"] for p in prompts]
-    assert d == sorted(d) and len(prompts) == 3
+            cells = [r["label_janus"] for r in rows if r["prompt"] == p["prompt"] and r["preset"] == arm]
+            assert p[arm] == (pytest.approx(np.mean(cells)) if cells else "")
+    assert prompts[-1]["prompt"] == "prompt 0" and prompts[-1]["gd-no-sn"] == ""
+    d = [p["gd"] - p["gd-no-sn"] for p in prompts[:-1]]
+    assert d == sorted(d) and len(prompts) == 4
 
 
 def test_size_and_label_is_pearson_within_prompts():
@@ -447,4 +467,7 @@ def test_size_and_label_is_pearson_within_prompts():
     g = [r["gaussians"] - centre[r["prompt"]][0] for r in sel]
     y = [r["label_janus"] - centre[r["prompt"]][1] for r in sel]
     assert got["gd"]["cells"] == 30 and got["gd"]["r_within_prompt"] == pytest.approx(stats.pearsonr(g, y)[0])
+    extra = [sel[0] | {"gaussians": float("nan")}, sel[0] | {"prompt": "alone", "label_janus": 1.0}]
+    again = {x["preset"]: x for x in size_and_label(rows + extra, ("gd", "gd-no-sn"))}
+    assert again["gd"] == got["gd"]  # a cell without a size, and a prompt of one cell, are left out
     assert got["gd-no-sn"]["r_within_prompt"] > 0.95  # the label follows the size there

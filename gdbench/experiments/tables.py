@@ -194,7 +194,7 @@ def tables(rows: list[dict], out: Path, figures: bool = True, claims=None, promp
 
 def plot(rows: list[dict], path: Path) -> Path:
     """Per group and setting (rows of panels) and metric (columns), every cell per preset (colour
-    = prompt)."""
+    and marker = prompt: ten colours, a new marker for every ten prompts)."""
     from gdbench.core.plotting import pyplot, save
 
     plt = pyplot()
@@ -217,7 +217,13 @@ def plot(rows: list[dict], path: Path) -> Path:
                     if r["preset"] == p and r["prompt"] == pr and _finite([r.get(key)])
                 ]
                 if pts:
-                    ax.scatter(*zip(*pts), s=10, color=f"C{j}", label=pr if si == 0 else None)
+                    ax.scatter(
+                        *zip(*pts),
+                        s=10,
+                        color=f"C{j % 10}",
+                        marker="os^Dv<>p"[j // 10 % 8],
+                        label=pr if si == 0 else None,
+                    )
             meds = [_median([r.get(key) for r in sel if r["preset"] == p]) for p in presets]
             ax.scatter(range(len(presets)), meds, marker="_", s=300, color="k")
             ax.set_xticks(range(len(presets)), presets, rotation=35, fontsize=7)

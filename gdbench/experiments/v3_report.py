@@ -143,43 +143,51 @@ def against(keys: list[tuple], d: np.ndarray, overall: float, margin: float) -> 
     return out
 
 
-def example_prompts(rows: list[dict], keys: list[tuple], d: np.ndarray, metric: str) -> dict[str, str]:
+def _janus(rows: list[dict], group: str | None) -> list[dict]:
+    """The Janus setting's rows, of ``group`` alone where one is named."""
+    return [r for r in rows if r.get("setting") == "janus" and (group is None or r.get("group") == group)]
+
+
+def example_prompts(rows: list[dict], keys: list[tuple], d: np.ndarray, metric: str, group: str | None = None,
+                    presets: tuple = ()) -> dict[str, str]:  # fmt: skip
     """The prompts the report shows turntables of, chosen by rule from the first primary claim's
-    per-prompt means ``d`` over ``keys``: the largest effect (the most negative mean), a ceiling
-    (every Janus cell of every arm at 1 on ``metric``) and the largest reversal (the most positive
-    mean above 0); ties go to the first name. A kind with no prompt is left out."""
+    per-prompt means ``d`` over ``keys`` (means rounded to 1e-9, so that float noise cannot break a
+    tie): the largest effect (the most negative mean), a ceiling (a prompt of the claim whose cells
+    of ``group``'s Janus setting are all 1 on ``metric``, every one of ``presets`` among them) and
+    the largest reversal (the most positive mean above 0). Ties go to the alphabetically first
+    prompt; a kind with no prompt is left out."""
     from gdbench.experiments.claims import per_prompt
 
-    means = sorted((float(np.mean(v)), p) for p, v in per_prompt(keys, d).items())
+    means = sorted((round(float(np.mean(v)), 9), p) for p, v in per_prompt(keys, d).items())
     out = {"the largest effect": means[0][1]} if means and means[0][0] < 0 else {}
-    cells: dict[str, list[float]] = {}
-    for r in rows:
-        if r.get("setting") == "janus":
-            cells.setdefault(r["prompt"], []).append(num(r.get(metric)))
-    ceiling = sorted(p for p, v in cells.items() if v and all(x == 1 for x in v))
+    cells: dict[str, list[tuple[str, float]]] = {}
+    for r in _janus(rows, group):
+        cells.setdefault(r["prompt"], []).append((r["preset"], num(r.get(metric))))
+    ceiling = sorted(p for _, p in means if p in cells and all(x == 1 for _, x in cells[p])
+                     and set(presets) <= {a for a, _ in cells[p]})  # fmt: skip
     if ceiling:
         out["Janus in every arm"] = ceiling[0]
-    top = max(m for m, _ in means) if means else 0.0
-    if top > 0:
-        out["the largest reversal"] = min(p for m, p in means if m == top)
+    if means and means[-1][0] > 0:
+        out["the largest reversal"] = min(p for m, p in means if m == means[-1][0])
     return out
 
 
-def example_turntables(blocks: Path, chosen: dict[str, str], seed: int, path: Path) -> Path | None:
-    """Seed ``seed``'s turntables of the ``chosen`` prompts (kind -> prompt), every Janus arm a row,
-    one figure per prompt stacked into ``path``; None when no cell kept its turntable."""
+def example_turntables(blocks: Path, chosen: dict[str, str], seed: int, path: Path, group: str | None = None):
+    """Seed ``seed``'s turntables of the ``chosen`` prompts (kind -> prompt), every Janus arm of
+    ``group`` a row, one figure per prompt stacked into ``path`` (the figures in between removed);
+    None when no cell kept its turntable."""
     from PIL import Image
 
     from gdbench.experiments.sweep import turntable_grid
 
     parts = []
     for kind, prompt in chosen.items():
-        grid = turntable_grid(
-            blocks, prompt, seed=seed, path=path.with_name(f"{path.stem}_{kind.replace(' ', '_')}.png")
-        )
-        if grid is not None:
-            parts.append(Image.open(grid).convert("RGB"))
-            grid.unlink()
+        one = path.with_name(f"{path.stem}_{kind.replace(' ', '_')}.png")
+        try:
+            if turntable_grid(blocks, prompt, seed=seed, group=group, path=one) is not None:
+                parts.append(Image.open(one).convert("RGB"))
+        finally:
+            one.unlink(missing_ok=True)
     if not parts:
         return None
     sheet = Image.new("RGB", (max(im.width for im in parts), sum(im.height for im in parts)), "white")
@@ -191,13 +199,16 @@ def example_turntables(blocks: Path, chosen: dict[str, str], seed: int, path: Pa
     return path
 
 
-def what_raters_saw(rows: list[dict], files: list, presets: tuple) -> tuple[list[dict], list[dict]]:
-    """What a person would see, per Janus arm: each rater's count of the four labels over the arm's
-    results (a row per rater and preset), and each prompt's mean ``label_janus`` in every arm (a
-    row per prompt, sorted by gd minus the first baseline; '' where an arm has no labelled cell)."""
+def what_raters_saw(rows: list[dict], files: list, presets: tuple, group: str | None = None):
+    """What a person would see, per Janus arm of ``group``: each rater's count of the four labels
+    over the arm's results (a row per rater and preset), and each prompt's mean ``label_janus`` in
+    every arm (a row per prompt with a labelled cell, sorted by ``presets[0]`` minus
+    ``presets[1]``, prompts missing either last; '' where an arm has no labelled cell)."""
     from gdbench.metrics.agreement import LABELS, read_labels
 
-    janus = [r for r in rows if r.get("setting") == "janus"]
+    if len(presets) < 2:
+        raise ValueError(f"presets: expected at least two arms to compare, got {presets}")
+    janus = _janus(rows, group)
     preset_of = {r.get("run_id"): r["preset"] for r in janus}
     counts = []
     for i, f in enumerate(files, start=1):
@@ -210,30 +221,34 @@ def what_raters_saw(rows: list[dict], files: list, presets: tuple) -> tuple[list
         if num(r.get("label_janus")) == num(r.get("label_janus")):
             per.setdefault((r["prompt"], r["preset"]), []).append(num(r["label_janus"]))
     prompts = []
-    for prompt in sorted({r["prompt"] for r in janus}):
-        row = {"prompt": prompt} | {p: float(np.mean(per[prompt, p])) if (prompt, p) in per else "" for p in presets}
-        prompts.append(row)
+    for prompt in sorted({p for p, _ in per}):
+        prompts.append({"prompt": prompt} | {a: float(np.mean(per[prompt, a])) if (prompt, a) in per else ""
+                                             for a in presets})  # fmt: skip
     a, b = presets[0], presets[1]
     prompts.sort(key=lambda r: (r[a] - r[b]) if "" not in (r[a], r[b]) else math.inf)
     return counts, prompts
 
 
-def size_and_label(rows: list[dict], presets: tuple, metric: str = "label_janus") -> list[dict]:
-    """An exploratory look (not registered): per Janus arm, Pearson's r between a cell's Gaussians
-    and its ``metric`` within prompts (both centred on their prompt's mean over the arm's seeds),
-    i.e. whether the larger of two results of one prompt and arm is labelled differently."""
+def size_and_label(rows: list[dict], presets: tuple, metric: str = "label_janus", group: str | None = None):
+    """An exploratory look (not registered): per Janus arm of ``group``, Pearson's r between a
+    cell's Gaussians and its ``metric`` within prompts (both centred on their prompt's mean over the
+    arm's seeds), i.e. whether the larger of two results of one prompt and arm is labelled
+    differently. Cells missing either value, and prompts left with one cell (nothing to compare
+    within), are left out; NaN where fewer than two degrees of freedom remain or either is constant."""
     out = []
     for preset in presets:
-        sel = [r for r in rows if r.get("setting") == "janus" and r["preset"] == preset
-               and num(r.get(metric)) == num(r.get(metric))]  # fmt: skip
         by: dict[str, list[tuple[float, float]]] = {}
-        for r in sel:
-            by.setdefault(r["prompt"], []).append((num(r["gaussians"]), num(r[metric])))
-        g, y = (np.concatenate([np.array(v)[:, k] - np.mean(np.array(v)[:, k]) for v in by.values()]) for k in (0, 1))
-        ok = len(g) > 2 and g.std() > 0 and y.std() > 0
-        out.append(
-            {"preset": preset, "cells": len(sel), "r_within_prompt": float(np.corrcoef(g, y)[0, 1]) if ok else math.nan}
-        )
+        for r in _janus(rows, group):
+            g, y = num(r.get("gaussians")), num(r.get(metric))
+            if r["preset"] == preset and g == g and y == y:
+                by.setdefault(r["prompt"], []).append((g, y))
+        by = {p: np.array(v) for p, v in by.items() if len(v) > 1}
+        r_ = math.nan
+        if sum(len(v) - 1 for v in by.values()) >= 2:
+            g, y = (np.concatenate([v[:, k] - v[:, k].mean() for v in by.values()]) for k in (0, 1))
+            if g.std() > 0 and y.std() > 0:
+                r_ = float(np.corrcoef(g, y)[0, 1])
+        out.append({"preset": preset, "cells": sum(len(v) for v in by.values()), "r_within_prompt": r_})
     return out
 
 
@@ -242,7 +257,7 @@ def _md(rows: list[dict]) -> list[str]:
     if not rows:
         return []
     head = list(rows[0])
-    cell = lambda x: f"{x:.2f}" if isinstance(x, float) else str(x)  # noqa: E731
+    cell = lambda x: f"{x:.2f}" if isinstance(x, float) else str(x).replace("|", "\\|")  # noqa: E731
     return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
             *["| " + " | ".join(cell(r[k]) for k in head) + " |" for r in rows]]  # fmt: skip
 
@@ -295,7 +310,7 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
         if v["metric"] not in MAIN + METRIC_MAIN:
             continue
         name = f"forest_{v['group']}_{v['metric']}_{v['a']}_vs_{v['b']}.png".replace(" ", "_")
-        title = (f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}, {v.get('verdict_prompts', '')} across prompts\n"
+        title = (f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}; across prompts: {v.get('verdict_prompts', '')}\n"
                  f"cells trained at {', '.join(c[:7] for c in commits)}, tables at {code_commit()[:7]}")  # fmt: skip
         forests.append(forest(keys, d, title=title, margin=float(v["margin"]), path=figures / name, pooled=pooled))
     for group in sorted({v["group"] for v in verdicts if v["setting"] == "janus"}):
@@ -309,19 +324,23 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
                          f"{interval} ({s['prompts']} prompts; gd's effect "
                          f"{_f(s.get('effect', math.nan))}, the control's {_f(s.get('kept', math.nan))}).")  # fmt: skip
     write_csv(shares, results / "shares.csv")
+    first = next((v for v in verdicts if v.get("family") == "primary" and v["verdict"] != "not measured"), None)
+    group = first["group"] if first is not None else None  # the primary claims' group: its Janus arms
     arms = tuple(p for p in ("gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked")
-                 if any(r["preset"] == p and r.get("setting") == "janus" for r in rows))  # fmt: skip
-    counts, by_prompt = what_raters_saw(rows, list(labels or []), arms) if len(arms) >= 2 else ([], [])
+                 if any(r["preset"] == p for r in _janus(rows, group)))  # fmt: skip
+    counts, by_prompt, sizes = [], [], []
+    if len(arms) >= 2:
+        counts, by_prompt = what_raters_saw(rows, list(labels or []), arms, group)
+        sizes = size_and_label(rows, arms, group=group) if by_prompt else []
     for table, name in ((counts, "labels_by_arm.csv"), (by_prompt, "label_janus_by_prompt.csv")):
         if table:
             write_csv(table, results / name)
-    first = next((v for v in verdicts if v.get("family") == "primary" and v["verdict"] != "not measured"), None)
     chosen, turntables = {}, None
     if first is not None:
-        chosen = example_prompts(rows, *pairs(rows, first["group"], first["setting"], first["a"], first["b"],
-                                              first["metric"]), first["metric"])  # fmt: skip
-        seed = min(int(num(r["seed"])) for r in rows if r.get("setting") == "janus")
-        turntables = example_turntables(out / "blocks" / "janus", chosen, seed, results / "turntables.webp")
+        keys, d = pairs(rows, first["group"], first["setting"], first["a"], first["b"], first["metric"])
+        chosen = example_prompts(rows, keys, d, first["metric"], group, arms)
+        seed = min(int(num(r["seed"])) for r in _janus(rows, group))
+        turntables = example_turntables(out / "blocks" / "janus", chosen, seed, results / "turntables.webp", group)
     table = readme_table(verdicts)
     (results / "verdict_readme.md").write_text(table)
     hours = sum(num(r.get("cell_s")) for r in rows if num(r.get("cell_s")) == num(r.get("cell_s"))) / 3600
@@ -340,7 +359,7 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
           *(["## Exploratory, not registered: does a result's size track its label?", "",
              "Pearson's r between a cell's Gaussians and its label_janus within prompts (each centred on "
              "its prompt's mean in the arm): near 0, the larger results of a prompt and arm are not the "
-             "ones labelled differently.", "", *_md(size_and_label(rows, arms)), ""] if by_prompt else []),
+             "ones labelled differently.", "", *_md(sizes), ""] if sizes else []),
           "## Prompts beyond the margin on the other side", "",
           *[f"- {label(v)}, {v['a']} vs {v['b']}, {v['metric']}: {v['against']}" for v in verdicts if "against" in v],
           "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), "",
