@@ -219,8 +219,17 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
     for r in rows:  # prompt 9 goes the other way
         if r["prompt"] == "prompt 9" and r["preset"] == "gd":
             r["janus_rate"] += 0.5
-    got = report(rows, tmp_path, tmp_path / "results")
+    got = report(rows, tmp_path, tmp_path / "results", figures=tmp_path / "figures")
     v = next(x for x in got["verdicts"] if x["b"] == "gd-no-sn" and x["metric"] == "janus_rate")
+    # the README's copies: the primary claims' forest plots (label_janus), the same bytes, no turntables here
+    assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == sorted(
+        f"v3_forest_label_janus_gd_vs_{b}.png" for b in ("gd-no-sn", "gd-redraw-step", "gd-pose-locked")
+    )
+    for c in got["copies"]:
+        assert (
+            c.read_bytes()
+            == (tmp_path / "results" / "figures" / c.name.replace("v3_forest_", "forest_learned-v1_")).read_bytes()
+        )
     per = {}
     for r in rows:
         if r["preset"] in ("gd", "gd-no-sn"):

@@ -5,7 +5,7 @@ pre-registered, with the mechanism isolated.
     python -m gdbench.experiments.v3 pilot --out runs/v3-pilot [--workers 2]
     python -m gdbench.experiments.v3 design --out runs/v3-pilot --results docs/results/v3/pilot
     python -m gdbench.experiments.v3 sweep --out runs/v3 [--workers 2] [--executor ray]
-    python -m gdbench.experiments.v3 report --out runs/v3 --results docs/results/v3
+    python -m gdbench.experiments.v3 report --out runs/v3 --results docs/results/v3 --figures docs/figures
 
 ``prompts`` lists the prompts the rule gives (every caption the learned prior was trained on that
 has a front). ``pilot`` runs every candidate block on a quarter of them at two seeds kept out of
@@ -51,6 +51,11 @@ def main(argv=None) -> int:
         type=Path,
         help="design, report: raters' labels by run id (gdbench.metrics.label_sheets --unblind)",
     )
+    p.add_argument(
+        "--figures",
+        type=Path,
+        help="report: also copy the primary claims' forest plots and the turntables here, as v3_*.png/webp",
+    )
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no line per cell")
     a = p.parse_args(argv)
     if a.workers < 1 or a.rounds < 0:
@@ -82,7 +87,7 @@ def main(argv=None) -> int:
     else:
         from gdbench.experiments.v3_report import report
 
-        report(attach_labels(collect(a.out), a.labels), a.out, a.results, a.labels)
+        report(attach_labels(collect(a.out), a.labels), a.out, a.results, a.labels, figures=a.figures)
     return 0
 
 

@@ -262,10 +262,12 @@ def _md(rows: list[dict]) -> list[str]:
             *["| " + " | ".join(cell(r[k]) for k in head) + " |" for r in rows]]  # fmt: skip
 
 
-def report(rows: list[dict], out: Path, results: Path, labels: list | None = None) -> dict:
+def report(rows: list[dict], out: Path, results: Path, labels: list | None = None, figures: Path | None = None) -> dict:
     """Tables, forest plots, the controls' shares and report.md (module docstring); ``labels``: the
     raters' files, whose agreement decides whether the primary verdicts can be read
-    (``v3_design.RATERS_MIN_KAPPA``)."""
+    (``v3_design.RATERS_MIN_KAPPA``); ``figures``: a folder that also gets copies of the primary
+    claims' forest plots (``v3_forest_<metric>_<a>_vs_<b>.png``) and the turntables
+    (``v3_turntables.webp``), the README's figures."""
     import itertools
 
     from gdbench.core.io import write_csv, write_json
@@ -298,7 +300,7 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
     reg = prereg_commit()
     commits = sorted({str(r.get("train_commit")) for r in rows})
     before = {c: (precedes(reg, c) if reg else None) for c in commits}
-    figures = results / "figures"
+    forest_dir = results / "figures"
     forests, shares, lines = [], [], []
     for v in verdicts:
         if v["verdict"] == "not measured":
@@ -312,7 +314,7 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
         name = f"forest_{v['group']}_{v['metric']}_{v['a']}_vs_{v['b']}.png".replace(" ", "_")
         title = (f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}; across prompts: {v.get('verdict_prompts', '')}\n"
                  f"cells trained at {', '.join(c[:7] for c in commits)}, tables at {code_commit()[:7]}")  # fmt: skip
-        forests.append(forest(keys, d, title=title, margin=float(v["margin"]), path=figures / name, pooled=pooled))
+        forests.append(forest(keys, d, title=title, margin=float(v["margin"]), path=forest_dir / name, pooled=pooled))
     for group in sorted({v["group"] for v in verdicts if v["setting"] == "janus"}):
         sel = [r for r in rows if r.get("group") == group and r.get("setting") == "janus"]
         for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN + METRIC_MAIN):
@@ -367,11 +369,21 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
              f"primary claim's prompts: " + "; ".join(f"{k}: {p}" for k, p in chosen.items()) + ".", ""]
             if turntables else [])]  # fmt: skip
     (results / "report.md").write_text("\n".join(md))
+    copies = []
+    if figures is not None:
+        import shutil
+
+        figures.mkdir(parents=True, exist_ok=True)
+        primary = [f for f in forests if any(f"_{m}_" in f.name for m in MAIN)]
+        for f in [*primary, *([turntables] if turntables else [])]:
+            name = "v3_" + f.name.replace(f"forest_{group}_", "forest_") if f in primary else f"v3_{f.name}"
+            copies.append(Path(shutil.copyfile(f, figures / name)))
     prov = {"raters": raters, "prereg_commit": reg, "train_commits": commits, "prereg_precedes": before,
             "cells": len(rows), "cell_hours": hours, "tables_commit": code_commit()}  # fmt: skip
     write_json(prov, results / "provenance.json")
     print(f"report: {len(rows)} cells -> {results / 'report.md'}")
-    return {"verdicts": verdicts, "shares": shares, "forests": forests, "examples": chosen, "turntables": turntables}
+    return {"verdicts": verdicts, "shares": shares, "forests": forests, "examples": chosen, "turntables": turntables,
+            "copies": copies}  # fmt: skip
 
 
 def readme_table(verdicts: list[dict]) -> str:
