@@ -47,6 +47,10 @@ def test_claims_verdict_from_paired_tests():
     from gdbench.experiments.tables import markdown
 
     assert "Left out of the claims on janus_rate: a hamburger (the asset declares no front)." in markdown([], [jb])
+    nm = got["gd", "gd-no-vgs", "floaters"] | {"left_out": "floaters: a, b, c (not measured)"}
+    md = markdown([], [jb, nm])  # a claim no cell measured: one line, not a table row of n/a nor its prompts
+    assert "| gd vs gd-no-vgs | floaters |" not in md and "Left out of the claims on floaters" not in md
+    assert md.count("gd vs gd-no-vgs, floaters") == 1 and "Not measured (no cell has the metric in both arms)" in md
     flipped = [dict(r, multi_face_rate=-r["multi_face_rate"]) for r in rows]
     flipped_got = {(v["a"], v["b"], v["metric"]): v for v in evaluate(flipped)}
     assert flipped_got["gd", "gd-no-sn", "multi_face_rate"]["verdict"] == "does not hold"

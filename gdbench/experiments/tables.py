@@ -127,6 +127,8 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
            "across prompts: a - b [95% t CI] | p (Holm) | verdict across prompts | Gaussians a / b | "
            "GT PSNR a / b (dB) |"]  # fmt: skip
     md.append("|---" * 19 + "|")
+    unmeasured = [v for v in verdicts if v["verdict"] == "not measured" and not float(v["pairs"] or 0)]
+    verdicts = [v for v in verdicts if v not in unmeasured]  # a claim no cell could measure: one line below
     if not verdicts:
         md[-2:] = ["No claim is decidable here: each needs both of its presets in one setting."]
     for v in verdicts:
@@ -154,6 +156,9 @@ def markdown(summary: list[dict], verdicts: list[dict], rows: list[dict] | None 
         left = sorted({v["left_out"] for v in verdicts if v.get("left_out")})
         if left:
             md += ["", *[f"Left out of the claims on {line}." for line in left]]
+    if unmeasured:
+        md += ["", "Not measured (no cell has the metric in both arms): "
+               + "; ".join(f"{label(v)}, {v['a']} vs {v['b']}, {v['metric']}" for v in unmeasured) + "."]  # fmt: skip
     return "\n".join(md) + "\n"
 
 
