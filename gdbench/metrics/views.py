@@ -60,6 +60,7 @@ from torch import Tensor
 
 from gdbench.assets.library import FRONTS
 from gdbench.core.camera import SphericalPoses
+from gdbench.metrics.pieces import detached, main_piece
 
 ELEVATION, FOVY, SIZE, FRAMES = 20.0, 55.0, 64, 36
 
@@ -307,9 +308,9 @@ def _centre_front(centre: Tensor, azimuth: Tensor) -> Tensor:
 
 def _aspect(alpha: Tensor) -> Tensor:
     """[N] width over height of each silhouette in ``alpha`` [N, H, W]: the spans between the 5th
-    and 95th percentiles of the coverage of its largest piece (``_main_piece``: floaters are not
+    and 95th percentiles of the coverage of its largest piece (``pieces.main_piece``: floaters are not
     the outline) along each axis."""
-    body, _ = _main_piece(alpha.double().numpy())
+    body, _ = main_piece(alpha.double().numpy())
     a = alpha.double() * torch.from_numpy(body)
 
     def span(mass: Tensor) -> Tensor:  # [N, L] -> [N]
@@ -441,7 +442,7 @@ def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 
         front_share=front_share,
         instance_consistency=consistency,
         majority_variant=majority,
-        floaters=_detached(alpha, dilate),
+        floaters=detached(alpha, dilate),
         offset_deg=offset,
         turned_deg=turned_deg(-offset),  # matched = truth + offset = truth - turn
         matched_azimuth=matched.tolist(),
@@ -463,89 +464,6 @@ def _pixel_votes(images: Tensor, alpha: Tensor, ref: Reference, at: Tensor) -> T
     two = err.topk(2, dim=0, largest=False)
     ok = inside & (two.values[0] < VOTE * two.values[1]) & (two.values[0] < EXPLAINED)
     return torch.where(ok, two.indices[0], -1)
-
-
-def _detached(alpha: Tensor, dilate: int) -> float:
-    """The share of opacity outside the largest connected piece of each view's silhouette. Equal,
-    bit for bit, to scipy.ndimage's label (4-connected), sum by label (per-label float64 sums in
-    raster order), the first largest piece and binary_dilation by the cross (nothing outside the
-    image), without importing scipy: scipy.ndimage's import is a slow part of every scoring
-    process, and nothing else there needs scipy."""
-    total = float(alpha.sum())
-    if total <= 0:
-        return 0.0
-    A = alpha.double().numpy()
-    body, pieces = _main_piece(A)
-    H, W = A.shape[1:]
-    views = [f for f in range(len(A)) if pieces[f] > 1]
-    if not views:
-        return 0.0
-    body = body[views]
-    for _ in range(min(dilate, H + W)):  # within L1 distance ``dilate``; H + W steps cover the image
-        grown = body.copy()
-        grown[:, 1:] |= body[:, :-1]
-        grown[:, :-1] |= body[:, 1:]
-        grown[:, :, 1:] |= body[:, :, :-1]
-        grown[:, :, :-1] |= body[:, :, 1:]
-        body = grown
-    out = 0.0
-    for a, b in zip(A[views], body):
-        out += float(a[~b].sum())
-    return out / total
-
-
-def _main_piece(A):
-    """(body, pieces) of coverage ``A`` [F, H, W] (numpy float64): each view's largest 4-connected
-    piece of its silhouette (alpha over 0.1; the first of equal ones, by summed opacity) as a bool
-    [F, H, W], and each view's number of pieces."""
-    import numpy as np
-
-    F, H, W = A.shape
-    pixels, label, first = _components(A > 0.1)
-    sizes = np.bincount(label, weights=A.reshape(-1)[pixels], minlength=len(first))  # as ndimage.sum sums
-    bounds = np.searchsorted(first // (H * W), np.arange(F + 1))  # each view's pieces
-    chosen = np.zeros(len(first), bool)
-    for f in range(F):
-        if bounds[f + 1] > bounds[f]:
-            chosen[bounds[f] + int(np.argmax(sizes[bounds[f] : bounds[f + 1]]))] = True
-    body = np.zeros(F * H * W, bool)
-    body[pixels[chosen[label]]] = True
-    return body.reshape(F, H, W), np.diff(bounds)
-
-
-def _components(mask):
-    """(pixels, label, first) of a boolean [..., H, W] ``mask``: the flat indices of its set pixels
-    in raster order, the 4-connected piece of each (connected within its [H, W] plane) and each
-    piece's first pixel. Pieces are numbered 0, 1, ... in the raster order of their first pixels,
-    as scipy.ndimage.label numbers them from 1. Union-find over the horizontal runs: each round
-    hooks the larger root of every pair of touching runs (a run and one in the next row) to the
-    smaller and flattens the trees by pointer jumping, so a long snake or spiral costs a few rounds
-    (2 up to 1024 px; 6 for 1024 px noise), not its length; the work per round grows with the runs
-    (faster than scipy on the metric's silhouettes, slower on large noise images)."""
-    import numpy as np
-
-    W = mask.shape[-1]
-    start = mask.copy()  # the first pixel of each horizontal run
-    start[..., 1:] &= ~mask[..., :-1]
-    pixels, starts = np.flatnonzero(mask), np.flatnonzero(start)
-    below = np.zeros_like(mask)
-    below[..., :-1, :] = mask[..., :-1, :] & mask[..., 1:, :]
-    overlap = below.copy()  # the first column of each overlap of a run with one in the next row
-    overlap[..., 1:] &= ~below[..., :-1]
-    top = np.flatnonzero(overlap)
-    u, w = np.searchsorted(starts, top, "right") - 1, np.searchsorted(starts, top + W, "right") - 1
-    parent = np.arange(len(starts))
-    while not np.array_equal(pu := parent[u], pw := parent[w]):
-        lo = np.minimum(pu, pw)
-        np.minimum.at(parent, pu, lo)
-        np.minimum.at(parent, pw, lo)
-        deep = np.flatnonzero(parent[parent] != parent)  # jump until every run's parent is a root
-        while len(deep):
-            parent[deep] = parent[parent[deep]]
-            deep = deep[parent[deep] != parent[parent[deep]]]
-    root = parent == np.arange(len(parent))
-    run = np.cumsum(start.reshape(-1)[pixels]) - 1  # the run of each set pixel
-    return pixels, (np.cumsum(root) - 1)[parent][run], starts[root]
 
 
 def render_turntable(
