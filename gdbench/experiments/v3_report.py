@@ -252,11 +252,12 @@ def size_and_label(rows: list[dict], presets: tuple, metric: str = "label_janus"
     return out
 
 
-def _md(rows: list[dict]) -> list[str]:
-    """A markdown table of ``rows`` (their first row's keys as the head, floats to 2 decimals)."""
-    if not rows:
+def _md(rows: list[dict], head: tuple = ()) -> list[str]:
+    """A markdown table of ``rows`` (``head``, or their first row's keys, as the head; floats to 2
+    decimals); nothing without a head."""
+    head = list(head or (rows[0] if rows else ()))
+    if not head:
         return []
-    head = list(rows[0])
     cell = lambda x: f"{x:.2f}" if isinstance(x, float) else str(x).replace("|", "\\|")  # noqa: E731
     return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
             *["| " + " | ".join(cell(r[k]) for k in head) + " |" for r in rows]]  # fmt: skip
@@ -316,7 +317,7 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
                  f"cells trained at {', '.join(c[:7] for c in commits)}, tables at {code_commit()[:7]}")  # fmt: skip
         forests.append(forest(keys, d, title=title, margin=float(v["margin"]), path=forest_dir / name, pooled=pooled))
     for group in sorted({v["group"] for v in verdicts if v["setting"] == "janus"}):
-        sel = [r for r in rows if r.get("group") == group and r.get("setting") == "janus"]
+        sel = _janus(rows, group)
         for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN + METRIC_MAIN):
             s = share_kept(sel, control, metric)
             shares.append({"group": group, "control": control, "metric": metric} | s)
@@ -399,7 +400,7 @@ def readme_table(verdicts: list[dict]) -> str:
     head = ("family", "group / setting", "claim (a vs b), metric", "prompts", "across prompts: a - b [95% t]",
             "sign-flip p (Holm)", "**across prompts**", "pairs", "pooled: a - b [95% BCa]", "p (Holm)",
             "on these prompts", "GT PSNR a / b", "Gaussians a / b")  # fmt: skip
-    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    rows = []
     for v in verdicts:
         if v["verdict"] == "not measured":
             continue
@@ -418,5 +419,5 @@ def readme_table(verdicts: list[dict]) -> str:
             f"{g(v, 'gt_psnr_a', 3)} / {g(v, 'gt_psnr_b', 3)}",
             f"{g(v, 'gaussians_a', 4)} / {g(v, 'gaussians_b', 4)}",
         )
-        md.append("| " + " | ".join(str(c) for c in cells) + " |")
-    return "\n".join(md) + "\n"
+        rows.append(dict(zip(head, cells)))
+    return "\n".join(_md(rows, head)) + "\n"
