@@ -402,6 +402,35 @@ def test_tiny_training_lowers_the_loss_and_is_deterministic(tmp_path):
         train_prior(PriorTrainConfig(out=tmp_path / "a", steps=60, batch=4, unet=TINY, data=TINY_DATA, progress=False))
 
 
+def test_prior_checkpoint_refuses_pickled_code(tmp_path, capsys):
+    """A train-prior checkpoint is loaded with weights_only: one carrying a pickled callable is
+    refused in one line naming the file, on resume and on export, and the callable never runs."""
+    from gdbench.priors.learned.training import export_weights
+
+    _tiny_train(tmp_path / "a", 10, stop_at=5)
+    ckpt = tmp_path / "a" / "checkpoint.pt"
+    blob = torch.load(ckpt, weights_only=True)  # what train_prior writes loads safely
+    assert blob["step"] == 5
+
+    class Boom:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    blob["log"].append(Boom())
+    torch.save(blob, ckpt)
+    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint.pt holds objects other than tensors"):
+        _tiny_train(tmp_path / "a", 10)
+    with pytest.raises(ValueError, match="objects other than tensors"):
+        export_weights(tmp_path / "a")
+    ckpt.write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(ValueError, match="unreadable"):
+        _tiny_train(tmp_path / "a", 10)
+    torch.save({"weights": torch.zeros(2)}, ckpt)
+    with pytest.raises(ValueError, match="not a train-prior checkpoint"):
+        _tiny_train(tmp_path / "a", 10)
+    assert "pwned" not in capsys.readouterr().out
+
+
 _RANDOM: dict[bool, Path] = {}
 
 
@@ -507,3 +536,9 @@ def test_train_prior_command(tmp_path, capsys):
     prior = LearnedPrior(tmp_path / "p", resolution=32)
     assert prior.size == 16 and prior.factor == 2
     assert "trained 4 steps" in capsys.readouterr().out
+    main(TrainPrior(out=tmp_path / "p4", steps=2, batch=2, size=32, patch=4, views=2, resolution=32, threads=1,
+                    progress=False))  # fmt: skip
+    prior = LearnedPrior(tmp_path / "p4", resolution=32)  # --patch reaches the model and its weights' settings
+    assert prior.size == 32 and prior.factor == 1
+    assert prior.unet.config.patch == 4
+    assert json.loads((tmp_path / "p4" / "config.json").read_text())["unet"]["patch"] == 4

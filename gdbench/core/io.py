@@ -383,3 +383,30 @@ def prompt_slug(prompt: str, what: str = "prompt") -> str:
     if len(name) > 200:  # a folder name has at most 255 bytes on common file systems
         raise ValueError(f"{what}: {prompt[:40]!r}... names a folder of {len(name)} characters; expected at most 200")
     return name
+
+
+def load_torch_safely(path: str | Path, remedy: str, error: type[Exception] = ValueError):
+    """What ``torch.save`` wrote to ``path``, loaded with ``weights_only`` (tensors and plain data
+    only, so a crafted file cannot run code). A file that is not a whole torch archive, or that
+    holds other objects, raises ``error`` in one line naming it and ending with ``remedy``."""
+    import pickle
+    import zipfile
+
+    import torch
+
+    path = Path(path)
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04":  # torch.save writes a zip archive
+        raise error(f"checkpoint: {path} is unreadable (empty, truncated or not a checkpoint); {remedy}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise error(
+            f"checkpoint: {path} holds objects other than tensors and plain data; refusing to load it "
+            f"(it may run code). {remedy[:1].upper()}{remedy[1:]}"
+        ) from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as e:
+        raise error(
+            f"checkpoint: {path} is unreadable (truncated or not a checkpoint: {type(e).__name__}); {remedy}"
+        ) from None

@@ -5,8 +5,6 @@ and learning-rate schedules depend on it)."""
 
 from __future__ import annotations
 
-import pickle
-import zipfile
 from pathlib import Path
 
 import torch
@@ -71,26 +69,10 @@ def save_blob(blob: dict, path: Path) -> Path:
 
 def load_blob(path: Path) -> dict:
     """The checkpoint's contents; a file that is not a gdbench checkpoint raises CheckpointError."""
+    from gdbench.core.io import load_torch_safely
+
     path = Path(path)
-    with open(path, "rb") as f:
-        magic = f.read(4)
-    if magic != b"PK\x03\x04":  # torch.save writes a zip archive
-        raise CheckpointError(
-            f"checkpoint: {path} is unreadable (empty, truncated or not a checkpoint); "
-            "delete it or start over with --no-resume"
-        )
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        raise CheckpointError(
-            f"checkpoint: {path} holds objects other than tensors and plain data; refusing to load it "
-            f"(it may run code). Delete it or start over with --no-resume"
-        ) from None
-    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as e:
-        raise CheckpointError(
-            f"checkpoint: {path} is unreadable (truncated or not a checkpoint: {type(e).__name__}); "
-            "delete it or start over with --no-resume"
-        ) from None
+    blob = load_torch_safely(path, "delete it or start over with --no-resume", CheckpointError)
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
         found = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
         raise CheckpointError(

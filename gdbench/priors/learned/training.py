@@ -240,7 +240,7 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
     step, elapsed = 0, 0.0
     acc, n = 0.0, 0  # the loss summed over the interval being logged
     if ckpt_path.is_file():
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        ck = load_checkpoint(ckpt_path)
         if ck["identity"] != cfg.identity():
             changed = sorted(k for k in cfg.identity() if ck["identity"].get(k) != cfg.identity()[k])
             raise ValueError(
@@ -332,7 +332,7 @@ def export_weights(run: Path, path: Path | None = None) -> Path:
     """The averaged weights of a run's latest checkpoint as a model.safetensors (an unfinished
     run's model, to look at while it trains); default path: <run>/model-step<N>.safetensors."""
     run = Path(run)
-    ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    ck = load_checkpoint(run / "checkpoint.pt")
     ident = ck["identity"]
     u = ident["unet"]
     unet = UNetConfig(**{**u, "widths": tuple(u["widths"]), "parts": tuple(tuple(r) for r in u.get("parts", ())),
@@ -344,6 +344,17 @@ def export_weights(run: Path, path: Path | None = None) -> Path:
     path = Path(path) if path is not None else run / f"model-step{ck['step']}.safetensors"
     _write_model(net, path, unet, ident, cfg, ck["step"], _final_loss(ck["log"]))
     return path
+
+
+def load_checkpoint(path: Path) -> dict:
+    """A training checkpoint, loaded safely (``io.load_torch_safely``: tensors and plain data only,
+    so a checkpoint from elsewhere cannot run code on resume); anything else is a one-line error."""
+    from gdbench.core.io import load_torch_safely
+
+    ck = load_torch_safely(path, "delete it to start the run afresh")
+    if not isinstance(ck, dict) or not {"identity", "model", "ema", "step"} <= set(ck):
+        raise ValueError(f"checkpoint: {path} is not a train-prior checkpoint; pick another --out or delete it")
+    return ck
 
 
 def _final_loss(log: list[dict]) -> float:
