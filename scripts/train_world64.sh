@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# The 64 px world models on this CPU machine (docs/learned_prior.md, "The world models at 64 px"):
+# both (uniform and front-biased) on the shipped world models' schedule (24,000 steps of batch 32,
+# the same captions and held-out split), at --patch 4 (the first level at 16 px: about the work of
+# the 32 px model's step), one torch thread each, at the lowest priority, from a clone frozen at one
+# commit so that the weights name one version of the code.
+#
+#   bash scripts/train_world64.sh start CLONE [COMMIT]   clone main at COMMIT (default HEAD) into CLONE
+#                                                        unless it is there, render the data (cached)
+#                                                        and start (or resume) both runs in the background
+#   bash scripts/train_world64.sh status CLONE           each run's step and the log's last line
+#   bash scripts/train_world64.sh pause|cont CLONE       stop the runs while timings are taken, go on after
+#
+# Resumable: `start` again after any interruption resumes both runs from their checkpoints (every
+# 500 steps). Runs go to CLONE/runs/prior-world64p4-{uniform,front}; logs beside them.
+# PATCH, STEPS and PYTHON override the defaults (PYTHON: this checkout's .venv, whose torch and
+# packages the clone uses; the clone's own sources come first on the path).
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+cmd=${1:?usage: bash scripts/train_world64.sh start|status|pause|cont CLONE [COMMIT]}
+clone=${2:?usage: bash scripts/train_world64.sh start|status|pause|cont CLONE [COMMIT]}
+PATCH=${PATCH:-4}
+STEPS=${STEPS:-24000}
+PYTHON=${PYTHON:-$here/.venv/bin/python}
+runs=(uniform front)
+
+pids() { pgrep -f "train-prior .*--out runs/prior-world64p${PATCH}-" || true; }
+
+case $cmd in
+  start)
+    if [ ! -d "$clone/.git" ]; then
+      git clone -q "$here" "$clone"
+      git -C "$clone" checkout -q "${3:-$(git -C "$here" rev-parse HEAD)}"
+    fi
+    if [ -n "$(pids)" ]; then
+      echo "train_world64: already running (pids $(pids | tr '\n' ' '))"
+      exit 0
+    fi
+    cd "$clone"
+    export PYTHONPATH=$PWD  # the clone's sources, not the editable install's
+    mkdir -p runs
+    echo "train_world64: clone at $(git rev-parse --short HEAD); data, then both runs (log: runs/world64-*.log)"
+    (
+      # the data (49,152 views at 64 px, the 32 px world models' key) in two processes, cached; a file
+      # with a main guard, not stdin: the render's worker processes are spawned and import it
+      cat > runs/world64_data.py <<'PY'
+from gdbench.priors.learned.data import data_key, load_dataset
+from gdbench.priors.learned.training import world_config
+
+if __name__ == "__main__":
+    cfg = world_config(data={"views": 512}).data
+    print(len(load_dataset(cfg, progress=True, workers=2)), "views, key", data_key(cfg))
+PY
+      nice -n 19 "$PYTHON" runs/world64_data.py > runs/world64-data.log 2>&1
+      for run in "${runs[@]}"; do
+        bias=0
+        [ "$run" = front ] && bias=2
+        nice -n 19 "$PYTHON" -m gdbench.app.cli train-prior --catalogue world --views 512 --steps "$STEPS" \
+          --front-bias "$bias" --threads 1 --size 64 --patch "$PATCH" --out "runs/prior-world64p${PATCH}-$run" \
+          >> "runs/world64-$run.log" 2>&1 &
+      done
+      wait
+    ) < /dev/null > /dev/null 2>&1 &
+    disown
+    ;;
+  status)
+    for run in "${runs[@]}"; do
+      f=$clone/runs/prior-world64p${PATCH}-$run/loss.csv
+      echo "$run: $(tail -n 1 "$f" 2>/dev/null || echo 'no loss yet') | $(tail -c 300 "$clone/runs/world64-$run.log" 2>/dev/null | tr '\r' '\n' | tail -n 1)"
+    done
+    [ -n "$(pids)" ] && echo "running: $(pids | tr '\n' ' ')" || echo "not running"
+    ;;
+  pause) p=$(pids); [ -n "$p" ] && kill -STOP $p && echo "paused $p" ;;
+  cont) p=$(pids); [ -n "$p" ] && kill -CONT $p && echo "continued $p" ;;
+  *) echo "train_world64: unknown command $cmd (start, status, pause, cont)" >&2; exit 2 ;;
+esac
