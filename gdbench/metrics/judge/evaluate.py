@@ -1,0 +1,71 @@
+"""The judge judged against eyes: leave-kind-out on the committed labelled sheets, and in sample.
+
+For every kind (the second column of ``gdbench prompts``) in turn, the head is fitted on the
+consensus results (both passes give the same label) of every other kind and labels the held-out
+kind's results; the eye, trained on asset renders alone, is the same throughout. The agreement
+with the consensus is Cohen's kappa on the Janus split (front_everywhere or second_face against
+the rest) and over the four classes, and the recall of each class; each rater pass's own agreement
+with the judge is reported beside it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from torch import Tensor
+
+from gdbench.metrics.judge.head import LABELS, decide, fit
+
+THRESHOLDS = {"kappa_janus": 0.8, "kappa_four": 0.7, "recall_front_everywhere": 0.7, "recall_blob": 0.7,
+              "recall_fine": 0.7}  # fmt: skip
+"""The issue's bar for the judge out of sample."""
+
+
+def janus(label: str) -> int:
+    return int(label in ("front_everywhere", "second_face"))
+
+
+def agreement(truth: list[str], judged: list[str]) -> dict:
+    """Kappas, recalls and counts of ``judged`` against ``truth`` (rule labels)."""
+    from gdbench.metrics.agreement import cohen_kappa
+
+    out = {
+        "n": len(truth),
+        "kappa_janus": cohen_kappa([str(janus(t)) for t in truth], [str(janus(j)) for j in judged], labels=("0", "1")),
+        "kappa_four": cohen_kappa(truth, judged, labels=LABELS),
+        "agree": sum(t == j for t, j in zip(truth, judged)) / max(len(truth), 1),
+    }
+    for c in LABELS:
+        mine = [j == c for t, j in zip(truth, judged) if t == c]
+        out[f"recall_{c}"] = sum(mine) / len(mine) if mine else None
+        out[f"n_{c}"] = len(mine)
+    out["confusion"] = {t: dict(Counter(j for tt, j in zip(truth, judged) if tt == t)) for t in LABELS}
+    return out
+
+
+def passes(row: dict) -> dict[str, bool]:
+    """Which of ``THRESHOLDS`` an agreement row meets."""
+    return {k: row.get(k) is not None and row[k] >= v for k, v in THRESHOLDS.items()}
+
+
+def leave_kind_out(features: Tensor, results: list, kinds: list[str], fronts: list[bool]) -> list[tuple[str, float]]:
+    """Each result's (label, confidence) from a head fitted without its kind's results (only
+    consensus results are fitted on)."""
+    out: list[tuple[str, float] | None] = [None] * len(results)
+    consensus = [r.consensus for r in results]
+    for kind in sorted(set(kinds)):
+        fit_on = [i for i, r in enumerate(results) if kinds[i] != kind and consensus[i] is not None]
+        head = fit(features[fit_on], [consensus[i] for i in fit_on])
+        mine = [i for i in range(len(results)) if kinds[i] == kind]
+        p = head.probabilities(features[mine])
+        for j, i in enumerate(mine):
+            out[i] = decide(p[j], features[i], fronts[i])
+    return out  # type: ignore[return-value]
+
+
+def in_sample(features: Tensor, results: list, fronts: list[bool]) -> list[tuple[str, float]]:
+    """Each result's (label, confidence) from one head fitted on every consensus result."""
+    fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
+    head = fit(features[fit_on], [results[i].consensus for i in fit_on])
+    p = head.probabilities(features)
+    return [decide(p[i], features[i], fronts[i]) for i in range(len(results))]

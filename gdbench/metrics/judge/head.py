@@ -1,0 +1,96 @@
+"""The judge's head: the turntable features (``reading.FEATURES``) -> one of the labelling rule's
+classes, by a multinomial logistic regression over three classes (Janus, blob, fine), fitted to
+results that both rater passes label alike (``fit``), then Janus split into front_everywhere and
+second_face by where the front is read (``SECOND_FACE``).
+
+A regression of ten numbers is the "small head" the labels may train: it is fitted and judged
+leave-kind-out (every kind held out in turn, ``judge/evaluate.py``), and the shipped head is fitted
+once on every consensus result of v3's committed sheets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+CLASSES3 = ("janus", "blob", "fine")
+"""The head's classes: the rule's front_everywhere and second_face together, blob, fine."""
+LABELS = ("front_everywhere", "second_face", "blob", "fine")
+"""The labelling rule's classes (``metrics.agreement.LABELS``' order)."""
+SECOND_FACE = (0.5, 0.5)
+"""A Janus result is a second_face when some view reads as a profile (``profile_max`` at least the
+first number: it has sides) and the views that see its back read the front (``back_reads_front``
+at least the second); otherwise front_everywhere."""
+L2 = 1e-2
+"""Ridge penalty of the regression (on standardised features)."""
+
+
+@dataclass
+class Head:
+    mean: Tensor
+    scale: Tensor
+    weight: Tensor
+    """[F, 3]."""
+    bias: Tensor
+    """[3]."""
+
+    def probabilities(self, x: Tensor) -> Tensor:
+        """[N, F] features -> [N, 3] probabilities of ``CLASSES3``."""
+        return torch.softmax(((x - self.mean) / self.scale) @ self.weight + self.bias, -1)
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k).tolist() for k in ("mean", "scale", "weight", "bias")}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Head:
+        return cls(**{k: torch.tensor(d[k], dtype=torch.float32) for k in ("mean", "scale", "weight", "bias")})
+
+
+def to3(label: str) -> int:
+    """A rule's label -> its index in ``CLASSES3``."""
+    return 0 if label in ("front_everywhere", "second_face") else CLASSES3.index(label)
+
+
+def fit(x: Tensor, labels: list[str], l2: float = L2) -> Head:
+    """The regression of ``labels`` (rule labels) on features ``x`` [N, F], classes weighted
+    equally (each class's results weigh 1 / its count), so that the rare class (fine) counts."""
+    y = torch.tensor([to3(lab) for lab in labels])
+    mean, scale = x.mean(0), x.std(0).clamp(min=1e-6)
+    z = (x - mean) / scale
+    counts = torch.bincount(y, minlength=3).float().clamp(min=1)
+    w_row = (1.0 / counts)[y]
+    w_row = w_row / w_row.sum()
+    weight = torch.zeros(x.shape[1], 3, requires_grad=True)
+    bias = torch.zeros(3, requires_grad=True)
+    opt = torch.optim.LBFGS([weight, bias], lr=1, max_iter=500, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        logp = torch.log_softmax(z @ weight + bias, -1)
+        loss = -(w_row * logp[torch.arange(len(y)), y]).sum() + l2 * weight.pow(2).sum()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return Head(mean, scale, weight.detach(), bias.detach())
+
+
+def decide(probabilities: Tensor, features: Tensor, has_front: bool) -> tuple[str, float]:
+    """One result's (label, confidence) from its head probabilities [3] and features [F]
+    (``reading.FEATURES`` order). An asset without a front gets blob or fine only (its Janus
+    probability counts as blob's)."""
+    from gdbench.metrics.judge.reading import FEATURES
+
+    p = probabilities.clone()
+    if not has_front:
+        p = torch.stack([torch.tensor(0.0), p[0] + p[1], p[2]])
+    k = int(p.argmax())
+    if k == 0:
+        f = dict(zip(FEATURES, features.tolist()))
+        sides, back = SECOND_FACE
+        label = "second_face" if f["profile_max"] >= sides and f["back_reads_front"] >= back else "front_everywhere"
+    else:
+        label = CLASSES3[k]
+    return label, float(p[k])

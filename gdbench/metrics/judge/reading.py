@@ -1,0 +1,111 @@
+"""The judge's reading of a result: each view's apparent azimuth, then the turntable as a whole.
+
+Each view at camera azimuth a gets the eye's distribution q(b) over which side of the asset it
+shows (``net.Eye``). Along the turntable a person's four classes leave different traces:
+
+- **fine**: the apparent azimuth follows the camera: b = a - t for one turn t of the whole result
+  (a result may be turned about the vertical axis);
+- **front_everywhere**: the apparent azimuth stays at the front (or, with no face drawn, at the
+  front's outline, which the back shares) whatever the camera: no view reads as a profile;
+- **second_face**: it follows the camera, except that near the back it reads the front again;
+- **blob**: no confident azimuth, or profiles at the sides with no front anywhere (front and back
+  left undecided: the outline follows the camera only up to a half turn).
+
+``turntable_features`` turns the readings into a few numbers that say how far each trace holds
+(means over the views, so that six views and thirty-six read alike), which ``head.py`` maps to a
+label.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from gdbench.metrics.judge.net import BINS
+
+WINDOW = 1
+"""Bins either side counted as the same reading (15 degrees a bin: +-22.5 degrees in all)."""
+
+FEATURES = (
+    "follow",
+    "follow_half",
+    "constant",
+    "constant_half",
+    "end_on",
+    "profile_max",
+    "front",
+    "back_reads_front",
+    "confidence",
+    "entropy",
+)
+"""The names of ``turntable_features``' values, in order."""
+
+
+def _near(q: Tensor) -> Tensor:
+    """q [V, BINS] -> the mass within ``WINDOW`` bins of each bin [V, BINS] (circular)."""
+    return sum(torch.roll(q, s, -1) for s in range(-WINDOW, WINDOW + 1))
+
+
+def _shifted(q: Tensor, azimuths: Tensor) -> Tensor:
+    """[V, BINS] -> [T, V]: for each turn t (a bin), the mass each view puts on b = a - t."""
+    step = 360.0 / BINS
+    k = torch.round(azimuths / step).long() % BINS  # the camera's bin
+    t = torch.arange(BINS)
+    idx = (k[None, :] - t[:, None]) % BINS  # [T, V]
+    return q.gather(1, idx.T).T
+
+
+def turntable_features(q: Tensor, azimuths: Tensor) -> Tensor:
+    """The readings q [V, BINS] (rows summing to 1) of views at camera ``azimuths`` [V] (degrees)
+    -> [len(FEATURES)] numbers, each a mean over the views:
+
+    - follow: the best turn's share, max_t mean_v Q_v(a_v - t) (Q: q summed over +-``WINDOW``);
+    - follow_half: the same, front and back not told apart (Q_v(a_v - t) + Q_v(a_v - t + 180));
+    - constant: the best fixed reading's share, max_b mean_v Q_v(b) (the same side from every camera);
+    - constant_half: the same for a fixed end-on or side axis (Q_v(b) + Q_v(b + 180));
+    - end_on: the mass on the front and back quadrants (|b| < 45 or |b| > 135);
+    - profile_max: the largest mass any one view puts on the side quadrants;
+    - front: the mass on the front quadrant (|b| < 45);
+    - back_reads_front: under the best turn, the front quadrant's mass in the views whose camera
+      sees the result's back (within 45 degrees), over those views (0 where none);
+    - confidence: the mean largest bin; entropy: the mean entropy of q (nats).
+    """
+    if q.ndim != 2 or q.shape[1] != BINS or len(azimuths) != len(q):
+        raise ValueError(f"q: expected [V, {BINS}] readings of the {len(azimuths)} azimuths, got {tuple(q.shape)}")
+    near = _near(q)
+    half = near + torch.roll(near, BINS // 2, -1)
+    follow_t = _shifted(near, azimuths).mean(1)
+    follow, t = follow_t.max(0)
+    follow_half = _shifted(half, azimuths).mean(1).max()
+    constant = near.mean(0).max()
+    constant_half = half.mean(0).max()
+    b = torch.arange(BINS) * (360.0 / BINS)
+    d = (b + 180.0) % 360.0 - 180.0
+    front_q, back_q = d.abs() < 45, d.abs() > 135
+    end_on = q[:, front_q | back_q].sum(1)
+    front = q[:, front_q].sum(1)
+    turn = float(t) * (360.0 / BINS)
+    shows = (azimuths - turn + 180.0) % 360.0 - 180.0  # the asset's azimuth each camera sees under the turn
+    at_back = shows.abs() > 135
+    back_reads_front = front[at_back].mean() if bool(at_back.any()) else torch.tensor(0.0)
+    entropy = -(q * q.clamp(min=1e-12).log()).sum(1)
+    return torch.stack([
+        follow, follow_half, constant, constant_half, end_on.mean(), (1 - end_on).max(), front.mean(),
+        back_reads_front, q.max(1).values.mean(), entropy.mean(),
+    ]).float()  # fmt: skip
+
+
+def read_views(eye, crops: Tensor, caption: str) -> Tensor:
+    """The eye's readings [V, BINS] (softmax) of ``crops`` [V, 3, SIZE, SIZE] of one result."""
+    if caption not in eye.config.captions:
+        raise ValueError(f"caption: the judge's eye knows no {caption!r}; it knows {len(eye.config.captions)} captions")
+    c = torch.full((len(crops),), eye.config.captions.index(caption), dtype=torch.int64)
+    with torch.no_grad():
+        return torch.softmax(eye(crops, c), -1)
+
+
+def best_turn(q: Tensor, azimuths: Tensor) -> float:
+    """The turn t (degrees, in (-180, 180]) under which the readings follow the camera best."""
+    t = int(_shifted(_near(q), azimuths).mean(1).argmax())
+    turn = t * (360.0 / BINS)
+    return turn - 360.0 if turn > 180.0 else turn

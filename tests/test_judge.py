@@ -1,0 +1,109 @@
+"""The Janus judge (gdbench/metrics/judge/): the crop, the readings along a turntable, the head,
+the committed sheets read back, and the shipped judge against the raters' labels."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections import Counter
+from pathlib import Path
+
+import pytest
+import torch
+
+from gdbench.metrics.judge.net import BINS, SIZE, crop_views
+from gdbench.metrics.judge.reading import FEATURES, turntable_features
+from gdbench.metrics.judge.train import azimuth_targets
+
+ROOT = Path(__file__).resolve().parents[1]
+SIX = torch.tensor([0.0, 60, 120, 180, 240, 300])
+
+
+def test_crop_finds_the_object_whatever_its_size_and_place():
+    """A dark rectangle of aspect 2:1 anywhere in a white frame, at any size, comes out as the same
+    crop: centred, its long side the crop's width less the margins, its aspect kept."""
+    crops = []
+    for y, x, h in ((10, 20, 12), (60, 5, 40), (30, 30, 20)):
+        img = torch.full((1, 128, 128, 3), 255, dtype=torch.uint8)
+        img[0, y : y + h, x : x + 2 * h] = 40
+        crops.append(crop_views(img)[0])
+    for c in crops:
+        ink = (1 - c.min(0).values) > 0.5
+        rows, cols = ink.any(1).nonzero().flatten(), ink.any(0).nonzero().flatten()
+        width, height = int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
+        assert abs(width - SIZE / 1.16) <= 2 and abs(height - width / 2) <= 2, (width, height)
+        assert (
+            abs(float(cols.float().mean()) - (SIZE - 1) / 2) < 1
+            and abs(float(rows.float().mean()) - (SIZE - 1) / 2) < 1
+        )
+    assert (crops[0] - crops[1]).abs().mean() < 0.03 and (crops[1] - crops[2]).abs().mean() < 0.03
+    empty = crop_views(torch.full((1, 16, 16, 3), 255, dtype=torch.uint8))
+    assert torch.allclose(empty, torch.ones_like(empty))  # no object: the whole (white) frame
+
+
+def test_azimuth_targets_peak_at_their_bin():
+    t = azimuth_targets(torch.tensor([0.0, 90.0, -165.0, 359.0]))
+    assert torch.allclose(t.sum(1), torch.ones(4))
+    assert t.argmax(1).tolist() == [0, 90 // (360 // BINS), (360 - 165) // (360 // BINS), 0]
+
+
+def _features(shown, azimuths=SIX, mix=None):
+    q = azimuth_targets(torch.as_tensor(shown, dtype=torch.float32))
+    if mix is not None:  # a second reading mixed in: front and back undecided
+        q = 0.5 * q + 0.5 * azimuth_targets(torch.as_tensor(mix, dtype=torch.float32))
+    return dict(zip(FEATURES, turntable_features(q, azimuths).tolist()))
+
+
+def test_the_traces_of_the_four_classes():
+    """Readings built from what each class shows (the closed forms of the rule's four cases) give
+    the features their definitions promise."""
+    fine = _features(SIX - 40.0)  # a whole object, turned by 40 degrees
+    front = _features(torch.zeros(6))  # the front from every camera
+    second = _features(torch.tensor([0.0, 60, 120, 0, 240, 300]))  # the front again at the back
+    blob = _features(SIX, mix=SIX + 180)  # profiles at the sides, front and back undecided
+    assert fine["follow"] > 0.95 and fine["constant"] < 0.4 and fine["back_reads_front"] < 0.01
+    assert front["constant"] > 0.95 and front["follow"] < 0.4 and front["profile_max"] < 0.01
+    assert second["back_reads_front"] > 0.95 and 0.7 < second["follow"] < 0.9 and second["profile_max"] > 0.95
+    assert blob["follow_half"] > 0.95 and 0.4 < blob["follow"] < 0.6
+    many = _features(torch.arange(36) * 10.0 - 40.0, azimuths=torch.arange(36) * 10.0)
+    assert abs(many["follow"] - fine["follow"]) < 0.05  # six views and thirty-six read alike
+    with pytest.raises(ValueError, match="q: expected"):
+        turntable_features(torch.ones(5, BINS) / BINS, SIX)
+
+
+def test_head_recovers_separable_classes():
+    from gdbench.metrics.judge.head import decide, fit
+
+    g = torch.Generator().manual_seed(0)
+    centres = {"front_everywhere": 0.0, "blob": 3.0, "fine": 6.0}
+    labels = [c for c in centres for _ in range(30)]
+    x = torch.stack([torch.full((len(FEATURES),), centres[c]) for c in labels]) + torch.randn(
+        90, len(FEATURES), generator=g
+    )
+    head = fit(x, labels)
+    p = head.probabilities(x)
+    got = [decide(p[i], x[i], True)[0] for i in range(90)]
+    assert sum(a == b for a, b in zip(got, labels)) >= 85
+    assert decide(torch.tensor([0.9, 0.05, 0.05]), x[0], False)[0] == "blob"  # no front: Janus reads as blob
+
+
+def _sheet_labels(path: Path, batches: set[str]) -> dict[tuple[str, str], str]:
+    return {(r["batch"], r["run_id"]): r["label"] for r in csv.DictReader(open(path)) if r["batch"] in batches}
+
+
+def test_committed_sheets_read_back_with_their_labels():
+    """Batch D's sheets give the key's 124 results, each six square views of the sheet's row height,
+    with both passes' labels; the consensus counts match a direct count of the two CSVs."""
+    from gdbench.metrics.judge.sheets import v3_results
+
+    rs = v3_results(ROOT, batches=("D",))
+    key = json.loads((ROOT / "docs/results/v3/sheets/D_key.json").read_text())
+    assert len(rs) == len(key) == 124 and {r.run_id for r in rs} == {k["run_id"] for k in key.values()}
+    assert all(r.views.shape == (6, 128, 128, 3) for r in rs)
+    assert all(key[str(r.number)]["caption"] == r.caption for r in rs)
+    a = _sheet_labels(ROOT / "fixtures/labels/v3_rater1.csv", {"D"})
+    b = _sheet_labels(ROOT / "fixtures/labels/v3_rater2.csv", {"D"})
+    direct = Counter(a[k] for k in a if a[k] == b[k])
+    assert Counter(r.consensus for r in rs if r.consensus) == direct
+    # a row is the result its number names: its views are not the asset's (the sheet's top row)
+    assert all(r.views.std() > 10 for r in rs)
