@@ -102,7 +102,8 @@ def test_claims_verdict_from_paired_tests():
     ]
     v = evaluate(ties)[0]
     assert v["nonzero_pairs"] == 3 and v["verdict"] == "too few non-tied pairs (k < 6)"
-    metrics = {"multi_face_rate", "janus_rate", "instance_inconsistency", "floaters", "colmap_failure_rate"}
+    metrics = {"multi_face_rate", "janus_rate", "judge_janus", "instance_inconsistency", "floaters",
+               "colmap_failure_rate"}  # fmt: skip
     assert {c.metric for c in CLAIMS} == metrics  # Var(theta): a selection of registered views, no verdict
 
 
@@ -293,17 +294,22 @@ def test_a_prompt_that_reverses_the_pooled_effect_is_named():
 
 def test_the_pose_locked_control_is_a_claim_of_its_own():
     """A janus sweep with gd and gd-pose-locked reads the 3D-correspondence claim (gd against the
-    control), and only there: the same rows in the easy setting give no Janus claim."""
+    control) on the view classes and on the judge's labels, and only there: the same rows in the
+    easy setting give no Janus claim."""
     from gdbench.experiments.claims import evaluate
 
     rows = []
     for p in "abcdef":
         for s in range(3):
             rows += [
-                dict(_row("gd", p, s, 0.1), janus_rate=0.2),
-                dict(_row("gd-pose-locked", p, s, 0.1), janus_rate=0.5),
+                dict(_row("gd", p, s, 0.1), janus_rate=0.2, judge_janus=float(s == 0)),
+                dict(_row("gd-pose-locked", p, s, 0.1), janus_rate=0.5, judge_janus=1.0),
             ]
     got = [v for v in evaluate(rows) if v["b"] == "gd-pose-locked"]
-    assert [v["claim"] for v in got] == ["3D correspondence between views, not persistence alone, cuts Janus failures"]
+    assert [v["claim"] for v in got] == [
+        "3D correspondence between views, not persistence alone, cuts Janus failures",
+        "3D correspondence cuts the results the judge calls Janus",
+    ]
     assert got[0]["mean_diff"] == pytest.approx(-0.3) and got[0]["verdict"] == "holds"
+    assert got[1]["mean_diff"] == pytest.approx(-2 / 3) and got[1]["pairs"] == 18
     assert not [v for v in evaluate([dict(r, setting="easy") for r in rows]) if v["b"] == "gd-pose-locked"]

@@ -107,3 +107,60 @@ def test_committed_sheets_read_back_with_their_labels():
     assert Counter(r.consensus for r in rs if r.consensus) == direct
     # a row is the result its number names: its views are not the asset's (the sheet's top row)
     assert all(r.views.std() > 10 for r in rs)
+
+
+def _shipped():
+    from gdbench.metrics.judge.judge import WEIGHTS, load_judge
+
+    if not (WEIGHTS / "eye.safetensors").is_file():
+        pytest.fail(f"the shipped judge is missing from {WEIGHTS}: run `gdbench train-judge`")
+    return load_judge()
+
+
+@pytest.mark.parametrize(
+    ("kind", "want"), [("turned-90", "fine"), ("front-everywhere", "front_everywhere"), ("blob", "blob")]
+)
+def test_shipped_judge_on_renderable_fixtures(kind, want):
+    """The 3D fixtures (metrics/failures3d.py: Gaussian scenes built from the asset, never labels)
+    as results: the duck turned by 90 degrees is fine, and turned by that much; its front wedge
+    repeated around it is front_everywhere; its spun, single-coloured solid is a blob. Both modes
+    agree: the 36 turntable frames and the six views a sheet shows."""
+    from gdbench.metrics.failures3d import failure_scene
+    from gdbench.metrics.judge.judge import turntable_frames
+
+    judge = _shipped()
+    scene = failure_scene("a yellow duck", kind)
+    run = judge.scene(scene, "a yellow duck")
+    assert run["label"] == want, run
+    assert 0 < run["confidence"] <= 1 and len(run["views"]) == 36 and run["version"] == judge.version
+    six = judge.views(turntable_frames(scene)[::6], SIX, "a yellow duck")
+    assert six["label"] == want, six
+    if kind == "turned-90":
+        assert abs(run["turn_deg"] - 90) <= 22.5 and abs(six["turn_deg"] - 90) <= 22.5
+
+
+def test_judge_block_is_null_where_there_is_nothing_to_judge(tmp_path):
+    """No caption, or a caption the judge does not know: the block is null with the reason, not a
+    guess; a labels CSV naming a run id no judged run has is a one-line error."""
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_scenes import JudgeRuns
+    from gdbench.core.builtin import demo_scene
+    from gdbench.metrics.judge.judge import judge_block
+
+    _shipped()
+    scene = demo_scene(500)
+    for caption, why in ((None, "no caption"), ("a purple giraffe", "knows no asset")):
+        block = judge_block(scene, caption)
+        assert block["label"] is None and why in block["reason"]
+    run = tmp_path / "r"
+    run.mkdir()
+    scene.save_ply(run / "scene.ply")
+    (run / "run.json").write_text(json.dumps({"run_id": "abc", "config": {}}))
+    rows = main(JudgeRuns(paths=(tmp_path,)))
+    assert rows[0]["label"] is None and (tmp_path / "judge.csv").is_file()
+    stored = json.loads((run / "scores.json").read_text())["judge"]
+    assert stored["label"] is None and "no caption" in stored["reason"]
+    labels = tmp_path / "labels.csv"
+    labels.write_text("run_id,label\nnot-a-run,blob\n")
+    with pytest.raises(ValueError, match=r"labels: .* names run id 'not-a-run'"):
+        main(JudgeRuns(paths=(tmp_path,), labels=labels))

@@ -13,18 +13,31 @@ import tyro
 
 from gdbench.app.cmd_generate import GenerateBase, generate_command, load_mapping, run_generate
 from gdbench.app.cmd_refs import Bench, Compare, run_bench, run_compare
-from gdbench.app.cmd_scenes import Export, Render, Score, View, run_export, run_render, run_score, run_view
+from gdbench.app.cmd_scenes import (
+    Export,
+    JudgeRuns,
+    Render,
+    Score,
+    View,
+    run_export,
+    run_judge,
+    run_render,
+    run_score,
+    run_view,
+)
 from gdbench.app.cmd_sweep import SweepBase, run_sweep, sweep_command, sweep_from_mapping
 from gdbench.app.cmd_tools import (
     Cache,
     Demo,
     Noise,
     Prompts,
+    TrainJudge,
     TrainPrior,
     run_cache,
     run_demo,
     run_noise,
     run_prompts,
+    run_train_judge,
     run_train_prior,
 )
 from gdbench.core.constraints import check_fields
@@ -37,9 +50,11 @@ COMMANDS = {
     "demo": (Demo, run_demo),
     "noise": (Noise, run_noise),
     "score": (Score, run_score),
+    "judge": (JudgeRuns, run_judge),
     "sweep": (SweepBase, run_sweep),
     "bench": (Bench, run_bench),
     "train-prior": (TrainPrior, run_train_prior),
+    "train-judge": (TrainJudge, run_train_judge),
     "view": (View, run_view),
     "export": (Export, run_export),
     "cache": (Cache, run_cache),

@@ -161,7 +161,7 @@ def run_generate(cmd) -> dict:
         from gdbench.metrics.run_scores import score_run
 
         scores = score_run(out, gt=True, colmap=False, progress=cmd.progress, device=cfg.device)
-        summary |= {k: scores[k] for k in ("gt", "views") if k in scores}
+        summary |= {k: scores[k] for k in ("gt", "views", "judge") if k in scores}
     print(r.report(summary, matched=False))
     return summary
 

@@ -40,6 +40,7 @@ BENCHES = {
     "scale": ("gdbench.bench.bm_scale", "scale.csv", []),
     "cell": ("gdbench.bench.bm_cell", "cell.csv", []),
     "cuda": ("gdbench.refcheck.bm_cuda", "cuda", []),
+    "judge": ("gdbench.bench.bm_judge", "judge.csv", []),
 }
 """Benchmark name -> (module, CSV name (a folder for cuda), extra arguments)."""
 
@@ -58,10 +59,11 @@ class Bench:
     run with a peer checkout compares two versions of the code in one run); cuda: on a GPU, the
     renderer on CUDA (the gsplat backend, the torch path) against gsplat itself and the C++
     compositor (agreement, speed), the training step on both devices, and the C++ compositor's
-    scaling with CPU threads (only that part without a GPU)."""
+    scaling with CPU threads (only that part without a GPU); judge: the Janus judge on a run's
+    turntable and on a sheet's six views (target: a run in at most 2 s on 2 cores)."""
 
     which: tyro.conf.Positional[
-        Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell", "cuda"]
+        Literal["render", "peers", "error", "stability", "noise", "train", "scale", "cell", "cuda", "judge"]
     ]
     """The benchmark (above)."""
     out: Path = Path("bench_results")

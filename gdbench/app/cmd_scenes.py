@@ -229,6 +229,78 @@ def run_score(cmd: Score) -> dict:
 
 
 @dataclass
+class JudgeRuns:
+    """Judge run folders with the Janus judge (docs/scoring.md, "The judge"): each result gets one
+    of front_everywhere, second_face, blob, fine and a confidence, from its turntable's frames and
+    its asset, written to the run's scores.json (the judge block; one made by the same judge on the
+    same scene is kept). A sweep folder judges every run folder under it and writes judge.csv
+    beside its cells.csv; old runs and sweeps are judged the same way."""
+
+    paths: tyro.conf.Positional[tuple[Path, ...]]
+    """Run folders, or folders holding run folders (a sweep's --out)."""
+    labels: Path | None = None
+    """A labels CSV (run_id, label; as fixtures/labels/*.csv): also print the judge's agreement
+    with it (Cohen's kappa on the Janus split and over the four classes)."""
+
+
+def run_judge(cmd: JudgeRuns) -> list[dict]:
+    from gdbench.core.io import write_csv
+    from gdbench.metrics.run_scores import judge_text, score_run
+
+    runs, tables = [], {}
+    for p in cmd.paths:
+        p = Path(p)
+        if (p / "run.json").is_file():
+            runs.append(p)
+        elif p.is_dir():
+            found = sorted(r.parent for r in p.rglob("run.json") if (r.parent / "scene.ply").is_file())
+            if not found:
+                raise FileNotFoundError(f"paths: {p} holds no finished run folder (run.json and scene.ply)")
+            runs += found
+            tables[p] = found
+        else:
+            raise FileNotFoundError(f"paths: expected a run folder or a folder of run folders, got {p}")
+    labels = _read_judge_labels(cmd.labels) if cmd.labels else None
+    rows = []
+    for run in runs:
+        s = score_run(run, gt=False, colmap=False, judge=True)
+        j = s["judge"]
+        rows.append({"run": str(run), "run_id": s.get("run_id"), "caption": s.get("caption"), "label": j.get("label"),
+                     "confidence": j.get("confidence"), "judge_janus": j.get("judge_janus"),
+                     "judge_failure": j.get("judge_failure"), "turn_deg": j.get("turn_deg"),
+                     "version": j.get("version"), "reused": "judge" in s.get("reused", ())})  # fmt: skip
+        print(f"{run}: {judge_text(j)}{' (reused)' if rows[-1]['reused'] else ''}")
+    for root, found in tables.items():
+        mine = {str(r) for r in found}
+        print(
+            f"{root}: {len(mine)} runs judged -> {write_csv([r for r in rows if r['run'] in mine], root / 'judge.csv')}"
+        )
+    if labels is not None:
+        _print_agreement(rows, labels, cmd.labels)
+    return rows
+
+
+def _read_judge_labels(path: Path) -> dict[str, str]:
+    from gdbench.metrics.agreement import read_labels
+
+    return {r["run_id"]: r["label"] for r in read_labels(Path(path))}
+
+
+def _print_agreement(rows: list[dict], labels: dict[str, str], path: Path) -> None:
+    from gdbench.metrics.judge.evaluate import agreement
+
+    ids = {r["run_id"]: r for r in rows}
+    unknown = sorted(set(labels) - set(ids))
+    if unknown:
+        raise ValueError(f"labels: {path} names run id {unknown[0]!r}, which none of the judged runs has "
+                         f"({len(unknown)} unknown)")  # fmt: skip
+    pairs = [(labels[i], ids[i]["label"]) for i in labels if ids[i]["label"] is not None]
+    a = agreement([t for t, _ in pairs], [j for _, j in pairs])
+    print(f"agreement with {path} over {a['n']} results: kappa {a['kappa_janus']:.2f} on the Janus split, "
+          f"{a['kappa_four']:.2f} over the four classes")  # fmt: skip
+
+
+@dataclass
 class Export:
     """Write a run's scene (or any scene file) for other viewers and editors: the Inria 3DGS PLY
     (padded to an SH degree for Inria's loader), antimatter15's .splat (web viewers),

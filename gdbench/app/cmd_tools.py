@@ -1,6 +1,6 @@
 """The small commands: ``demo`` (the built-in scene's turntable), ``noise`` (a preview of the
-structured noise), ``train-prior`` (the learned prior's weights), ``cache`` (the cache folder)
-and ``prompts`` (the captions the priors know)."""
+structured noise), ``train-prior`` (the learned prior's weights), ``train-judge`` (the Janus judge's
+weights), ``cache`` (the cache folder) and ``prompts`` (the captions the priors know)."""
 
 from __future__ import annotations
 
@@ -155,6 +155,39 @@ def run_train_prior(cmd: TrainPrior) -> dict:
         data=DataConfig(views=cmd.views, resolution=cmd.resolution),
     )  # fmt: skip
     return train_prior(cfg, stop_at=cmd.stop_at)
+
+
+@dataclass
+class TrainJudge:
+    """Train the Janus judge (docs/scoring.md, "The judge"): its eye, which reads which side of the
+    asset a view shows, on the assets' own renders (every caption, rendered on first use and
+    cached; no label of any result), then its head on the consensus labels of v3's committed
+    sheets. Writes eye.safetensors, head.json and provenance.json to --out (default: the shipped
+    judge's folder, so `gdbench judge` and `score` then use it)."""
+
+    out: Path | None = None
+    """Where the judge goes (default: gdbench/metrics/judge/weights, the shipped judge)."""
+    steps: Annotated[int, AtLeast(1)] = 3000
+    """The eye's optimiser steps (batch 128)."""
+    views: Annotated[int, AtLeast(8)] = 256
+    """Rendered cameras per (caption, variant) of the eye's data."""
+    data_workers: Annotated[int, AtLeast(1)] = 2
+    """Processes rendering the eye's data on first use."""
+    seed: Annotated[int, Seed()] = 0
+    """Seed of the eye's weights and draws."""
+    progress: bool = True
+    """Report progress."""
+
+
+def run_train_judge(cmd: TrainJudge) -> dict:
+    from gdbench.experiments.judge_build import build_judge
+    from gdbench.metrics.judge.judge import WEIGHTS
+
+    out = cmd.out or WEIGHTS
+    prov = build_judge(out, steps=cmd.steps, views=cmd.views, workers=cmd.data_workers, seed=cmd.seed,
+                       root=Path(__file__).resolve().parents[2], progress=cmd.progress)  # fmt: skip
+    print(f"judge trained in {prov['seconds']:.0f} s (data {prov['seconds_data']:.0f} s) -> {out}")
+    return prov
 
 
 @dataclass

@@ -100,6 +100,9 @@ CLAIMS = (
         "janus_rate",
         1.0,
     ),
+    Claim("structured noise reduces the results the judge calls Janus", "gd", "gd-no-sn", "judge_janus", 1.0),
+    Claim("persistent noise cuts the results the judge calls Janus", "gd", "gd-redraw-step", "judge_janus", 1.0),
+    Claim("3D correspondence cuts the results the judge calls Janus", "gd", "gd-pose-locked", "judge_janus", 1.0),
     Claim("structured noise reduces instance inconsistency", "gd", "gd-no-sn", "instance_inconsistency"),
     Claim("structured noise reduces instance inconsistency", "gd-no-vgs", "sjc-gs", "instance_inconsistency"),
     Claim("variational Gaussians reduce floaters", "gd", "gd-no-vgs", "floaters"),
@@ -129,6 +132,8 @@ MARGINS = {
     "janus_failure_rate": (0.05, "one view in twenty of the turntable"),
     "label_janus": (0.05, "one result in twenty labelled Janus by eye"),
     "label_failure": (0.05, "one result in twenty labelled not fine by eye"),
+    "judge_janus": (0.05, "one result in twenty judged Janus"),
+    "judge_failure": (0.05, "one result in twenty judged not fine"),
     "instance_inconsistency": (0.05, "one view in twenty of the turntable"),
     "colmap_failure_rate": (0.05, "one view in twenty of COLMAP's circle"),
     "floaters": (0.01, "a tenth of the 40-floater 3D fixtures' 0.08-0.15 (every other fixture 0.000)"),
@@ -331,8 +336,15 @@ def reversals(keys: list[tuple], d: np.ndarray, *, decided: bool = True) -> str:
     return "; ".join(out)
 
 
-JANUS_METRICS = ("janus_rate", "multi_face_rate", "front_everywhere_rate", "janus_failure_rate")
-JANUS_SETTING_METRICS = ("janus_rate", "janus_failure_rate", "label_janus", "label_failure")
+JANUS_METRICS = ("janus_rate", "multi_face_rate", "front_everywhere_rate", "janus_failure_rate", "judge_janus")
+JANUS_SETTING_METRICS = (
+    "janus_rate",
+    "janus_failure_rate",
+    "label_janus",
+    "label_failure",
+    "judge_janus",
+    "judge_failure",
+)
 """Metrics whose claims are read in the janus setting only (``_applies``); ``label_*``: the share of
 blind raters who labelled a result Janus (front everywhere or a second face) or not fine."""
 """Metrics of the Janus classes: defined only for assets with a front (``assets.library.FRONTS``)."""

@@ -204,7 +204,7 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
     front_defined = cfg.view_prompting != "none"
     # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
     col = scores.get("colmap", {}) if spec.colmap else {}
-    views, gt = scores.get("views", {}), scores.get("gt", {})
+    views, gt, judged = scores.get("views", {}), scores.get("gt", {}), scores.get("judge") or {}
     get = lambda block, key: num(block.get(key))  # noqa: E731  (null in a file: NaN)
     row = {
         "group": spec.group,
@@ -223,6 +223,11 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
         "gt_ssim": get(gt, "ssim"),
         "gt_offset_deg": get(gt, "offset_deg"),
         "gt_psnr_unaligned": get(gt, "psnr_unaligned"),
+        "judge_label": judged.get("label") or "",  # the Janus judge's class ('': not judged)
+        "judge_confidence": get(judged, "confidence"),
+        "judge_janus": get(judged, "judge_janus"),  # 1: front_everywhere or second_face
+        "judge_failure": get(judged, "judge_failure"),  # 1: not fine
+        # the view classes (superseded by the judge: at chance against the raters, docs/scoring.md)
         "multi_face_rate": get(views, "multi_face_rate"),  # second_face (NaN: the asset has no front)
         "front_everywhere_rate": get(views, "front_everywhere_rate"),
         "blob_rate": get(views, "blob_rate"),

@@ -21,6 +21,8 @@ from gdbench.experiments.claims import REVERSAL_SHARE, label, where
 
 COLUMNS = (
     ("gt_psnr", "GT PSNR dB", False),
+    ("judge_janus", "judged Janus", False),
+    ("judge_failure", "judged not fine", False),
     ("janus_rate", "Janus rate", False),
     ("front_everywhere_rate", "front everywhere", False),
     ("multi_face_rate", "second face", False),

@@ -25,9 +25,10 @@ from gdbench.core.io import jsonable, num, read_json, sha256_file, write_json
 from gdbench.core.layout import flat_config
 from gdbench.core.scene import GaussianScene
 
-BLOCKS = ("gt", "views", "colmap")
+BLOCKS = ("gt", "views", "judge", "colmap")
 """The blocks of scores.json; ``gt`` and ``views`` are made together (the view metrics pick the
-variant the GT PSNR is measured against)."""
+variant the GT PSNR is measured against); ``judge`` (the Janus judge's label, ``metrics/judge``)
+with them, its version in its parameters, so that another judge judges again."""
 
 
 def previous_scores(run: Path, scene_sha: str) -> dict:
@@ -63,10 +64,12 @@ def score_run(
     size: int = 256,
     progress: bool = False,
     device: str = "cpu",
+    judge: bool | None = None,
 ) -> dict:
     """Scores of a finished run folder into its scores.json; ``gt`` asks for the ground-truth
     blocks (PSNR/SSIM, and the view metrics: multi-face rate, instance consistency, floaters),
-    ``colmap`` for the COLMAP block (``views`` renders of ``size`` px). Returns the file's
+    ``judge`` for the Janus judge's block (default: with ``gt``), ``colmap`` for the COLMAP block
+    (``views`` renders of ``size`` px). Returns the file's
     content plus ``reused``: the asked-for blocks taken from an earlier call (same scene,
     parameters and commit), and ``kept``: blocks not asked for that the file still holds.
     COLMAP's own output goes to the run folder's colmap.log; ``progress`` reports each stage.
@@ -80,7 +83,8 @@ def score_run(
     if not run.is_dir():
         raise FileNotFoundError(f"run: no run folder at {run}")
     with FolderLock(run, what="run"):  # one writer: not while a generate (--overwrite) writes here
-        return _score_run(run, gt=gt, colmap=colmap, views=views, size=size, progress=progress, device=dev)
+        return _score_run(run, gt=gt, colmap=colmap, views=views, size=size, progress=progress, device=dev,
+                          judge=gt if judge is None else judge)  # fmt: skip
 
 
 def one_run(run: Path) -> tuple[dict, str]:
@@ -132,7 +136,15 @@ def _check_run_json(info: dict, path: Path) -> None:
 
 
 def _score_run(
-    run: Path, *, gt: bool, colmap: bool, views: int, size: int, progress: bool = False, device: torch.device
+    run: Path,
+    *,
+    gt: bool,
+    colmap: bool,
+    views: int,
+    size: int,
+    progress: bool = False,
+    device: torch.device,
+    judge: bool = True,
 ) -> dict:
     from gdbench.core.progress import Phases
 
@@ -153,8 +165,11 @@ def _score_run(
     blocks: dict = {}
     reused: list[str] = []
     want_gt = bool(gt and info.get("caption"))
-    with Phases(int(want_gt) + 4 * int(colmap), "score", disable=not progress) as phases:
+    stages = int(want_gt) + int(judge and bool(info.get("caption"))) + 4 * int(colmap)
+    with Phases(stages, "score", disable=not progress) as phases:
         _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size, bg, run, phases)
+        if judge:
+            _judge(scene, info.get("caption"), previous, blocks, reused, phases)
     kept = {k: v for k, v in previous.items() if k not in blocks}
     out |= kept | blocks
     out["seconds"] = time.perf_counter() - t_call  # this call's, reuse included
@@ -209,6 +224,24 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
             blocks["colmap"] = c | {"made": made(params, time.perf_counter() - t0, scene.means.device.type)}
 
 
+def _judge(scene, caption, previous, blocks, reused, phases) -> None:
+    """The judge's block: reused where the scene, the code and the judge's version match."""
+    from gdbench.core.provenance import made
+    from gdbench.metrics.judge.judge import judge_block, judge_version
+
+    params = {"caption": caption, "judge": judge_version()}
+    if _reusable(previous, "judge", params):
+        blocks["judge"] = previous["judge"]
+        reused.append("judge")
+        phases.total -= int(bool(caption))
+        return
+    if caption:
+        phases.start("the Janus judge")
+    t0 = time.perf_counter()
+    j = judge_block(scene, caption)
+    blocks["judge"] = j | {"made": made(params, time.perf_counter() - t0, scene.means.device.type)}
+
+
 def _mark(s: dict, name: str) -> str:
     m = _made(s[name])
     if name in s.get("reused", ()):
@@ -216,13 +249,13 @@ def _mark(s: dict, name: str) -> str:
     return ""
 
 
-FAILED_CLASSES = {
-    "blob": ("blob_rate", "a blob: the same from every side, without the asset's features"),
-    "front_everywhere": ("janus_rate", "the asset's front seen from every side (Janus)"),
-    "second_face": ("janus_rate", "a second face (Janus)"),
+JUDGE_WORDS = {
+    "blob": "a blob: no front from any side, or profiles with the asset's front drawn nowhere",
+    "front_everywhere": "the asset's front seen from every side (Janus)",
+    "second_face": "a second face (Janus)",
+    "fine": "one front where the asset has it, and sides and a back like the asset's",
 }
-"""The failure classes of a whole result (``views.result_class``), the rate that decides each and
-how ``generate`` names it."""
+"""How ``generate`` names the judge's labels (the labelling rule's classes, docs/scoring.md)."""
 
 
 def _rate(x) -> str:
@@ -241,27 +274,41 @@ def gt_text(g: dict) -> str:
     )
 
 
-def result_lines(gt: dict, views: dict | None) -> list[str]:
+def judge_text(j: dict | None) -> str:
+    """The judge's block in words: its label and confidence, or why there is none."""
+    if not j:
+        return "not judged"
+    if j.get("label") is None:
+        return f"no label ({j.get('reason', 'nothing to judge')})"
+    return (
+        f"{j['label']} (confidence {num(j.get('confidence')):.2f}; from {j.get('mode', '?')}, "
+        f"turned {num(j.get('turn_deg')):.0f} deg; judge {j.get('version')})"
+    )
+
+
+def result_lines(gt: dict, views: dict | None, judge: dict | None = None) -> list[str]:
     """What a finished run's scores say, for ``generate``'s summary: the GT PSNR after the best
-    turn and before it, the turn, the failure classes and, when the result is of a failure class
-    (``views.result_class``), a one-line warning."""
+    turn and before it, the turn, the Janus judge's label and, when the judge calls the result a
+    failure, a one-line warning with its confidence. The old view classes (``views``) are shown
+    as superseded: they agreed with the raters at chance (docs/scoring.md, "The judge")."""
     lines = [f"  against the asset at 12 held-out views: {gt_text(gt)}"]
+    if judge is not None:
+        lines.append(f"  judge: {judge_text(judge)}")
     if views:
         from gdbench.metrics.views import result_class
 
-        cls = result_class(views)
         janus = views.get("janus_rate")
         lines.append(
-            f"  views: {cls}; Janus {_rate(janus)}{' (no front)' if janus is None else ''} and blob "
-            f"{_rate(views.get('blob_rate'))} of 36 turntable views, floaters {num(views.get('floaters')):.3f} "
-            "of the opacity"
+            f"  view classes (superseded by the judge): {result_class(views)}; Janus {_rate(janus)}"
+            f"{' (no front)' if janus is None else ''} and blob {_rate(views.get('blob_rate'))} of 36 turntable "
+            f"views, floaters {num(views.get('floaters')):.3f} of the opacity"
         )
-        if cls in FAILED_CLASSES:
-            key, what = FAILED_CLASSES[cls]
-            lines.append(
-                f"  warning: this run failed: {what}, in {num(views.get(key)):.2f} of its views; the PSNR above is of "
-                "that shape (docs/scoring.md, 'View metrics')"
-            )
+    label = (judge or {}).get("label")
+    if label is not None and label != "fine":
+        lines.append(
+            f"  warning: the judge calls this result {JUDGE_WORDS[label]}, with confidence "
+            f"{num(judge.get('confidence')):.2f}; the PSNR above is of that shape (docs/scoring.md, 'The judge')"
+        )
     return lines
 
 
@@ -276,13 +323,15 @@ def report(s: dict) -> str:
     if "views" in s and "views" not in kept:
         v = s["views"]
         lines.append(
-            f"  views: Janus {_rate(v.get('janus_rate'))} "
+            f"  view classes (superseded by the judge): Janus {_rate(v.get('janus_rate'))} "
             f"(front everywhere {_rate(v.get('front_everywhere_rate'))}, "
             f"second face {_rate(v.get('multi_face_rate'))}), blob {_rate(v.get('blob_rate'))}, "
             f"front share {num(v['front_share']):.2f}, "
             f"instance consistency {num(v['instance_consistency']):.2f}, floaters {num(v['floaters']):.3f}, "
             f"turned {num(v.get('turned_deg')):.0f} deg" + _mark(s, "views")
         )
+    if "judge" in s and "judge" not in kept:
+        lines.append(f"  judge: {judge_text(s['judge'])}" + _mark(s, "judge"))
     if "colmap" in s and "colmap" not in kept:
         c = s["colmap"]
         lines.append(

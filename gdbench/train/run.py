@@ -129,7 +129,7 @@ class RunResult:
         if "gt" in s:
             from gdbench.metrics.run_scores import result_lines
 
-            lines += result_lines(s["gt"], s.get("views"))
+            lines += result_lines(s["gt"], s.get("views"), s.get("judge"))
         lines += [f"  {k:18s} {v}" for k, v in sorted(self.paths.items())]
         return "\n".join(lines)
 

@@ -1,9 +1,9 @@
-"""The judge's head: the turntable features (``reading.FEATURES``) -> one of the labelling rule's
+"""The judge's head: the turntable features (``reading.result_features``) -> one of the labelling rule's
 classes, by a multinomial logistic regression over three classes (Janus, blob, fine), fitted to
 results that both rater passes label alike (``fit``), then Janus split into front_everywhere and
 second_face by where the front is read (``SECOND_FACE``).
 
-A regression of ten numbers is the "small head" the labels may train: it is fitted and judged
+A regression of twenty numbers is the "small head" the labels may train: it is fitted and judged
 leave-kind-out (every kind held out in turn, ``judge/evaluate.py``), and the shipped head is fitted
 once on every consensus result of v3's committed sheets.
 """
@@ -88,7 +88,7 @@ def decide(probabilities: Tensor, features: Tensor, has_front: bool) -> tuple[st
         p = torch.stack([torch.tensor(0.0), p[0] + p[1], p[2]])
     k = int(p.argmax())
     if k == 0:
-        f = dict(zip(FEATURES, features.tolist()))
+        f = dict(zip(FEATURES, features.tolist()))  # the eye's (the first block of features)
         sides, back = SECOND_FACE
         label = "second_face" if f["profile_max"] >= sides and f["back_reads_front"] >= back else "front_everywhere"
     else:

@@ -1,11 +1,11 @@
 """The Janus judge at run time: a result's views at known cameras and its caption -> one of the
 labelling rule's classes (front_everywhere, second_face, blob, fine) with a confidence.
 
-Two modes, one reading (``reading.turntable_features``):
+Two modes, one reading (``reading.result_features``):
 - **six views**, as a label sheet shows a result (azimuths 0, 60, ..., 300 at elevation 15):
   ``Judge.views``; every committed sheet can be judged this way;
-- **a run folder**: its turntable's frames (``turntable.gif``: 36 frames, 10 degrees apart, the
-  same orbit) or, where the GIF is gone, ``scene.ply`` rendered on that orbit: ``Judge.run``.
+- **a run folder** (or a scene): its turntable's 36 frames, 10 degrees apart on the same orbit,
+  rendered from scene.ply as turntable.gif shows them: ``Judge.run``, ``Judge.scene``.
 
 The judge's version is the hash of its weights and its head (``Judge.version``): a score block
 stamped with another version is judged again, not reused.
@@ -46,6 +46,7 @@ class Judge:
         self.eye.eval().requires_grad_(False)
         self.head_info = json.loads(head_path.read_text())
         self.head = Head.from_dict(self.head_info["head"])
+        self.curves = self.head_info["aspect_curves"]
         digest = hashlib.sha256(eye_path.read_bytes() + head_path.read_bytes()).hexdigest()
         self.version = digest[:12]
 
@@ -57,8 +58,8 @@ class Judge:
         background) at camera ``azimuths`` [V] (degrees, elevation 15 as the turntables)."""
         from gdbench.assets.library import has_front
         from gdbench.metrics.judge.head import CLASSES3, decide
-        from gdbench.metrics.judge.net import BINS, crop_views
-        from gdbench.metrics.judge.reading import FEATURES, best_turn, read_views, turntable_features
+        from gdbench.metrics.judge.net import BINS
+        from gdbench.metrics.judge.reading import FEATURES, best_turn, result_features
 
         views = torch.as_tensor(np.asarray(views))
         azimuths = torch.as_tensor(azimuths, dtype=torch.float32)
@@ -67,8 +68,9 @@ class Judge:
                 f"views: expected [V, H, W, 3] images at V >= 3 azimuths, got {tuple(views.shape)} "
                 f"and {len(azimuths)} azimuths"
             )
-        q = read_views(self.eye, crop_views(views[..., :3]), caption)
-        x = turntable_features(q, azimuths)
+        if not self.knows(caption):
+            raise ValueError(f"caption: the judge knows no asset {caption!r}")
+        x, q = result_features(self.eye, self.curves, views[..., :3], azimuths, caption)
         p = self.head.probabilities(x[None])[0]
         label, confidence = decide(p, x, has_front(caption))
         step = 360.0 / BINS
@@ -78,7 +80,11 @@ class Judge:
             "confidence": round(confidence, 4),
             "probabilities": {c: round(float(v), 4) for c, v in zip(CLASSES3, p)},
             "turn_deg": best_turn(q, azimuths),
-            "features": {k: round(float(v), 4) for k, v in zip(FEATURES, x)},
+            "features": {
+                f"{part}{k}": round(float(v), 4)
+                for part, xs in (("", x[: len(FEATURES)]), ("outline_", x[len(FEATURES) :]))
+                for k, v in zip(FEATURES, xs)
+            },
             "views": [
                 {"azimuth": round(float(a), 2), "reads_deg": float(r), "reading_confidence": round(float(c), 4)}
                 for a, r, c in zip(azimuths, reading, q.max(1).values)
@@ -88,43 +94,72 @@ class Judge:
         }
 
     def run(self, folder: Path, caption: str | None = None) -> dict:
-        """Judge a run folder (its run.json's caption unless ``caption``) from its turntable's
-        frames, or from scene.ply rendered on the turntable's orbit where the GIF is gone.
-        A result with no asset to compare with gets ``{"label": None, "reason": ...}``."""
+        """Judge a run folder: its scene (scene.ply) on the run turntable's orbit, the frames
+        turntable.gif shows before its palette (``turntable_frames``), for the caption its run.json
+        names unless ``caption``. A result with no asset to compare with gets ``{"label": None,
+        "reason": ...}``, not a guess."""
         folder = Path(folder)
         if caption is None:
             info = json.loads((folder / "run.json").read_text()) if (folder / "run.json").is_file() else {}
             caption = info.get("caption") or None
+        ply = folder / "scene.ply"
+        if not ply.is_file():
+            raise FileNotFoundError(f"run: {folder} has no scene.ply to judge (is the run finished?)")
+        from gdbench.core.scene import GaussianScene
+
+        return self.scene(GaussianScene.load_ply(ply), caption)
+
+    def scene(self, scene, caption: str | None) -> dict:
+        """Judge a scene from its 36 turntable frames (``turntable_frames``)."""
         if not self.knows(caption):
             why = "no caption" if not caption else f"the judge knows no asset {caption!r}"
             return {"label": None, "reason": f"{why}: nothing to compare the result with", "version": self.version}
-        frames, mode = turntable_frames(folder)
+        frames = turntable_frames(scene)
         out = self.views(frames, np.arange(len(frames)) * (360.0 / len(frames)), caption)
-        out["mode"] = mode
+        out["mode"] = f"turntable: {len(frames)} frames"
         return out
 
 
-def turntable_frames(folder: Path) -> tuple[np.ndarray, str]:
-    """The run's turntable as [36, H, W, 3] uint8 frames and where they came from."""
-    gif = Path(folder) / "turntable.gif"
-    if gif.is_file():
-        import imageio.v3 as iio
-
-        frames = iio.imread(gif)[..., :3]
-        if len(frames) == TURNTABLE_FRAMES:
-            return frames, "turntable.gif"
-    ply = Path(folder) / "scene.ply"
-    if not ply.is_file():
-        raise FileNotFoundError(f"run: {folder} has neither turntable.gif nor scene.ply to judge")
+def turntable_frames(scene, size: int = 128) -> np.ndarray:
+    """[36, size, size, 3] uint8: ``scene`` on the run turntable's orbit (``turntable.RUN_TURNTABLE``,
+    azimuths 0, 10, ..., 350) on white, as a run's turntable.gif shows it (its frames are 128 px at
+    the default training resolution; the GIF's palette aside)."""
     from gdbench.core.camera import SphericalPoses
-    from gdbench.core.scene import GaussianScene
     from gdbench.core.turntable import RUN_TURNTABLE, render_views, to_uint8
 
-    cams = SphericalPoses.orbit(TURNTABLE_FRAMES, **RUN_TURNTABLE).cameras(128, 128)
-    return to_uint8(render_views(GaussianScene.load_ply(ply), cams, (1.0, 1.0, 1.0))), "scene.ply"
+    cams = SphericalPoses.orbit(TURNTABLE_FRAMES, **RUN_TURNTABLE).cameras(size, size)
+    return to_uint8(render_views(scene.to("cpu"), cams, (1.0, 1.0, 1.0)))
 
 
 @functools.lru_cache(maxsize=2)
 def load_judge(folder: str | None = None) -> Judge:
     """The judge in ``folder`` (default: the shipped one), loaded once per process."""
     return Judge(Path(folder) if folder else WEIGHTS)
+
+
+def judge_block(scene, caption: str | None) -> dict:
+    """scores.json's ``judge`` block of a scene: the judge's label, confidence, per-view readings
+    and version, with ``judge_janus`` (1 for front_everywhere or second_face; None for an asset
+    without a front) and ``judge_failure`` (1 for anything but fine); ``label`` None with the
+    reason where there is nothing to judge against (no caption, an asset the judge does not know)
+    or no judge."""
+    try:
+        judge = load_judge()
+    except FileNotFoundError as e:
+        return {"label": None, "reason": str(e), "version": None}
+    out = judge.scene(scene, caption)
+    if out["label"] is not None:
+        from gdbench.assets.library import has_front
+
+        # an asset without a front cannot be Janus: undefined, as the view classes' Janus rate
+        out["judge_janus"] = int(out["label"] in ("front_everywhere", "second_face")) if has_front(caption) else None
+        out["judge_failure"] = int(out["label"] != "fine")
+    return out
+
+
+def judge_version() -> str | None:
+    """The shipped judge's version, None where its weights are missing."""
+    try:
+        return load_judge().version
+    except FileNotFoundError:
+        return None

@@ -32,13 +32,17 @@ class EyeConfig:
     widths: tuple[int, ...] = (32, 64, 96, 128)
     """Channels of the convolutional stages (each halves the size: 32 -> 16 -> 8 -> 4 -> 2 px)."""
     hidden: int = 256
+    inputs: str = "rgb"
+    """What the eye sees: 'rgb' (the view) or 'mask' (only the object's outline, ``INK``: blind to
+    colour and texture, which a distilled result shares least with its asset)."""
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> EyeConfig:
-        return cls(captions=tuple(d["captions"]), widths=tuple(d["widths"]), hidden=int(d["hidden"]))
+        return cls(captions=tuple(d["captions"]), widths=tuple(d["widths"]), hidden=int(d["hidden"]),
+                   inputs=d.get("inputs", "rgb"))  # fmt: skip
 
 
 class Eye(nn.Module):
@@ -59,7 +63,10 @@ class Eye(nn.Module):
         self.heads = nn.Linear(config.hidden, len(config.captions) * BINS)
 
     def forward(self, views: Tensor, caption: Tensor) -> Tensor:
-        h = self.heads(self.mlp(self.trunk(1.0 - views)))  # ink, not light: a zero background
+        ink = 1.0 - views  # ink, not light: a zero background
+        if self.config.inputs == "mask":
+            ink = (ink.max(1, keepdim=True).values > INK).float().expand_as(ink)
+        h = self.heads(self.mlp(self.trunk(ink)))
         return h.view(-1, len(self.config.captions), BINS)[torch.arange(len(caption)), caption]
 
 

@@ -14,6 +14,12 @@ shows (``net.Eye``). Along the turntable a person's four classes leave different
 ``turntable_features`` turns the readings into a few numbers that say how far each trace holds
 (means over the views, so that six views and thirty-six read alike), which ``head.py`` maps to a
 label.
+
+A second reading needs no network: the outline's elongation (``log_aspect``: half the log ratio of
+the object's horizontal to vertical variance) against the asset's own at every azimuth
+(``AspectCurves``, measured on the same renders the eye learns from). It cannot tell front from back
+or left from right, but it reads an end-on outline from a profile on results too blurred for any
+feature to survive (measured on v3's sheets: docs/scoring.md, "The judge").
 """
 
 from __future__ import annotations
@@ -25,6 +31,10 @@ from gdbench.metrics.judge.net import BINS
 
 WINDOW = 1
 """Bins either side counted as the same reading (15 degrees a bin: +-22.5 degrees in all)."""
+
+ASPECT_TOLERANCE = 0.2
+"""Spread (log aspect) added to the asset's own spread at an azimuth when a view's outline is
+compared with it: a result's outline is not the asset's."""
 
 FEATURES = (
     "follow",
@@ -109,3 +119,56 @@ def best_turn(q: Tensor, azimuths: Tensor) -> float:
     t = int(_shifted(_near(q), azimuths).mean(1).argmax())
     turn = t * (360.0 / BINS)
     return turn - 360.0 if turn > 180.0 else turn
+
+
+def log_aspect(views: Tensor) -> Tensor:
+    """[V, H, W, 3] views (uint8 or [0, 1], white background) -> [V] half the log ratio of the
+    object's (``net.INK``) horizontal to vertical second moment: 0 for a round outline, positive
+    for a wide one (a profile of a long animal), negative for a tall one."""
+    from gdbench.metrics.judge.net import INK
+
+    x = views.float() / 255.0 if views.dtype == torch.uint8 else views.float()
+    m = ((1.0 - x[..., :3].min(-1).values) > INK).float()
+    _, h, w = m.shape
+    ys = torch.arange(h, dtype=torch.float32)[None, :, None]
+    xs = torch.arange(w, dtype=torch.float32)[None, None, :]
+    tot = m.sum((1, 2)).clamp(min=1)
+    my = (m * ys).sum((1, 2)) / tot
+    mx = (m * xs).sum((1, 2)) / tot
+    vy = (m * (ys - my[:, None, None]) ** 2).sum((1, 2)) / tot
+    vx = (m * (xs - mx[:, None, None]) ** 2).sum((1, 2)) / tot
+    return 0.5 * (vx.clamp(min=1e-3).log() - vy.clamp(min=1e-3).log())
+
+
+def aspect_readings(aspect: Tensor, mean: Tensor, spread: Tensor) -> Tensor:
+    """[V] views' ``log_aspect`` against an asset's [BINS] mean and spread of it per azimuth bin ->
+    [V, BINS] readings: a Gaussian likelihood (spread widened by ``ASPECT_TOLERANCE``), normalised."""
+    s = (spread**2 + ASPECT_TOLERANCE**2).sqrt()
+    return torch.softmax(-0.5 * ((aspect[:, None] - mean[None]) / s[None]) ** 2, -1)
+
+
+def aspect_curves(aspect: Tensor, caption: Tensor, azimuth: Tensor, captions: tuple[str, ...]) -> dict:
+    """The assets' elongation by azimuth bin from their renders (``log_aspect`` [N] of views of
+    caption index [N] at azimuth [N]): {caption: {"mean": [BINS], "spread": [BINS]}}."""
+    b = torch.round((azimuth % 360.0) / (360.0 / BINS)).long() % BINS
+    out = {}
+    for ci, c in enumerate(captions):
+        mean, spread = [], []
+        for k in range(BINS):
+            a = aspect[(caption == ci) & (b == k)]
+            mean.append(float(a.mean()) if len(a) else 0.0)
+            spread.append(float(a.std()) if len(a) > 1 else 1.0)
+        out[c] = {"mean": mean, "spread": spread}
+    return out
+
+
+def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption: str) -> tuple[Tensor, Tensor]:
+    """One result's features [2 * len(FEATURES)]: ``turntable_features`` of the eye's readings,
+    then of the outline's (``aspect_readings`` against ``curves[caption]``); and the eye's
+    readings [V, BINS]. ``views`` [V, H, W, 3] at camera ``azimuths`` [V]."""
+    from gdbench.metrics.judge.net import crop_views
+
+    q = read_views(eye, crop_views(views), caption)
+    c = curves[caption]
+    qa = aspect_readings(log_aspect(views), torch.tensor(c["mean"]), torch.tensor(c["spread"]))
+    return torch.cat([turntable_features(q, azimuths), turntable_features(qa, azimuths)]), q

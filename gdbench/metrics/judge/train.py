@@ -40,7 +40,16 @@ class EyeTrainConfig:
     """Largest share by which the features are smeared toward the object's mean colour."""
     blur: float = 1.2
     """Largest blur (pixels of the SIZE px crop, Gaussian sigma)."""
+    blobify: float = 0.0
+    """Share of draws whose outline is made a splat's: the object's mask blurred (up to ``blob_blur``
+    px) and cut again at a random level, which fattens the body, merges legs and loses thin parts,
+    its colours spread into the new outline. Off: at 0.7 (with smear 0.85) the judge agreed with
+    v3's raters no better out of sample (kappa 0.66 against 0.71 on the Janus split; docs/scoring.md)."""
+    blob_blur: float = 1.5
     threads: int = 0
+    inputs: str = "rgb"
+    """``net.EyeConfig.inputs`` ('mask': the outline alone agreed with v3's raters less, kappa 0.49
+    against 0.71 on the Janus split beside the outline reading; docs/scoring.md)."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -82,6 +91,8 @@ def degrade(crops: Tensor, cfg: EyeTrainConfig, g: torch.Generator) -> Tensor:
     field = field.permute(0, 2, 3, 1) * (cfg.warp * 2 * u(b, 1, 1, 1))
     grid = base * scale * stretch + shift + field
     x = F.grid_sample(crops - 1.0, grid, mode="bilinear", padding_mode="zeros", align_corners=False) + 1.0
+    if cfg.blobify > 0:
+        x = _blobify(x, cfg, g)
     # features smeared toward the object's mean colour
     ink = ((1.0 - x.min(1, keepdim=True).values) > 0.1).float()
     mean = (x * ink).sum((2, 3), keepdim=True) / ink.sum((2, 3), keepdim=True).clamp(min=1)
@@ -93,6 +104,24 @@ def degrade(crops: Tensor, cfg: EyeTrainConfig, g: torch.Generator) -> Tensor:
     mottle = F.interpolate(torch.randn(b, 3, 6, 6, generator=g), size=(SIZE, SIZE), mode="bilinear")
     x = 1.0 - (1.0 - x) * gain + ink * mottle * 0.04 * u(b, 1, 1, 1)
     return x.clamp(0, 1)
+
+
+def _blobify(x: Tensor, cfg: EyeTrainConfig, g: torch.Generator) -> Tensor:
+    """``cfg.blobify`` of the images [B, 3, S, S] given a splat's outline (``EyeTrainConfig.blobify``)."""
+    b = len(x)
+    u = lambda *shape: torch.rand(*shape, generator=g)  # noqa: E731
+    ink = (1.0 - x.min(1, keepdim=True).values).clamp(0, 1)
+    mask = (ink > 0.05).float()
+    sigma = cfg.blob_blur * (0.3 + 0.7 * u(b))
+    soft = 1.0 - _blur(1.0 - mask, sigma)  # the mask blurred
+    level = 0.25 + 0.3 * u(b, 1, 1, 1)
+    new = torch.sigmoid((soft - level) * 12.0)
+    # colours spread into the new outline: a mask-weighted blur of the object's colour
+    weight = 1.0 - _blur(1.0 - mask, sigma + 0.5)
+    ink_sum = 1.0 - _blur(1.0 - mask * (1.0 - x), sigma + 0.5)  # the object's ink, blurred
+    out = 1.0 - new * (ink_sum / weight.clamp(min=1e-3)).clamp(0, 1)
+    pick = (u(b, 1, 1, 1) < cfg.blobify).float()
+    return pick * out + (1 - pick) * x
 
 
 def train_eye(
@@ -115,7 +144,7 @@ def train_eye(
     try:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
-            eye = Eye(EyeConfig(captions=tuple(captions)))
+            eye = Eye(EyeConfig(captions=tuple(captions), inputs=cfg.inputs))
             g = torch.Generator().manual_seed(cfg.seed + 1)
             weights = torch.exp(-0.5 * ((elevation - 15.0) / ELEVATION_SPREAD) ** 2)
             targets = azimuth_targets(azimuth)
@@ -133,7 +162,7 @@ def train_eye(
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
-                acc += float(loss)
+                acc += float(loss.detach())
                 if (step + 1) % 50 == 0:
                     log.append({"step": step + 1, "loss": acc / 50, "lr": lr, "seconds": time.perf_counter() - t0})
                     acc = 0.0

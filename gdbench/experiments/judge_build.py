@@ -1,0 +1,155 @@
+"""Building the Janus judge (``gdbench train-judge``) and judging it against v3's labels.
+
+1. **The eye's data**: every caption of the catalogue (the learned prior's held-out combinations
+   and the hamburger included), each variant at ``views`` cameras about the turntables' elevation
+   (``EYE_DATA``), rendered by pyrender as the learned prior's data is (cached the same way).
+2. **The eye**: ``metrics/judge/train.py`` on those renders alone: no label of any result.
+3. **The head**: fitted on the consensus results of v3's committed sheets (both passes agree), after
+   the leave-kind-out evaluation (every kind held out in turn) that says how it does out of sample.
+
+Writes ``out/eye.safetensors`` (the eye's weights in float16, its settings, the data's key and the
+commit as metadata), ``out/head.json`` (the head and where it was fitted) and, beside them,
+``out/provenance.json``; ``evaluate_v3`` writes the agreement tables.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+EYE_VIEWS = 256
+"""Cameras per (caption, variant) of the eye's data."""
+
+
+def eye_data_config(views: int = EYE_VIEWS):
+    """The eye's data: the catalogue's every caption, elevations about the turntables' 15 degrees."""
+    from gdbench.assets.library import CAPTIONS
+    from gdbench.priors.learned.data import DataConfig
+
+    return DataConfig(views=views, captions=tuple(CAPTIONS), elevation_range=(-15.0, 45.0), seed=1)
+
+
+def eye_crops(views: int = EYE_VIEWS, workers: int = 1, progress: bool = True):
+    """(crops [N, 3, SIZE, SIZE], the data set) of the eye's data, rendered on first use."""
+    from gdbench.metrics.judge.net import crop_views
+    from gdbench.priors.learned.data import load_dataset
+
+    data = load_dataset(eye_data_config(views), progress=progress, workers=workers)
+    crops = torch.cat([crop_views(data.images[i : i + 2048]) for i in range(0, len(data), 2048)])
+    return crops, data
+
+
+def sheet_features(judge_eye, curves: dict, results) -> torch.Tensor:
+    """[R, F] features (``reading.result_features``) of sheet results, six views each."""
+    from gdbench.metrics.judge.reading import result_features
+    from gdbench.metrics.judge.sheets import SHEET_AZIMUTHS
+
+    az = torch.tensor(SHEET_AZIMUTHS)
+    return torch.stack(
+        [result_features(judge_eye, curves, torch.from_numpy(r.views), az, r.caption)[0] for r in results]
+    )
+
+
+def data_curves(data) -> dict:
+    """The assets' elongation by azimuth (``reading.aspect_curves``) from the eye's data, at
+    elevations within 15 degrees of the turntables'."""
+    from gdbench.metrics.judge.reading import aspect_curves, log_aspect
+
+    near = ((data.elevation - 15.0).abs() <= 15.0).nonzero().flatten()
+    aspect = torch.cat([log_aspect(data.images[near[i : i + 4096]]) for i in range(0, len(near), 4096)])
+    return aspect_curves(aspect, data.caption[near], data.azimuth[near], data.captions)
+
+
+def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers: int = 1, seed: int = 0,
+                root: Path = Path("."), progress: bool = True) -> dict:  # fmt: skip
+    """Train the eye, fit the head on v3's sheets, write both to ``out``; returns the provenance."""
+    from gdbench.core.io import atomic_write, write_json
+    from gdbench.core.provenance import code_commit
+    from gdbench.metrics.judge.head import fit
+    from gdbench.metrics.judge.sheets import v3_results
+    from gdbench.metrics.judge.train import EyeTrainConfig, train_eye
+    from gdbench.priors.learned.data import data_key
+
+    t0 = time.perf_counter()
+    crops, data = eye_crops(views, workers, progress)
+    t_data = time.perf_counter() - t0
+    cfg = replace(EyeTrainConfig(), steps=steps, seed=seed)
+    eye, log = train_eye(crops, data.caption, data.azimuth, data.elevation, data.captions, cfg, progress=progress)
+    t_eye = time.perf_counter() - t0 - t_data
+    curves = data_curves(data)
+    results = v3_results(root)
+    x = sheet_features(eye, curves, results)
+    fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
+    head = fit(x[fit_on], [results[i].consensus for i in fit_on])
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    from safetensors.torch import save
+
+    meta = {"config": json.dumps(eye.config.to_dict()), "train": json.dumps(cfg.to_dict()),
+            "data_key": data_key(eye_data_config(views)), "commit": code_commit()}  # fmt: skip
+    state = {k: v.detach().to(torch.float16).contiguous() for k, v in eye.state_dict().items()}
+    blob = save(state, metadata=meta)
+    atomic_write(out / "eye.safetensors", lambda f: f.write(blob))
+    head_info = {"head": head.to_dict(), "fitted_on": f"v3 sheets C-F: {len(fit_on)} consensus results",
+                 "commit": code_commit(), "aspect_curves": curves}  # fmt: skip
+    write_json(head_info, out / "head.json")
+    prov = {"commit": code_commit(), "eye_data_key": meta["data_key"], "eye_views": len(data), "steps": steps,
+            "seed": seed, "final_loss": log[-1]["loss"] if log else None, "seconds_data": round(t_data, 1),
+            "seconds_eye": round(t_eye, 1), "seconds": round(time.perf_counter() - t0, 1),
+            "threads": torch.get_num_threads()}  # fmt: skip
+    write_json(prov, out / "provenance.json")
+    return prov
+
+
+def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
+    """The judge in ``folder`` against v3's committed labels: the head refitted leave-kind-out (the
+    eye as it is: it never saw a label) and in sample, both against the consensus and against each
+    pass. Writes ``out/agreement.csv`` (a row per fit and truth), ``out/by_kind.csv`` and
+    ``out/v3_judged.csv`` (every result's labels: run id, batch, caption, the out-of-sample label and
+    its confidence, the in-sample one, the raters'); returns the agreement rows."""
+    from gdbench.assets.library import PARTS, has_front
+    from gdbench.core.io import write_csv
+    from gdbench.core.provenance import code_commit
+    from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out, passes
+    from gdbench.metrics.judge.judge import Judge
+    from gdbench.metrics.judge.sheets import v3_results
+
+    judge = Judge(Path(folder))
+    results = v3_results(root)
+    x = sheet_features(judge.eye, judge.curves, results)
+    kinds = [PARTS[r.caption][0] for r in results]
+    fronts = [has_front(r.caption) for r in results]
+    fits = {"leave-kind-out": leave_kind_out(x, results, kinds, fronts), "in sample": in_sample(x, results, fronts)}
+    rows, commit = [], code_commit()
+    for fit_name, judged in fits.items():
+        labels = [lab for lab, _ in judged]
+        for truth in ("consensus", "rater1", "rater2"):
+            idx = [i for i, r in enumerate(results) if (r.consensus if truth == "consensus" else r.labels.get(truth))]
+            t = [results[i].consensus if truth == "consensus" else results[i].labels[truth] for i in idx]
+            a = agreement(t, [labels[i] for i in idx])
+            ok = passes(a)
+            rows.append({"fit": fit_name, "truth": truth, **{k: v for k, v in a.items() if k != "confusion"},
+                         "passes": ";".join(k for k, v in ok.items() if v),
+                         "fails": ";".join(k for k, v in ok.items() if not v),
+                         "judge": judge.version, "commit": commit})  # fmt: skip
+    loko = fits["leave-kind-out"]
+    by_kind = []
+    for kind in sorted(set(kinds)):
+        idx = [i for i, k in enumerate(kinds) if k == kind and results[i].consensus]
+        a = agreement([results[i].consensus for i in idx], [loko[i][0] for i in idx])
+        by_kind.append({"kind": kind, "n": a["n"], "agree": a["agree"], "kappa_janus": a["kappa_janus"],
+                        "confusion": str(a["confusion"]), "judge": judge.version})  # fmt: skip
+    per = [{"batch": r.batch, "number": r.number, "run_id": r.run_id, "caption": r.caption,
+            "judge_loko": loko[i][0], "confidence_loko": round(loko[i][1], 4),
+            "judge_in_sample": fits["in sample"][i][0],
+            "rater1": r.labels.get("rater1"), "rater2": r.labels.get("rater2"), "consensus": r.consensus or ""}
+           for i, r in enumerate(results)]  # fmt: skip
+    out = Path(out)
+    write_csv(rows, out / "agreement.csv")
+    write_csv(by_kind, out / "by_kind.csv")
+    write_csv(per, out / "v3_judged.csv")
+    return rows
