@@ -32,21 +32,26 @@ def _run(tmp_path, kind):
 @pytest.mark.skipif(not available()[0], reason=f"pyrender unavailable: {available()[1]}")
 def test_a_turned_result_reads_one_turn_and_a_failed_one_warns(tmp_path):
     """The duck turned by 90 degrees (a 3D fixture): the GT score's turn and the view metrics'
-    turned_deg are both 90, the summary says so and warns of nothing; the faceless blob fixture's
-    summary warns that the run failed, naming the class and its rate."""
+    turned_deg are both 90, the judge calls it fine, and the summary says so and warns of nothing;
+    the faceless blob fixture's summary warns once, on the judge's label, naming its confidence
+    (the view classes are shown as superseded, and warn no more)."""
     from gdbench.metrics.gt import turned_deg
     from gdbench.metrics.run_scores import report, result_lines, score_run
 
     s = score_run(_run(tmp_path, "turned-90"), colmap=False)
     assert turned_deg(s["gt"]["offset_deg"]) == 90 == s["views"]["turned_deg"]
-    lines = result_lines(s["gt"], s["views"])
+    lines = result_lines(s["gt"], s["views"], s["judge"])
     assert "turned 90 deg" in lines[0] and "turned 90 deg" in report(s)
     assert f"{s['gt']['psnr_unaligned']:.2f} dB as it stands" in lines[0]
     assert s["gt"]["psnr"] > s["gt"]["psnr_unaligned"] + 3  # the headline is after the turn
-    assert lines[1].startswith("  views: fine;") and not any("warning" in x for x in lines)
+    assert lines[1].startswith("  judge: fine (confidence") and not any("warning" in x for x in lines)
+    assert lines[2].startswith("  view classes (superseded by the judge): fine;")
     b = score_run(_run(tmp_path, "blob"), colmap=False)
-    warn = [x for x in result_lines(b["gt"], b["views"]) if "warning" in x]
-    assert len(warn) == 1 and "this run failed: a blob" in warn[0] and f"in {b['views']['blob_rate']:.2f}" in warn[0]
+    warn = [x for x in result_lines(b["gt"], b["views"], b["judge"]) if "warning" in x]
+    assert len(warn) == 1 and "the judge calls this result a blob" in warn[0]
+    assert f"confidence {b['judge']['confidence']:.2f}" in warn[0]
+    assert b["judge"]["judge_failure"] == 1 and b["judge"]["judge_janus"] == 0
+    assert not [x for x in result_lines(b["gt"], b["views"]) if "warning" in x]  # no judge, no warning
     assert torch.isfinite(torch.tensor(b["gt"]["psnr"]))
 
 
