@@ -164,3 +164,20 @@ def test_judge_block_is_null_where_there_is_nothing_to_judge(tmp_path):
     labels.write_text("run_id,label\nnot-a-run,blob\n")
     with pytest.raises(ValueError, match=r"labels: .* names run id 'not-a-run'"):
         main(JudgeRuns(paths=(tmp_path,), labels=labels))
+
+
+def test_an_asset_without_a_front_takes_the_view_metrics_blob_or_fine():
+    """The hamburger declares no front: the judge's eye has nothing to read there, so its label is
+    the view metrics' blob or fine and says so; an asset with a front keeps the judge's own label;
+    without a views block the judge's label stands, marked unvalidated."""
+    from gdbench.metrics.run_scores import judge_text, no_front
+
+    j = {"label": "blob", "confidence": 0.7, "judge_failure": 1, "version": "v"}
+    blob_views = {"front_everywhere_rate": None, "multi_face_rate": None, "blob_rate": 1.0}
+    fine_views = {"front_everywhere_rate": None, "multi_face_rate": None, "blob_rate": 0.0}
+    got = no_front(j, "a hamburger", fine_views)
+    assert got["label"] == "fine" and got["judge_failure"] == 0 and got["eye_label"] == "blob"
+    assert got["confidence"] is None and "no front" in judge_text(got)
+    assert no_front(j, "a hamburger", blob_views)["label"] == "blob"
+    assert no_front(j, "a yellow duck", fine_views) == j
+    assert "unvalidated" in no_front(j, "a hamburger", None)["decided_by"]

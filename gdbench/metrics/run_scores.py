@@ -238,8 +238,27 @@ def _judge(scene, caption, previous, blocks, reused, phases) -> None:
     if caption:
         phases.start("the Janus judge")
     t0 = time.perf_counter()
-    j = judge_block(scene, caption)
+    j = no_front(judge_block(scene, caption), caption, blocks.get("views") or previous.get("views"))
     blocks["judge"] = j | {"made": made(params, time.perf_counter() - t0, scene.means.device.type)}
+
+
+def no_front(j: dict, caption, views: dict | None) -> dict:
+    """An asset without a front (the hamburger) leaves the judge's eye nothing to read: its readings
+    of a whole hamburger are as unsure as of a blob, and no labelled result of such an asset exists
+    to fit it on. There the label is the view metrics' blob or fine (``views.result_class``, which
+    compares the result's views with each other and with the asset's), and says so; with no views
+    block, the judge's own label stands, marked unvalidated."""
+    from gdbench.assets.library import FRONTS
+
+    if j.get("label") is None or not caption or FRONTS.get(caption, "") is not None:
+        return j
+    if views:
+        from gdbench.metrics.views import result_class
+
+        label = "blob" if result_class(views) == "blob" else "fine"
+        return j | {"label": label, "confidence": None, "judge_failure": int(label != "fine"), "eye_label": j["label"],
+                    "decided_by": "the view metrics: the asset has no front for the judge to read"}  # fmt: skip
+    return j | {"decided_by": "the judge, unvalidated on an asset without a front"}
 
 
 def _mark(s: dict, name: str) -> str:
@@ -280,6 +299,8 @@ def judge_text(j: dict | None) -> str:
         return "not judged"
     if j.get("label") is None:
         return f"no label ({j.get('reason', 'nothing to judge')})"
+    if j.get("decided_by"):
+        return f"{j['label']} (decided by {j['decided_by']}; judge {j.get('version')})"
     return (
         f"{j['label']} (confidence {num(j.get('confidence')):.2f}; from {j.get('mode', '?')}, "
         f"turned {num(j.get('turn_deg')):.0f} deg; judge {j.get('version')})"
@@ -305,9 +326,11 @@ def result_lines(gt: dict, views: dict | None, judge: dict | None = None) -> lis
         )
     label = (judge or {}).get("label")
     if label is not None and label != "fine":
+        sure = judge.get("confidence")
+        how = f"with confidence {num(sure):.2f}" if sure is not None else f"decided by {judge.get('decided_by')}"
         lines.append(
-            f"  warning: the judge calls this result {JUDGE_WORDS[label]}, with confidence "
-            f"{num(judge.get('confidence')):.2f}; the PSNR above is of that shape (docs/scoring.md, 'The judge')"
+            f"  warning: the judge calls this result {JUDGE_WORDS[label]}, {how}; the PSNR above is of that "
+            "shape (docs/scoring.md, 'The Janus judge')"
         )
     return lines
 
