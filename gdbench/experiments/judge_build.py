@@ -153,3 +153,52 @@ def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
     write_csv(by_kind, out / "by_kind.csv")
     write_csv(per, out / "v3_judged.csv")
     return rows
+
+
+V3_PRIMARY = (("gd", "gd-no-sn"), ("gd", "gd-redraw-step"), ("gd", "gd-pose-locked"))
+"""v3's primary family: gd against each control on the share of results labelled Janus."""
+
+
+def reread_v3(judged_csv: Path, out: Path, root: Path = Path(".")) -> list[dict]:
+    """v3's three primary rows re-read: the same test (the prompt as the unit, the exact sign-flip
+    p, Holm over the three, margin 0.05) on the raters' ``label_janus`` (the share of the two passes
+    calling a result Janus: the registered outcome, recomputed here as a check) and on the judge's
+    ``judge_janus`` from ``judged_csv`` (``evaluate_v3``'s: out of sample, leave-kind-out, and in
+    sample). A re-reading, not a registration: the raters' rows stay the registered ones."""
+    import csv
+
+    import numpy as np
+
+    from gdbench.core.io import write_csv
+    from gdbench.experiments.claims import across_prompts, holm
+
+    arm = {}
+    for b in ("C", "D", "E", "F"):
+        for k in json.loads((Path(root) / f"docs/results/v3/sheets/{b}_key.json").read_text()).values():
+            parts = Path(k["run"]).parts  # <batch>/runs/cells/<group>/janus/<prompt>/<preset>/seed<k>
+            arm[(b, k["run_id"])] = (k["caption"], parts[-2], int(parts[-1].removeprefix("seed")))
+    janus = {"front_everywhere", "second_face"}
+    values: dict[str, dict] = {"raters": {}, "judge (leave-kind-out)": {}, "judge (in sample)": {}}
+    for r in csv.DictReader(open(judged_csv)):
+        key = arm[(r["batch"], r["run_id"])]
+        values["raters"][key] = (float(r["rater1"] in janus) + float(r["rater2"] in janus)) / 2
+        values["judge (leave-kind-out)"][key] = float(r["judge_loko"] in janus)
+        values["judge (in sample)"][key] = float(r["judge_in_sample"] in janus)
+    rows = []
+    for reader, v in values.items():
+        family = []
+        for a, b in V3_PRIMARY:
+            keys = sorted((p, s) for (p, arm_, s) in v if arm_ == a and (p, b, s) in v)
+            d = np.array([v[(p, a, s)] - v[(p, b, s)] for p, s in keys])
+            res = across_prompts(keys, d, 0.05, test="signflip")
+            family.append({"reader": reader, "comparison": f"{a} vs {b}", "pairs": len(keys),
+                           "share_a": float(np.mean([v[(p, a, s)] for p, s in keys])),
+                           "share_b": float(np.mean([v[(p, b, s)] for p, s in keys])), **res})  # fmt: skip
+        for row, p in zip(family, holm([r["p_prompts"] for r in family])):
+            row["p_prompts_holm"] = p
+            hi = row["prompt_ci_high"]
+            row["verdict"] = ("holds" if p < 0.05 and hi < 0 else "no effect beyond +-0.05"
+                              if row["p_prompts_equivalence"] < 0.05 else "undecided")  # fmt: skip
+            rows.append(row)
+    write_csv(rows, Path(out) / "v3_reread.csv")
+    return rows
