@@ -181,3 +181,17 @@ def test_an_asset_without_a_front_takes_the_view_metrics_blob_or_fine():
     assert no_front(j, "a hamburger", blob_views)["label"] == "blob"
     assert no_front(j, "a yellow duck", fine_views) == j
     assert "unvalidated" in no_front(j, "a hamburger", None)["decided_by"]
+
+
+def test_a_sweeps_cell_line_names_the_judges_label():
+    """A finished cell's line says the judge's class and confidence (not the view classes' rates,
+    nor a Var(theta) of nan for a cell scored without COLMAP)."""
+    from gdbench.experiments.sweep import cell_line
+
+    row = {"setting": "janus", "group": "learned-v1", "prompt": "a corgi", "preset": "gd", "seed": 5,
+           "gt_psnr": 15.75, "judge_label": "blob", "judge_confidence": 0.81, "floaters": 0.002,
+           "colmap_failure_rate": float("nan"), "cell_s": 98.0}  # fmt: skip
+    line = cell_line(row)
+    assert "judge blob (0.81)" in line and "nan" not in line and "multi-face" not in line
+    assert "COLMAP failure 0.10" in cell_line(row | {"colmap_failure_rate": 0.1})
+    assert "judge not judged" in cell_line(row | {"judge_label": "", "judge_confidence": float("nan")})

@@ -333,7 +333,6 @@ def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
     """Train and score the grid of ``cfg``; returns the rows. ``on_valid()``, if given, is called
     once the grid is validated, before any cell runs. ``out/timings.json`` records where the
     call's time went (validation, cells, tables)."""
-    from gdbench.experiments.claims import label
     from gdbench.experiments.tables import tables
 
     prompts, presets, seeds = list(cfg.prompts), list(cfg.presets), list(cfg.seeds)
@@ -408,12 +407,7 @@ def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
                 tables_s += time.perf_counter() - t0
                 written = time.monotonic()
             if bar is not None:
-                bar.write(
-                    f"  done {label(row)} {row['prompt']!r} "
-                    f"{row['preset']} seed {row['seed']}: "
-                    f"PSNR {row['gt_psnr']:.2f}, multi-face {row['multi_face_rate']:.2f}, "
-                    f"floaters {row['floaters']:.3f}, Var {row['var_theta_deg2']:.3g} ({row['cell_s']:.0f} s)"
-                )
+                bar.write(cell_line(row))
                 bar.update(1)
     finally:
         if bar is not None:
@@ -575,3 +569,21 @@ def turntable_grid(
         f"{setting or 'all settings'}, seed {seed}: turntables per prompt and preset", fontsize=9, y=1 - 0.1 / height
     )
     return save(fig, path or roots[0] / f"turntables_{setting or 'all'}{tail}.png", dpi=90)
+
+
+def cell_line(row: dict) -> str:
+    """A finished cell in one line: its GT PSNR, the judge's label (the failure class, with its
+    confidence), floaters, and COLMAP's failure rate where the cell was scored with COLMAP."""
+    from gdbench.core.io import num
+    from gdbench.experiments.claims import label
+
+    judged = row.get("judge_label") or "not judged"
+    sure = num(row.get("judge_confidence"))
+    judged += f" ({sure:.2f})" if sure == sure else ""
+    colmap = num(row.get("colmap_failure_rate"))
+    return (
+        f"  done {label(row)} {row['prompt']!r} {row['preset']} seed {row['seed']}: PSNR {num(row['gt_psnr']):.2f}, "
+        f"judge {judged}, floaters {num(row['floaters']):.3f}"
+        + (f", COLMAP failure {colmap:.2f}" if colmap == colmap else "")
+        + f" ({num(row['cell_s']):.0f} s)"
+    )
