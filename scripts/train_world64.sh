@@ -31,6 +31,9 @@ case $cmd in
     if [ ! -d "$clone/.git" ]; then
       git clone -q "$here" "$clone"
       git -C "$clone" checkout -q "${3:-$(git -C "$here" rev-parse HEAD)}"
+    elif [ -n "${3:-}" ] && [ "$(git -C "$clone" rev-parse HEAD)" != "$(git -C "$clone" rev-parse "$3" 2>/dev/null)" ]; then
+      echo "train_world64: $clone is at $(git -C "$clone" rev-parse --short HEAD), not $3: its runs belong to that commit"
+      exit 2
     fi
     if [ -n "$(pids)" ]; then
       echo "train_world64: already running (pids $(pids | tr '\n' ' '))"
@@ -70,7 +73,10 @@ PY
     done
     [ -n "$(pids)" ] && echo "running: $(pids | tr '\n' ' ')" || echo "not running"
     ;;
-  pause) p=$(pids); [ -n "$p" ] && kill -STOP $p && echo "paused $p" ;;
-  cont) p=$(pids); [ -n "$p" ] && kill -CONT $p && echo "continued $p" ;;
+  pause|cont)
+    p=$(pids)
+    [ -n "$p" ] || { echo "train_world64: no run to $cmd"; exit 0; }
+    kill "-$([ "$cmd" = pause ] && echo STOP || echo CONT)" $p && echo "$cmd: $(echo $p | tr '\n' ' ')"
+    ;;
   *) echo "train_world64: unknown command $cmd (start, status, pause, cont)" >&2; exit 2 ;;
 esac

@@ -8,6 +8,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -59,7 +60,8 @@ def test_the_traces_of_the_four_classes():
     the features their definitions promise."""
     fine = _features(SIX - 40.0)  # a whole object, turned by 40 degrees
     front = _features(torch.zeros(6))  # the front from every camera
-    second = _features(torch.tensor([0.0, 60, 120, 0, 240, 300]))  # the front again at the back
+    # turned by 60 degrees (camera a shows the asset's a - 60), the front again where its back is (camera 240)
+    second = _features(torch.tensor([-60.0, 0, 60, 120, 0, 240]))
     blob = _features(SIX, mix=SIX + 180)  # profiles at the sides, front and back undecided
     assert fine["follow"] > 0.95 and fine["constant"] < 0.4 and fine["back_reads_front"] < 0.01
     assert front["constant"] > 0.95 and front["follow"] < 0.4 and front["profile_max"] < 0.01
@@ -195,3 +197,31 @@ def test_a_sweeps_cell_line_names_the_judges_label():
     assert "judge blob (0.81)" in line and "nan" not in line and "multi-face" not in line
     assert "COLMAP failure 0.10" in cell_line(row | {"colmap_failure_rate": 0.1})
     assert "judge not judged" in cell_line(row | {"judge_label": "", "judge_confidence": float("nan")})
+
+
+def test_judging_again_reuses_only_the_same_judge_and_keeps_other_blocks(tmp_path, monkeypatch):
+    """`gdbench judge` on a scored run: the judge's block is reused by the same judge on the same
+    scene, judged again by another judge (its version is in the block's parameters), and every
+    other block of scores.json, even one made by older code, stays as it was; views that are not
+    images in [0, 1] or uint8 are refused naming the argument."""
+    from gdbench.metrics.failures3d import failure_scene
+    from gdbench.metrics.judge import judge as judge_module
+    from gdbench.metrics.run_scores import judge_only
+
+    judge = _shipped()
+    run = tmp_path / "run"
+    run.mkdir()
+    failure_scene("a yellow duck", "turned-90").save_ply(run / "scene.ply")
+    (run / "run.json").write_text(json.dumps({"caption": "a yellow duck", "config": {}}))
+    first = judge_only(run)
+    assert first["judge"]["label"] == "fine" and first["reused"] == []
+    stored = json.loads((run / "scores.json").read_text())
+    old_block = {"registration_rate": 1.0, "made": {"commit": "0000000old00", "params": {}}}
+    (run / "scores.json").write_text(json.dumps(stored | {"colmap": old_block}))
+    assert judge_only(run)["reused"] == ["judge"]
+    monkeypatch.setattr(judge_module, "judge_version", lambda: "another-judge")
+    again = judge_only(run)
+    assert again["reused"] == [] and again["judge"]["made"]["params"]["judge"] == "another-judge"
+    assert json.loads((run / "scores.json").read_text())["colmap"] == old_block
+    with pytest.raises(ValueError, match="views: expected uint8 images or floats in"):
+        judge.views(np.full((6, 8, 8, 3), 200.0), SIX, "a yellow duck")

@@ -244,8 +244,8 @@ class JudgeRuns:
 
 
 def run_judge(cmd: JudgeRuns) -> list[dict]:
-    from gdbench.core.io import write_csv
-    from gdbench.metrics.run_scores import judge_text, score_run
+    from gdbench.core.io import read_json, write_csv
+    from gdbench.metrics.run_scores import judge_only, judge_text
 
     runs, tables = [], {}
     for p in cmd.paths:
@@ -260,10 +260,17 @@ def run_judge(cmd: JudgeRuns) -> list[dict]:
             tables[p] = found
         else:
             raise FileNotFoundError(f"paths: expected a run folder or a folder of run folders, got {p}")
-    labels = _read_judge_labels(cmd.labels) if cmd.labels else None
+    labels = None
+    if cmd.labels:  # checked before any run is judged
+        labels = _read_judge_labels(cmd.labels)
+        ids = {read_json(r / "run.json", what="run.json").get("run_id") for r in runs}
+        unknown = sorted(set(labels) - ids)
+        if unknown:
+            raise ValueError(f"labels: {cmd.labels} names run id {unknown[0]!r}, which none of the runs under "
+                             f"{', '.join(map(str, cmd.paths))} has ({len(unknown)} unknown)")  # fmt: skip
     rows = []
     for run in runs:
-        s = score_run(run, gt=False, colmap=False, judge=True)
+        s = judge_only(run)
         j = s["judge"]
         rows.append({"run": str(run), "run_id": s.get("run_id"), "caption": s.get("caption"), "label": j.get("label"),
                      "confidence": j.get("confidence"), "judge_janus": j.get("judge_janus"),
@@ -290,11 +297,10 @@ def _print_agreement(rows: list[dict], labels: dict[str, str], path: Path) -> No
     from gdbench.metrics.judge.evaluate import agreement
 
     ids = {r["run_id"]: r for r in rows}
-    unknown = sorted(set(labels) - set(ids))
-    if unknown:
-        raise ValueError(f"labels: {path} names run id {unknown[0]!r}, which none of the judged runs has "
-                         f"({len(unknown)} unknown)")  # fmt: skip
     pairs = [(labels[i], ids[i]["label"]) for i in labels if ids[i]["label"] is not None]
+    if not pairs:
+        print(f"agreement with {path}: none of its {len(labels)} results has a judge's label (no caption?)")
+        return
     a = agreement([t for t, _ in pairs], [j for _, j in pairs])
     print(f"agreement with {path} over {a['n']} results: kappa {a['kappa_janus']:.2f} on the Janus split, "
           f"{a['kappa_four']:.2f} over the four classes")  # fmt: skip

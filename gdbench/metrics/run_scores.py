@@ -225,21 +225,51 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
 
 
 def _judge(scene, caption, previous, blocks, reused, phases) -> None:
-    """The judge's block: reused where the scene, the code and the judge's version match."""
+    """The judge's block: reused where the scene, the code and the judge's version match; for an
+    asset without a front, the view metrics' blob or fine (``no_front``) from this call's views
+    block or the file's, applied to a reused block too."""
     from gdbench.core.provenance import made
     from gdbench.metrics.judge.judge import judge_block, judge_version
 
+    views = blocks.get("views") or previous.get("views")
     params = {"caption": caption, "judge": judge_version()}
     if _reusable(previous, "judge", params):
-        blocks["judge"] = previous["judge"]
+        blocks["judge"] = no_front(previous["judge"], caption, views)
         reused.append("judge")
         phases.total -= int(bool(caption))
         return
     if caption:
         phases.start("the Janus judge")
     t0 = time.perf_counter()
-    j = no_front(judge_block(scene, caption), caption, blocks.get("views") or previous.get("views"))
+    j = no_front(judge_block(scene, caption), caption, views)
     blocks["judge"] = j | {"made": made(params, time.perf_counter() - t0, scene.means.device.type)}
+
+
+def judge_only(run: str | Path) -> dict:
+    """``gdbench judge``: the judge's block of a finished run folder into its scores.json, every
+    other block of the file left as it was (only the judge was asked for: a block made by older
+    code is kept, not dropped as ``score`` drops what it was not asked to remake). Returns the
+    file's content plus ``reused``."""
+    from gdbench.core.io import FolderLock
+    from gdbench.core.progress import Phases
+
+    run = Path(run)
+    with FolderLock(run, what="run"):
+        info, scene_sha = one_run(run)
+        path = run / "scores.json"
+        old = read_json(path, what="scores.json") if path.is_file() else {}
+        if old.get("scene_sha256") not in (None, scene_sha):
+            old = {}  # measured on another scene: none of its blocks describe this one
+        previous = previous_scores(run, scene_sha) | ({"views": old["views"]} if "views" in old else {})
+        scene = GaussianScene.load_ply(run / "scene.ply")
+        blocks: dict = {}
+        reused: list[str] = []
+        with Phases(1, "judge", disable=True) as phases:
+            _judge(scene, info.get("caption"), previous, blocks, reused, phases)
+        out = old | {"run": str(run), "run_id": info.get("run_id"), "scene_sha256": scene_sha,
+                     "gaussians": len(scene), "caption": info.get("caption")} | blocks  # fmt: skip
+        write_json(out, path)
+    return out | {"reused": reused}
 
 
 def no_front(j: dict, caption, views: dict | None) -> dict:
@@ -247,18 +277,21 @@ def no_front(j: dict, caption, views: dict | None) -> dict:
     of a whole hamburger are as unsure as of a blob, and no labelled result of such an asset exists
     to fit it on. There the label is the view metrics' blob or fine (``views.result_class``, which
     compares the result's views with each other and with the asset's), and says so; with no views
-    block, the judge's own label stands, marked unvalidated."""
+    block, the judge's own label stands, marked unvalidated. The eye's own label is kept
+    (``eye_label``), so that the block can be decided again from other views."""
     from gdbench.assets.library import FRONTS
 
     if j.get("label") is None or not caption or FRONTS.get(caption, "") is not None:
         return j
+    eye = j.get("eye_label", j["label"])
     if views:
         from gdbench.metrics.views import result_class
 
         label = "blob" if result_class(views) == "blob" else "fine"
-        return j | {"label": label, "confidence": None, "judge_failure": int(label != "fine"), "eye_label": j["label"],
+        return j | {"label": label, "confidence": None, "judge_failure": int(label != "fine"), "eye_label": eye,
                     "decided_by": "the view metrics: the asset has no front for the judge to read"}  # fmt: skip
-    return j | {"decided_by": "the judge, unvalidated on an asset without a front"}
+    return j | {"label": eye, "judge_failure": int(eye != "fine"), "eye_label": eye,
+                "decided_by": "the judge, unvalidated on an asset without a front"}  # fmt: skip
 
 
 def _mark(s: dict, name: str) -> str:

@@ -68,6 +68,12 @@ class Judge:
                 f"views: expected [V, H, W, 3] images at V >= 3 azimuths, got {tuple(views.shape)} "
                 f"and {len(azimuths)} azimuths"
             )
+        floats = views.is_floating_point()
+        if (floats and float(views.max()) > 1.0) or (not floats and views.dtype != torch.uint8):
+            raise ValueError(
+                f"views: expected uint8 images or floats in [0, 1] (white background), got {views.dtype} "
+                f"with values up to {float(views.max()):g}"
+            )
         if not self.knows(caption):
             raise ValueError(f"caption: the judge knows no asset {caption!r}")
         x, q = result_features(self.eye, self.curves, views[..., :3], azimuths, caption)

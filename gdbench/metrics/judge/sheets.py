@@ -86,11 +86,18 @@ def attach_labels(results: list[SheetResult], labels: dict[str, Path]) -> list[S
     """Each rater's labels (name -> labels CSV by run id and batch, as fixtures/labels/v3_rater*.csv)
     on the results (rows of batches not read are passed over); a run id that a read batch does not
     hold is a one-line error."""
+    from gdbench.metrics.agreement import LABELS
+
     index = {(r.batch, r.run_id): r for r in results}
     batches = {r.batch for r in results}
     for name, path in labels.items():
-        for i, row in enumerate(csv.DictReader(open(path)), start=2):
-            key = (row.get("batch", ""), row.get("run_id", ""))
+        reader = csv.DictReader(open(path))
+        if not {"batch", "run_id", "label"} <= set(reader.fieldnames or ()):
+            raise ValueError(f"labels: {path} needs the columns batch, run_id and label; it has {reader.fieldnames}")
+        for i, row in enumerate(reader, start=2):
+            if row["label"] not in LABELS:
+                raise ValueError(f"labels: {path} line {i} has label {row['label']!r}; expected one of {LABELS}")
+            key = (row["batch"], row["run_id"])
             if key[0] not in batches:
                 continue  # a batch not read
             if key not in index:
