@@ -394,8 +394,8 @@ def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypa
     calls = []
     _stub_colmap(monkeypatch, calls)
     s = score_run(run, colmap=True, views=9, size=48)
-    # the sweep's own GT blocks, same code: reused; COLMAP at parameters never scored: computed
-    assert calls == [(9, 48)] and s["reused"] == ["gt", "views"]
+    # the sweep's own GT and judge blocks, same code: reused; COLMAP at parameters never scored: computed
+    assert calls == [(9, 48)] and s["reused"] == ["gt", "views", "judge"]
     made = s["colmap"]["made"]
     assert made["params"] == {"views": 9, "size": 48, "background": [1.0, 1.0, 1.0]}
     assert made["commit"] == code_commit() and made["utc"].endswith("Z")
@@ -413,7 +413,7 @@ def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypa
         blob[name]["made"]["params"]["background"] = [0.0, 0.0, 0.0]
     (run / "scores.json").write_text(json.dumps(blob))
     s = score_run(run, colmap=False)
-    assert s["reused"] == [] and s["gt"]["made"]["params"]["background"] == [1.0, 1.0, 1.0]
+    assert s["reused"] == ["judge"] and s["gt"]["made"]["params"]["background"] == [1.0, 1.0, 1.0]
     assert s["gt"]["psnr"] == blob["gt"]["psnr"]  # the same scene and parameters: the same score
     # a block made by other code (or planted with made-up numbers) is dropped, never printed
     blob = _strict(run / "scores.json")
@@ -424,7 +424,7 @@ def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypa
     assert "colmap" not in s and "colmap" not in _strict(run / "scores.json")
     text = report(s)
     assert "0.93" not in text and "COLMAP" not in text and "GT:" not in text
-    assert "nothing scored" in text and "also keeps, not recomputed now: gt, views" in text
+    assert "nothing scored" in text and "also keeps, not recomputed now: gt, judge, views" in text
     del blob["colmap"]["made"]  # from before blocks recorded their provenance
     (run / "scores.json").write_text(json.dumps(blob))
     assert "colmap" not in score_run(run, gt=False, colmap=False)
