@@ -166,6 +166,8 @@ def test_judge_block_is_null_where_there_is_nothing_to_judge(tmp_path):
     labels.write_text("run_id,label\nnot-a-run,blob\n")
     with pytest.raises(ValueError, match=r"labels: .* names run id 'not-a-run'"):
         main(JudgeRuns(paths=(tmp_path,), labels=labels))
+    with pytest.raises(ValueError, match="paths: expected at least one"):
+        main(JudgeRuns(paths=()))
 
 
 def test_an_asset_without_a_front_takes_the_view_metrics_blob_or_fine():

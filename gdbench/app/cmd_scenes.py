@@ -230,7 +230,7 @@ def run_score(cmd: Score) -> dict:
 
 @dataclass
 class JudgeRuns:
-    """Judge run folders with the Janus judge (docs/scoring.md, "The judge"): each result gets one
+    """Judge run folders with the Janus judge (docs/scoring.md, "The Janus judge"): each result gets one
     of front_everywhere, second_face, blob, fine and a confidence, from its turntable's frames and
     its asset, written to the run's scores.json (the judge block; one made by the same judge on the
     same scene is kept). A sweep folder judges every run folder under it and writes judge.csv
@@ -247,6 +247,8 @@ def run_judge(cmd: JudgeRuns) -> list[dict]:
     from gdbench.core.io import read_json, write_csv
     from gdbench.metrics.run_scores import judge_only, judge_text
 
+    if not cmd.paths:
+        raise ValueError("paths: expected at least one run folder or folder of run folders")
     runs, tables = [], {}
     for p in cmd.paths:
         p = Path(p)

@@ -159,7 +159,7 @@ def run_train_prior(cmd: TrainPrior) -> dict:
 
 @dataclass
 class TrainJudge:
-    """Train the Janus judge (docs/scoring.md, "The judge"): its eye, which reads which side of the
+    """Train the Janus judge (docs/scoring.md, "The Janus judge"): its eye, which reads which side of the
     asset a view shows, on the assets' own renders (every caption, rendered on first use and
     cached; no label of any result), then its head on the consensus labels of v3's committed
     sheets. Writes eye.safetensors, head.json and provenance.json to --out (default: the shipped

@@ -344,7 +344,7 @@ def result_lines(gt: dict, views: dict | None, judge: dict | None = None) -> lis
     """What a finished run's scores say, for ``generate``'s summary: the GT PSNR after the best
     turn and before it, the turn, the Janus judge's label and, when the judge calls the result a
     failure, a one-line warning with its confidence. The old view classes (``views``) are shown
-    as superseded: they agreed with the raters at chance (docs/scoring.md, "The judge")."""
+    as superseded: they agreed with the raters at chance (docs/scoring.md, "The Janus judge")."""
     lines = [f"  against the asset at 12 held-out views: {gt_text(gt)}"]
     if judge is not None:
         lines.append(f"  judge: {judge_text(judge)}")

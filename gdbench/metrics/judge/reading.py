@@ -19,7 +19,7 @@ A second reading needs no network: the outline's elongation (``log_aspect``: hal
 the object's horizontal to vertical variance) against the asset's own at every azimuth
 (``AspectCurves``, measured on the same renders the eye learns from). It cannot tell front from back
 or left from right, but it reads an end-on outline from a profile on results too blurred for any
-feature to survive (measured on v3's sheets: docs/scoring.md, "The judge").
+feature to survive (measured on v3's sheets: docs/scoring.md, "The Janus judge").
 """
 
 from __future__ import annotations
