@@ -334,9 +334,10 @@ def judge_text(j: dict | None) -> str:
         return f"no label ({j.get('reason', 'nothing to judge')})"
     if j.get("decided_by"):
         return f"{j['label']} (decided by {j['decided_by']}; judge {j.get('version')})"
-    return (
-        f"{j['label']} (confidence {num(j.get('confidence')):.2f}; from {j.get('mode', '?')}, "
-        f"turned {num(j.get('turn_deg')):.0f} deg; judge {j.get('version')})"
+    turn = f"turned {num(j.get('turn_deg')):.0f} deg; " if j["label"] in ("fine", "second_face") else ""
+    return (  # the turn of a result with no front of its own, or the same from every side, means nothing
+        f"{j['label']} (confidence {num(j.get('confidence')):.2f}; from {j.get('mode', '?')}, {turn}"
+        f"judge {j.get('version')})"
     )
 
 
