@@ -227,3 +227,32 @@ def test_judging_again_reuses_only_the_same_judge_and_keeps_other_blocks(tmp_pat
     assert json.loads((run / "scores.json").read_text())["colmap"] == old_block
     with pytest.raises(ValueError, match="views: expected uint8 images or floats in"):
         judge.views(np.full((6, 8, 8, 3), 200.0), SIX, "a yellow duck")
+
+
+def test_the_re_reading_recomputes_v3s_registered_rows(tmp_path):
+    """``reread_v3`` on the committed labels gives, for the raters, v3's registered primary rows
+    (docs/results/v3/verdict.csv, written by the v3 report's own code) to float precision: the
+    pairing of arms, the prompt as the unit and Holm are v3's; the judge's rows are read the same way."""
+    from gdbench.experiments.judge_build import reread_v3
+    from gdbench.metrics.agreement import LABELS
+
+    judged = tmp_path / "judged.csv"
+    with open(judged, "w", newline="") as f:  # the raters' labels of every sheet result (the judge's columns unused)
+        w = csv.writer(f)
+        w.writerow(["batch", "run_id", "rater1", "rater2", "judge_loko", "judge_in_sample"])
+        a = {
+            (r["batch"], r["run_id"]): r["label"] for r in csv.DictReader(open(ROOT / "fixtures/labels/v3_rater1.csv"))
+        }
+        b = {
+            (r["batch"], r["run_id"]): r["label"] for r in csv.DictReader(open(ROOT / "fixtures/labels/v3_rater2.csv"))
+        }
+        for k in a:
+            if k[0] in "CDEF":
+                w.writerow([*k, a[k], b[k], LABELS[0], LABELS[3]])
+    rows = {r["comparison"]: r for r in reread_v3(judged, tmp_path, root=ROOT) if r["reader"] == "raters"}
+    registered = [r for r in csv.DictReader(open(ROOT / "docs/results/v3/verdict.csv")) if r["metric"] == "label_janus"]
+    assert len(registered) == 3
+    for r in registered:
+        mine = rows[f"{r['a']} vs {r['b']}"]
+        for key in ("prompt_mean_diff", "prompt_ci_low", "prompt_ci_high", "p_prompts_holm"):
+            assert mine[key] == pytest.approx(float(r[key]), rel=1e-9), (r["b"], key)

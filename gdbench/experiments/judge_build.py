@@ -202,3 +202,29 @@ def reread_v3(judged_csv: Path, out: Path, root: Path = Path(".")) -> list[dict]
             rows.append(row)
     write_csv(rows, Path(out) / "v3_reread.csv")
     return rows
+
+
+def main(argv=None) -> int:
+    """``python -m gdbench.experiments.judge_build evaluate [--judge DIR] [--out DIR]``: the judge
+    against v3's committed labels (``evaluate_v3``) and v3's primary rows re-read (``reread_v3``)."""
+    import argparse
+
+    from gdbench.metrics.judge.judge import WEIGHTS
+
+    ap = argparse.ArgumentParser(prog="python -m gdbench.experiments.judge_build", description=main.__doc__)
+    ap.add_argument("what", choices=["evaluate"])
+    ap.add_argument("--judge", type=Path, default=WEIGHTS, help="the judge's folder (default: the shipped one)")
+    ap.add_argument("--out", type=Path, default=Path("docs/results/judge"))
+    args = ap.parse_args(argv)
+    for r in evaluate_v3(args.judge, args.out):
+        print(f"{r['fit']:15s} {r['truth']:9s} {r['n']:4d} results: kappa {r['kappa_janus']:.2f} (Janus split), "
+              f"{r['kappa_four']:.2f} (four classes); fails: {r['fails'] or 'none'}")  # fmt: skip
+    for r in reread_v3(args.out / "v3_judged.csv", args.out):
+        print(f"{r['reader']:24s} {r['comparison']:20s} {r['prompt_mean_diff']:+.3f} "
+              f"[{r['prompt_ci_low']:+.3f}, {r['prompt_ci_high']:+.3f}] {r['verdict']}")  # fmt: skip
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
