@@ -171,13 +171,13 @@ def reread_v3(judged_csv: Path, out: Path, root: Path = Path(".")) -> list[dict]
 
     from gdbench.core.io import write_csv
     from gdbench.experiments.claims import across_prompts, holm
+    from gdbench.metrics.agreement import JANUS as janus
 
     arm = {}
     for b in ("C", "D", "E", "F"):
         for k in json.loads((Path(root) / f"docs/results/v3/sheets/{b}_key.json").read_text()).values():
             parts = Path(k["run"]).parts  # <batch>/runs/cells/<group>/janus/<prompt>/<preset>/seed<k>
             arm[(b, k["run_id"])] = (k["caption"], parts[-2], int(parts[-1].removeprefix("seed")))
-    janus = {"front_everywhere", "second_face"}
     values: dict[str, dict] = {"raters": {}, "judge (leave-kind-out)": {}, "judge (in sample)": {}}
     for r in csv.DictReader(open(judged_csv)):
         key = arm[(r["batch"], r["run_id"])]

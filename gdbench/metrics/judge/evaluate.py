@@ -14,7 +14,8 @@ from collections import Counter
 
 from torch import Tensor
 
-from gdbench.metrics.judge.head import LABELS, decide, fit
+from gdbench.metrics.agreement import JANUS, LABELS
+from gdbench.metrics.judge.head import decide, fit
 
 THRESHOLDS = {"kappa_janus": 0.8, "kappa_four": 0.7, "recall_front_everywhere": 0.7, "recall_blob": 0.7,
               "recall_fine": 0.7}  # fmt: skip
@@ -22,7 +23,7 @@ THRESHOLDS = {"kappa_janus": 0.8, "kappa_four": 0.7, "recall_front_everywhere": 
 
 
 def janus(label: str) -> int:
-    return int(label in ("front_everywhere", "second_face"))
+    return int(label in JANUS)
 
 
 def agreement(truth: list[str], judged: list[str]) -> dict:

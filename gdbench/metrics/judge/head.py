@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from gdbench.metrics.agreement import JANUS
+
 CLASSES3 = ("janus", "blob", "fine")
 """The head's classes: the rule's front_everywhere and second_face together, blob, fine."""
-LABELS = ("front_everywhere", "second_face", "blob", "fine")
-"""The labelling rule's classes (``metrics.agreement.LABELS``' order)."""
 SECOND_FACE = (0.5, 0.5)
 """A Janus result is a second_face when some view reads as a profile (``profile_max`` at least the
 first number: it has sides) and the views that see its back read the front (``back_reads_front``
@@ -50,7 +50,7 @@ class Head:
 
 def to3(label: str) -> int:
     """A rule's label -> its index in ``CLASSES3``."""
-    return 0 if label in ("front_everywhere", "second_face") else CLASSES3.index(label)
+    return 0 if label in JANUS else CLASSES3.index(label)
 
 
 def fit(x: Tensor, labels: list[str], l2: float = L2) -> Head:

@@ -156,9 +156,10 @@ def judge_block(scene, caption: str | None) -> dict:
     out = judge.scene(scene, caption)
     if out["label"] is not None:
         from gdbench.assets.library import has_front
+        from gdbench.metrics.agreement import JANUS
 
         # an asset without a front cannot be Janus: undefined, as the view classes' Janus rate
-        out["judge_janus"] = int(out["label"] in ("front_everywhere", "second_face")) if has_front(caption) else None
+        out["judge_janus"] = int(out["label"] in JANUS) if has_front(caption) else None
         out["judge_failure"] = int(out["label"] != "fine")
     return out
 

@@ -65,9 +65,15 @@ class Eye(nn.Module):
     def forward(self, views: Tensor, caption: Tensor) -> Tensor:
         ink = 1.0 - views  # ink, not light: a zero background
         if self.config.inputs == "mask":
-            ink = (ink.max(1, keepdim=True).values > INK).float().expand_as(ink)
+            ink = object_mask(views, 1, keepdim=True).expand_as(ink)
         h = self.heads(self.mlp(self.trunk(ink)))
         return h.view(-1, len(self.config.captions), BINS)[torch.arange(len(caption)), caption]
+
+
+def object_mask(x: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
+    """1.0 where images ``x`` in [0, 1] (white background; channels along ``dim``) show the object
+    (some channel darker than white by more than ``INK``), else 0.0."""
+    return ((1.0 - x.min(dim, keepdim=keepdim).values) > INK).float()
 
 
 def crop_views(views: Tensor, size: int = SIZE, margin: float = 0.08) -> Tensor:
@@ -77,7 +83,7 @@ def crop_views(views: Tensor, size: int = SIZE, margin: float = 0.08) -> Tensor:
     with white and box-filtered to ``size``. A view with no object pixel is left whole."""
     x = views.float() / 255.0 if views.dtype == torch.uint8 else views.float()
     _, h, w, _ = x.shape
-    ink = ((1.0 - x.min(-1).values) > INK).float()
+    ink = object_mask(x)
     total = ink.sum((1, 2))
     lo_y, hi_y = _quantiles(ink.sum(2), total)
     lo_x, hi_x = _quantiles(ink.sum(1), total)

@@ -125,10 +125,10 @@ def log_aspect(views: Tensor) -> Tensor:
     """[V, H, W, 3] views (uint8 or [0, 1], white background) -> [V] half the log ratio of the
     object's (``net.INK``) horizontal to vertical second moment: 0 for a round outline, positive
     for a wide one (a profile of a long animal), negative for a tall one."""
-    from gdbench.metrics.judge.net import INK
+    from gdbench.metrics.judge.net import object_mask
 
     x = views.float() / 255.0 if views.dtype == torch.uint8 else views.float()
-    m = ((1.0 - x[..., :3].min(-1).values) > INK).float()
+    m = object_mask(x[..., :3])
     _, h, w = m.shape
     ys = torch.arange(h, dtype=torch.float32)[None, :, None]
     xs = torch.arange(w, dtype=torch.float32)[None, None, :]

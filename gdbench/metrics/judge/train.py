@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from gdbench.metrics.judge.net import BINS, SIZE, Eye, EyeConfig, bin_centres
+from gdbench.metrics.judge.net import BINS, SIZE, Eye, EyeConfig, bin_centres, object_mask
 
 SMOOTH = 10.0
 """Degrees: the spread of the azimuth target over the bins."""
@@ -94,7 +94,7 @@ def degrade(crops: Tensor, cfg: EyeTrainConfig, g: torch.Generator) -> Tensor:
     if cfg.blobify > 0:
         x = _blobify(x, cfg, g)
     # features smeared toward the object's mean colour
-    ink = ((1.0 - x.min(1, keepdim=True).values) > 0.1).float()
+    ink = object_mask(x, 1, keepdim=True)
     mean = (x * ink).sum((2, 3), keepdim=True) / ink.sum((2, 3), keepdim=True).clamp(min=1)
     smear = cfg.smear * u(b, 1, 1, 1)
     x = x + ink * smear * (mean - x)
