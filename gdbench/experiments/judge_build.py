@@ -142,11 +142,12 @@ def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
         idx = [i for i, k in enumerate(kinds) if k == kind and results[i].consensus]
         a = agreement([results[i].consensus for i in idx], [loko[i][0] for i in idx])
         by_kind.append({"kind": kind, "n": a["n"], "agree": a["agree"], "kappa_janus": a["kappa_janus"],
-                        "confusion": str(a["confusion"]), "judge": judge.version})  # fmt: skip
+                        "confusion": str(a["confusion"]), "judge": judge.version, "commit": commit})  # fmt: skip
     per = [{"batch": r.batch, "number": r.number, "run_id": r.run_id, "caption": r.caption,
             "judge_loko": loko[i][0], "confidence_loko": round(loko[i][1], 4),
             "judge_in_sample": fits["in sample"][i][0],
-            "rater1": r.labels.get("rater1"), "rater2": r.labels.get("rater2"), "consensus": r.consensus or ""}
+            "rater1": r.labels.get("rater1"), "rater2": r.labels.get("rater2"), "consensus": r.consensus or "",
+            "judge": judge.version, "commit": commit}
            for i, r in enumerate(results)]  # fmt: skip
     out = Path(out)
     write_csv(rows, out / "agreement.csv")
@@ -184,7 +185,9 @@ def reread_v3(judged_csv: Path, out: Path, root: Path = Path(".")) -> list[dict]
         values["raters"][key] = (float(r["rater1"] in janus) + float(r["rater2"] in janus)) / 2
         values["judge (leave-kind-out)"][key] = float(r["judge_loko"] in janus)
         values["judge (in sample)"][key] = float(r["judge_in_sample"] in janus)
-    rows = []
+    from gdbench.core.provenance import code_commit
+
+    rows, commit = [], code_commit()
     for reader, v in values.items():
         family = []
         for a, b in V3_PRIMARY:
@@ -196,6 +199,7 @@ def reread_v3(judged_csv: Path, out: Path, root: Path = Path(".")) -> list[dict]
                            "share_b": float(np.mean([v[(p, b, s)] for p, s in keys])), **res})  # fmt: skip
         for row, p in zip(family, holm([r["p_prompts"] for r in family])):
             row["p_prompts_holm"] = p
+            row["commit"] = commit
             hi = row["prompt_ci_high"]
             row["verdict"] = ("holds" if p < 0.05 and hi < 0 else "no effect beyond +-0.05"
                               if row["p_prompts_equivalence"] < 0.05 else "undecided")  # fmt: skip
