@@ -52,12 +52,12 @@ def unpack(archive: Path, out: Path) -> None:
 
 
 def resume(out: Path, workers: int = 2) -> None:
-    from gdbench.experiments.decisive import GROUPS
+    from gdbench.experiments.runner import GROUPS
     from gdbench.experiments.sweep import SweepConfig, sweep
     from gdbench.experiments.v3 import REGISTERED, sweep_blocks
 
     seeds = list(range(REGISTERED["seeds"]))
-    for b in sweep_blocks(REGISTERED):  # as decisive.run_blocks, one round, figures off
+    for b in sweep_blocks(REGISTERED):  # as runner.run_blocks, one round, figures off
         print(f"resume: block {b.name}, seeds {seeds}", flush=True)
         sweep(SweepConfig(
             b.prompts, b.presets, seeds, steps=b.steps, out=out / "blocks" / b.name, executor="local",

@@ -130,7 +130,7 @@ MUTATIONS = [
     Mutation("ssim-constants-unsquared", "gdbench/metrics/gt.py", "c1, c2 = 0.01**2, 0.03**2", "c1, c2 = 0.01, 0.03",
              "SSIM's stabilising constants not squared", "metrics",
              ("tests/test_views.py::test_gt_psnr_and_ssim_closed_forms",)),
-    Mutation("bootstrap-90-percent", "gdbench/experiments/claims.py",
+    Mutation("bootstrap-90-percent", "gdbench/experiments/stats.py",
              "def bca_ci(d: np.ndarray, *, level: float = 0.95,", "def bca_ci(d: np.ndarray, *, level: float = 0.90,",
              "the claims' interval at 5/95 percentiles instead of 2.5/97.5", "metrics",
              ("tests/test_claims.py::test_the_statistics_against_independent_oracles",)),

@@ -16,7 +16,7 @@ def test_sign_flip_p_against_every_pattern_and_the_binomial():
     (Monte Carlo there, within 4 standard errors)."""
     from scipy import stats
 
-    from gdbench.experiments.claims import SIGN_FLIP_EXACT_UP_TO, sign_flip_p
+    from gdbench.experiments.stats import SIGN_FLIP_EXACT_UP_TO, sign_flip_p
 
     rng = np.random.default_rng(3)
     for g in (1, 2, 3, 7, 12):
@@ -41,7 +41,8 @@ def test_sign_flip_p_against_every_pattern_and_the_binomial():
 def test_across_prompts_holds_on_the_sign_flip_test_when_asked():
     """``prompt_test='signflip'`` puts the exact sign-flip p (of the per-prompt means) in the Holm
     family; the t p stays beside it, and the default is the t test as before."""
-    from gdbench.experiments.claims import CLAIMS, evaluate, sign_flip_p
+    from gdbench.experiments.claims import CLAIMS, evaluate
+    from gdbench.experiments.stats import sign_flip_p
 
     rng = np.random.default_rng(5)
     rows = []
@@ -210,7 +211,7 @@ def test_report_reads_across_prompts_first_and_draws_a_forest(tmp_path, monkeypa
     sign-flip p; a prompt built to go the other way beyond the margin is named; one forest plot per
     main claim is drawn with a row per prompt."""
     from gdbench.experiments import v3_design as v3
-    from gdbench.experiments.claims import sign_flip_p
+    from gdbench.experiments.stats import sign_flip_p
     from gdbench.experiments.v3_report import report
 
     monkeypatch.setattr(v3, "prereg_commit", lambda root=None: None)

@@ -16,7 +16,8 @@ def test_claims_verdict_from_paired_tests():
     own, too few pairs or a metric that cannot fail (or always fails) gives no verdict."""
     import numpy as np
 
-    from gdbench.experiments.claims import CLAIMS, evaluate, signed_rank_p
+    from gdbench.experiments.claims import CLAIMS, evaluate
+    from gdbench.experiments.stats import signed_rank_p
 
     keys = [(p, s) for p in "abcdef" for s in (0, 1, 2)]
     rng = np.random.default_rng(0)
@@ -115,7 +116,7 @@ def test_the_statistics_against_independent_oracles():
     import numpy as np
     from scipy import stats
 
-    from gdbench.experiments.claims import bca_ci, equivalence_p, holm, pairs_for_power, signed_rank_p
+    from gdbench.experiments.stats import bca_ci, equivalence_p, holm, pairs_for_power, signed_rank_p
 
     rng = np.random.default_rng(1)
     d = rng.normal(1.0, 2.0, 400)

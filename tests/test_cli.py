@@ -144,13 +144,13 @@ def test_options_that_would_do_nothing_are_refused_naming_both(tmp_path):
     cases = [
         (dict(train=GenerateTrain(noise_ou_beta=0.2)), r"--noise-ou-beta acts only with --noise-redraw ou "
          r"\(this run: --noise-redraw run\)"),
-        (dict(train=GenerateTrain(log_every=5), progress=False), r"--log-every acts only with the progress report "
-         r"or --log-dir"),
+        (dict(train=GenerateTrain(log_every=5), progress=False), r"--log-every acts only with --progress "
+         r"or --log-dir \(this run: --no-progress, no --log-dir\)"),
         (dict(train=GenerateTrain(vgs_gamma=0.1), preset="sjc-gs"), r"--vgs-gamma acts only with --vgs"),
         (dict(train=GenerateTrain(view_window_deg=30.0, view_prompting="none")), r"--view-window-deg acts only "
          r"with --view-prompting window"),
         (dict(train=GenerateTrain(noise_redraw="step"), preset="gd-no-sn"), r"--noise-redraw acts only with "
-         r"structured noise"),
+         r"--structured-noise \(this run: --no-structured-noise\)"),
     ]  # fmt: skip
     for kw, match in cases:
         with pytest.raises(ValueError, match=match):

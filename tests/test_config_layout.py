@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from gdbench.core.layout import LEGACY_PRIOR_DEFAULTS, flat_config
 from gdbench.train.checkpoint import RESUME_IGNORES, comparable
 from gdbench.train.config import PRESETS, config_from_dict, preset
+from gdbench.train.layout import LEGACY_PRIOR_DEFAULTS, flat_config
 from gdbench.train.outputs import config_dict
 from gdbench.train.run import run_id
 from tests._util import cli, help_text, one_line
@@ -57,7 +57,8 @@ def test_generate_with_a_stored_run_json_makes_the_run_of_the_same_id(tmp_path):
     again = json.loads((tmp_path / "again" / "run.json").read_text())
     assert again["run_id"] == json.loads(stored.read_text())["run_id"]
     assert again["config"]["prior"] == {"kind": "empirical", "front_bias": 0.0, "variants": 1,
-                                        "depth_conditioning": False, "view_window_deg": 45.0}  # fmt: skip
+                                        "depth_conditioning": False, "view_prompting": "window",
+                                        "view_window_deg": 45.0}  # fmt: skip
 
 
 def test_a_flat_file_with_another_priors_setting_off_its_default_is_refused():
@@ -85,11 +86,16 @@ def test_the_frozen_flat_defaults_are_the_prior_configs_defaults():
     """The flat layout's defaults (run ids depend on them) are what each prior's config defaults
     to: a default changed in a config would silently rename every run of the other priors."""
     from gdbench.priors.factory import PRIOR_CONFIGS
+    from gdbench.train.layout import RENAMED
 
+    moved = {new.removeprefix("prior.") for new in RENAMED.values()}  # view_prompting: every prior has it
     for kind, cls in PRIOR_CONFIGS.items():
         for f in fields(cls):
-            assert getattr(cls(), f.name) == LEGACY_PRIOR_DEFAULTS[f.name], (kind, f.name)
-    assert set(LEGACY_PRIOR_DEFAULTS) == {f.name for cls in PRIOR_CONFIGS.values() for f in fields(cls)}
+            if f.name not in moved:
+                assert getattr(cls(), f.name) == LEGACY_PRIOR_DEFAULTS[f.name], (kind, f.name)
+    names = {f.name for cls in PRIOR_CONFIGS.values() for f in fields(cls)}
+    assert set(LEGACY_PRIOR_DEFAULTS) == names - moved
+    assert all(any(f.name == name for f in fields(cls)) for cls in PRIOR_CONFIGS.values() for name in moved & names)
     assert all(c.prior == PRESETS["gd"].prior for c in PRESETS.values())
 
 
@@ -129,7 +135,7 @@ def test_help_offers_only_the_chosen_priors_options(command):
 def test_a_prior_option_typed_for_another_prior_is_one_line(monkeypatch, capsys, tmp_path):
     code, _, err = cli(monkeypatch, capsys, "generate", "a yellow duck", "--sd-guidance", "7", "--out", tmp_path / "x")
     line = one_line(err)
-    want = "gdbench generate: error: --sd-guidance acts only with --prior sd (this command: --prior empirical)"
+    want = "gdbench generate: error: --sd-guidance acts only with --prior sd (this run: --prior empirical)"
     assert code == 2 and line == want
     code, _, err = cli(monkeypatch, capsys, "sweep", "--prior", "learned", "--no-depth-conditioning", "--out", tmp_path)
     assert code == 2 and "--no-depth-conditioning acts only with --prior empirical or sd" in one_line(err)
@@ -145,4 +151,4 @@ def test_a_run_json_names_the_prior_whose_options_its_command_line_takes(monkeyp
     assert code == 0, err
     prior = json.loads((out / "run.json").read_text())["config"]["prior"]
     assert prior == {"kind": "learned", "learned_model": "front", "learned_guidance": 1.5, "front_bias": 0.0,
-                     "variants": 3}  # fmt: skip
+                     "variants": 3, "view_prompting": "window"}  # fmt: skip

@@ -348,7 +348,7 @@ def test_densify_false_on_the_command_line_trains_without_densification(tmp_path
     run = json.loads((out / "run.json").read_text())
     assert run["densify_schedule"]["enabled"] is False and run["densify_schedule"]["grow_steps"] == []
     assert run["gaussians"] == 4096  # nothing cloned, split or pruned
-    with pytest.raises(ValueError, match=r"--densify-every acts only with densification \(this run: --no-densify\)"):
+    with pytest.raises(ValueError, match=r"--densify-every acts only with --densify \(this run: --no-densify\)"):
         main(Generate("a yellow duck", out=tmp_path / "x", train=GenerateTrain(densify=False, densify_every=5)))
 
 

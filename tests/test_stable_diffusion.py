@@ -197,10 +197,9 @@ def test_depth_unprojection_inverts_the_projection():
 # ------------------------------------------------------------------ the trainer on the tiny prior
 def _two_sd_steps(out, **extra) -> dict:
     """TrainConfig fields for a 2-step run at 32 px on the tiny SD prior."""
-    from gdbench.mechanisms.noise import NoiseConfig
 
     kw = dict(prompt=PROMPT, prior="sd", sd_guidance=7.5, steps=2, resolution=32, init_points=200)
-    kw.update(progress=False, turntable_frames=2, out=out, noise=NoiseConfig(n_gaussians=200, scale=0.05))
+    kw.update(progress=False, turntable_frames=2, out=out, **{"noise.n_gaussians": 200, "noise.scale": 0.05})
     return kw | extra
 
 

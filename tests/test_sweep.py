@@ -300,11 +300,11 @@ def test_sweep_cli_overrides_method_options_for_every_cell(tmp_path, capsys):
         "view_prompting": "none",
         "views.per_step": 2,
         "noise.redraw": "ou",
-        "noise.ratio_mode": "variance",
+        "noise.ratio": "variance",
     }
     config = json.loads((cell / "run.json").read_text())["config"]
-    assert config["view_prompting"] == "none" and config["views"]["per_step"] == 2
-    assert config["noise"]["redraw"] == "ou" and config["noise"]["ratio_mode"] == "variance"
+    assert config["prior"]["view_prompting"] == "none" and config["views"]["per_step"] == 2
+    assert config["noise"]["redraw"] == "ou" and config["noise"]["ratio"] == "variance"
     assert "No claim is decidable here" in capsys.readouterr().out
 
 
@@ -330,9 +330,9 @@ def test_settings_dial_the_prior_and_pair_cells(tmp_path):
         ("janus", "gd"), ("janus", "gd-no-sn"), ("instance", "gd"), ("instance", "gd-no-sn"),
     ]  # fmt: skip
     cfg = json.loads((CellSpec(PROMPT, "gd", 0, 2, str(tmp_path), setting="janus").dir / "run.json").read_text())
-    assert cfg["config"]["view_prompting"] == "none" and cfg["config"]["prior"]["front_bias"] == 1.0
+    assert cfg["config"]["prior"]["view_prompting"] == "none" and cfg["config"]["prior"]["front_bias"] == 1.0
     cfg = json.loads((CellSpec(PROMPT, "gd", 0, 2, str(tmp_path), setting="instance").dir / "run.json").read_text())
-    assert cfg["config"]["prior"]["variants"] == 3 and cfg["config"]["view_prompting"] == "window"
+    assert cfg["config"]["prior"]["variants"] == 3 and cfg["config"]["prior"]["view_prompting"] == "window"
     for r in rows:
         assert 0 <= r["multi_face_rate"] <= 1 and 0 <= r["instance_inconsistency"] <= 1 and 0 <= r["floaters"] <= 1
     verdicts = _read_csv(tmp_path / "verdict.csv")
@@ -349,7 +349,7 @@ def test_sweep_notes_options_some_cells_ignore_and_refuses_those_all_ignore():
 
     lines = inert_overrides(specs(["gd", "sjc-gs", "sds-gs"], {"vgs_gamma": 0.1}))
     assert lines == ["--vgs-gamma does nothing in sds-gs (easy), sjc-gs (easy): it acts only with --vgs "
-                     "(this run has VGS off)"]  # fmt: skip
+                     "(this run: --no-vgs)"]  # fmt: skip
     with pytest.raises(ValueError, match=r"--vgs-gamma acts only with --vgs .*in every cell of the sweep"):
         inert_overrides(specs(["sjc-gs"], {"vgs_gamma": 0.1}))
     assert inert_overrides(specs(["gd"], {"vgs_gamma": 0.1})) == []

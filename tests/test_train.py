@@ -9,14 +9,12 @@ import pytest
 import torch
 
 from gdbench.mechanisms.noise import NoiseConfig
-from gdbench.mechanisms.variational import VGSConfig
 from gdbench.priors.empirical import EmpiricalPrior
 from gdbench.train.adam import OptimConfig
 from gdbench.train.config import PRESETS, TrainConfig, preset
 from gdbench.train.densify import PARAM_NAMES, DensifyConfig
 from gdbench.train.run import train
 from gdbench.train.trainer import TrainingDiverged, init_state, make_context, train_step
-from gdbench.train.views import ViewsConfig
 from tests._util import CAPTION, PACED_RUN, tiny, tiny_bank
 
 
@@ -39,14 +37,14 @@ def test_every_preset_runs_two_steps_and_writes_outputs(name, prior, tmp_path):
 
     run = json.loads(r.paths["run_json"].read_text())
     assert run["preset"] == name and run["seed"] == 0 and run["versions"]["torch"].startswith("2.")
-    assert run["config"]["structured_noise"] == PRESETS[name].structured_noise
+    assert run["config"]["noise"]["enabled"] == PRESETS[name].noise.enabled
 
 
 def test_presets_switch_what_the_paper_ablates():
-    assert PRESETS["gd"].structured_noise and PRESETS["gd"].vgs.enabled
-    assert not PRESETS["gd-no-sn"].structured_noise and PRESETS["gd-no-sn"].vgs.enabled
-    assert PRESETS["gd-no-vgs"].structured_noise and not PRESETS["gd-no-vgs"].vgs.enabled
-    assert not PRESETS["sjc-gs"].structured_noise and not PRESETS["sjc-gs"].vgs.enabled
+    assert PRESETS["gd"].noise.enabled and PRESETS["gd"].vgs.enabled
+    assert not PRESETS["gd-no-sn"].noise.enabled and PRESETS["gd-no-sn"].vgs.enabled
+    assert PRESETS["gd-no-vgs"].noise.enabled and not PRESETS["gd-no-vgs"].vgs.enabled
+    assert not PRESETS["sjc-gs"].noise.enabled and not PRESETS["sjc-gs"].vgs.enabled
     assert PRESETS["sds-gs"].guidance == "sds"
     # the mechanism's control: gd in every field but the noise colours' redraw
     from dataclasses import replace
@@ -118,14 +116,18 @@ def test_resume_refuses_a_different_config(prior, tmp_path):
         (dict(guidance="dds"), ValueError, "guidance"),
         (dict(init_opacity=1.5), ValueError, "init_opacity"),
         (dict(elevation_range=(-90.0, 45.0)), ValueError, r"elevation_range \(--elevation-range\): .* in \(-90, 90\)"),
-        (dict(vgs=VGSConfig(unit="pixels")), ValueError, r"vgs.unit \(--vgs-unit\): expected one of \[.scene"),
-        (dict(views=ViewsConfig(per_step=0)), ValueError, r"views.per_step \(--views-per-step\): expected an int >= 1"),
+        (dict(vgs={"unit": "pixels"}), ValueError, r"vgs.unit \(--vgs-unit\): expected one of \[.scene"),
+        (dict(views={"per_step": 0}), ValueError, r"views.per_step \(--views-per-step\): expected an int >= 1"),
+        (dict(noise={"ratio": "both"}), ValueError, r"noise.ratio \(--noise-ratio\): expected one of"),
         (dict(seed=True), ValueError, r"seed \(--seed\): expected an int"),
     ],
 )
 def test_bad_configs(kw, error, match):
+    """A group's bad field (given as a dict here) fails where the group is made, naming its flag."""
+    from gdbench.train.config import NESTED
+
     with pytest.raises(error, match=match):
-        TrainConfig(**kw)
+        TrainConfig(**{k: NESTED[k](**v) if isinstance(v, dict) else v for k, v in kw.items()})
 
 
 def test_bad_prompt_and_paths(prior, tmp_path):
@@ -344,7 +346,7 @@ def test_presets_with_one_seed_draw_the_same_views_sigmas_and_iid_noise(prior, t
         # gd: n = a n_s + sqrt(1 - a^2) n_iid, with n_iid the very field sjc-gs uses
         from gdbench.mechanisms.noise import structured_amplitude
 
-        r = structured_amplitude(0.3, ctx_gd.cfg.noise.ratio_mode)  # the proportion at step 0
+        r = structured_amplitude(0.3, ctx_gd.cfg.noise.ratio)  # the proportion at step 0
         ns = ctx_gd.noise.render(a.noise_colors, va.prior_cams, generator=torch.Generator())
         cov = ns.coverage.bool().expand(shape)  # where the cloud covers nothing, n_s is an iid fill
         assert cov.float().mean() > 0.5
@@ -539,8 +541,8 @@ def test_run_id_keeps_runs_made_before_a_field_was_added():
     as the code did before it, so a finished run of the older code keeps its id (a sweep finds it
     finished instead of refusing to overwrite it); any other value changes the id."""
     from gdbench.core.io import sha256_json
-    from gdbench.core.layout import flat_config
     from gdbench.train.checkpoint import ADDED_AT_DEFAULT, RESUME_IGNORES
+    from gdbench.train.layout import flat_config
     from gdbench.train.run import config_dict, run_id
 
     cfg = preset("gd", steps=50)
@@ -594,8 +596,8 @@ def _changed(cfg, name):
     elif isinstance(v, Path):
         new = v / "other"
     elif dataclasses.is_dataclass(v):
-        f = next(f for f in dataclasses.fields(v) if isinstance(getattr(v, f.name), (int, float)))
-        new = dataclasses.replace(v, **{f.name: getattr(v, f.name) + 1})
+        f = next(f for f in dataclasses.fields(v) if type(getattr(v, f.name)) in (int, float))
+        new = _changed(v, f.name)  # another valid value of its first number
     else:
         raise AssertionError(f"no change rule for {name} = {v!r}")
     return dataclasses.replace(cfg, **{name: new})
@@ -608,7 +610,7 @@ training), and the device (float rounding only, as the thread count; recorded in
 RESULT_FIELDS = {
     "prompt", "preset", "steps", "seed", "resolution", "views", "init", "init_points", "init_ply", "init_opacity",
     "init_color", "camera_radius", "fovy_range", "azimuth_range", "elevation_range", "background", "guidance",
-    "sigma_min", "sigma_max", "anneal", "samples_per_step", "weight", "view_prompting", "prior", "structured_noise",
+    "sigma_min", "sigma_max", "anneal", "samples_per_step", "weight", "prior",
     "noise", "vgs", "optim", "densify", "sh_degree", "max_bad_steps",
 }  # fmt: skip
 """Fields that may change a result (or, as preset and max_bad_steps, say which run it is)."""
@@ -640,6 +642,8 @@ def test_every_config_field_is_classified_and_result_fields_change_the_run_id():
         for f in dataclasses.fields(sub):
             other = dataclasses.replace(base, **{group: _changed(sub, f.name)})
             changes.append((base, other, flag(f"{group}.{f.name}")[2:].replace("-", "_")))
+    # the structured noise's switch, a noise field that was a flat one (structured_noise)
+    changes.append((base, dataclasses.replace(base, noise=_changed(base.noise, "enabled")), "structured_noise"))
     for kind in PRIOR_CONFIGS:
         b = preset("gd", steps=50, prior=kind)
         changes += [

@@ -275,7 +275,7 @@ def chosen_prior(argv: list[str]) -> str:
     """The --prior of a generate or sweep command line (``argv`` from the subcommand on): given,
     else the one its --config file names, else 'empirical'; a bad name is left to the parser. A
     prior's option typed for another prior is a ValueError naming the prior it needs."""
-    from gdbench.train.config import PRIOR_KEYS
+    from gdbench.train.config import prior_option_error
 
     rest = argv[1:]
     kind = _option_value(rest, "--prior")
@@ -286,9 +286,9 @@ def chosen_prior(argv: list[str]) -> str:
         if a == "--":
             break
         name = a.split("=", 1)[0].removeprefix("--").removeprefix("no-").replace("-", "_")
-        if a.startswith("--") and name in PRIOR_KEYS and kind not in PRIOR_KEYS[name]:
-            raise ValueError(f"{a.split('=', 1)[0]} acts only with --prior {' or '.join(PRIOR_KEYS[name])} "
-                             f"(this command: --prior {kind})")  # fmt: skip
+        message = prior_option_error(f"prior.{name}", kind, a.split("=", 1)[0]) if a.startswith("--") else None
+        if message is not None:
+            raise ValueError(message)
     return kind
 
 

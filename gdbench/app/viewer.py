@@ -181,7 +181,7 @@ def training_cameras(config: dict, steps: int, max_views: int = MAX_FRUSTUMS) ->
     ``SphericalPoses.sample`` of ``views_per_step`` poses per step, in the config's radius, fov,
     azimuth and elevation ranges), for the first ``steps`` steps; returns the first view of every
     k-th step (at most ``max_views``) and the steps they belong to."""
-    from gdbench.core.layout import flat_config
+    from gdbench.train.layout import flat_config
     from gdbench.train.streams import make_streams
 
     config = flat_config(config)  # either layout of run.json
@@ -381,6 +381,53 @@ def _rng(r) -> str:
     return f"{r[0]:g} to {r[1]:g}"
 
 
+def _turntable_panel(viewer: Viewer, view: int, frames: int, radius: float) -> None:
+    """The turntable's folder: a slider over its views, where it stands, Previous and Next."""
+    gui = viewer.server.gui
+    with gui.add_folder("Turntable"):
+        viewer.slider = gui.add_slider("View", min=0, max=frames - 1, step=1, initial_value=view)
+        viewer._info = gui.add_markdown(_describe(view, frames, radius))
+        prev, nxt = gui.add_button("Previous"), gui.add_button("Next")
+    viewer.slider.on_update(lambda _e: viewer._go(int(viewer.slider.value)))
+    prev.on_click(lambda _e: viewer.show_view(int(viewer.slider.value) - 1))
+    nxt.on_click(lambda _e: viewer.show_view(int(viewer.slider.value) + 1))
+
+
+def _training_panel(viewer: Viewer, config: dict | None, kept: list[int], steps: int, on: bool) -> None:
+    """The training views' folder: the frustums' checkbox and what they are (or why there are none)."""
+    gui = viewer.server.gui
+    with gui.add_folder("Training views"):
+        viewer.checkbox = gui.add_checkbox("Show frustums", initial_value=on, disabled=not kept)
+        if config is None:
+            gui.add_markdown("No run.json: serve a run folder (or pass its run.json) to see them.")
+        else:
+            gui.add_markdown(
+                f"First view of {len(kept)} of the run's {steps} steps (blue: early, orange: late); "
+                f"radius {config['camera_radius']:g}, fovy {_rng(config['fovy_range'])}°, "
+                f"azimuth {_rng(config['azimuth_range'])}°, elevation {_rng(config['elevation_range'])}°"
+            )
+    viewer.checkbox.on_update(lambda _e: viewer._toggle())
+
+
+def _add_frustums(viewer: Viewer, train_cams, kept: list[int], steps: int, rotation, on: bool) -> None:
+    """One frustum per kept training step, coloured from blue (early) to orange (late)."""
+    server = viewer.server
+    viewer.frustums = server.scene.add_frame("/training_views", show_axes=False, visible=on)
+    for i, step in enumerate(kept):
+        q = viser_pose(train_cams, i, rotation)
+        t = step / max(steps - 1, 1)
+        server.scene.add_camera_frustum(
+            f"/training_views/step_{step:06d}",
+            fov=q.fov,
+            aspect=train_cams.width / train_cams.height,
+            scale=0.06,
+            thickness=0.002,
+            color=(int(40 + 200 * t), int(110 + 40 * t), int(230 - 190 * t)),
+            wxyz=q.wxyz,
+            position=q.position,
+        )
+
+
 def serve(
     scene_or_path: GaussianScene | str | Path,
     *,
@@ -449,47 +496,14 @@ def serve(
         server.initial_camera.up = p.up
         server.initial_camera.position = p.position
         server.initial_camera.look_at = p.look_at
-
-        gui = server.gui
         about = f"{len(scene)} Gaussians, SH degree {scene.sh_degree} (shown: DC colour)"
         if framed:
             about += f"; not a run's scene: turntable about its bounds' centre {np.round(centre, 3).tolist()}"
-        gui.add_markdown(f"**{name}**  \n{about}")
-        with gui.add_folder("Turntable"):
-            viewer.slider = gui.add_slider("View", min=0, max=frames - 1, step=1, initial_value=view)
-            viewer._info = gui.add_markdown(_describe(view, frames, radius))
-            prev, nxt = gui.add_button("Previous"), gui.add_button("Next")
-        viewer.slider.on_update(lambda _e: viewer._go(int(viewer.slider.value)))
-        prev.on_click(lambda _e: viewer.show_view(int(viewer.slider.value) - 1))
-        nxt.on_click(lambda _e: viewer.show_view(int(viewer.slider.value) + 1))
-
-        with gui.add_folder("Training views"):
-            on = bool(frustums and kept)
-            viewer.checkbox = gui.add_checkbox("Show frustums", initial_value=on, disabled=not kept)
-            if config is None:
-                gui.add_markdown("No run.json: serve a run folder (or pass its run.json) to see them.")
-            else:
-                gui.add_markdown(
-                    f"First view of {len(kept)} of the run's {steps} steps (blue: early, orange: late); "
-                    f"radius {config['camera_radius']:g}, fovy {_rng(config['fovy_range'])}°, "
-                    f"azimuth {_rng(config['azimuth_range'])}°, elevation {_rng(config['elevation_range'])}°"
-                )
-        viewer.checkbox.on_update(lambda _e: viewer._toggle())
+        server.gui.add_markdown(f"**{name}**  \n{about}")
+        _turntable_panel(viewer, view, frames, radius)
+        _training_panel(viewer, config, kept, steps, bool(frustums and kept))
         if kept:
-            viewer.frustums = server.scene.add_frame("/training_views", show_axes=False, visible=on)
-            for i, step in enumerate(kept):
-                q = viser_pose(train_cams, i, rotation)
-                t = step / max(steps - 1, 1)
-                server.scene.add_camera_frustum(
-                    f"/training_views/step_{step:06d}",
-                    fov=q.fov,
-                    aspect=train_cams.width / train_cams.height,
-                    scale=0.06,
-                    thickness=0.002,
-                    color=(int(40 + 200 * t), int(110 + 40 * t), int(230 - 190 * t)),
-                    wxyz=q.wxyz,
-                    position=q.position,
-                )
+            _add_frustums(viewer, train_cams, kept, steps, rotation, bool(frustums and kept))
     except BaseException:
         server.stop()
         raise

@@ -23,54 +23,12 @@ from __future__ import annotations
 
 import argparse
 import shutil
-from dataclasses import dataclass, field
 from pathlib import Path
 
+from gdbench.experiments import runner
+from gdbench.experiments.runner import GROUPS, VIEWS_SPREAD_DEG, Block, run_blocks
+
 PROMPTS = ["a yellow duck", "a corgi", "a penguin", "a hamburger", "a lego figure", "a sofa"]
-SPREAD = 10.0
-"""Degrees the views of one step stay within (views per step 4): structured noise at the same
-surface point correlates 0.75 at 5 degrees, 0.41 at 10 and 0.10 at 30 (coupling.csv)."""
-
-GROUPS = {
-    "empirical-v1": {"prior": "empirical"},
-    "empirical-v4": {"prior": "empirical", "views_per_step": 4, "views_spread_deg": SPREAD},
-    "learned-v1": {"prior": "learned"},
-    "learned-v4": {"prior": "learned", "views_per_step": 4, "views_spread_deg": SPREAD},
-    # the control: structured noise without a shared source (new colours every step, so no two
-    # steps' views share noise; only its spatial statistics remain)
-    "learned-v1-step": {"prior": "learned", "noise.redraw": "step"},
-}
-"""The prior x views-per-step factor: one group each (cells pair within a group)."""
-
-
-@dataclass(frozen=True)
-class Block:
-    """One sweep: groups x settings x prompts x presets x seeds, its COLMAP scoring and steps."""
-
-    name: str
-    groups: list[str]
-    settings: list[str]
-    presets: list[str]
-    colmap: bool = False
-    steps: int = 1000
-    prompts: list[str] = field(default_factory=lambda: list(PROMPTS))
-    overrides: dict = field(default_factory=dict)
-    """Overrides of every cell (under the groups')."""
-
-    def __post_init__(self) -> None:
-        from gdbench.experiments.sweep import SETTINGS
-        from gdbench.train.config import PRESETS
-
-        if not isinstance(self.colmap, bool) or not isinstance(self.steps, int) or self.steps < 1:
-            raise ValueError(f"Block {self.name!r}: expected colmap a bool and steps an int >= 1, "
-                             f"got {self.colmap!r} and {self.steps!r}")  # fmt: skip
-        for what, items, known in (("groups", self.groups, GROUPS), ("settings", self.settings, SETTINGS),
-                                   ("presets", self.presets, PRESETS)):  # fmt: skip
-            unknown = [x for x in items if x not in known]
-            if unknown or not items or len(set(items)) != len(items):
-                raise ValueError(f"Block {self.name!r}: {what} {items}: expected distinct names from {list(known)}")
-
-
 PILOT = [
     # views per step 1 at 1000 steps ran as plain `gdbench sweep`s (docs/decisive.md); here four
     # views per step, and 2000 steps for the convergence check, where the one-view pilot showed a
@@ -87,78 +45,48 @@ PILOT_SEEDS = [0, 1]
 SWEEP = [
     # the Janus failure on both priors and both views-per-step settings, with the mechanism's
     # control (structured noise redrawn every step) where the pilot showed gd's gain
-    Block("janus-learned-v1", ["learned-v1"], ["janus"], ["gd", "gd-no-sn", "gd-redraw-step"]),
-    Block("janus", ["learned-v4", "empirical-v1", "empirical-v4"], ["janus"], ["gd", "gd-no-sn"]),
+    Block("janus-learned-v1", ["learned-v1"], ["janus"], ["gd", "gd-no-sn", "gd-redraw-step"], prompts=PROMPTS),
+    Block("janus", ["learned-v4", "empirical-v1", "empirical-v4"], ["janus"], ["gd", "gd-no-sn"], prompts=PROMPTS),
     # chimeras: the learned prior's baseline fails 0.09-0.18; the empirical prior's rarely (2 of 8)
-    Block("instance", ["learned-v1", "learned-v4", "empirical-v1"], ["instance"], ["gd", "gd-no-sn"]),
+    Block("instance", ["learned-v1", "learned-v4", "empirical-v1"], ["instance"], ["gd", "gd-no-sn"], prompts=PROMPTS),
     # COLMAP consistency: only the empirical prior's results register (the learned prior's, 1300
     # smooth Gaussians, give SIFT too little: every pilot cell failed in both arms)
-    Block("colmap", ["empirical-v1"], ["easy"], ["gd", "sjc-gs"], colmap=True),
+    Block("colmap", ["empirical-v1"], ["easy"], ["gd", "sjc-gs"], colmap=True, prompts=PROMPTS),
 ]
 """The blocks the pilot justified (docs/decisive.md, "The pilot"); floaters (both priors' baselines
 under the 0.01 margin) and the easy setting's multi-face rate (under 0.05) are not swept."""
 CHECK = [
     # does the verdict depend on stopping at 1000 steps? The learned janus pairs at 2000 steps
-    Block("janus-learned-v1-2000", ["learned-v1"], ["janus"], ["gd", "gd-no-sn", "gd-redraw-step"], steps=2000),
+    Block(
+        "janus-learned-v1-2000",
+        ["learned-v1"],
+        ["janus"],
+        ["gd", "gd-no-sn", "gd-redraw-step"],
+        steps=2000,
+        prompts=PROMPTS,
+    ),
 ]
 """The steps check (docs/decisive.md, "Steps"): the claims that move, at twice the steps, same pairs."""
 SEEDS = list(range(10))
 """Ten seeds x six prompts: 60 pairs per claim (the power estimate asked for 56-58)."""
 
 
-def run_blocks(blocks: list[Block], seeds: list[int], out: Path, args, rounds: int) -> dict[str, list[dict]]:
-    """Each block's sweep into ``out/blocks/<name>``, the seeds in ``rounds`` rounds (every block
-    gets its first seeds before any block its last); returns each block's rows."""
-    from gdbench.experiments.sweep import SweepConfig, sweep
+def old_rows(r: dict) -> None:
+    """This experiment's older rows read as today's: the pilot's redraw control (group
+    learned-v1-step, preset gd: run before the gd-redraw-step preset existed, the same config) as
+    preset gd-redraw-step of learned-v1, and rows scored before the janus_failure_rate column with
+    that column (the same sum)."""
+    from gdbench.core.io import num
 
-    rows: dict[str, list[dict]] = {}
-    per = max(1, -(-len(seeds) // rounds))
-    for k in range(per, len(seeds) + per, per):
-        for b in blocks:
-            print(f"decisive: block {b.name}, seeds {seeds[:k]}", flush=True)
-            rows[b.name] = sweep(SweepConfig(
-                b.prompts, b.presets, seeds[: min(k, len(seeds))], steps=b.steps, out=out / "blocks" / b.name,
-                executor=args.executor, address=args.address, workers=args.workers, colmap=b.colmap,
-                settings=b.settings, groups={g: GROUPS[g] for g in b.groups}, overrides=b.overrides,
-                progress=args.progress, figures=True,  # the turntable grids read the cells' GIFs
-            ))  # fmt: skip
-    return rows
+    if r["group"] == "learned-v1-step" and r["preset"] == "gd":
+        r.update(group="learned-v1", preset="gd-redraw-step")
+    if "janus_failure_rate" not in r:
+        r["janus_failure_rate"] = num(r.get("featureless_rate")) + num(r.get("multi_face_rate"))
 
 
 def collect(out: Path, plain: list[tuple[Path, str]] = ()) -> list[dict]:
-    """Every finished cell's row under ``out/blocks`` (read from its cell.json), and those of plain
-    ``gdbench sweep`` folders (no groups) given the group name they stand for. Cells run for other
-    than 1000 steps say so after the group (', 2000 steps'), so they never pair with 1000-step
-    cells; a cell found twice is an error. The pilot's redraw control (group learned-v1-step,
-    preset gd: run before the gd-redraw-step preset existed, the same config) is read as preset
-    gd-redraw-step of learned-v1."""
-    import math
-
-    from gdbench.core.io import num, read_json
-
-    rows = []
-    for root, group in [(out / "blocks", None), *plain]:
-        for p in sorted(Path(root).glob("**/cells/**/cell.json")):
-            row = read_json(p, what="cell.json")["row"]
-            row = {k: math.nan if v is None else v for k, v in row.items()}
-            rows.append(row if group is None else row | {"group": group})
-    for r in rows:
-        if r["group"] == "learned-v1-step" and r["preset"] == "gd":
-            r.update(group="learned-v1", preset="gd-redraw-step")
-        if "janus_failure_rate" not in r:  # rows scored before the column existed: the same sum
-            r["janus_failure_rate"] = num(r.get("featureless_rate")) + num(r.get("multi_face_rate"))
-        if int(r["iterations"]) != 1000:
-            r["group"] = f"{r['group']}, {int(r['iterations'])} steps"
-    seen: dict[tuple, int] = {}
-    for r in rows:
-        key = tuple(r[k] for k in ("group", "setting", "prompt", "preset", "seed"))
-        seen[key] = seen.get(key, 0) + 1
-    twice = [k for k, n in seen.items() if n > 1]
-    if twice:
-        raise ValueError(f"collect: {len(twice)} cells found twice (e.g. {twice[0]}): a --plain folder overlaps a "
-                         f"block, or pilot and sweep share {out}")  # fmt: skip
-    order = {s: i for i, s in enumerate(("easy", "janus", "instance"))}
-    return sorted(rows, key=lambda r: (r["group"], order.get(r["setting"], 9), r["prompt"], r["seed"]))
+    """This experiment's finished cells (``runner.collect``, its older rows read by ``old_rows``)."""
+    return runner.collect(out, plain, fix=old_rows)
 
 
 def coupling(results: Path) -> None:
@@ -185,7 +113,7 @@ def coupling(results: Path) -> None:
     write_csv([r | {"commit": commit} for r in rows], results / "coupling.csv")
     g = torch.Generator().manual_seed(1)
     batch = []
-    for spread in (None, SPREAD):
+    for spread in (None, VIEWS_SPREAD_DEG):
         for caption in captions:
             for k in range(6):
                 poses = SphericalPoses.sample(4, generator=g, spread_deg=spread)

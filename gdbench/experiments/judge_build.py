@@ -171,7 +171,8 @@ def reread_v3(judged_csv: Path, out: Path, root: Path = Path(".")) -> list[dict]
     import numpy as np
 
     from gdbench.core.io import write_csv
-    from gdbench.experiments.claims import across_prompts, holm
+    from gdbench.experiments.claims import across_prompts
+    from gdbench.experiments.stats import holm
     from gdbench.metrics.agreement import JANUS as janus
 
     arm = {}

@@ -201,7 +201,7 @@ def run_cell(spec: CellSpec, figures: bool = False) -> dict:
     scores = score_run(spec.dir, colmap=spec.colmap, views=spec.colmap_views, device=cfg.device)
     t_scored = time.perf_counter()
     run_info = read_json(spec.dir / "run.json", what="run.json")
-    front_defined = cfg.view_prompting != "none"
+    front_defined = cfg.prior.view_prompting != "none"
     # only what this cell asked for: a COLMAP block the file keeps from an earlier pass is not the sweep's
     col = scores.get("colmap", {}) if spec.colmap else {}
     views, gt, judged = scores.get("views", {}), scores.get("gt", {}), scores.get("judge") or {}

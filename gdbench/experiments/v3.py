@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gdbench.experiments.decisive import collect, run_blocks
+from gdbench.experiments.runner import collect, run_blocks
 from gdbench.experiments.v3_design import (
     PILOT_SEEDS,
     REGISTERED,

@@ -7,7 +7,7 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
-from gdbench.experiments.decisive import Block
+from gdbench.experiments.runner import Block
 
 ARMS = ["gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked"]
 """The Janus arms: the method, without structured noise, and the two controls (docs/decisive.md,

@@ -263,46 +263,28 @@ def _md(rows: list[dict], head: tuple = ()) -> list[str]:
             *["| " + " | ".join(cell(r[k]) for k in head) + " |" for r in rows]]  # fmt: skip
 
 
-def report(rows: list[dict], out: Path, results: Path, labels: list | None = None, figures: Path | None = None) -> dict:
-    """Tables, forest plots, the controls' shares and report.md (module docstring); ``labels``: the
-    raters' files, whose agreement decides whether the primary verdicts can be read
-    (``v3_design.RATERS_MIN_KAPPA``); ``figures``: a folder that also gets copies of the primary
-    claims' forest plots (``v3_forest_<metric>_<a>_vs_<b>.png``) and the turntables
-    (``v3_turntables.webp``), the README's figures."""
-    import itertools
+def _raters_rule(verdicts: list[dict], raters: dict, path: Path) -> None:
+    """The registered rule: an outcome people do not agree on decides nothing (the primary verdicts
+    become undecided when the raters' kappa is below ``RATERS_MIN_KAPPA``; rewritten in ``path``)."""
+    from gdbench.core.io import write_csv
+    from gdbench.experiments.v3_design import RATERS_MIN_KAPPA
 
-    from gdbench.core.io import write_csv, write_json
-    from gdbench.core.provenance import code_commit
-    from gdbench.experiments.across import forest, share_kept
-    from gdbench.experiments.claims import label
-    from gdbench.experiments.tables import tables
-    from gdbench.experiments.v3_design import (
-        MAIN,
-        METRIC_MAIN,
-        RATERS_MIN_KAPPA,
-        claims,
-        precedes,
-        prereg_commit,
-        raters_kappa,
-    )
-
-    if not rows:
-        raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
-    paths = tables(rows, results, figures=True, claims=claims(), prompt_test="signflip")
-    import csv
-
-    verdicts = list(csv.DictReader(open(paths["verdict_csv"])))
-    raters = raters_kappa(list(labels or []), {r.get("run_id") for r in rows if r.get("setting") == "janus"})
     if raters["kappa_janus"] == raters["kappa_janus"] and raters["kappa_janus"] < RATERS_MIN_KAPPA:
-        for v in verdicts:  # the registered rule: an outcome people do not agree on decides nothing
+        for v in verdicts:
             if v.get("family") == "primary" and v["verdict"] != "not measured":
                 v["verdict"] = v["verdict_prompts"] = "undecided (the raters disagree)"
-        write_csv(verdicts, paths["verdict_csv"])
-    reg = prereg_commit()
-    commits = sorted({str(r.get("train_commit")) for r in rows})
-    before = {c: (precedes(reg, c) if reg else None) for c in commits}
-    forest_dir = results / "figures"
-    forests, shares, lines = [], [], []
+        write_csv(verdicts, path)
+
+
+def _forests(rows: list[dict], verdicts: list[dict], commits: list[str], forest_dir: Path) -> list[Path]:
+    """Each measured verdict's prompts on the other side (``against``, set in its row), and a forest
+    plot per claim on a main metric."""
+    from gdbench.core.provenance import code_commit
+    from gdbench.experiments.across import forest
+    from gdbench.experiments.claims import label
+    from gdbench.experiments.v3_design import MAIN, METRIC_MAIN
+
+    forests = []
     for v in verdicts:
         if v["verdict"] == "not measured":
             continue
@@ -316,6 +298,17 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
         title = (f"{label(v)}: {v['metric']}, {v['a']} - {v['b']}; across prompts: {v.get('verdict_prompts', '')}\n"
                  f"cells trained at {', '.join(c[:7] for c in commits)}, tables at {code_commit()[:7]}")  # fmt: skip
         forests.append(forest(keys, d, title=title, margin=float(v["margin"]), path=forest_dir / name, pooled=pooled))
+    return forests
+
+
+def _control_shares(rows: list[dict], verdicts: list[dict]) -> tuple[list[dict], list[str]]:
+    """The share of gd's effect each control keeps, per Janus group and main metric: rows and lines."""
+    import itertools
+
+    from gdbench.experiments.across import share_kept
+    from gdbench.experiments.v3_design import MAIN, METRIC_MAIN
+
+    shares, lines = [], []
     for group in sorted({v["group"] for v in verdicts if v["setting"] == "janus"}):
         sel = _janus(rows, group)
         for control, metric in itertools.product(("gd-redraw-step", "gd-pose-locked"), MAIN + METRIC_MAIN):
@@ -326,31 +319,32 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
             lines.append(f"- {group}: {control} gives {_f(s['share'])} of gd's effect on {metric} "
                          f"{interval} ({s['prompts']} prompts; gd's effect "
                          f"{_f(s.get('effect', math.nan))}, the control's {_f(s.get('kept', math.nan))}).")  # fmt: skip
-    write_csv(shares, results / "shares.csv")
-    first = next((v for v in verdicts if v.get("family") == "primary" and v["verdict"] != "not measured"), None)
-    group = first["group"] if first is not None else None  # the primary claims' group: its Janus arms
-    arms = tuple(p for p in ("gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked")
-                 if any(r["preset"] == p for r in _janus(rows, group)))  # fmt: skip
-    counts, by_prompt, sizes = [], [], []
-    if len(arms) >= 2:
-        counts, by_prompt = what_raters_saw(rows, list(labels or []), arms, group)
-        sizes = size_and_label(rows, arms, group=group) if by_prompt else []
-    for table, name in ((counts, "labels_by_arm.csv"), (by_prompt, "label_janus_by_prompt.csv")):
-        if table:
-            write_csv(table, results / name)
-    chosen, turntables = {}, None
-    if first is not None:
-        keys, d = pairs(rows, first["group"], first["setting"], first["a"], first["b"], first["metric"])
-        chosen = example_prompts(rows, keys, d, first["metric"], group, arms)
-        seed = min(int(num(r["seed"])) for r in _janus(rows, group))
-        turntables = example_turntables(out / "blocks" / "janus", chosen, seed, results / "turntables.webp", group)
-    table = readme_table(verdicts)
-    (results / "verdict_readme.md").write_text(table)
-    hours = sum(num(r.get("cell_s")) for r in rows if num(r.get("cell_s")) == num(r.get("cell_s"))) / 3600
-    md = [f"# v3: the verdict ({len(rows)} cells)", "",
+    return shares, lines
+
+
+def _report_md(
+    n: int,
+    head: dict,
+    raters: dict,
+    table: str,
+    lines: list[str],
+    seen: dict,
+    verdicts: list[dict],
+    forests: list[Path],
+    turntables: dict,
+) -> str:
+    """report.md: the provenance (``head``), the raters, the verdict table, the controls, what the
+    raters saw (``seen``: counts, by_prompt, sizes, arms), the prompts against, the figures."""
+    from gdbench.experiments.claims import label
+    from gdbench.experiments.v3_design import RATERS_MIN_KAPPA
+
+    reg, commits, before, hours, tables_at = head["reg"], head["commits"], head["before"], head["hours"], head["at"]
+    counts, by_prompt, sizes, arms = seen["counts"], seen["by_prompt"], seen["sizes"], seen["arms"]
+    chosen, seed, tt = turntables["chosen"], turntables["seed"], turntables["path"]
+    md = [f"# v3: the verdict ({n} cells)", "",
           f"Pre-registration: {reg or 'not found'}; cells trained at {', '.join(commits)}; "
           f"the registration precedes every cell: {all(before.values()) if reg else 'n/a'}; tables "
-          f"at {code_commit()}; {hours:.1f} hours of cell time.", "",
+          f"at {tables_at}; {hours:.1f} hours of cell time.", "",
           f"Raters: Cohen's kappa {_f(raters['kappa_janus'])} on the Janus split, {_f(raters['kappa_classes'])} over "
           f"the four classes, on {raters['results']} results (the primary verdicts are read at "
           f"{RATERS_MIN_KAPPA} or more).", "",
@@ -368,17 +362,76 @@ def report(rows: list[dict], out: Path, results: Path, labels: list | None = Non
           "", "Forest plots: " + ", ".join(f"[{p.name}](figures/{p.name})" for p in forests), "",
           *([f"Turntables at seed {seed} ([turntables.webp](turntables.webp)), chosen by rule from the first "
              f"primary claim's prompts: " + "; ".join(f"{k}: {p}" for k, p in chosen.items()) + ".", ""]
-            if turntables else [])]  # fmt: skip
-    (results / "report.md").write_text("\n".join(md))
-    copies = []
-    if figures is not None:
-        import shutil
+            if tt else [])]  # fmt: skip
+    return "\n".join(md)
 
-        figures.mkdir(parents=True, exist_ok=True)
-        primary = [f for f in forests if any(f"_{m}_" in f.name for m in MAIN)]
-        for f in [*primary, *([turntables] if turntables else [])]:
-            name = "v3_" + f.name.replace(f"forest_{group}_", "forest_") if f in primary else f"v3_{f.name}"
-            copies.append(Path(shutil.copyfile(f, figures / name)))
+
+def _copy_figures(forests: list[Path], turntables: Path | None, group: str | None, figures: Path) -> list[Path]:
+    """The primary claims' forest plots and the turntables, copied as the README's v3_* figures."""
+    import shutil
+
+    from gdbench.experiments.v3_design import MAIN
+
+    figures.mkdir(parents=True, exist_ok=True)
+    primary = [f for f in forests if any(f"_{m}_" in f.name for m in MAIN)]
+    copies = []
+    for f in [*primary, *([turntables] if turntables else [])]:
+        name = "v3_" + f.name.replace(f"forest_{group}_", "forest_") if f in primary else f"v3_{f.name}"
+        copies.append(Path(shutil.copyfile(f, figures / name)))
+    return copies
+
+
+def report(rows: list[dict], out: Path, results: Path, labels: list | None = None, figures: Path | None = None) -> dict:
+    """Tables, forest plots, the controls' shares and report.md (module docstring); ``labels``: the
+    raters' files, whose agreement decides whether the primary verdicts can be read
+    (``v3_design.RATERS_MIN_KAPPA``); ``figures``: a folder that also gets copies of the primary
+    claims' forest plots (``v3_forest_<metric>_<a>_vs_<b>.png``) and the turntables
+    (``v3_turntables.webp``), the README's figures."""
+    import csv
+
+    from gdbench.core.io import write_csv, write_json
+    from gdbench.core.provenance import code_commit
+    from gdbench.experiments.tables import tables
+    from gdbench.experiments.v3_design import claims, precedes, prereg_commit, raters_kappa
+
+    if not rows:
+        raise SystemExit(f"report: no finished cell under {out / 'blocks'}")
+    paths = tables(rows, results, figures=True, claims=claims(), prompt_test="signflip")
+    verdicts = list(csv.DictReader(open(paths["verdict_csv"])))
+    raters = raters_kappa(list(labels or []), {r.get("run_id") for r in rows if r.get("setting") == "janus"})
+    _raters_rule(verdicts, raters, paths["verdict_csv"])
+    reg = prereg_commit()
+    commits = sorted({str(r.get("train_commit")) for r in rows})
+    before = {c: (precedes(reg, c) if reg else None) for c in commits}
+    forests = _forests(rows, verdicts, commits, results / "figures")
+    shares, lines = _control_shares(rows, verdicts)
+    write_csv(shares, results / "shares.csv")
+    first = next((v for v in verdicts if v.get("family") == "primary" and v["verdict"] != "not measured"), None)
+    group = first["group"] if first is not None else None  # the primary claims' group: its Janus arms
+    arms = tuple(p for p in ("gd", "gd-no-sn", "gd-redraw-step", "gd-pose-locked")
+                 if any(r["preset"] == p for r in _janus(rows, group)))  # fmt: skip
+    counts, by_prompt, sizes = [], [], []
+    if len(arms) >= 2:
+        counts, by_prompt = what_raters_saw(rows, list(labels or []), arms, group)
+        sizes = size_and_label(rows, arms, group=group) if by_prompt else []
+    for table, name in ((counts, "labels_by_arm.csv"), (by_prompt, "label_janus_by_prompt.csv")):
+        if table:
+            write_csv(table, results / name)
+    chosen, turntables, seed = {}, None, None
+    if first is not None:
+        keys, d = pairs(rows, first["group"], first["setting"], first["a"], first["b"], first["metric"])
+        chosen = example_prompts(rows, keys, d, first["metric"], group, arms)
+        seed = min(int(num(r["seed"])) for r in _janus(rows, group))
+        turntables = example_turntables(out / "blocks" / "janus", chosen, seed, results / "turntables.webp", group)
+    table = readme_table(verdicts)
+    (results / "verdict_readme.md").write_text(table)
+    hours = sum(num(r.get("cell_s")) for r in rows if num(r.get("cell_s")) == num(r.get("cell_s"))) / 3600
+    head = {"reg": reg, "commits": commits, "before": before, "hours": hours, "at": code_commit()}
+    seen = {"counts": counts, "by_prompt": by_prompt, "sizes": sizes, "arms": arms}
+    md = _report_md(len(rows), head, raters, table, lines, seen, verdicts, forests,
+                    {"chosen": chosen, "seed": seed, "path": turntables})  # fmt: skip
+    (results / "report.md").write_text(md)
+    copies = _copy_figures(forests, turntables, group, figures) if figures is not None else []
     prov = {"raters": raters, "prereg_commit": reg, "train_commits": commits, "prereg_precedes": before,
             "cells": len(rows), "cell_hours": hours, "tables_commit": code_commit()}  # fmt: skip
     write_json(prov, results / "provenance.json")

@@ -14,7 +14,7 @@ get iid noise instead; ``coverage`` marks the others.
 
 Mixing keeps unit variance: ``n = a_t n_s + sqrt(1 - a_t^2) n_iid`` with the paper's "proportion
 of structured noise" r_t going from ``ratio_start`` (0.3) to ``ratio_end`` (0.05) linearly over
-the run. The proportion has two readings (``ratio_mode``): the amplitude (``a_t = r_t``, so the
+the run. The proportion has two readings (``ratio``): the amplitude (``a_t = r_t``, so the
 structured share of the variance is r_t^2, 9% at most) or the variance fraction
 (``a_t = sqrt(r_t)``, 30% of the variance at the start); docs/noise.md says which is the default.
 
@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from gdbench.core.camera import Cameras
-from gdbench.core.constraints import AtLeast, Between, Positive, Range, check_fields
+from gdbench.core.constraints import AtLeast, Between, Flag, Positive, Range, When, check_fields
 from gdbench.core.rand import randn
 
 Redraw = Literal["step", "run", "ou"]
@@ -49,9 +49,12 @@ RatioMode = Literal["amplitude", "variance"]
 class NoiseConfig:
     """Settings of the noise cloud and of its use during a run."""
 
-    OPTIONS: ClassVar[tuple[str, ...]] = ("source", "redraw", "ou_beta", "ratio_mode")
-    """The fields that are command-line options (``core.constraints.flag`` names them: --noise-source,
-    --noise-redraw, --noise-ou-beta, --noise-ratio)."""
+    OPTIONS: ClassVar[tuple[str, ...]] = ("enabled", "source", "redraw", "ou_beta", "ratio")
+    """The fields that are command-line options (``core.constraints.flag`` names them:
+    --structured-noise, --noise-source, --noise-redraw, --noise-ou-beta, --noise-ratio)."""
+    enabled: Annotated[bool, Flag("structured-noise")] = True
+    """Use the paper's structured noise (section 3.2); off, the noise is iid (the gd-no-sn ablation).
+    Every other noise setting acts only with it."""
     source: Source = "cloud"
     """What a view's structured noise is: 'cloud' renders the noise cloud from the view's own camera
     (the paper: views share noise at the same surface point; the default); 'pose' is a control
@@ -75,14 +78,14 @@ class NoiseConfig:
     paper: every view sees one fixed 3D source; the default), 'ou' drifts them slowly
     (Ornstein-Uhlenbeck, --noise-ou-beta), 'step' redraws every step (an ablation: no two steps
     share a source)."""
-    ou_beta: Annotated[float, Range(0, 1, lo_open=True)] = 0.1
+    ou_beta: Annotated[float, Range(0, 1, lo_open=True), When("redraw", "ou")] = 0.1
     """b of the Ornstein-Uhlenbeck drift c_t = sqrt(1 - b) c_{t-1} + sqrt(b) eps (0 < b <= 1; 1 is
     the same as 'step'; default 0.1); acts only with --noise-redraw ou."""
     ratio_start: Annotated[float, Between(0, 1)] = 0.3
     """r_t at the first step."""
     ratio_end: Annotated[float, Between(0, 1)] = 0.05
     """r_t at the last step."""
-    ratio_mode: RatioMode = "variance"
+    ratio: RatioMode = "variance"
     """How the paper's 'proportion of structured noise' r_t (0.3 -> 0.05) mixes: 'variance' (the
     default: n = sqrt(r) n_s + sqrt(1 - r) n_iid) or 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid)."""
     v_min: Annotated[float, AtLeast(0)] = 1e-6
@@ -279,7 +282,7 @@ def structured_noise(
     return NoiseRenderer(cloud, v_min=v_min, cache_size=1).render(colors, cams, generator=generator)
 
 
-def structured_amplitude(ratio: float, mode: RatioMode = "amplitude") -> float:
+def structured_amplitude(ratio: float, mode: RatioMode = "variance") -> float:
     """The weight a of n_s in n = a n_s + sqrt(1 - a^2) n_iid for the proportion ``ratio``."""
     if not 0 <= ratio <= 1:
         raise ValueError(f"ratio: expected a value in [0, 1], got {ratio}")
@@ -290,7 +293,7 @@ def structured_amplitude(ratio: float, mode: RatioMode = "amplitude") -> float:
     raise ValueError(f"mode: expected 'amplitude' or 'variance', got {mode!r}")
 
 
-def mix(structured: Tensor, ratio: float, *, generator: torch.Generator, mode: RatioMode = "amplitude") -> Tensor:
+def mix(structured: Tensor, ratio: float, *, generator: torch.Generator, mode: RatioMode = "variance") -> Tensor:
     """n = a n_s + sqrt(1 - a^2) n_iid with a = ``structured_amplitude(ratio, mode)``: unit
     variance for any ratio in [0, 1]. The iid part is drawn from ``generator`` with the shape of
     ``structured`` (so a run without structured noise, drawing its noise from the same stream,

@@ -19,7 +19,7 @@ from typing import Annotated, ClassVar, Literal
 import torch
 from torch import Tensor
 
-from gdbench.core.constraints import AtLeast
+from gdbench.core.constraints import AtLeast, check_fields
 from gdbench.core.rand import randn
 
 
@@ -38,6 +38,9 @@ class VGSConfig:
     unit: Literal["scene", "pixel"] = "scene"
     """Length unit of the means' jitter: the scene radius (0.5) or the training pixel's footprint at
     the origin (2 r tan(fovy/2) / resolution at the middle fovy), which follows the resolution."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "vgs.")  # every field against its declared type, range and choices
 
 
 def vp_level(sigma: float) -> float:

@@ -22,13 +22,19 @@ from pathlib import Path
 import torch
 
 from gdbench.core.io import jsonable, num, read_json, sha256_file, write_json
-from gdbench.core.layout import flat_config
 from gdbench.core.scene import GaussianScene
 
 BLOCKS = ("gt", "views", "judge", "colmap")
 """The blocks of scores.json; ``gt`` and ``views`` are made together (the view metrics pick the
 variant the GT PSNR is measured against); ``judge`` (the Janus judge's label, ``metrics/judge``)
 with them, its version in its parameters, so that another judge judges again."""
+
+
+def run_settings(config: dict) -> dict:
+    """The settings of a run.json's config that scoring reads (background, variants), from either
+    of its layouts: the prior's settings inside its mapping or beside the other fields."""
+    prior = config.get("prior")
+    return dict(config) | ({k: v for k, v in prior.items() if k != "kind"} if isinstance(prior, dict) else {})
 
 
 def previous_scores(run: Path, scene_sha: str) -> dict:
@@ -124,7 +130,7 @@ def _check_run_json(info: dict, path: Path) -> None:
             raise ValueError(
                 f"run.json: {path}: '{key}' should be a {kind.__name__}, got {info[key]!r}; fix or delete it"
             )
-    config = flat_config(info.get("config") or {})
+    config = run_settings(info.get("config") or {})
     bg = config.get("background", (1.0, 1.0, 1.0))
     ok_bg = isinstance(bg, (list, tuple)) and len(bg) == 3 and all(isinstance(c, (int, float)) for c in bg)
     variants = config.get("variants", 1)
@@ -181,7 +187,7 @@ def _blocks(scene, info, previous, blocks, reused, want_gt, colmap, views, size,
     """The asked-for score blocks into ``blocks``: reused from ``previous`` where they match."""
     from gdbench.core.provenance import made
 
-    config = flat_config(info.get("config", {}))
+    config = run_settings(info.get("config", {}))
     if want_gt:
         variants = int(config.get("variants", 1))
         params = {"caption": info["caption"], "variants": variants, "background": list(bg)}

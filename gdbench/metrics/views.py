@@ -345,97 +345,122 @@ def _self_difference(images: Tensor, azimuth: Tensor) -> Tensor:
     return (d * far).sum(1) / far.sum(1).clamp_min(1)
 
 
-def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 2, front: bool = True) -> ViewScore:
-    """Metrics of turntable views ``images`` [F, H, W, 3] / ``alpha`` [F, H, W] taken at
-    ``turntable_poses(F)`` against ``ref``; ``front``: whether the asset has a front (else no
-    Janus classes: module docstring)."""
+def _check_views(images: Tensor, alpha: Tensor, ref: Reference) -> None:
     if images.dim() != 4 or images.shape[0] == 0 or images.shape[-1] != 3:
         raise ValueError(f"images: expected [F >= 1, H, W, 3] turntable views, got {tuple(images.shape)}")
     if tuple(alpha.shape) != tuple(images.shape[:3]):
         raise ValueError(f"alpha: expected {tuple(images.shape[:3])} like images, got {tuple(alpha.shape)}")
     if not (bool(torch.isfinite(images).all()) and bool(torch.isfinite(alpha).all())):
         raise ValueError("images, alpha: expected finite values (a broken render is no result to score)")
-    images, alpha = images.detach().cpu(), alpha.detach().cpu()  # small: the scoring runs on the CPU
-    from gdbench.metrics.gt import turned_deg  # the one wrap of a turn into (-180, 180]
-
-    F, H, W, _ = images.shape
-    V, A = ref.images.shape[:2]
+    H, W = images.shape[1:3]
     if ref.images.shape[2:4] != (H, W):
         raise ValueError(f"images: expected {tuple(ref.images.shape[2:4])} px like the reference, got {(H, W)}")
-    whole, centre = _errors(images, ref)  # [F, V, A]
-    mse = whole.reshape(F, V * A)  # variant-major
-    best = mse.argmin(1)  # [F] over variant-major (variant, azimuth)
-    variant, az_idx = best // A, best % A
-    matched = ref.azimuth[az_idx].double()
-    truth = turntable_poses(F).azimuth.double()
+
+
+def _best_offset(matched: Tensor, truth: Tensor) -> float:
+    """The turn of the whole result, degrees (a multiple of 5): the one that brings most views'
+    matched azimuths within 45 degrees of the truth, then the smallest total error."""
     offsets = torch.arange(0.0, 360.0, 5.0, dtype=torch.float64)
     err = _circ(matched[None] - (truth[None] + offsets[:, None]))  # [O, F]
     ok = (err <= 45.0).sum(1)
-    score = ok * 1e6 - err.sum(1)  # most views within 45 degrees, then the smallest total error
-    k = int(score.argmax())
-    offset = float(offsets[k])
+    score = ok * 1e6 - err.sum(1)
+    return float(offsets[int(score.argmax())])
+
+
+def _instance(images, alpha, ref: Reference, at: Tensor, featureless: Tensor, variant: Tensor) -> tuple[int, float]:
+    """The result's variant and its consistency: each explained pixel inside the object votes for
+    a variant at its azimuth; where no part decides between variants, the whole views do."""
+    majority_view = int(torch.mode(variant).values)
+    votes = _pixel_votes(images, alpha, ref, at)[~featureless]  # [F', H, W], -1: no vote
+    votes = votes[votes >= 0]
+    if votes.numel() >= MIN_VOTES:
+        counts = torch.bincount(votes, minlength=ref.images.shape[0])
+        majority = int(counts.argmax())
+        return majority, float(counts[majority]) / float(counts.sum())
+    return majority_view, float((variant == majority_view).double().mean())
+
+
+def _rate(mask: Tensor) -> float:
+    """The share of views where ``mask`` holds."""
+    return float(mask.double().mean())
+
+
+def _front_views(images, alpha, ref: Reference, centre: Tensor, truth: Tensor, featureless: Tensor, front_share: float):
+    """Which views show a front, and which of those are Janus views, with the readings behind them
+    (a dict: seen, janus, end_on, faceless, back_everywhere, outline_side, back_share).
+
+    A view shows the front when its front parts' pixels look like the front's, not like the
+    back's (``front_part_ratio``); the result's own front is the view that shows it best, and a
+    view more than 90 degrees from there that shows it too is a Janus view; a front drawn plainly
+    from every side needs no centre test (``PLAIN_FRONT_SHARE``); where the asset's outlines tell,
+    a result with no profile shows the front's outline from every side unless it shows the back
+    (``OUTLINE_SIDE``); a result no view of which passes the part test shows no front: its views
+    are blobs."""
+    part = front_part_ratio(images, ref)
+    passes = part < PART_RATIO
+    seen, facing = passes & _centre_front(centre, ref.azimuth), truth[int(part.argmin())]
+    plain = _rate(passes) >= PLAIN_PART_SHARE and _rate(featureless) >= PLAIN_SELF_SIMILAR
+    if plain and front_share >= PLAIN_FRONT_SHARE:
+        seen = passes
+    back_share = _rate(part > 1.0 / PART_RATIO)
+    outline_side, end_on, back_everywhere = None, False, False
+    position = _outline(alpha, ref)
+    if position is not None:
+        outline_side = float(position.quantile(0.9))
+        if outline_side < OUTLINE_SIDE:
+            end_on, back_everywhere = back_share < BACK_SEEN, back_share >= BACK_SEEN
+    if end_on:
+        seen = part <= 1.0 / PART_RATIO
+    return dict(
+        seen=seen, janus=seen & (_circ(truth - facing) > 90.0), end_on=end_on, faceless=not bool(passes.any()),
+        back_everywhere=back_everywhere, outline_side=outline_side, back_share=back_share,
+    )  # fmt: skip
+
+
+def score_views(images: Tensor, alpha: Tensor, ref: Reference, *, dilate: int = 2, front: bool = True) -> ViewScore:
+    """Metrics of turntable views ``images`` [F, H, W, 3] / ``alpha`` [F, H, W] taken at
+    ``turntable_poses(F)`` against ``ref``; ``front``: whether the asset has a front (else no
+    Janus classes: module docstring)."""
+    _check_views(images, alpha, ref)
+    images, alpha = images.detach().cpu(), alpha.detach().cpu()  # small: the scoring runs on the CPU
+    from gdbench.metrics.gt import turned_deg  # the one wrap of a turn into (-180, 180]
+
+    F = images.shape[0]
+    A = ref.images.shape[1]
+    whole, centre = _errors(images, ref)  # [F, V, A]
+    best = whole.reshape(F, -1).argmin(1)  # [F] over variant-major (variant, azimuth)
+    variant, az_idx = best // A, best % A
+    matched = ref.azimuth[az_idx].double()
+    truth = turntable_poses(F).azimuth.double()
+    offset = _best_offset(matched, truth)
     # featureless: the view is about as its views from other sides (the asset's differ more)
     apart = _circ(ref.azimuth.double()[None] - (truth[:, None] + offset))  # [F, A]: from each turned view
     at = apart.argmin(1)
     majority_view = int(torch.mode(variant).values)
     featureless = _self_difference(images, truth) < FEATURELESS * _self_difference(ref.images[majority_view, at], truth)
-    # instance: each explained pixel inside the object votes for a variant at its azimuth
-    votes = _pixel_votes(images, alpha, ref, at)[~featureless]  # [F', H, W], -1: no vote
-    votes = votes[votes >= 0]
-    if votes.numel() >= MIN_VOTES:
-        counts = torch.bincount(votes, minlength=V)
-        majority = int(counts.argmax())
-        consistency = float(counts[majority]) / float(counts.sum())
-    else:  # no part decides between variants: the whole views do
-        majority = majority_view
-        consistency = float((variant == majority).double().mean())
-
-    def rate(mask: Tensor) -> float:  # the share of views where ``mask`` holds
-        return float(mask.double().mean())
-
-    # the front: a view shows it when its front parts' pixels look like the front's, not like the
-    # back's (``front_part_ratio``); the result's own front is the view that shows it best, and a
-    # view more than 90 degrees from there that shows it too is a Janus view; a front drawn
-    # plainly from every side needs no centre test (``PLAIN_FRONT_SHARE``); where the asset's
-    # outlines tell, a result with no profile shows the front's outline from every side unless it
-    # shows the back (``OUTLINE_SIDE``); a result no view of which passes the part test shows no
-    # front: its views are blobs
-    front_share = rate(_circ(matched) <= 45.0)
-    outline_side = back_share = None
-    end_on = faceless = back_everywhere = False
+    majority, consistency = _instance(images, alpha, ref, at, featureless, variant)
+    front_share = _rate(_circ(matched) <= 45.0)
     if front:
-        part = front_part_ratio(images, ref)
-        passes = part < PART_RATIO
-        seen, facing = passes & _centre_front(centre, ref.azimuth), truth[int(part.argmin())]
-        plain = rate(passes) >= PLAIN_PART_SHARE and rate(featureless) >= PLAIN_SELF_SIMILAR
-        if plain and front_share >= PLAIN_FRONT_SHARE:
-            seen = passes
-        back_share = rate(part > 1.0 / PART_RATIO)
-        position = _outline(alpha, ref)
-        if position is not None:
-            outline_side = float(position.quantile(0.9))
-            if outline_side < OUTLINE_SIDE:
-                end_on, back_everywhere = back_share < BACK_SEEN, back_share >= BACK_SEEN
-        if end_on:
-            seen = part <= 1.0 / PART_RATIO
-        faceless = not bool(passes.any())
-        janus = seen & (_circ(truth - facing) > 90.0)
+        f = _front_views(images, alpha, ref, centre, truth, featureless, front_share)
     else:
-        seen = janus = torch.zeros_like(featureless)
+        none = torch.zeros_like(featureless)
+        f = dict(seen=none, janus=none, end_on=False, faceless=False, back_everywhere=False, outline_side=None,
+                 back_share=None)  # fmt: skip
+    seen, janus, end_on = f["seen"], f["janus"], f["end_on"]
+    outline_side, back_share = f["outline_side"], f["back_share"]
     front_everywhere = janus & (featureless | end_on)
     second_face = janus & ~(featureless | end_on)
-    blob = ~janus & ((featureless & ~seen) | back_everywhere | faceless)
+    blob = ~janus & ((featureless & ~seen) | f["back_everywhere"] | f["faceless"])
     cls = [
         "front_everywhere" if fe else "blob" if b else "second_face" if sf else "fine"
         for fe, b, sf in zip(front_everywhere.tolist(), blob.tolist(), second_face.tolist())
     ]
-
     return ViewScore(
-        multi_face_rate=rate(second_face) if front else None,
-        featureless_rate=rate(front_everywhere | blob),
-        front_everywhere_rate=rate(front_everywhere) if front else None,
-        blob_rate=rate(blob),
-        janus_rate=rate(front_everywhere | second_face) if front else None,
+        multi_face_rate=_rate(second_face) if front else None,
+        featureless_rate=_rate(front_everywhere | blob),
+        front_everywhere_rate=_rate(front_everywhere) if front else None,
+        blob_rate=_rate(blob),
+        janus_rate=_rate(front_everywhere | second_face) if front else None,
         view_class=cls,
         outline_side=outline_side,
         back_share=back_share,

@@ -6,10 +6,30 @@ built from procedural assets; the Stable Diffusion prior implements the same pro
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
+
+
+@dataclass(frozen=True)
+class RunView:
+    """What a prior reads from the training run, and nothing else: its prompt and seed, the render
+    size, the cameras' model (distance, fields of view, elevations) and background, the device and
+    the run folder. A prior's config builds its prior from it (``make(run)``); the trainer's
+    config gives it (``TrainConfig.run_view``)."""
+
+    prompt: str
+    seed: int
+    resolution: int
+    camera_radius: float
+    fovy_range: tuple[float, float]
+    elevation_range: tuple[float, float]
+    background: tuple[float, float, float]
+    device: str
+    out: Path
 
 
 @runtime_checkable

@@ -42,8 +42,8 @@ from torch import Tensor
 from gdbench.assets.bank import Bank, BankConfig, load_bank
 from gdbench.assets.library import CAPTIONS
 from gdbench.assets.zoom import zoom_images
-from gdbench.core.constraints import AtLeast, Range
-from gdbench.priors import ve_sigmas_from_betas
+from gdbench.core.constraints import AtLeast, Range, When, check_fields
+from gdbench.priors import RunView, ve_sigmas_from_betas
 from gdbench.priors.compose import resolve
 from gdbench.priors.text import CaptionMatcher
 
@@ -413,25 +413,34 @@ class EmpiricalPriorConfig:
     uses 3)."""
     depth_conditioning: bool = False
     """Condition the prior on depth (the ControlNet role: the joint rgb-depth posterior)."""
-    view_window_deg: Annotated[float, Range(0, 180, lo_open=True, unit="degrees")] = 45.0
+    view_prompting: Literal["none", "buckets", "window"] = "window"
+    """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
+    around the camera azimuth (its half-width --view-window-deg), or none
+    (docs/training.md)."""
+    view_window_deg: Annotated[float, Range(0, 180, lo_open=True, unit="degrees"), When("view_prompting", "window")] = (
+        45.0
+    )
     """Half-width of the view window (--view-prompting window), degrees."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "prior.")  # every field against its declared type, range and choices
 
     @property
     def input_space(self) -> str:
         """What the trainer renders for this prior: 'rgb', with '+depth' when it conditions on depth."""
         return "rgb+depth" if self.depth_conditioning else "rgb"
 
-    def make(self, cfg) -> EmpiricalPrior:
-        """The prior of the training config ``cfg``: its bank rendered at the trainer's camera
-        distance, background and widest field of view, so it sees the object from where the
-        trainer's cameras do (the object keeps its size in the world)."""
+    def make(self, run: RunView) -> EmpiricalPrior:
+        """The prior of a training run: its bank rendered at the run's camera distance, background
+        and widest field of view, so it sees the object from where the trainer's cameras do (the
+        object keeps its size in the world)."""
         return EmpiricalPrior(
-            view_mode=cfg.view_prompting,
+            view_mode=self.view_prompting,
             window_deg=self.view_window_deg,
             depth_weight=1.0 if self.depth_conditioning else 0.0,
             front_bias=self.front_bias,
             variants=self.variants,
             bank_config=bank_config_for(
-                cfg.resolution, cfg.fovy_range, background=tuple(cfg.background), radius=float(cfg.camera_radius)
+                run.resolution, run.fovy_range, background=tuple(run.background), radius=float(run.camera_radius)
             ),
         )

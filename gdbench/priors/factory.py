@@ -18,5 +18,6 @@ PRIOR_CONFIGS: dict[str, type] = {c.kind: c for c in (EmpiricalPriorConfig, Lear
 
 
 def make_prior(cfg):
-    """The prior of a ``TrainConfig`` (built by its prior's config)."""
-    return cfg.prior.make(cfg)
+    """The prior of a ``TrainConfig``: built by its prior's config from what it reads of the run
+    (``RunView``)."""
+    return cfg.prior.make(cfg.run_view())

@@ -34,9 +34,9 @@ checkpoint of the old schedule is refused on resume (``load_checkpoint``)."""
 
 def comparable(d: dict) -> dict:
     """A config dict (either layout) as run ids and the resume check compare it: flat
-    (``core.layout.flat_config``), without ``RESUME_IGNORES`` and without the fields of
+    (``train.layout.flat_config``), without ``RESUME_IGNORES`` and without the fields of
     ``ADDED_AT_DEFAULT`` at their value there."""
-    from gdbench.core.layout import flat_config
+    from gdbench.train.layout import flat_config
 
     def without(fields: dict, name: str, default) -> dict:
         return {k: v for k, v in fields.items() if not (k == name and v == default)}

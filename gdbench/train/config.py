@@ -9,18 +9,20 @@ reset every 400 steps. One departure, for the 2-core CPU: the training resolutio
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
-from gdbench.core.constraints import AtLeast, Between, Positive, Seed, check_fields, flag
-from gdbench.core.layout import LEGACY_PRIOR_DEFAULTS
+from gdbench.core.constraints import AtLeast, Between, Positive, Seed, When, check_fields, flag
 from gdbench.mechanisms.noise import NoiseConfig
 from gdbench.mechanisms.variational import VGSConfig
+from gdbench.priors import RunView
 from gdbench.priors.factory import PRIOR_CONFIGS, EmpiricalPriorConfig, PriorConfig
 from gdbench.train.adam import OptimConfig
 from gdbench.train.densify import DensifyConfig
+from gdbench.train.layout import LEGACY_PRIOR_DEFAULTS, RENAMED
 from gdbench.train.views import ViewsConfig
 
 
@@ -44,12 +46,12 @@ class TrainConfig:
     """Initial Gaussians: the paper's sphere, a point cloud (--init-ply) or the prompt's bank depth."""
     init_points: Annotated[int, AtLeast(1)] = 4096
     """Initial Gaussians (the paper: 4096)."""
-    init_ply: Path | None = None
+    init_ply: Annotated[Path | None, When("init", "ply")] = None
     """init='ply': any point cloud Open3D reads. A file that records its up axis (every scene file
     gdbench writes, an export included) is turned to +Z up; any other is taken as +Z up."""
     init_opacity: Annotated[float, Between(0, 1, open=True)] = 0.1
     """Opacity of every initial Gaussian (the paper: 0.1)."""
-    init_color: Annotated[float, Between(0, 1)] = 0.5
+    init_color: Annotated[float, Between(0, 1), When.any(When("init", "sphere"), When("prior.sd_mode", "latent"))] = 0.5
     """Grey level of the initial sphere's Gaussians (init='sphere'; point clouds bring their colours)."""
     # cameras (paper)
     camera_radius: Annotated[float, Positive()] = 1.0
@@ -66,11 +68,11 @@ class TrainConfig:
     guidance: Literal["sjc", "sds"] = "sjc"
     """sjc: g = (D(x + sigma n) - x) / sigma with sigma uniform over the prior's ticks;
     sds: the same residual with DreamGaussian's annealed timestep and weight 1 - abar."""
-    sigma_min: Annotated[float, Positive()] = 0.03
+    sigma_min: Annotated[float, Positive(), When("guidance", "sjc")] = 0.03
     """Smallest noise level drawn (VE sigma; guidance 'sjc' only: 'sds' anneals its timestep)."""
-    sigma_max: Annotated[float, Positive()] = 10.0
+    sigma_max: Annotated[float, Positive(), When("guidance", "sjc")] = 10.0
     """Largest noise level drawn at the start of the run (VE sigma; guidance 'sjc' only)."""
-    anneal: bool = True
+    anneal: Annotated[bool, When("guidance", "sjc")] = True
     """Anneal sigma (guidance 'sjc'): the upper end of its range decays linearly to ``sigma_min``
     over the run; off, sigma stays uniform over [sigma_min, sigma_max] (measured: docs/training.md,
     "Options measured")."""
@@ -78,31 +80,27 @@ class TrainConfig:
     """K, perturb-and-average: noise samples averaged per step."""
     weight: Annotated[float, Positive()] = 1.0
     """Global scale of the score (the 'guidance' multiplier)."""
-    view_prompting: Literal["none", "buckets", "window"] = "window"
-    """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
-    around the camera azimuth (its half-width an option of the empirical prior), or none
-    (docs/training.md)."""
     prior: PriorConfig = field(default_factory=EmpiricalPriorConfig)
     """The prior score distillation queries, with its own settings (--prior empirical, learned or
     sd): the embedded CPU prior (the exact posterior over image banks of procedural assets), a
     small diffusion model trained on the same assets (docs/learned_prior.md), or Stable Diffusion."""
     # the paper's additions
-    structured_noise: bool = True
-    """Use the paper's structured noise (section 3.2)."""
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    """The paper's structured noise (section 3.2; mechanisms/noise.py): --structured-noise and its
+    settings."""
     vgs: VGSConfig = field(default_factory=VGSConfig)
     """The paper's variational Gaussians (section 3.3; mechanisms/variational.py)."""
     # optimisation
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
-    sh_degree: Annotated[int, Between(0, 3)] = 0
+    sh_degree: Annotated[int, Between(0, 3), When("prior.sd_mode", not_=("latent",))] = 0
     """Spherical-harmonics degree of the Gaussians' colours (0: plain colour)."""
     # run management
     out: Path = Path("runs/duck")
     """The run folder."""
     checkpoint_every: Annotated[int, AtLeast(1)] = 200
     """Steps between checkpoints (a run also checkpoints on Ctrl-C)."""
-    log_every: Annotated[int, AtLeast(1)] = 10
+    log_every: Annotated[int, AtLeast(1), When.any(When("progress", True), When("log_dir", not_=(None,)))] = 10
     """Steps between updates of the progress report's figures and between --log-dir's scalars."""
     turntable_frames: Annotated[int, AtLeast(1)] = 36
     """Frames of the output turntable (GIF, MP4 and contact sheet), evenly spaced around the object."""
@@ -139,14 +137,21 @@ class TrainConfig:
             raise ValueError(f"resolution: the sd prior needs a multiple of 8 (latents are 1/8), got {self.resolution}")
         self.densify.resolve(self.steps)  # an explicit schedule that breaks the rules fails here
 
+    def run_view(self) -> RunView:
+        """What the prior reads of this run (``priors.RunView``)."""
+        return RunView(
+            self.prompt, self.seed, self.resolution, self.camera_radius, self.fovy_range, self.elevation_range,
+            self.background, self.device, self.out,
+        )  # fmt: skip
+
 
 PRESETS: dict[str, TrainConfig] = {
     "gd": TrainConfig(preset="gd"),
-    "gd-no-sn": TrainConfig(preset="gd-no-sn", structured_noise=False),
+    "gd-no-sn": TrainConfig(preset="gd-no-sn", noise=NoiseConfig(enabled=False)),
     "gd-no-vgs": TrainConfig(preset="gd-no-vgs", vgs=VGSConfig(enabled=False)),
-    "sjc-gs": TrainConfig(preset="sjc-gs", structured_noise=False, vgs=VGSConfig(enabled=False)),
+    "sjc-gs": TrainConfig(preset="sjc-gs", noise=NoiseConfig(enabled=False), vgs=VGSConfig(enabled=False)),
     "sds-gs": TrainConfig(
-        preset="sds-gs", structured_noise=False, vgs=VGSConfig(enabled=False), guidance="sds", anneal=True
+        preset="sds-gs", noise=NoiseConfig(enabled=False), vgs=VGSConfig(enabled=False), guidance="sds", anneal=True
     ),
     "gd-redraw-step": TrainConfig(preset="gd-redraw-step", noise=NoiseConfig(redraw="step")),
     "gd-pose-locked": TrainConfig(preset="gd-pose-locked", noise=NoiseConfig(source="pose")),
@@ -165,61 +170,77 @@ BASE_PRESETS = ("gd", "gd-no-sn", "gd-no-vgs", "sjc-gs", "sds-gs")
 NESTED = {"views": ViewsConfig, "noise": NoiseConfig, "vgs": VGSConfig, "optim": OptimConfig, "densify": DensifyConfig}
 """Nested config groups an override may reach with a dotted key ('noise.redraw')."""
 
-OPTION_KEYS: dict[str, str] = {
-    flag(f"{g}.{name}")[2:].replace("-", "_"): f"{g}.{name}" for g, cls in NESTED.items() for name in cls.OPTIONS
-}
-"""A nested group's option -> its dotted key ('vgs_gamma' -> 'vgs.gamma', 'densify' ->
-'densify.enabled', 'noise_ratio' -> 'noise.ratio_mode'): the names the command line, sweep files
-and run.json up to commit 95ebebe (vgs, vgs_gamma, vgs_unit, views_per_step, views_spread_deg)
-give them."""
+
+def _keys() -> dict[str, str]:
+    """Every setting's dotted key ('noise.redraw', 'prior.sd_model', 'steps'), under itself and
+    under its option name (its flag without dashes: 'noise_redraw', 'sd_model', 'vgs',
+    'structured_noise'), and the keys of ``layout.RENAMED``."""
+    keys = [f.name for f in fields(TrainConfig) if f.name not in NESTED and f.name != "prior"]
+    keys += [f"{g}.{f.name}" for g, cls in NESTED.items() for f in fields(cls)]
+    keys += [f"prior.{f.name}" for cls in PRIOR_CONFIGS.values() for f in fields(cls)]
+    names = {k: k for k in keys}
+    names |= {flag(k, TrainConfig)[2:].replace("-", "_"): k for k in keys if "." in k}
+    return names | {old: new for old, new in RENAMED.items()}
 
 
-def canonical_key(key: str) -> str:
-    """An override key as ``apply_overrides`` resolves it: a group's option by its dotted key,
-    a prior's setting without its 'prior.' prefix, any other as it is."""
-    return OPTION_KEYS.get(key, key.removeprefix("prior."))
+@functools.cache
+def setting_names() -> dict[str, str]:
+    """Every name a setting goes by -> its dotted key: the one converter of the command line's
+    names, sweep files' keys, ``preset()``'s keywords and run.json's layouts (``_keys``)."""
+    return _keys()
 
 
-PRIOR_KEYS: dict[str, tuple[str, ...]] = {
-    name: tuple(k for k, c in PRIOR_CONFIGS.items() if name in {f.name for f in fields(c)})
-    for name in dict.fromkeys(f.name for c in PRIOR_CONFIGS.values() for f in fields(c))
-}
-"""A prior's setting -> the priors that have it (front_bias: empirical and learned)."""
+def key_of(name: str) -> str:
+    """The dotted key of a setting named any way ``setting_names`` knows; 'prior' (the kind) as it
+    is. An unknown name is a ValueError naming it."""
+    if name == "prior":
+        return name
+    key = setting_names().get(name) or setting_names().get(name.removeprefix("prior."))
+    if key is None:
+        raise ValueError(f"overrides: unknown setting {name!r}")
+    return key
+
+
+def prior_option_error(key: str, kind: str, typed: str = "") -> str | None:
+    """The one message for a prior's setting given with a prior that lacks it ('--front-bias acts
+    only with --prior empirical or learned (this run: --prior sd)', the option named as ``typed``
+    where given: --no-depth-conditioning); None when ``kind`` has it."""
+    name = key.removeprefix("prior.")
+    kinds = [k for k, c in PRIOR_CONFIGS.items() if name in {f.name for f in fields(c)}]
+    if kind in kinds or not kinds:
+        return None
+    return f"{typed or flag(key)} acts only with --prior {' or '.join(kinds)} (this run: --prior {kind})"
 
 
 def apply_overrides(cfg: TrainConfig, overrides: Mapping[str, object]) -> TrainConfig:
-    """``cfg`` with ``overrides`` applied: keys are TrainConfig fields, 'group.field' for the nested
-    groups in ``NESTED`` or a group's option name (``OPTION_KEYS``: 'vgs_gamma'), or the prior's:
-    'prior' names its kind (its settings that the new kind shares are kept) and each prior setting
-    goes by its own name ('sd_model', or 'prior.sd_model'). Unknown keys, and a prior's setting the
-    chosen prior lacks, raise ValueError naming them."""
+    """``cfg`` with ``overrides`` applied: each key a setting's name as ``key_of`` reads it (a
+    field, 'group.field', an option name such as 'vgs_gamma', a prior's setting with or without
+    'prior.'); a group's name with a config replaces the whole group, its switch included ('noise':
+    a ``NoiseConfig`` with structured noise on unless it says otherwise); 'prior' names its kind (its settings
+    that the new kind shares are kept). Unknown keys, and a prior's setting the chosen prior lacks,
+    raise ValueError naming them."""
     top: dict[str, object] = {}
     nested: dict[str, dict[str, object]] = {}
     prior_kw: dict[str, object] = {}
     prior = cfg.prior
-    for key, value in overrides.items():
-        group, dot, name = key.partition(".")
-        if key in OPTION_KEYS and not is_dataclass(value):  # a group's option ('vgs': a bool, not the group)
-            group, _, name = OPTION_KEYS[key].partition(".")
-            nested.setdefault(group, {})[name] = value
-        elif key == "prior":
+    for name, value in overrides.items():
+        if name in NESTED and is_dataclass(value):  # the group itself ('vgs': a VGSConfig)
+            top[name] = value
+            continue
+        key = key_of(name)
+        group, _, field_name = key.rpartition(".")
+        if key == "prior":
             prior = _prior_of_kind(prior, value)
-        elif (group == "prior" and dot) or key in PRIOR_KEYS:
-            prior_kw[name if dot else key] = value
-        elif dot:
-            if group not in NESTED or name not in {f.name for f in fields(NESTED[group])}:
-                raise ValueError(f"overrides: unknown setting {key!r}")
-            nested.setdefault(group, {})[name] = value
-        elif key not in {f.name for f in fields(TrainConfig)}:
-            raise ValueError(f"overrides: unknown setting {key!r}")
+        elif group == "prior":
+            prior_kw[field_name] = value
+        elif group:
+            nested.setdefault(group, {})[field_name] = value
         else:
             top[key] = value
-    for key in prior_kw:
-        if key not in {f.name for f in fields(prior)}:
-            kinds = " or ".join(PRIOR_KEYS.get(key, ()))
-            if not kinds:
-                raise ValueError(f"overrides: unknown setting 'prior.{key}'")
-            raise ValueError(f"{flag(key)} acts only with --prior {kinds} (this run: --prior {prior.kind})")
+    for name in prior_kw:
+        message = prior_option_error(f"prior.{name}", prior.kind)
+        if message is not None:
+            raise ValueError(message)
     for group, values in nested.items():
         top[group] = replace(top.get(group, getattr(cfg, group)), **values)
     return replace(cfg, **top, prior=replace(prior, **prior_kw))
@@ -303,15 +324,24 @@ def from_json(typ, value, key: str, what: str = "config"):
     return value
 
 
+def _hint(key: str, kind: str):
+    """The declared type of a dotted key ('noise.redraw', 'prior.sd_model', 'steps') with the prior
+    ``kind``, or None where it has none."""
+    import typing
+
+    group, _, name = key.rpartition(".")
+    cls = PRIOR_CONFIGS.get(kind) if group == "prior" else NESTED.get(group) if group else TrainConfig
+    return typing.get_type_hints(cls, include_extras=True).get(name) if cls is not None else None
+
+
 def config_from_dict(d: Mapping[str, object], *, base: TrainConfig | None = None, what: str = "config") -> TrainConfig:
     """The ``TrainConfig`` a JSON dict describes (the inverse of ``outputs.config_dict``, as run.json
     stores it): nested groups as dicts, tuples as lists, paths as strings, the prior as a mapping
-    with its 'kind'. The flat layout of run.json up to commit 95ebebe (the prior's kind as 'prior',
-    its settings beside the other fields) converts here too: there, settings of the other priors
-    must hold their defaults (``LEGACY_PRIOR_DEFAULTS``). Keys it lacks keep ``base``'s values
-    (default: the dict's own preset); unknown keys raise a ValueError naming them."""
-    import typing
-
+    with its 'kind'. Every earlier layout of run.json reads here too (``train.layout``): the flat
+    one up to commit 95ebebe (the prior's kind as 'prior', its settings beside the other fields,
+    where the settings of the other priors must hold their defaults, ``LEGACY_PRIOR_DEFAULTS``) and
+    the renamed settings (``layout.RENAMED``). Keys it lacks keep ``base``'s values (default: the
+    dict's own preset); unknown keys raise a ValueError naming them."""
     if not isinstance(d, Mapping):
         raise ValueError(f"{what}: expected a mapping of settings, got {type(d).__name__}")
     name = d.get("preset", base.preset if base is not None else "gd")
@@ -319,45 +349,32 @@ def config_from_dict(d: Mapping[str, object], *, base: TrainConfig | None = None
         if name not in PRESETS:
             raise ValueError(f"{what}: preset: unknown {name!r}; expected one of {sorted(PRESETS)}")
         base = PRESETS[name]
-    hints = typing.get_type_hints(TrainConfig, include_extras=True)
-    flat: dict[str, object] = {}
+    given: list[tuple[str, object]] = []  # (name as written, value), groups and the prior opened
     prior = d.get("prior")
-    if isinstance(prior, Mapping):  # the prior's config: its kind and settings
-        kind = prior.get("kind", base.prior.kind)
-        flat["prior"] = kind
-        cls = PRIOR_CONFIGS.get(kind) if isinstance(kind, str) else None
-        sub = typing.get_type_hints(cls, include_extras=True) if cls is not None else {}
-        for k, v in prior.items():
-            if k != "kind":
-                flat[f"prior.{k}"] = from_json(sub[k], v, f"prior.{k}", what) if k in sub else v
-    elif prior is not None:
-        flat["prior"] = prior
-    kind = flat.get("prior", base.prior.kind)
+    kind = prior.get("kind", base.prior.kind) if isinstance(prior, Mapping) else prior if prior is not None else None
+    if kind is not None:
+        given.append(("prior", kind))
+    kind = kind if isinstance(kind, str) else base.prior.kind
     mine = {f.name for f in fields(PRIOR_CONFIGS[kind])} if kind in PRIOR_CONFIGS else set()
     for key, value in d.items():
         if key == "prior":
-            continue
-        if key in OPTION_KEYS and not isinstance(value, Mapping):  # the flat layout's vgs, views_per_step, ...
-            group, _, name = OPTION_KEYS[key].partition(".")
-            sub = typing.get_type_hints(NESTED[group], include_extras=True)
-            flat[OPTION_KEYS[key]] = from_json(sub[name], value, key, what)
-        elif key in NESTED:
+            given += [(f"prior.{k}", v) for k, v in prior.items() if k != "kind"] if isinstance(prior, Mapping) else []
+        elif key in NESTED and (isinstance(value, Mapping) or key not in setting_names()):  # ('vgs': the flat switch)
             if not isinstance(value, Mapping):
                 raise ValueError(f"{what}: {key}: expected a mapping, got {value!r}")
-            sub = typing.get_type_hints(NESTED[key], include_extras=True)
-            for k, v in value.items():
-                if k not in sub:
-                    raise ValueError(f"{what}: unknown setting '{key}.{k}'")
-                flat[f"{key}.{k}"] = from_json(sub[k], v, f"{key}.{k}", what)
-        elif key in LEGACY_PRIOR_DEFAULTS:  # the flat layout
-            if key not in mine and value == LEGACY_PRIOR_DEFAULTS[key]:
-                continue  # another prior's setting at its default: the flat layout wrote every one
-            cls = next((PRIOR_CONFIGS[k] for k in PRIOR_KEYS[key] if k == kind), PRIOR_CONFIGS[PRIOR_KEYS[key][0]])
-            flat[key] = from_json(typing.get_type_hints(cls, include_extras=True)[key], value, key, what)
-        elif key not in hints:
-            raise ValueError(f"{what}: unknown setting {key!r}")
+            given += [(f"{key}.{k}", v) for k, v in value.items()]
+        elif key in LEGACY_PRIOR_DEFAULTS and key not in mine and value == LEGACY_PRIOR_DEFAULTS[key]:
+            continue  # the flat layout: another prior's setting at its default (that layout wrote every one)
         else:
-            flat[key] = from_json(hints[key], value, key, what)
+            given.append((key, value))
+    flat: dict[str, object] = {}
+    for written, value in given:
+        try:
+            key = key_of(written)
+        except ValueError:
+            raise ValueError(f"{what}: unknown setting {written!r}") from None
+        hint = _hint(key, kind)
+        flat[key] = from_json(hint, value, written, what) if hint is not None and key != "prior" else value
     try:
         return apply_overrides(base, flat)
     except ValueError as e:

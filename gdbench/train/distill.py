@@ -73,7 +73,7 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
     ratio = ratio_schedule(state.step, cfg.steps, cfg.noise.ratio_start, cfg.noise.ratio_end)
     if cfg.noise.source == "pose":  # the control: one fixed field per pose (mechanisms/pose_noise.py)
         n_s = ctx.noise.render(views.poses, views.prior_cams, generator=state.streams["noise_colors"]).noise
-        return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio_mode) for _ in range(cfg.samples_per_step)]
+        return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio) for _ in range(cfg.samples_per_step)]
     colors = state.noise_colors
     if state.step > 0:  # step 0 uses the initial draw
         nc = NoiseState(colors)
@@ -84,7 +84,7 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
     # the colours are this run's own normal draws: no scan for non-finite values
     gen = state.streams["noise_colors"]
     n_s = ctx.noise.render(colors, views.prior_cams, generator=gen, check_values=False).noise
-    return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio_mode) for _ in range(cfg.samples_per_step)]
+    return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio) for _ in range(cfg.samples_per_step)]
 
 
 def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Tensor | None, update: bool):

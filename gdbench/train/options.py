@@ -17,8 +17,8 @@ import typing
 from dataclasses import field, fields, make_dataclass
 from typing import Annotated, Literal, Optional
 
-from gdbench.core.constraints import flag
-from gdbench.train.config import NESTED, PRESETS, TrainConfig, canonical_key
+from gdbench.core.constraints import flag, inactive
+from gdbench.train.config import NESTED, PRESETS, TrainConfig, key_of
 
 
 @functools.cache
@@ -101,7 +101,7 @@ def train_options(exclude: tuple[str, ...] = (), prior: str = "empirical"):
             note = (
                 "" if said else f"(default: {default!r}" + (f"; the presets {differs} differ" if differs else "") + ")"
             )
-            option(flag(key)[2:].replace("-", "_") if prefix else name, hints[name], doc, note, key)
+            option(flag(key, TrainConfig)[2:].replace("-", "_") if prefix else name, hints[name], doc, note, key)
 
     hints, docs = typing.get_type_hints(TrainConfig), _field_docs(TrainConfig)
     for f in fields(TrainConfig):
@@ -135,69 +135,8 @@ def _get(cfg, key: str):
     return cfg
 
 
-def _acts(cfg) -> dict[str, tuple[bool, str]]:
-    """For each option that acts only under another setting: (whether it acts in ``cfg``, what it
-    needs, named by its option). A prior's options act only with that prior: the command line
-    offers them only there (``train_options``) and ``apply_overrides`` refuses them elsewhere."""
-    sn = (cfg.structured_noise, "structured noise (--structured-noise; this run has it off)")
-    sjc = (cfg.guidance == "sjc", f"--guidance sjc (this run: --guidance {cfg.guidance}, which anneals its timestep)")
-    p = cfg.prior
-    latent = p.input_space.startswith("latent")
-    acts = {
-        "noise.ou_beta": (
-            cfg.structured_noise and cfg.noise.redraw == "ou",
-            f"--noise-redraw ou (this run: --noise-redraw {cfg.noise.redraw})" if cfg.structured_noise else sn[1],
-        ),
-        "noise.redraw": sn,
-        "noise.ratio_mode": sn,
-        "noise.source": sn,
-        "log_every": (
-            cfg.progress or cfg.log_dir is not None,
-            "the progress report or --log-dir (this run: --no-progress, no --log-dir)",
-        ),
-        "views.spread_deg": (
-            cfg.views.per_step > 1,
-            f"--views-per-step 2 or more (this run: --views-per-step {cfg.views.per_step})",
-        ),
-        "vgs.gamma": (cfg.vgs.enabled, "--vgs (this run has VGS off)"),
-        "vgs.unit": (cfg.vgs.enabled, "--vgs (this run has VGS off)"),
-        "sigma_min": sjc,
-        "sigma_max": sjc,
-        "anneal": sjc,
-        **{
-            f"densify.{k}": (cfg.densify.enabled, "densification (this run: --no-densify)")
-            for k in ("start", "stop", "every", "reset_every", "grad_quantile")
-        },
-        "init_ply": (cfg.init == "ply", f"--init ply (this run: --init {cfg.init})"),
-        "init_color": (
-            cfg.init == "sphere" or latent,
-            f"--init sphere (this run: --init {cfg.init}, whose points bring their colours)",
-        ),
-        "sh_degree": (not latent, "an RGB render (this run: --sd-mode latent renders 4 latent features without SH)"),
-    }
-    if p.kind == "empirical":
-        acts["view_window_deg"] = (
-            cfg.view_prompting == "window",
-            f"--view-prompting window (this run: --view-prompting {cfg.view_prompting})",
-        )
-    if p.kind == "learned":
-        acts["front_bias"] = (
-            p.learned_model == "auto",
-            f"--learned-model auto (this run: --learned-model {p.learned_model}, which has its own)",
-        )
-    if p.kind == "sd":
-        acts["semantic_steps"] = (p.semantic_code, "--semantic-code (this run has it off)")
-        acts["sd_controlnet"] = (
-            p.depth_conditioning and p.sd_model != "tiny",
-            "--depth-conditioning and a real --sd-model (the tiny model builds its own)",
-        )
-    return acts
-
-
 def inert_options(cfg, given) -> list[str]:
-    """One line per option in ``given`` (override keys the user set, by any name ``apply_overrides``
-    takes) that does nothing in ``cfg``, naming the option it needs; empty when every given option
-    acts."""
-    acts = _acts(cfg)
-    keys = [canonical_key(k) for k in given]
-    return [f"{flag(k)} acts only with {acts[k][1]}" for k in keys if k in acts and not acts[k][0]]
+    """One line per option in ``given`` (setting names as ``config.key_of`` reads them) that does
+    nothing in ``cfg``, naming what it needs (the ``When`` markers beside the fields and the groups'
+    switches, read by ``core.constraints.inactive``); empty when every given option acts."""
+    return inactive(cfg, [key_of(k) for k in given])

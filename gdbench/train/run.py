@@ -136,7 +136,7 @@ class RunResult:
 
 def run_id(cfg: TrainConfig) -> str:
     """A short hash of everything in the config that changes the result, in the flat layout runs
-    were first named in (``core.layout.flat_config``); fields added later are left out at the value
+    were first named in (``train.layout.flat_config``); fields added later are left out at the value
     that behaves as before them (``ADDED_AT_DEFAULT``)."""
     from gdbench.train.checkpoint import comparable
 

@@ -68,7 +68,7 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
     factor = int(prior.factor)
     streams = make_streams(cfg.seed)
     noise = None
-    if cfg.structured_noise:
+    if cfg.noise.enabled:
         cloud = make_noise_cloud(cfg.noise, prior.channels, generator=streams["noise_cloud"])
         if cfg.noise.source == "pose":  # the control: fields locked to the pose, seeded from the cloud's stream
             from gdbench.mechanisms.pose_noise import PoseLockedNoise

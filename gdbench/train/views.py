@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated, ClassVar
 import torch
 
 from gdbench.core.camera import Cameras, SphericalPoses
-from gdbench.core.constraints import AtLeast, Range
+from gdbench.core.constraints import AtLeast, Range, When, check_fields
 
 if TYPE_CHECKING:
     from gdbench.train.state import Context, TrainState
@@ -29,11 +29,14 @@ class ViewsConfig:
     per_step: Annotated[int, AtLeast(1)] = 1
     """Views rendered per step; they share one jitter, one sigma and one draw of the noise cloud's
     colours (so one step already couples views through the structured noise)."""
-    spread_deg: Annotated[float | None, Range(0, 180, lo_open=True, unit="degrees")] = None
+    spread_deg: Annotated[float | None, Range(0, 180, lo_open=True, unit="degrees"), When("per_step", above=1)] = None
     """Views of one step (--views-per-step 2 or more): unset (the default) draws each anywhere in
     the pose ranges; a number keeps the others within +-this many degrees (azimuth and elevation)
     of the step's first view, so they see the same structured noise at the same surface points
     (docs/noise.md, "Does the noise reach two views?")."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "views.")  # every field against its declared type and range
 
 
 @dataclass(frozen=True)

@@ -238,7 +238,7 @@ def mechanism(prior, captions: list[str], *, sigmas=(2.0, 6.0), draws: int = 16,
                 for d in range(draws):
                     n_s = source_noise(noise_source(g), cams, g)
                     iid = torch.randn((2, *x0.shape[1:]), generator=g)
-                    n_b = mix(n_s, ratio, generator=g, mode=NoiseConfig().ratio_mode)
+                    n_b = mix(n_s, ratio, generator=g, mode=NoiseConfig().ratio)
                     out = {"noise_corr": warped_corr(n_b, z, cams)}
                     for name, n in (("independent", iid), ("structured", n_b)):
                         y = x0 + s * n
@@ -272,7 +272,7 @@ def surface_coupling(captions: list[str], separations, *, ratios=(1.0, 0.3), dra
             for d in range(draws):
                 n_s = source_noise(noise_source(g), cams, g)
                 for r in ratios:
-                    n = mix(n_s, r, generator=g, mode=NoiseConfig().ratio_mode)
+                    n = mix(n_s, r, generator=g, mode=NoiseConfig().ratio)
                     rows.append({"caption": caption, "separation": float(sep), "ratio": r, "draw": d,
                                  "noise_corr": warped_corr(n, z, cams)})  # fmt: skip
     return rows

@@ -36,13 +36,13 @@ import itertools
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, ClassVar
+from typing import Annotated, ClassVar, Literal
 
 import torch
 from torch import Tensor
 
-from gdbench.core.constraints import AtLeast
-from gdbench.priors import sd_abar, ve_sigmas_from_betas
+from gdbench.core.constraints import AtLeast, When, check_fields
+from gdbench.priors import RunView, sd_abar, ve_sigmas_from_betas
 
 WEIGHTS = Path(__file__).parent / "weights"
 SHIPPED = {"uniform": 0.0, "front": 2.0}
@@ -443,12 +443,18 @@ class LearnedPriorConfig:
     or 'auto' (the shipped model of --front-bias)."""
     learned_guidance: Annotated[float, AtLeast(1)] = 3.0
     """Classifier-free guidance scale (1: none, one network evaluation per view)."""
-    front_bias: Annotated[float, AtLeast(0)] = 0.0
+    front_bias: Annotated[float, AtLeast(0), When("learned_model", "auto")] = 0.0
     """Picks the shipped model trained at that kappa (0 or 2) when --learned-model is 'auto'."""
     variants: Annotated[int, AtLeast(1)] = 1
     """1 (variant 0) or 3 (the variant dropped: all three of the caption's)."""
 
+    view_prompting: Literal["none", "buckets", "window"] = "window"
+    """View-dependent prompting: DreamFusion/3DFuse buckets (front/side/back/overhead), a window
+    around the camera azimuth, or none
+    (docs/training.md)."""
+
     def __post_init__(self) -> None:
+        check_fields(self, "prior.")  # every field against its declared type, range and choices
         if self.variants not in (1, 3):
             raise ValueError(f"variants: the learned prior takes 1 or 3 (all of a caption's), got {self.variants}")
 
@@ -460,17 +466,17 @@ class LearnedPriorConfig:
         """The model this config loads: the shipped one of ``front_bias`` for 'auto'."""
         return model_for_front_bias(self.front_bias) if self.learned_model == "auto" else self.learned_model
 
-    def make(self, cfg) -> LearnedPrior:
-        """The prior of the training config ``cfg``, checked against its cameras."""
+    def make(self, run: RunView) -> LearnedPrior:
+        """The prior of a training run, checked against its cameras."""
         from gdbench.priors import network_device
 
         prior = LearnedPrior(
             self.model,
-            device=network_device(cfg.device),
+            device=network_device(run.device),
             guidance_scale=self.learned_guidance,
-            view_mode=cfg.view_prompting,
+            view_mode=self.view_prompting,
             variants=self.variants,
-            resolution=cfg.resolution,
+            resolution=run.resolution,
         )
-        prior.check_cameras(cfg.camera_radius, cfg.background, cfg.fovy_range, cfg.elevation_range)
+        prior.check_cameras(run.camera_radius, run.background, run.fovy_range, run.elevation_range)
         return prior

@@ -28,7 +28,8 @@ from typing import Annotated, ClassVar, Literal
 import torch
 from torch import Tensor
 
-from gdbench.core.constraints import AtLeast
+from gdbench.core.constraints import AtLeast, When, check_fields
+from gdbench.priors import RunView
 
 VIEW_SUFFIXES = (", front view", ", side view", ", back view", ", overhead view")
 
@@ -311,17 +312,24 @@ class SDPriorConfig:
     channels directly at 1/8 resolution (SJC)."""
     sd_guidance: Annotated[float, AtLeast(1)] = 100.0
     """Classifier-free guidance scale (SJC and DreamFusion use 100 with score distillation)."""
-    sd_controlnet: str | None = None
+    sd_controlnet: Annotated[str | None, When("depth_conditioning", True), When("sd_model", not_=("tiny",))] = None
     """With --depth-conditioning: a depth ControlNet folder ('tiny' with the tiny model)."""
     sd_dtype: Literal["float32", "float16"] = "float32"
     """Weights' precision (float16 for CUDA; the Gaussians stay float32)."""
     semantic_code: bool = False
     """3DFuse's semantic code sampling (image, textual inversion, LoRA) before training; saved in
     <out>/semantic and reloaded on resume."""
-    semantic_steps: Annotated[int, AtLeast(1)] = 100
+    semantic_steps: Annotated[int, AtLeast(1), When("semantic_code", True)] = 100
     """Textual-inversion and LoRA steps of the semantic code."""
     depth_conditioning: bool = False
     """Condition the prior on the depth of the initial cloud (3DFuse's depth ControlNet)."""
+    view_prompting: Literal["none", "buckets", "window"] = "window"
+    """View-dependent prompting: DreamFusion/3DFuse's suffixes (', front view', ...) for
+    'buckets' and 'window' alike, or none
+    (docs/training.md)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "prior.")  # every field against its declared type, range and choices
 
     @property
     def input_space(self) -> str:
@@ -329,16 +337,16 @@ class SDPriorConfig:
         4 latent channels), with '+depth' when it conditions on depth."""
         return self.sd_mode + ("+depth" if self.depth_conditioning else "")
 
-    def make(self, cfg) -> StableDiffusionPrior:
-        """The prior of the training config ``cfg``, with its semantic code (made or reloaded)."""
+    def make(self, run: RunView) -> StableDiffusionPrior:
+        """The prior of a training run, with its semantic code (made or reloaded)."""
         from gdbench.priors import network_device
         from gdbench.priors.sd.threedfuse import SemanticCodeConfig, load_semantic_code, semantic_code
 
         kw = dict(
             guidance_scale=self.sd_guidance,
-            view_prompting=cfg.view_prompting != "none",
+            view_prompting=self.view_prompting != "none",
             dtype=getattr(torch, self.sd_dtype),
-            device=network_device(cfg.device),
+            device=network_device(run.device),
         )
         if self.sd_model == "tiny":
             prior = StableDiffusionPrior.tiny(seed=0, controlnet=self.depth_conditioning, **kw)
@@ -350,11 +358,11 @@ class SDPriorConfig:
                 )
             prior = StableDiffusionPrior.from_pretrained(self.sd_model, controlnet=controlnet, **kw)
         if self.semantic_code:
-            folder = Path(cfg.out) / "semantic"
+            folder = Path(run.out) / "semantic"
             if (folder / "semantic.json").is_file():
                 load_semantic_code(prior, folder)
             else:
                 n = self.semantic_steps
-                sc = SemanticCodeConfig(size=max(64, cfg.resolution), ti_steps=n, lora_steps=n, seed=cfg.seed)
-                semantic_code(prior, cfg.prompt, folder, sc)
+                sc = SemanticCodeConfig(size=max(64, run.resolution), ti_steps=n, lora_steps=n, seed=run.seed)
+                semantic_code(prior, run.prompt, folder, sc)
         return prior
