@@ -15,7 +15,8 @@ gdbench at its top, so it works from any checkout) and stores:
 - ``sweep``: a two-cell sweep's cells.csv (gd, sjc-gs; 60 steps; no COLMAP) without its timing
   and provenance columns;
 - ``v3``, with ``--v3 FOLDER`` (the unpacked cells, docs/decisive_v3.md "To re-run the report"):
-  the SHA-256 of every file v3's report writes, with the checkout's commit strings blanked.
+  the SHA-256 of every file v3's report writes, run with the commit it names fixed (its tables and
+  its plots' titles name it) and the checkout's commit strings blanked.
 
 ``compare`` prints every key that differs and exits 1 when any does. Both records must come from
 the same machine: the same code gives other bits on another host (docs/log/2026-11-27.md).
@@ -99,7 +100,11 @@ def record_sweep(checkout: Path, tmp: Path) -> list[dict]:
 def record_v3(checkout: Path, cells: Path, tmp: Path) -> dict[str, str]:
     results, figures = tmp / "v3", tmp / "v3-figures"
     labels = [str(checkout / "fixtures" / "labels" / f"v3_rater{i}.csv") for i in (1, 2)]
-    cmd = [sys.executable, "-m", "gdbench.experiments.v3", "report", "--out", str(cells), "--results", str(results),
+    # the report names the commit it runs at, in its tables and in its plots' titles: a fixed name
+    # here, so the two checkouts' files compare byte for byte
+    fixed = ("import runpy, sys, gdbench.core.provenance as p; p.code_commit = lambda: 'c0mm1t000000'; "
+             "sys.argv[0] = 'v3'; runpy.run_module('gdbench.experiments.v3', run_name='__main__')")  # fmt: skip
+    cmd = [sys.executable, "-c", fixed, "report", "--out", str(cells), "--results", str(results),
            "--figures", str(figures), "--labels", *labels, "--no-progress"]  # fmt: skip
     r = subprocess.run(
         cmd, cwd=checkout, env=dict(os.environ, PYTHONPATH=str(checkout)), capture_output=True, text=True

@@ -136,3 +136,18 @@ def test_the_mixing_default_is_the_configs():
 
     for fn in (mix, structured_amplitude):
         assert inspect.signature(fn).parameters["mode"].default == NoiseConfig().ratio
+
+
+def test_a_sweep_file_takes_every_name_a_setting_had():
+    """The sweep-file keys of today and of older files (run.json's nested form, the renamed ones)
+    give the same options."""
+    from gdbench.app.cmd_sweep import sweep_from_mapping
+
+    old = {"presets": ["gd-no-sn"], "overrides": {"structured_noise": True, "noise": {"ratio_mode": "amplitude"},
+                                                  "view_prompting": "none", "views_per_step": 2}}  # fmt: skip
+    new = {"presets": ["gd-no-sn"], "overrides": {"noise.enabled": True, "noise_ratio": "amplitude",
+                                                  "prior.view_prompting": "none", "views.per_step": 2}}  # fmt: skip
+    a, b = (sweep_from_mapping(d, what="sweep.yaml").train.overrides() for d in (old, new))
+    assert a == b == {"noise.enabled": True, "noise.ratio": "amplitude", "view_prompting": "none", "views.per_step": 2}
+    with pytest.raises(ValueError, match="unknown training option 'noise_colour'"):
+        sweep_from_mapping({"overrides": {"noise_colour": 1}}, what="sweep.yaml")

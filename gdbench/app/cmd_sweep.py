@@ -98,7 +98,7 @@ def sweep_from_mapping(d: dict, what: str = "config", prior: str | None = None):
     import typing
 
     from gdbench.core.constraints import flag
-    from gdbench.train.config import NESTED, from_json
+    from gdbench.train.config import NESTED, TrainConfig, from_json, key_of
 
     if d is None:
         d = {}  # an empty file: every default
@@ -125,7 +125,11 @@ def sweep_from_mapping(d: dict, what: str = "config", prior: str | None = None):
                 else:
                     flat[str(ok)] = ov
             for ok, ov in flat.items():
-                o = flag(ok)[2:].replace("-", "_")  # run.json's names (noise.redraw) -> the options'
+                try:  # any name of the setting (noise.redraw, noise_ratio, an old one) -> its option's
+                    key = key_of(str(ok))
+                except ValueError:
+                    key = str(ok)
+                o = flag(key, TrainConfig)[2:].replace("-", "_") if "." in key else key
                 if o in train_hints:
                     train[o] = from_json(train_hints[o], ov, f"overrides: {ok}", what)
                 else:

@@ -62,8 +62,9 @@ def split_sheet(image: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     return rows[0], rows[1:]
 
 
-def read_batch(folder: Path, key_path: Path) -> list[SheetResult]:
-    """Every result of one batch's sheets, in the key's numbering."""
+def read_batch(folder: Path, key_path: Path, batch: str | None = None) -> list[SheetResult]:
+    """Every result of one batch's sheets, in the key's numbering; the batch is named ``batch``
+    (default: the folder's name, as v3's C-F)."""
     from PIL import Image
 
     folder, key = Path(folder), json.loads(Path(key_path).read_text())
@@ -78,7 +79,7 @@ def read_batch(folder: Path, key_path: Path) -> list[SheetResult]:
             raise ValueError(f"sheets: {folder} shows {len(rows)} results of {caption!r}; its key numbers {len(mine)}")
         for n, views in zip(mine, rows):
             k = key[n]
-            out.append(SheetResult(folder.name, int(n), k["run_id"], k["run"], caption, views))
+            out.append(SheetResult(batch or folder.name, int(n), k["run_id"], k["run"], caption, views))
     return out
 
 

@@ -1,0 +1,146 @@
+"""The Janus judge on its fresh set (docs/judge_fresh.md): results no rule or head was fitted on,
+labelled blind by two passes of raters before the judge read them, read in both of the judge's
+modes against the registered thresholds.
+
+    python -m gdbench.experiments.judge_fresh [--runs OUT] [--out docs/results/judge/fresh]
+
+- **six views**: each result's row of the committed sheets (``Judge.views`` at azimuths 0, 60,
+  ..., 300), so this mode recomputes from the repository alone;
+- **run folder**: each run's scene on the turntable's 36 frames (``Judge.run``, what ``gdbench
+  judge OUT`` reads), where the sweep's folders are at hand (``--runs``: the key names each run's
+  folder under the sweep folder it was drawn from); without them the committed ``judged.csv``
+  keeps this mode's labels and ``agreement.csv`` is recomputed from it.
+
+Writes ``judged.csv`` (a row per result: block, arm, both modes' labels and confidences, both
+passes' labels, the consensus), ``agreement.csv`` (a row per mode, truth and block: kappas,
+recalls, counts, the share of consensus-fine results warned, which thresholds pass) and prints the
+summary. The block and arm come from the key's run folder, read after judging.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+FRESH = Path("docs/results/judge/fresh")
+"""The committed fresh set: sheets/ (WebP), fresh_key.json, and the tables this module writes."""
+LABELS = {"rater1": Path("fixtures/labels/fresh_rater1.csv"), "rater2": Path("fixtures/labels/fresh_rater2.csv")}
+BATCH = "fresh"
+"""The labels' batch column."""
+BLOCKS = ("learned-janus", "learned-uniform", "empirical-janus")
+MODES = ("six views", "run folder")
+FINE_WARNED_MAX = 0.1
+"""At most this share of the consensus-fine results may get a failure warning (a label but fine)."""
+
+
+def block_and_arm(run: str) -> tuple[str, str]:
+    """(block, preset) of a run folder the key names: ``<OUT>/<block>/cells/<setting>/<prompt>/<preset>/seed<k>``."""
+    parts = Path(run).parts
+    block = next((b for b in BLOCKS if b in parts), "")
+    return block, parts[-2]
+
+
+def fresh_results(root: Path = Path(".")):
+    """The fresh set's results from the committed sheets, with both passes' labels."""
+    from gdbench.metrics.judge.sheets import attach_labels, read_batch
+
+    root = Path(root)
+    results = read_batch(root / FRESH / "sheets", root / FRESH / "fresh_key.json", batch=BATCH)
+    return attach_labels(results, {k: root / v for k, v in LABELS.items()})
+
+
+def judge_fresh(root: Path = Path("."), runs: Path | None = None) -> list[dict]:
+    """Every result judged in the six-view mode, and in the run-folder mode where ``runs`` (the sweep
+    folder the sheets were drawn from) holds the runs; a row per result."""
+    from gdbench.core.provenance import code_commit
+    from gdbench.metrics.judge.judge import load_judge
+    from gdbench.metrics.judge.sheets import SHEET_AZIMUTHS
+
+    judge, commit = load_judge(), code_commit()
+    rows = []
+    for r in fresh_results(root):
+        six = judge.views(r.views, SHEET_AZIMUTHS, r.caption)
+        folder = None
+        if runs is not None:
+            rel = Path(r.run).parts
+            block = block_and_arm(r.run)[0]
+            folder = Path(runs).joinpath(*rel[rel.index(block) :]) if block in rel else None
+        whole = judge.run(folder) if folder is not None and (folder / "scene.ply").is_file() else None
+        block, arm = block_and_arm(r.run)
+        rows.append({
+            "number": r.number, "run_id": r.run_id, "caption": r.caption, "block": block, "preset": arm,
+            "six_views": six["label"], "six_views_confidence": six["confidence"],
+            "run_folder": whole["label"] if whole else "",
+            "run_folder_confidence": whole["confidence"] if whole else "",
+            "rater1": r.labels.get("rater1", ""), "rater2": r.labels.get("rater2", ""),
+            "consensus": r.consensus or "", "judge": judge.version, "commit": commit,
+        })  # fmt: skip
+    return rows
+
+
+def agreement_rows(judged: list[dict]) -> list[dict]:
+    """Per mode, truth (the consensus, each pass) and block (all, then each): the judge's agreement
+    (``evaluate.agreement``), the thresholds it passes, and the share of consensus-fine results it
+    warns on; then the two passes against each other."""
+    from gdbench.metrics.judge.evaluate import agreement, passes
+
+    rows = []
+    commit = judged[0]["commit"] if judged else ""
+    version = judged[0]["judge"] if judged else ""
+    for mode in MODES:
+        col = mode.replace(" ", "_")
+        for truth in ("consensus", "rater1", "rater2"):
+            for block in ("all", *BLOCKS):
+                sel = [r for r in judged if r[truth] and r[col] and block in ("all", r["block"])]
+                if not sel:
+                    continue
+                a = agreement([r[truth] for r in sel], [r[col] for r in sel])
+                fine = [r for r in sel if r[truth] == "fine"]
+                warned = sum(r[col] != "fine" for r in fine) / len(fine) if fine else None
+                ok = passes(a) | {"fine_warned": warned is not None and warned <= FINE_WARNED_MAX}
+                rows.append({"mode": mode, "truth": truth, "block": block,
+                             **{k: v for k, v in a.items() if k != "confusion"}, "fine_warned": warned,
+                             "second_face_judged": sum(r[col] == "second_face" for r in sel),
+                             "passes": ";".join(k for k, v in ok.items() if v),
+                             "fails": ";".join(k for k, v in ok.items() if not v),
+                             "confusion": str(a["confusion"]), "judge": version, "commit": commit})  # fmt: skip
+    both = [r for r in judged if r["rater1"] and r["rater2"]]
+    a = agreement([r["rater1"] for r in both], [r["rater2"] for r in both])
+    rows.append({"mode": "rater2 against rater1", "truth": "rater1", "block": "all",
+                 **{k: v for k, v in a.items() if k != "confusion"}, "confusion": str(a["confusion"]),
+                 "judge": version, "commit": commit})  # fmt: skip
+    return rows
+
+
+def _read(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    from gdbench.core.io import write_csv
+
+    ap = argparse.ArgumentParser(prog="python -m gdbench.experiments.judge_fresh", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", type=Path, help="the sweep folder of docs/results/judge/fresh/sweep.sh (run-folder mode)")
+    ap.add_argument("--out", type=Path, default=FRESH, help="where judged.csv and agreement.csv go")
+    ap.add_argument("--recompute", action="store_true", help="agreement.csv from the committed judged.csv only")
+    args = ap.parse_args(argv)
+    if args.runs is not None and not args.runs.is_dir():
+        ap.error(f"--runs: {args.runs} is not a folder (the fresh sweep's OUT)")
+    judged = _read(args.out / "judged.csv") if args.recompute else judge_fresh(runs=args.runs)
+    if not args.recompute:
+        write_csv(judged, args.out / "judged.csv")
+    rows = agreement_rows(judged)
+    write_csv(rows, args.out / "agreement.csv")
+    for r in rows:
+        if (r["truth"] == "consensus" and r["block"] == "all") or r["mode"].startswith("rater2"):
+            print(f"{r['mode']:22s} {r['block']:16s} n {r['n']:3d}: kappa {r['kappa_janus']:.2f} (Janus split), "
+                  f"{r['kappa_four']:.2f} (four); fails: {r.get('fails') or 'none'}")  # fmt: skip
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

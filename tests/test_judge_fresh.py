@@ -1,0 +1,72 @@
+"""The judge's fresh set (gdbench/experiments/judge_fresh.py, docs/judge_fresh.md): the block and arm
+read from a run folder, the agreement rows against hand-counted oracles, and the committed tables
+recomputed from the committed sheets and labels."""
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+FRESH = ROOT / "docs" / "results" / "judge" / "fresh"
+
+
+def test_block_and_arm_from_the_run_folder():
+    from gdbench.experiments.judge_fresh import block_and_arm
+
+    run = "/work/runs/judge-fresh/learned-janus/cells/janus/a_corgi/gd-no-sn/seed5"
+    assert block_and_arm(run) == ("learned-janus", "gd-no-sn")
+    assert block_and_arm("/x/empirical-janus/cells/janus/a_sofa/gd/seed5") == ("empirical-janus", "gd")
+    assert block_and_arm("/x/other/cells/easy/a_sofa/gd/seed5") == ("", "gd")
+
+
+def _row(consensus, six, block="learned-janus"):
+    return {"consensus": consensus, "rater1": consensus, "rater2": consensus, "six_views": six, "run_folder": "",
+            "block": block, "commit": "c", "judge": "j"}  # fmt: skip
+
+
+def test_agreement_rows_against_hand_counts():
+    """Ten results, six agreeing over the four classes. Janus split: truth 4 of 10 Janus, judged 5;
+    they agree on 9 (p_o 0.9, p_e = 0.4 * 0.5 + 0.6 * 0.5 = 0.5, kappa 0.8). Two of the five
+    consensus-fine results are warned: 0.4 > 0.1, so fine_warned fails."""
+    from gdbench.experiments.judge_fresh import agreement_rows
+
+    truth = ["front_everywhere"] * 3 + ["second_face"] + ["blob"] + ["fine"] * 5
+    judged = ["front_everywhere"] * 3 + ["front_everywhere"] + ["fine"] + ["fine"] * 3 + ["blob", "second_face"]
+    rows = agreement_rows([_row(t, j) for t, j in zip(truth, judged)])
+    top = next(r for r in rows if r["mode"] == "six views" and r["truth"] == "consensus" and r["block"] == "all")
+    assert top["n"] == 10 and top["agree"] == pytest.approx(0.6)
+    assert top["kappa_janus"] == pytest.approx(0.8)
+    assert top["fine_warned"] == pytest.approx(0.4) and "fine_warned" in top["fails"].split(";")
+    assert top["recall_front_everywhere"] == 1.0 and top["recall_blob"] == 0.0 and top["recall_fine"] == 0.6
+    assert top["second_face_judged"] == 1
+    assert not any(r["mode"] == "run folder" for r in rows)  # no run-folder labels: no rows
+    assert rows[-1]["mode"] == "rater2 against rater1" and rows[-1]["kappa_four"] == pytest.approx(1.0)
+
+
+@pytest.mark.skipif(not (FRESH / "judged.csv").is_file(), reason="the fresh set is not judged yet")
+def test_the_committed_agreement_recomputes_from_the_committed_judgements():
+    """agreement.csv is what agreement_rows makes of judged.csv; judged.csv's raters' columns are
+    the committed labels, and its six-view labels are the shipped judge's reading of the committed
+    sheets (recomputed here) when the judge's version is the one the table names."""
+    from gdbench.experiments.judge_fresh import agreement_rows, judge_fresh
+    from gdbench.metrics.judge.judge import judge_version
+
+    def read(path):
+        with open(path, newline="") as f:
+            return list(csv.DictReader(f))
+
+    judged = read(FRESH / "judged.csv")
+    stored = read(FRESH / "agreement.csv")
+    again = agreement_rows(judged)
+    assert len(again) == len(stored)
+    for a, s in zip(again, stored):
+        assert (a["mode"], a["truth"], a["block"], a["n"]) == (s["mode"], s["truth"], s["block"], int(s["n"]))
+        assert a["kappa_janus"] == pytest.approx(float(s["kappa_janus"]), abs=1e-9)
+    key = json.loads((FRESH / "fresh_key.json").read_text())
+    assert len(judged) == len(key) >= 120
+    if judged[0]["judge"] == judge_version():
+        now = judge_fresh(ROOT)
+        assert [r["six_views"] for r in now] == [r["six_views"] for r in judged]
+        assert [(r["rater1"], r["rater2"]) for r in now] == [(r["rater1"], r["rater2"]) for r in judged]
