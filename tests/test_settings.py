@@ -25,7 +25,9 @@ CASES = [
     ("sds-gs", {}, "sigma_min", "--sigma-min acts only with --guidance sjc (this run: --guidance sds)"),
     ("sds-gs", {}, "anneal", "--anneal acts only with --guidance sjc (this run: --guidance sds)"),
     ("gd", {}, "init_ply", "--init-ply acts only with --init ply (this run: --init sphere)"),
-    ("gd", {"init": "bank-depth"}, "init_color", "--init-color acts only with --init sphere or --sd-mode latent"),
+    ("gd", {"init": "bank-depth"}, "init_color", "--init-color acts only with --init sphere (this run: --init bank"),
+    ("gd", {"prior": "sd", "init": "ply", "init_ply": "p"}, "init_color",
+     "--init-color acts only with --init sphere or --sd"),
     ("gd", {"prior": "sd", "sd_mode": "latent"}, "sh_degree", "--sh-degree acts only with --sd-mode other than latent"),
     ("gd", {"progress": False}, "log_every", "--log-every acts only with --progress or --log-dir"),
     ("gd", {}, "views_spread_deg", "--views-spread-deg acts only with --views-per-step 2 or more"),
@@ -151,3 +153,60 @@ def test_a_sweep_file_takes_every_name_a_setting_had():
     assert a == b == {"noise.enabled": True, "noise.ratio": "amplitude", "view_prompting": "none", "views.per_step": 2}
     with pytest.raises(ValueError, match="unknown training option 'noise_colour'"):
         sweep_from_mapping({"overrides": {"noise_colour": 1}}, what="sweep.yaml")
+
+
+def test_a_group_passed_whole_keeps_what_moved_into_it():
+    """Before the move a NoiseConfig did not hold the structured-noise switch, nor a prior's config
+    view prompting: passing one whole keeps the run's (the same config, the same run id), unless it
+    sets them or an override names them."""
+    from gdbench.mechanisms.noise import NoiseConfig
+    from gdbench.priors.learned.prior import LearnedPriorConfig
+    from gdbench.train.run import run_id
+
+    a = preset("sjc-gs", noise=NoiseConfig(n_gaussians=500))
+    b = preset("sjc-gs", **{"noise.n_gaussians": 500})
+    assert a == b and not a.noise.enabled and run_id(a) == run_id(b)
+    assert preset("gd", noise=NoiseConfig(enabled=False)).noise.enabled is False
+    assert preset("sjc-gs", noise=NoiseConfig(), structured_noise=True).noise.enabled is True
+    c = apply_overrides(preset("gd", view_prompting="none"), {"prior": LearnedPriorConfig()})
+    assert c.prior.kind == "learned" and c.prior.view_prompting == "none"
+    d = apply_overrides(preset("gd", view_prompting="none"), {"prior": LearnedPriorConfig(view_prompting="buckets")})
+    assert d.prior.view_prompting == "buckets"
+
+
+def test_names_that_are_no_setting_are_refused():
+    from gdbench.train.options import inert_options
+
+    for bad in ("prior.steps", "prior.structured_noise", "noise.colour"):
+        with pytest.raises(ValueError, match=r"unknown setting"):
+            key_of(bad)
+    assert key_of("views-per-step") == "views.per_step" and key_of("noise-ratio") == "noise.ratio"
+    assert inert_options(preset("gd"), ["noise", "views", "vgs"]) == []  # groups (and switches) always act
+
+
+def test_every_unmet_rule_is_named_and_only_the_prior_own_alternatives():
+    from gdbench.train.options import inert_options
+
+    line = inert_options(preset("gd", prior="sd"), ["sd_controlnet"])[0]
+    assert line == ("--sd-controlnet acts only with --depth-conditioning and --sd-model other than tiny "
+                    "(this run: --no-depth-conditioning, --sd-model tiny)")  # fmt: skip
+    line = inert_options(preset("gd", init="ply", init_ply="x.ply"), ["init_color"])[0]
+    assert line == "--init-color acts only with --init sphere (this run: --init ply)"
+
+
+def test_each_group_checks_its_own_fields_once():
+    """A group's bad value fails where the group is made, naming its flag (the config that holds
+    it no longer walks it again)."""
+    from gdbench.train.adam import OptimConfig
+
+    with pytest.raises(ValueError, match=r"optim.colors \(--optim-colors\): expected a finite number"):
+        OptimConfig(colors=True)
+    with pytest.raises(ValueError, match=r"views\.spread_deg"):
+        preset("gd", views_spread_deg=200.0)
+
+
+def test_the_flat_layout_names_a_setting_added_to_a_flat_group():
+    from gdbench.train.layout import flat_config
+
+    flat = flat_config({"views": {"per_step": 2, "spread_deg": None, "jitter_deg": 0.0}, "vgs": {"enabled": True}})
+    assert flat == {"views_per_step": 2, "views_spread_deg": None, "views_jitter_deg": 0.0, "vgs": True}

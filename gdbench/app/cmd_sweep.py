@@ -128,7 +128,7 @@ def sweep_from_mapping(d: dict, what: str = "config", prior: str | None = None):
                 try:  # any name of the setting (noise.redraw, noise_ratio, an old one) -> its option's
                     key = key_of(str(ok))
                 except ValueError:
-                    key = str(ok)
+                    key = str(ok).replace("-", "_")
                 o = flag(key, TrainConfig)[2:].replace("-", "_") if "." in key else key
                 if o in train_hints:
                     train[o] = from_json(train_hints[o], ov, f"overrides: {ok}", what)

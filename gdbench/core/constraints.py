@@ -3,7 +3,8 @@
 A field states its range in its type, ``steps: Annotated[int, AtLeast(1)] = 2000``; tyro ignores
 the annotation and ``check_fields`` reads it. Besides the declared ranges, every float must be
 finite (``--camera-radius inf`` is refused, not trained), tuples are checked element by element,
-and nested dataclasses (``noise``, ``optim``, ``densify``) are walked. An error names the field
+and each config checks its own fields when it is made (a group, ``noise`` or ``densify``, before
+the config that holds it: so once). An error names the field
 and the command-line flag a user typed: ``camera_radius (--camera-radius): expected a finite
 number > 0, got inf``. Rules that tie two fields together (``sigma_min < sigma_max``) stay in the
 dataclasses' ``__post_init__``, after their fields' own checks.
@@ -118,11 +119,13 @@ class When:
             return False
         return self.above is None or (v is not None and v > self.above)
 
-    def needs(self, root: type, prefix: str) -> str:
+    def needs(self, config, root: type, prefix: str) -> str:
         """What the field needs, in command-line words: '--guidance sjc', '--vgs', '--views-per-step
-        2 or more', '--log-dir'."""
+        2 or more', '--log-dir'; of alternatives, those ``config`` has (not another prior's)."""
         if self.any_of:
-            return " or ".join(w.needs(root, prefix) for w in self.any_of)
+            missing = object()
+            here = [w for w in self.any_of if w.any_of or _lookup(config, w.key, missing) is not missing]
+            return " or ".join(w.needs(config, root, prefix) for w in here or self.any_of)
         f = flag(prefix + self.key, root)
         if self.values:
             return " or ".join(_setting(f, v) for v in self.values)
@@ -170,28 +173,27 @@ def _group_switch(group) -> When | None:
 def inactive(config, keys) -> list[str]:
     """One line per dotted key in ``keys`` (settings a user gave) that does nothing in ``config``:
     "--vgs-gamma acts only with --vgs (this run: --no-vgs)"; empty when every one acts. The rules are
-    the ``When`` markers on the fields and the groups' ``enabled`` switches; the first unmet one of a
-    key is named."""
+    the ``When`` markers on the fields and the groups' ``enabled`` switches: a switch that is off is
+    named alone, else every unmet rule of the field."""
     root = type(config)
     lines = []
     for key in keys:
         parts = key.split(".")
-        holder, prefix, rules = config, "", []
+        holder, prefix, switches = config, "", []
         for part in parts[:-1]:  # the groups on the way: their switches first
             holder, prefix = getattr(holder, part, None), prefix + part + "."
             if not dataclasses.is_dataclass(holder):
                 break
             switch = _group_switch(holder) if parts[-1] != "enabled" else None
-            rules += [(switch, holder, prefix)] if switch is not None else []
+            switches += [(switch, holder, prefix)] if switch is not None else []
         else:
-            rules += [(w, holder, prefix) for w in _markers(type(holder), parts[-1], When)]
-            unmet = next(((w, h, p) for w, h, p in rules if not w.holds(h)), None)
-            if unmet is not None:
-                w, h, p = unmet
-                now = ", ".join(w.now(h, root, p))
-                lines.append(
-                    f"{flag(key, root)} acts only with {w.needs(root, p)}" + (f" (this run: {now})" if now else "")
-                )
+            unmet = [(w, h, p) for w, h, p in switches if not w.holds(h)][:1]  # a switch off says it all
+            if not unmet:  # else every rule of the field's own that is not met
+                unmet = [(w, holder, prefix) for w in _markers(type(holder), parts[-1], When) if not w.holds(holder)]
+            if unmet:
+                needs = " and ".join(w.needs(h, root, p) for w, h, p in unmet)
+                now = ", ".join(s for w, h, p in unmet for s in w.now(h, root, p))
+                lines.append(f"{flag(key, root)} acts only with {needs}" + (f" (this run: {now})" if now else ""))
     return lines
 
 

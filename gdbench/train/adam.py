@@ -22,7 +22,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from gdbench.core.constraints import is_int
+from gdbench.core.constraints import check_fields, is_int
 from gdbench.core.private import foreach_add_, fused_adam_
 
 
@@ -57,6 +57,7 @@ class OptimConfig:
     """Rotations (DreamGaussian's; 3DGS and gsplat: 0.001)."""
 
     def __post_init__(self) -> None:
+        check_fields(self, "optim.")  # every field against its declared type and range
         if not (is_int(self.means_decay_steps) and self.means_decay_steps >= 1):
             raise ValueError(f"optim.means_decay_steps: expected an int >= 1, got {self.means_decay_steps!r}")
         for f in fields(self):

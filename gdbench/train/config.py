@@ -195,7 +195,11 @@ def key_of(name: str) -> str:
     is. An unknown name is a ValueError naming it."""
     if name == "prior":
         return name
-    key = setting_names().get(name) or setting_names().get(name.removeprefix("prior."))
+    plain = name.replace("-", "_")  # an option as typed: views-per-step
+    key = setting_names().get(plain)
+    if key is None and plain.startswith("prior."):  # a prior's setting by its dotted key
+        key = setting_names().get(plain.removeprefix("prior."))
+        key = key if key is not None and key.startswith("prior.") else None
     if key is None:
         raise ValueError(f"overrides: unknown setting {name!r}")
     return key
@@ -215,22 +219,25 @@ def prior_option_error(key: str, kind: str, typed: str = "") -> str | None:
 def apply_overrides(cfg: TrainConfig, overrides: Mapping[str, object]) -> TrainConfig:
     """``cfg`` with ``overrides`` applied: each key a setting's name as ``key_of`` reads it (a
     field, 'group.field', an option name such as 'vgs_gamma', a prior's setting with or without
-    'prior.'); a group's name with a config replaces the whole group, its switch included ('noise':
-    a ``NoiseConfig`` with structured noise on unless it says otherwise); 'prior' names its kind (its settings
+    'prior.'); a group's name with a config replaces the group (keeping the run's structured noise
+    switch, or the prior's view prompting, where the config leaves them at their defaults: they
+    moved into those configs, ``_keep_moved``); 'prior' names its kind (its settings
     that the new kind shares are kept). Unknown keys, and a prior's setting the chosen prior lacks,
     raise ValueError naming them."""
     top: dict[str, object] = {}
     nested: dict[str, dict[str, object]] = {}
     prior_kw: dict[str, object] = {}
     prior = cfg.prior
+    named = {key_of(n) for n in overrides if not (n in NESTED and is_dataclass(overrides[n]))}
     for name, value in overrides.items():
         if name in NESTED and is_dataclass(value):  # the group itself ('vgs': a VGSConfig)
-            top[name] = value
+            top[name] = _keep_moved(value, getattr(cfg, name), name, named)
             continue
         key = key_of(name)
         group, _, field_name = key.rpartition(".")
         if key == "prior":
             prior = _prior_of_kind(prior, value)
+            prior = _keep_moved(prior, cfg.prior, "prior", named) if not isinstance(value, str) else prior
         elif group == "prior":
             prior_kw[field_name] = value
         elif group:
@@ -244,6 +251,20 @@ def apply_overrides(cfg: TrainConfig, overrides: Mapping[str, object]) -> TrainC
     for group, values in nested.items():
         top[group] = replace(top.get(group, getattr(cfg, group)), **values)
     return replace(cfg, **top, prior=replace(prior, **prior_kw))
+
+
+def _keep_moved(new, old, group: str, named: set[str]):
+    """A group (or prior) config passed whole, with the settings that moved into it from the top of
+    the config (``layout.RENAMED``: structured noise's switch, view prompting) kept from ``old``
+    where ``new`` leaves them at their default and no override names them: before the move such a
+    group did not hold them, so it did not change them."""
+    keep = {}
+    for moved in RENAMED.values():
+        g, _, name = moved.rpartition(".")
+        if g == group and moved not in named and hasattr(new, name) and hasattr(old, name):
+            if getattr(new, name) == getattr(type(new)(), name):
+                keep[name] = getattr(old, name)
+    return replace(new, **keep) if keep else new
 
 
 def _prior_of_kind(prior, kind):

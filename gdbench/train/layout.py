@@ -50,7 +50,7 @@ def flat_config(d: Mapping[str, object]) -> dict:
     for group, names in LEGACY_FLAT_GROUPS.items():
         if isinstance(out.get(group), Mapping):
             for k, v in out.pop(group).items():
-                out[names[k]] = v
+                out[names.get(k, f"{group}_{k}")] = v  # a setting added since: its option's name
     if isinstance(out.get("noise"), Mapping):
         noise = dict(out["noise"])
         if "enabled" in noise:

@@ -139,4 +139,4 @@ def inert_options(cfg, given) -> list[str]:
     """One line per option in ``given`` (setting names as ``config.key_of`` reads them) that does
     nothing in ``cfg``, naming what it needs (the ``When`` markers beside the fields and the groups'
     switches, read by ``core.constraints.inactive``); empty when every given option acts."""
-    return inactive(cfg, [key_of(k) for k in given])
+    return inactive(cfg, [key_of(k) for k in given if k not in NESTED])  # a group, or its switch: always acts
