@@ -45,20 +45,19 @@ def test_agreement_rows_against_hand_counts():
     assert rows[-1]["mode"] == "rater2 against rater1" and rows[-1]["kappa_four"] == pytest.approx(1.0)
 
 
+def _read(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
 @pytest.mark.skipif(not (FRESH / "judged.csv").is_file(), reason="the fresh set is not judged yet")
 def test_the_committed_agreement_recomputes_from_the_committed_judgements():
-    """agreement.csv is what agreement_rows makes of judged.csv; judged.csv's raters' columns are
-    the committed labels, and its six-view labels are the shipped judge's reading of the committed
-    sheets (recomputed here) when the judge's version is the one the table names."""
-    from gdbench.experiments.judge_fresh import agreement_rows, judge_fresh
-    from gdbench.metrics.judge.judge import judge_version
+    """agreement.csv is what agreement_rows makes of judged.csv, and judged.csv's raters' columns
+    are the committed labels of the key's results."""
+    from gdbench.experiments.judge_fresh import agreement_rows
 
-    def read(path):
-        with open(path, newline="") as f:
-            return list(csv.DictReader(f))
-
-    judged = read(FRESH / "judged.csv")
-    stored = read(FRESH / "agreement.csv")
+    judged = _read(FRESH / "judged.csv")
+    stored = _read(FRESH / "agreement.csv")
     again = agreement_rows(judged)
     assert len(again) == len(stored)
     for a, s in zip(again, stored):
@@ -66,7 +65,23 @@ def test_the_committed_agreement_recomputes_from_the_committed_judgements():
         assert a["kappa_janus"] == pytest.approx(float(s["kappa_janus"]), abs=1e-9)
     key = json.loads((FRESH / "fresh_key.json").read_text())
     assert len(judged) == len(key) >= 120
-    if judged[0]["judge"] == judge_version():
-        now = judge_fresh(ROOT)
-        assert [r["six_views"] for r in now] == [r["six_views"] for r in judged]
-        assert [(r["rater1"], r["rater2"]) for r in now] == [(r["rater1"], r["rater2"]) for r in judged]
+    labels = {p: {r["run_id"]: r["label"] for r in _read(ROOT / "fixtures" / "labels" / f"fresh_rater{p}.csv")}
+              for p in (1, 2)}  # fmt: skip
+    for r in judged:
+        assert (r["rater1"], r["rater2"]) == (labels[1][r["run_id"]], labels[2][r["run_id"]])
+        assert r["consensus"] == (r["rater1"] if r["rater1"] == r["rater2"] else "")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (FRESH / "judged.csv").is_file(), reason="the fresh set is not judged yet")
+def test_the_six_view_labels_recompute_from_the_committed_sheets():
+    """The shipped judge reads the committed sheets as judged.csv says, when it is the judge the
+    table names (a retrained judge is read again, not compared)."""
+    from gdbench.experiments.judge_fresh import judge_fresh
+    from gdbench.metrics.judge.judge import judge_version
+
+    judged = _read(FRESH / "judged.csv")
+    if judged[0]["judge"] != judge_version():
+        pytest.skip(f"judged.csv names the judge {judged[0]['judge']}, the shipped one is {judge_version()}")
+    now = judge_fresh(ROOT)
+    assert [r["six_views"] for r in now] == [r["six_views"] for r in judged]
