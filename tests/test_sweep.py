@@ -664,3 +664,18 @@ def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeyp
     heights = {n: Image.open(tmp_path / "results" / f"turntables{n}.png").height for n in ("", "_a", "_b")}
     rows_of = {n: round((h / 90 - 0.5) / 1.7) for n, h in heights.items()}
     assert rows_of == {"": 3, "_a": 2, "_b": 1}
+
+
+def test_the_docs_state_each_priors_janus_setting_as_the_code_applies_it():
+    """docs/scoring.md's settings table names the janus setting's front bias for each prior as
+    ``setting_overrides`` gives it (1 on the empirical prior, 2 on the learned one)."""
+    from pathlib import Path
+
+    from gdbench.experiments.sweep import setting_overrides
+
+    row = next(ln for ln in (Path(__file__).resolve().parents[1] / "docs" / "scoring.md").read_text().splitlines()
+               if ln.startswith("| `janus` |"))  # fmt: skip
+    for prior, words in (("empirical", "on the empirical prior"), ("learned", "on the learned prior")):
+        o = setting_overrides("janus", prior)
+        stated = f"--view-prompting {o['view_prompting']} --front-bias {o['front_bias']:g}` {words}"
+        assert stated in row, (stated, row)
