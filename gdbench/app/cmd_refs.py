@@ -20,13 +20,21 @@ class Compare:
     out: Path = Path("runs/compare")
     """Folder for compare.csv/json, the error maps and the Pareto plots."""
     backends: tuple[str, ...] = ()
-    """Only these renderers (default: all); the float64 reference always runs."""
+    """Only these built-in renderers (default: all of them, or none when --renderer is given); the
+    float64 reference always runs."""
+    renderer: tuple[str, ...] = ()
+    """A renderer of your own, module:function (docs/references.md, "Bring your own renderer"):
+    PASS or FAIL per scene against the scene's tolerance, SKIP where it lacks what a scene needs;
+    the command exits 1 when a case fails."""
 
 
 def run_compare(cmd: Compare) -> dict:
     from gdbench.refcheck.compare import run
 
-    results = run(cmd.scene, backends=list(cmd.backends) or None, out=cmd.out)
+    results = run(cmd.scene, backends=list(cmd.backends) or None, out=cmd.out, renderers=list(cmd.renderer))
+    failed = [f"{r['scene']}/{r['renderer']}" for v in results.values() for r in v.rows if r.get("verdict") == "FAIL"]
+    if failed:
+        raise SystemExit(f"compare: {len(failed)} case(s) FAIL: {', '.join(failed)}")
     return {k: {"rows": len(v.rows), "skipped": len(v.skipped)} for k, v in results.items()}
 
 

@@ -254,6 +254,43 @@ BACKENDS: dict[str, Callable] = {
 the fixture-specific work (settings ladders, error rows), by the registry's names."""
 
 
+def run_renderer(spec, fx: Fixture, res: Result, truth: torch.Tensor) -> None:
+    """A renderer of the user's (``protocol.RendererSpec``) against the float64 twin at its own
+    alpha clamp: one row with its error and, for the exact tolerance class, PASS or FAIL against
+    the fixture's tolerance for an exact float32 rasterizer (its ``reference`` entry); SKIP with the
+    reason where the renderer lacks what the scene needs; FAIL with one line where it raises or
+    returns the wrong thing (the other cases still run)."""
+    reason = spec.why_not(fx.scene.sh_degree)
+    if reason is not None:
+        res.skipped.append({"scene": fx.name, "renderer": spec.name, "reason": reason, "verdict": "SKIP"})
+        return
+    a = _render_args(fx)
+    if spec.alpha_max != 0.99:  # the twin at the renderer's clamp
+        from renderers.splat.reference import rasterize_reference
+
+        truth = rasterize_reference(**a, alpha_max=spec.alpha_max, outputs=("rgb",)).rgb
+    base = {"scene": fx.name, "renderer": spec.name, "settings": f"{spec.tolerance} class",
+            "against": f"reference[alpha_max={spec.alpha_max}]", "quantity": "rgb"}  # fmt: skip
+    args = [a[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "width", "height")]
+    try:
+        out, t = _timed(lambda: spec.render(*args, background=a["background"], outputs=("rgb", "alpha"))["rgb"])
+    except Exception as e:  # the renderer's own failure: a row of its own, then the next case
+        res.rows.append(
+            base | {"time_s": None, "verdict": "FAIL", "reason": f"{type(e).__name__}: {e}".splitlines()[0]}
+        )
+        return
+    errs = image_errors(out, truth)
+    tol = fx.spec.get("references", {}).get("reference")
+    verdict, why = "compared", ""
+    if spec.tolerance == "exact" and isinstance(tol, dict):
+        over = [
+            f"{k} {errs[k]:.2e} > {tol[k]:g}" for k in ("mean_abs", "max_abs") if k in tol and not errs[k] <= tol[k]
+        ]
+        verdict, why = ("FAIL", "; ".join(over)) if over else ("PASS", "")
+    res.rows.append(base | {"time_s": t, **errs, "verdict": verdict, "reason": why})
+    res.images[spec.name] = out
+
+
 def scene_key(backend: str) -> str:
     """The key under which a fixture declares a backend: the splat renderer answers to the twin."""
     return "reference" if backend == "splat" else backend
@@ -266,12 +303,18 @@ def available(name: str) -> tuple[bool, str]:
     return get(name).available()
 
 
-def compare_scene(fx: Fixture, backends: list[str] | None = None, bar=None) -> Result:
-    """Every backend of ``backends`` on ``fx`` against its float64 reference (``bar``: a progress
-    report, advanced once per backend)."""
+def compare_scene(fx: Fixture, backends: list[str] | None = None, bar=None, renderers: list | None = None) -> Result:
+    """Every backend of ``backends`` (default: every built-in one, unless ``renderers`` are given)
+    and every renderer of the user's in ``renderers`` (``protocol.RendererSpec``s) on ``fx``
+    against its float64 reference (``bar``: a progress report, advanced once per renderer)."""
     res = Result()
     truth = run_reference(fx, res)
-    for name in backends or list(BACKENDS):
+    for spec in renderers or []:
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(scene=fx.name, renderer=spec.name)
+        run_renderer(spec, fx, res, truth)
+    for name in backends if backends is not None else ([] if renderers else list(BACKENDS)):
         if bar is not None:
             bar.update(1)
             bar.set_postfix(scene=fx.name, renderer=name)
@@ -375,12 +418,17 @@ def print_table(results: dict[str, Result]) -> None:
     )
     for res in results.values():
         for r in res.rows:
+            head = f"{r['scene']:18s} {r['renderer']:16s} {r['settings'][:26]:26s} {r['against'][:24]:24s} "
+            if r.get("time_s") is None:  # the renderer raised: no numbers
+                print(head + f"FAIL: {r.get('reason', '')}")
+                continue
+            verdict = f" {r['verdict']}" + (f" ({r['reason']})" if r.get("reason") else "") if "verdict" in r else ""
             print(
-                f"{r['scene']:18s} {r['renderer']:16s} {r['settings'][:26]:26s} {r['against'][:24]:24s} "
-                f"{r['quantity']:10s} {r['time_s']:9.4f} {r['mean_abs']:9.2e} {r['max_abs']:9.2e} {r['psnr']:7.1f}"
+                head + f"{r['quantity']:10s} {r['time_s']:9.4f} {r['mean_abs']:9.2e} {r['max_abs']:9.2e} "
+                f"{r['psnr']:7.1f}{verdict}"
             )
         for s in res.skipped:
-            print(f"{s['scene']:18s} {s['renderer']:16s} skipped: {s['reason']}")
+            print(f"{s['scene']:18s} {s['renderer']:16s} {s.get('verdict', 'skipped')}: {s['reason']}")
 
 
 def run(
@@ -388,7 +436,14 @@ def run(
     backends: list[str] | None = None,
     out: Path = Path("runs/compare"),
     verbose: bool = True,
+    renderers: list[str] | None = None,
 ) -> dict[str, Result]:
+    """Compare renderers on fixture scenes: the built-in ``backends`` (default: all of them, or none
+    where ``renderers`` are given) and the user's ``renderers`` (``module:function`` or registered
+    names, ``protocol.load_renderer``); writes the report to ``out``."""
+    from gdbench.refcheck.protocol import load_or_fail
+
+    specs = [load_or_fail(r) for r in renderers or []]  # one that cannot load fails each case, with the reason
     names = fixture_names() if scenes == "all" else ([scenes] if isinstance(scenes, str) else list(scenes))
     unknown = [b for b in backends or [] if b not in BACKENDS]
     if unknown:
@@ -403,10 +458,11 @@ def run(
     from gdbench.core.progress import progress
 
     results = {}
-    bar = progress(len(names) * len(backends or BACKENDS), "compare", "renderer", disable=not verbose)
+    chosen = backends if backends is not None else ([] if specs else list(BACKENDS))
+    bar = progress(len(names) * (len(chosen) + len(specs)), "compare", "renderer", disable=not verbose)
     try:
         for n in names:
-            results[n] = compare_scene(load_fixture(n), backends, bar)
+            results[n] = compare_scene(load_fixture(n), chosen, bar, specs)
     finally:
         if bar is not None:
             bar.close()
