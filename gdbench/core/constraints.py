@@ -231,14 +231,18 @@ def _field_class(root: type, key: str) -> tuple[list[type], str]:
 
 def flag(key: str, root: type | None = None) -> str:
     """The command-line option of a field key ('noise.ou_beta' -> '--noise-ou-beta', 'vgs.enabled'
-    -> '--vgs', 'prior.sd_model' -> '--sd-model'): derived from the key, unless the field declares
-    its own (``Flag``, looked up from ``root``, the config class the key starts at)."""
+    -> '--vgs'): derived from the key, unless the field declares its own (``Flag``), or its group is
+    one whose settings are options of their own (``root.OWN_OPTIONS``: TrainConfig's prior, so
+    'prior.sd_model' -> '--sd-model'); both looked up from ``root``, the config class the key
+    starts at."""
     if root is not None:
         holders, name = _field_class(root, key)
         named = next((m for cls in holders for m in _markers(cls, name, Flag)), None)
         if named is not None:
             return "--" + named.name
-    key = key.removeprefix("prior.")  # the prior's settings are flags of their own (--sd-model)
+        group, dot, rest = key.partition(".")
+        if dot and group in getattr(root, "OWN_OPTIONS", ()):
+            key = rest
     key = key.removesuffix(".enabled")  # a group switched on and off by its name (--vgs, --densify)
     return "--" + key.replace(".", "-").replace("_", "-")
 
@@ -278,12 +282,14 @@ def _declared(cls) -> dict[str, tuple[type | None, Range | None]]:
     return out
 
 
-def check_fields(obj, prefix: str = "", *, nested: bool = True) -> None:
+def check_fields(obj, prefix: str = "", *, nested: bool = True, options: str | None = None) -> None:
     """Check every field of dataclass ``obj`` against its type and declared ``Range``; the first
     violation raises ValueError naming the field and its flag. A config's groups (``noise``,
     ``densify``: dataclasses it holds) check themselves when they are made, so they are not walked
     again. ``nested=False``: the dataclasses it holds are option groups
-    whose fields are flags of their own (a command's ``train`` and ``method`` options), walked here."""
+    whose fields are flags of their own (a command's ``train`` and ``method`` options), walked here.
+    ``options``: the prefix of the fields' options where it is not ``prefix`` (a prior's settings
+    are named 'prior.sd_model' and typed --sd-model: ``options=""``)."""
     for name, (base, rng) in _declared(type(obj)).items():
         value = getattr(obj, name)
         key = prefix + name
@@ -291,7 +297,8 @@ def check_fields(obj, prefix: str = "", *, nested: bool = True) -> None:
             if not nested:
                 check_fields(value, prefix, nested=nested)
             continue
-        option = next((f"--{m.name}" for m in _markers(type(obj), name, Flag)), None) or flag(key)
+        option = next((f"--{m.name}" for m in _markers(type(obj), name, Flag)), None)
+        option = option or flag((prefix if options is None else options) + name)
         choices = _choices(type(obj)).get(name)
         bad = [v for v in (value if isinstance(value, tuple) else (value,)) if choices is not None and v not in choices]
         if bad:

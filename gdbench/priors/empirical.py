@@ -423,7 +423,7 @@ class EmpiricalPriorConfig:
     """Half-width of the view window (--view-prompting window), degrees."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "prior.")  # every field against its declared type, range and choices
+        check_fields(self, "prior.", options="")  # every field against its declared type, range and choices
 
     @property
     def input_space(self) -> str:

@@ -13,7 +13,7 @@ import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 from gdbench.core.constraints import AtLeast, Between, Positive, Seed, When, check_fields, flag
 from gdbench.mechanisms.noise import NoiseConfig
@@ -28,6 +28,9 @@ from gdbench.train.views import ViewsConfig
 
 @dataclass(frozen=True)
 class TrainConfig:
+    OWN_OPTIONS: ClassVar[tuple[str, ...]] = ("prior",)
+    """Groups whose settings are options of their own: --sd-model, not --prior-sd-model
+    (``core.constraints.flag``)."""
     prompt: str = "a yellow duck"
     """What to generate (the empirical prior matches it to one of its assets' captions)."""
     preset: str = "gd"
@@ -213,7 +216,7 @@ def prior_option_error(key: str, kind: str, typed: str = "") -> str | None:
     kinds = [k for k, c in PRIOR_CONFIGS.items() if name in {f.name for f in fields(c)}]
     if kind in kinds or not kinds:
         return None
-    return f"{typed or flag(key)} acts only with --prior {' or '.join(kinds)} (this run: --prior {kind})"
+    return f"{typed or flag(key, TrainConfig)} acts only with --prior {' or '.join(kinds)} (this run: --prior {kind})"
 
 
 def apply_overrides(cfg: TrainConfig, overrides: Mapping[str, object]) -> TrainConfig:

@@ -454,7 +454,7 @@ class LearnedPriorConfig:
     (docs/training.md)."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "prior.")  # every field against its declared type, range and choices
+        check_fields(self, "prior.", options="")  # every field against its declared type, range and choices
         if self.variants not in (1, 3):
             raise ValueError(f"variants: the learned prior takes 1 or 3 (all of a caption's), got {self.variants}")
 

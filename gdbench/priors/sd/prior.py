@@ -329,7 +329,7 @@ class SDPriorConfig:
     (docs/training.md)."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "prior.")  # every field against its declared type, range and choices
+        check_fields(self, "prior.", options="")  # every field against its declared type, range and choices
 
     @property
     def input_space(self) -> str:
