@@ -650,7 +650,9 @@ def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeyp
         dec.collect(tmp_path, [(tmp_path / "blocks" / "a", "empirical-v1")])
     with pytest.raises(ValueError, match="presets"):
         dec.Block("c", ["empirical-v1"], ["easy"], ["gd", "best"])
-    dec.report(tmp_path, tmp_path / "results")
+    from gdbench.experiments.decisive_report import report
+
+    report(tmp_path, tmp_path / "results")
     verdicts = _read_csv(tmp_path / "results" / "verdict.csv")
     assert {v["group"] for v in verdicts} == {"empirical-v1, 4 steps"}  # block b has one preset: no claim
     assert len(_read_csv(tmp_path / "results" / "cells.csv")) == 6
