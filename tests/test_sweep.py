@@ -652,7 +652,7 @@ def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeyp
         dec.Block("c", ["empirical-v1"], ["easy"], ["gd", "best"])
     from gdbench.experiments.decisive_report import report
 
-    report(tmp_path, tmp_path / "results")
+    report(tmp_path, tmp_path / "results", dec.collect, PROMPT)
     verdicts = _read_csv(tmp_path / "results" / "verdict.csv")
     assert {v["group"] for v in verdicts} == {"empirical-v1, 4 steps"}  # block b has one preset: no claim
     assert len(_read_csv(tmp_path / "results" / "cells.csv")) == 6

@@ -110,7 +110,7 @@ def main(argv=None) -> int:
     if a.stage == "coupling":
         from gdbench.experiments.decisive_report import coupling
 
-        coupling(a.out)
+        coupling(a.out, PROMPTS[:3])
         return 0
     if a.stage == "report":
         plain = [(Path(x.rsplit("=", 1)[0]), x.rsplit("=", 1)[1]) for x in a.plain if "=" in x]
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
             p.error(f"--plain: expected DIR=GROUP with GROUP from {list(GROUPS)}, got {a.plain}")
         from gdbench.experiments.decisive_report import report
 
-        report(a.out, a.results, plain)
+        report(a.out, a.results, collect, PROMPTS[0], plain)
         return 0
     blocks, seeds = {"pilot": (PILOT, PILOT_SEEDS), "sweep": (SWEEP, SEEDS), "check": (CHECK, SEEDS)}[a.stage]
     unknown = set(a.only) - {b.name for b in blocks}

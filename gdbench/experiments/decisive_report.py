@@ -7,11 +7,10 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from gdbench.experiments.decisive import PROMPTS, collect
 from gdbench.experiments.runner import VIEWS_SPREAD_DEG
 
 
-def coupling(results: Path) -> None:
+def coupling(results: Path, captions: list[str]) -> None:
     """coupling.csv (structured noise at one surface point, by separation and mixing ratio) and
     batch_coupling.csv (the same over the view pairs of one step: independent views or a spread)."""
     import itertools
@@ -30,7 +29,6 @@ def coupling(results: Path) -> None:
     )
 
     commit = code_commit()
-    captions = PROMPTS[:3]
     rows = surface_coupling(captions, [0, 2, 5, 10, 15, 20, 30, 60, 90, 180], draws=6)
     write_csv([r | {"commit": commit} for r in rows], results / "coupling.csv")
     g = torch.Generator().manual_seed(1)
@@ -50,9 +48,11 @@ def coupling(results: Path) -> None:
     write_csv(batch, results / "batch_coupling.csv")
 
 
-def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None:
+def report(out: Path, results: Path, collect, prompt: str, plain: list[tuple[Path, str]] = ()) -> None:
     """Merged tables of every block (and plain sweeps: ``plain``) in one verdict table, Holm across
-    all its claims, and each block's turntable grid."""
+    all its claims, and each block's turntable grid of ``prompt``; ``collect``: the experiment's
+    reader of its cells (``decisive.collect``), passed in so that the report does not import its
+    definition."""
     from gdbench.experiments.sweep import turntable_grid
     from gdbench.experiments.tables import tables
 
@@ -63,11 +63,11 @@ def report(out: Path, results: Path, plain: list[tuple[Path, str]] = ()) -> None
     paths["verdict_readme"] = readme_table(results / "verdict.csv", results / "verdict_readme.md")
     blocks = sorted(p.parent.name for p in (out / "blocks").glob("*/cells"))
     for b in blocks:
-        grid = turntable_grid(out / "blocks" / b, PROMPTS[0], seed=0)  # (group, setting) x preset
+        grid = turntable_grid(out / "blocks" / b, prompt, seed=0)  # (group, setting) x preset
         if grid is not None:
             paths[f"turntables_{b}"] = Path(shutil.copy(grid, results / f"turntables_{b}.png"))
     # one figure: every block's (prior and views per step, setting) x preset for the first prompt
-    grid = turntable_grid([out / "blocks" / b for b in blocks], PROMPTS[0], seed=0, path=results / "turntables.png")
+    grid = turntable_grid([out / "blocks" / b for b in blocks], prompt, seed=0, path=results / "turntables.png")
     if grid is not None:
         paths["turntables"] = grid
     print(f"report: {len(rows)} cells -> {', '.join(str(p) for p in paths.values())}")
