@@ -139,9 +139,9 @@ class When:
         """The settings this rule reads, as this run has them ('--guidance sds')."""
         if self.any_of:
             return [s for w in self.any_of for s in w.now(config, root, prefix)]
-        v = _lookup(config, self.key)
         missing = object()
-        if _lookup(config, self.key, missing) is missing:
+        v = _lookup(config, self.key, missing)
+        if v is missing:
             return []  # another prior's setting: nothing to say
         return [_setting(flag(prefix + self.key, root), v)]
 
@@ -219,11 +219,7 @@ def _field_class(root: type, key: str) -> tuple[list[type], str]:
         for cls in holders:
             ann = _hints(cls).get(part)
             ann = typing.get_args(ann)[0] if typing.get_origin(ann) is typing.Annotated else ann
-            members = (
-                typing.get_args(ann)
-                if typing.get_origin(ann) in (typing.Union, getattr(types, "UnionType", ()))
-                else (ann,)
-            )
+            members = typing.get_args(ann) if typing.get_origin(ann) in (typing.Union, types.UnionType) else (ann,)
             nxt += [m for m in members if dataclasses.is_dataclass(m)]
         holders = nxt
     return holders, parts[-1]

@@ -60,13 +60,11 @@ def judge_fresh(root: Path = Path("."), runs: Path | None = None) -> list[dict]:
     rows = []
     for r in fresh_results(root):
         six = judge.views(r.views, SHEET_AZIMUTHS, r.caption)
-        folder = None
-        if runs is not None:
-            rel = Path(r.run).parts
-            block = block_and_arm(r.run)[0]
-            folder = Path(runs).joinpath(*rel[rel.index(block) :]) if block in rel else None
-        whole = judge.run(folder) if folder is not None and (folder / "scene.ply").is_file() else None
         block, arm = block_and_arm(r.run)
+        rel, folder = Path(r.run).parts, None
+        if runs is not None and block in rel:
+            folder = Path(runs).joinpath(*rel[rel.index(block) :])
+        whole = judge.run(folder) if folder is not None and (folder / "scene.ply").is_file() else None
         rows.append({
             "number": r.number, "run_id": r.run_id, "caption": r.caption, "block": block, "preset": arm,
             "six_views": six["label"], "six_views_confidence": six["confidence"],

@@ -174,23 +174,19 @@ NESTED = {"views": ViewsConfig, "noise": NoiseConfig, "vgs": VGSConfig, "optim":
 """Nested config groups an override may reach with a dotted key ('noise.redraw')."""
 
 
-def _keys() -> dict[str, str]:
-    """Every setting's dotted key ('noise.redraw', 'prior.sd_model', 'steps'), under itself and
-    under its option name (its flag without dashes: 'noise_redraw', 'sd_model', 'vgs',
-    'structured_noise'), and the keys of ``layout.RENAMED``."""
+@functools.cache
+def setting_names() -> dict[str, str]:
+    """Every name a setting goes by -> its dotted key: the one converter of the command line's
+    names, sweep files' keys, ``preset()``'s keywords and run.json's layouts. Each dotted key
+    ('noise.redraw', 'prior.sd_model', 'steps') under itself and under its option name (its flag
+    without dashes: 'noise_redraw', 'sd_model', 'vgs', 'structured_noise'), and the keys of
+    ``layout.RENAMED``."""
     keys = [f.name for f in fields(TrainConfig) if f.name not in NESTED and f.name != "prior"]
     keys += [f"{g}.{f.name}" for g, cls in NESTED.items() for f in fields(cls)]
     keys += [f"prior.{f.name}" for cls in PRIOR_CONFIGS.values() for f in fields(cls)]
     names = {k: k for k in keys}
     names |= {flag(k, TrainConfig)[2:].replace("-", "_"): k for k in keys if "." in k}
-    return names | {old: new for old, new in RENAMED.items()}
-
-
-@functools.cache
-def setting_names() -> dict[str, str]:
-    """Every name a setting goes by -> its dotted key: the one converter of the command line's
-    names, sweep files' keys, ``preset()``'s keywords and run.json's layouts (``_keys``)."""
-    return _keys()
+    return names | RENAMED
 
 
 def key_of(name: str) -> str:
