@@ -325,8 +325,9 @@ def test_peer_sweep_reports_each_peer_against_splat_in_the_same_run(tmp_path):
     assert all("forward only" in r["status"] for r in rows if r["path"] == "mitsuba" and r["mode"] == "fwd+bwd")
 
 
-def test_stability_cases_agree_with_the_twin_and_flag_non_finite_renderers(tmp_path, monkeypatch):
+def test_stability_cases_agree_with_the_twin_and_flag_non_finite_renderers(tmp_path):
     from gdbench.refcheck import bm_stability as bs
+    from gdbench.refcheck.protocol import register_renderer
 
     names = ["anisotropy 1e6", "grazing view: disc edge-on", "fovy 170 deg", "10k Gaussians on one pixel"]
     rows = bs.run(tmp_path / "stab.csv", ("splat", "splat_torch"), names, progress=False)
@@ -334,19 +335,25 @@ def test_stability_cases_agree_with_the_twin_and_flag_non_finite_renderers(tmp_p
     for r in rows:
         assert r["status"] == "ok" and r["twin_finite"] and not r["nan_out"] and not r["nan_grad"]
         assert r["alpha_max_twin"] > 0.05  # each case draws something
-        assert max(r["max_err_rgb"], r["max_err_alpha"]) < 1e-5 and r["max_rel_err_grad"] < 1e-3
+        assert max(r["max_err_rgb"], r["max_err_alpha"]) < 1e-5 and r["grad_err"] < 1e-3 and r["verdict"] == "PASS"
+    summary = json.loads((tmp_path / "stab_summary.json").read_text())
+    assert summary["verdicts"]["splat"] == {"PASS": 4, "FAIL": 0, "SKIP": 0, "failed": []}
 
-    # a renderer that returns NaN is flagged in its row and in the table
+    # a renderer that returns NaN is flagged in its row and in the table, FAILs, and the command exits 1
     from renderers.splat import rasterize
 
     def broken(*a, **k):
         out = rasterize(*a, **k)
         return type(out)(rgb=out.rgb * float("nan"), alpha=out.alpha)
 
-    monkeypatch.setattr(bs, "_renderer", lambda name: (broken, 0.99))
-    bad = bs.run(tmp_path / "bad.csv", ("splat",), names[:1], progress=False)
+    register_renderer("nan_renderer", broken)
+    bad = bs.run(tmp_path / "bad.csv", (), names[:1], progress=False, refs=("nan_renderer",))
     assert bad[0]["nan_out"] and bad[0]["nan_grad"] and bad[0]["status"] == "non-finite"
+    assert bad[0]["verdict"] == "FAIL" and "rgb not finite" in bad[0]["reason"]
     assert "NaN out, NaN grad" in (tmp_path / "bad.md").read_text()
+    argv = ["--out", str(tmp_path / "cli.csv"), "--renderer", "nan_renderer", "--cases", names[0]]
+    assert bs.main(argv) == 1
+    assert bs.main(argv[:2] + ["--renderers", "splat", "--cases", names[0]]) == 0
     with pytest.raises(ValueError, match="cases: unknown"):
         bs.run(tmp_path / "x.csv", ("splat",), ["no such case"])
 

@@ -71,7 +71,7 @@ def test_an_outside_renderer_passes_and_a_wrong_one_fails_each_case(outside, tmp
         good = rows[(scene, f"{outside}:rasterize")]
         assert good["verdict"] == "PASS" and good["max_abs"] <= 1e-4, good
         dim = rows[(scene, f"{outside}:dimmed")]
-        assert dim["verdict"] == "FAIL" and "max_abs" in dim["reason"]  # the twin sees it
+        assert dim["verdict"] == "FAIL" and "rgb max error" in dim["reason"]  # the twin sees it
         assert "kernel launch failed" in rows[(scene, f"{outside}:broken")]["reason"]
         assert "rgb should be a float tensor" in rows[(scene, f"{outside}:wrong_shape")]["reason"]
         assert "not a function" in rows[(scene, f"{outside}:NOT_A_FUNCTION")]["reason"]

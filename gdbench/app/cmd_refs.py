@@ -32,7 +32,10 @@ def run_compare(cmd: Compare) -> dict:
     from gdbench.refcheck.compare import run
 
     results = run(cmd.scene, backends=list(cmd.backends) or None, out=cmd.out, renderers=list(cmd.renderer))
-    failed = [f"{r['scene']}/{r['renderer']}" for v in results.values() for r in v.rows if r.get("verdict") == "FAIL"]
+    failed = list(dict.fromkeys(
+        [f"{r['scene']}/{r['renderer']}" for v in results.values() for r in v.rows if r.get("verdict") == "FAIL"]
+        + [f"{r['case']}/{r['renderer']}" for v in results.values() for r in v.verdicts if r["verdict"] == "FAIL"]
+    ))  # fmt: skip
     if failed:
         raise SystemExit(f"compare: {len(failed)} case(s) FAIL: {', '.join(failed)}")
     return {k: {"rows": len(v.rows), "skipped": len(v.skipped)} for k, v in results.items()}
@@ -79,6 +82,13 @@ class Bench:
     quick: bool = False
     """Small grid (render and peers only; render's cases all in this process, so its peak memory
     is not per case): a smoke run, not numbers to publish."""
+    renderer: tuple[str, ...] = ()
+    """stability and error: renderers of your own, module:function or path/file.py:function
+    (docs/references.md, "Bring your own renderer"); PASS, FAIL or SKIP per case, exit 1 on a FAIL."""
+    renderers: tuple[str, ...] = ()
+    """stability and error: only these built-in renderers (default: all, or none with --renderer)."""
+    cases: tuple[str, ...] = ()
+    """stability: only these cases (default: all; names as in its table)."""
 
 
 def run_bench(cmd: Bench) -> dict:
@@ -90,5 +100,13 @@ def run_bench(cmd: Bench) -> dict:
         if cmd.which not in ("render", "peers"):
             raise ValueError(f"quick: only render and peers have a quick grid, not {cmd.which!r}")
         argv += ["--quick"] + (["--inprocess"] if cmd.which == "render" else [])
+    for flag, values, benches in (("--renderer", cmd.renderer, ("stability", "error")),
+                                  ("--renderers", cmd.renderers, ("stability", "error")),
+                                  ("--cases", cmd.cases, ("stability",))):  # fmt: skip
+        if values and cmd.which not in benches:
+            raise ValueError(f"{flag[2:]}: only the {' and '.join(benches)} benchmarks take it, not {cmd.which!r}")
+        argv += [flag, *values] if values else []
     code = importlib.import_module(module).main(argv)
+    if code:
+        raise SystemExit(f"bench {cmd.which}: a case failed (FAIL lines above; {Path(cmd.out) / csv_name})")
     return {"bench": cmd.which, "csv": str(Path(cmd.out) / csv_name), "exit": code}

@@ -24,6 +24,9 @@ class Backend:
     """Keywords of ``render`` for accuracy comparisons (compare, stability)."""
     fast: dict = field(default_factory=dict)
     """Keywords of ``render`` for speed benchmarks (fewer samples where that is a choice)."""
+    tolerance: str = "exact"
+    """Its conformance class (``conformance.CLASSES``): an exact float32 rasterizer of gdbench's image
+    model, or an approximate one (another image model: the ray-traced ellipsoids)."""
     differentiable: bool = True
     images: bool = True
     """False for backends that only check cameras (pyrender draws the centres as points)."""
@@ -147,6 +150,7 @@ BACKENDS: dict[str, Backend] = {
             "Mitsuba 3 ray-traced ellipsoids (volprim_rf_basic)",
             comparable={"spp": 16},
             fast={"spp": 4},
+            tolerance="approximate",
         ),
         Backend("mitsuba_volume_grid", "exact emission-absorption volume, grid field (Mitsuba)"),
         Backend("mitsuba_volume_analytic", "exact emission-absorption volume, analytic field (Mitsuba)"),

@@ -5,7 +5,11 @@ that do not apply to a scene are rows too, with their reason in ``status``.
 
     python -m gdbench.refcheck.bm_error --out bench_results/error_vs_runtime.csv
 
-Also writes ``<stem>_summary.json`` (the Pareto front per scene) and keeps the harness's error
+``--renderer pkg.mod:fn`` adds a renderer of your own (docs/references.md); every renderer of the
+protocol's shape gets PASS, FAIL or SKIP per scene against the scene's tolerance for its class
+(``<stem>_verdicts.csv``), and the command exits 1 when a case fails.
+
+Also writes ``<stem>_summary.json`` (the Pareto front per scene, the verdicts) and keeps the harness's error
 maps and per-scene plots under ``<stem>/``.
 """
 
@@ -37,11 +41,21 @@ def pareto_flags(rows: list[dict]) -> list[bool]:
 
 
 def run(
-    out: Path, scenes: str | list[str] = "all", backends: list[str] | None = None, verbose: bool = True
+    out: Path,
+    scenes: str | list[str] = "all",
+    backends: list[str] | None = None,
+    verbose: bool = True,
+    renderers: list[str] | None = None,
 ) -> list[dict]:
+    """The compare harness over ``scenes`` for the built-in ``backends`` (default: all, or none where
+    ``renderers`` of the user's are given); writes the CSV (with each renderer's conformance verdict
+    per scene: ``<stem>_verdicts.csv``) and the summary with the Pareto front and the verdicts."""
     from gdbench.refcheck.compare import run as compare
+    from gdbench.refcheck.conformance import summary
 
-    results = compare(scenes, backends=backends, out=out.with_suffix(""), verbose=verbose)
+    results = compare(scenes, backends=backends, out=out.with_suffix(""), verbose=verbose, renderers=renderers)
+    verdicts = [v for res in results.values() for v in res.verdicts]
+    write_csv(verdicts, out.with_name(f"{out.stem}_verdicts.csv"))
     rows = [r | {"status": "ok"} for res in results.values() for r in res.rows if r["renderer"] != "reference"]
     for r, flag in zip(rows, pareto_flags(rows)):
         r["pareto"] = flag
@@ -64,7 +78,10 @@ def run(
             front.setdefault(r["scene"], []).append(
                 {k: r[k] for k in ("renderer", "settings", "against", "quantity", "time_s", "max_abs")}
             )
-    write_json({"environment": environment(), "pareto": front}, out.with_name(out.stem + "_summary.json"))
+    write_json(
+        {"environment": environment(), "pareto": front, "verdicts": summary(verdicts)},
+        out.with_name(out.stem + "_summary.json"),
+    )
     return all_rows
 
 
@@ -72,10 +89,21 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench_results/error_vs_runtime.csv"))
     ap.add_argument("--scene", default="all", help="a fixture name or 'all'")
+    ap.add_argument(
+        "--renderers", nargs="+", default=None, help="built-in backends (default: all, or none with --renderer)"
+    )
+    ap.add_argument("--renderer", nargs="+", default=[], help="renderers of your own, module:function")
     args = ap.parse_args(argv)
-    rows = run(args.out, args.scene)
-    print(f"wrote {args.out} ({len(rows)} rows) and {args.out.stem}_summary.json")
-    return 0
+    rows = run(args.out, args.scene, args.renderers, renderers=args.renderer)
+    print(f"wrote {args.out} ({len(rows)} rows), {args.out.stem}_verdicts.csv and {args.out.stem}_summary.json")
+    from gdbench.core.io import read_json
+
+    failed = [(r, s) for r, s in read_json(args.out.with_name(args.out.stem + "_summary.json"))["verdicts"].items()
+              if s["FAIL"]]  # fmt: skip
+    for renderer, s in failed:
+        for f in s["failed"]:
+            print(f"FAIL {f['case']}/{renderer}: {f['reason']}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

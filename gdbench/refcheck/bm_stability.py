@@ -1,11 +1,11 @@
 """Numerical stability on stiff and extreme cases, every renderer.
 
-Each case is a small scene and one camera, built in float64. Every renderer gets float32
-inputs, renders rgb and alpha, and back-propagates a fixed random cotangent; the row records
-NaN/Inf in its outputs and in its gradients, the max error of its images against the float64
-twin (``renderers.splat.reference``, run at the renderer's own alpha clamp), and the max
-gradient error relative to the twin's largest gradient. The twin itself is checked for
-finiteness too.
+Each case is a small scene and one camera, built in float64. Every renderer is checked by
+``conformance.check``: float32 inputs, rgb and alpha against the float64 twin
+(``renderers.splat.reference``, at the renderer's own alpha clamp), and the directional derivatives
+of a fixed random cotangent's pull-back against the twin's; the row records NaN/Inf in its outputs
+and gradients, the errors, and PASS, FAIL or SKIP against the case's tolerance for the renderer's
+class (fixtures/stability_tolerances.json). The command exits 1 when a case fails.
 
 Renderers: ``splat`` (C++ compositor), ``splat_torch``, ``gsplat_torch`` (gsplat 1.5.3's torch
 stages) and ``mitsuba_ellipsoids`` (ray-traced ellipsoids, 16 spp; a different image model, so its error
@@ -14,6 +14,7 @@ exact volume (its grid cannot resolve sub-voxel or 1e6-anisotropic Gaussians, an
 field is too slow at 10k Gaussians) and pyrender points (centres only; no images).
 
     python -m gdbench.refcheck.bm_stability --out bench_results/stability.csv
+    python -m gdbench.refcheck.bm_stability --renderer mypkg.render:rasterize --cases "huge scale 1e4"
 
 Writes the CSV, ``<stem>.md`` (a case x renderer table) and ``<stem>_summary.json``.
 """
@@ -22,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
-import traceback
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,7 +32,8 @@ from gdbench.bench.common import environment, write_csv, write_json
 
 F64 = torch.float64
 RENDERERS = ("splat", "splat_torch", "gsplat_torch", "mitsuba_ellipsoids")
-PARAMS = ("means", "quats", "scales", "opacities", "colors")
+C0 = 0.28209479177387814
+"""The SH degree-0 basis constant (rgb = 0.5 + C0 * c): a case's RGB colours as coefficients."""
 
 
 def _gaussians(means, scales, quats=None, opacity=0.8, colors=None) -> dict[str, torch.Tensor]:
@@ -125,85 +125,44 @@ def cases() -> dict[str, Callable[[], tuple[dict, dict]]]:
     }
 
 
-def _renderer(name: str) -> tuple[Callable, float]:
-    """(render function taking the rasterize signature, the alpha clamp its twin uses), from the
-    backend registry with its comparable settings."""
-    from gdbench.refcheck.backends import get
+def specs(renderers=RENDERERS, refs=()) -> list:
+    """The built-in ``renderers`` and the user's (``module:function`` or registered names) as
+    ``protocol.RendererSpec``s; one that cannot load fails each case with its reason."""
+    from gdbench.refcheck.protocol import builtin, load_or_fail
 
-    if name not in RENDERERS:
-        raise ValueError(f"renderer: expected one of {RENDERERS}, got {name!r}")
-    b = get(name)
-    return b.render, b.alpha_max
-
-
-def _render_with_grads(fn: Callable, gs: dict, cam: dict, dtype) -> tuple[dict, dict]:
-    params = {k: gs[k].to(dtype).clone().requires_grad_(True) for k in PARAMS}
-    bg = torch.ones(3, dtype=dtype)
-    out = fn(
-        *(params[k] for k in PARAMS),
-        cam["viewmats"].to(dtype),
-        cam["Ks"].to(dtype),
-        cam["width"],
-        cam["height"],
-        background=bg,
-    )
-    images = {"rgb": out.rgb, "alpha": out.alpha}
-    loss = 0.0
-    for i, x in enumerate(images.values()):
-        g = torch.Generator().manual_seed(i)
-        loss = loss + (x * torch.randn(x.shape, generator=g, dtype=F64).to(x.dtype)).sum()
-    names = [k for k in PARAMS if params[k].numel()]
-    grads = dict(zip(names, torch.autograd.grad(loss, [params[k] for k in names], allow_unused=True))) if names else {}
-    return {k: v.detach() for k, v in images.items()}, {k: v for k, v in grads.items() if v is not None}
+    unknown = [r for r in renderers if r not in RENDERERS]
+    if unknown:
+        raise ValueError(f"renderers: unknown {unknown}; expected some of {list(RENDERERS)}")
+    return [builtin(r) for r in renderers] + [load_or_fail(r) for r in refs]
 
 
-def _finite(ts) -> bool:
-    return all(bool(torch.isfinite(t).all()) for t in ts)
+def status(row: dict) -> str:
+    """ok, non-finite, error: <the renderer's exception> or skipped: <why>, beside the verdict."""
+    if row["verdict"] == "SKIP":
+        return f"skipped: {row['reason']}"
+    if "time_s" not in row:
+        return f"error: {row['reason']}"
+    return "non-finite" if row["nan_out"] or row["nan_grad"] else "ok"
 
 
-def run_case(case: str, renderer: str) -> dict:
-    gs, cam = cases()[case]()
-    row: dict = {
-        "case": case,
-        "renderer": renderer,
-        "n": gs["means"].shape[0],
-        "width": cam["width"],
-        "height": cam["height"],
-    }
-    try:
-        fn, alpha_max = _renderer(renderer)
-        t0 = time.perf_counter()
-        imgs, grads = _render_with_grads(fn, gs, cam, torch.float32)
-        row["time_s"] = time.perf_counter() - t0
-        from renderers.splat.reference import rasterize_reference
+def run_case(case: str, spec, cache: dict | None = None) -> dict:
+    """One renderer (a ``protocol.RendererSpec`` or a built-in name) on one case: the conformance
+    row (errors, gradient errors per group, PASS/FAIL/SKIP against the case's tolerance) with the
+    case's size and the run's status."""
+    from gdbench.refcheck.conformance import check, stiff_case
 
-        twin = lambda *a, **k: rasterize_reference(*a, **k, alpha_max=alpha_max)  # noqa: E731
-        timgs, tgrads = _render_with_grads(twin, gs, cam, F64)
-    except Exception as e:  # a crash is a result here, recorded with its message
-        row |= {"status": f"error: {type(e).__name__}: {str(e).splitlines()[0][:160]}"}
-        row["traceback"] = traceback.format_exc(limit=3).replace("\n", " | ")[-400:]
-        return row
-    row["nan_out"] = not _finite(imgs.values())
-    row["nan_grad"] = not _finite(grads.values())
-    row["twin_finite"] = _finite(timgs.values()) and _finite(tgrads.values())
-    row["alpha_max_twin"] = float(timgs["alpha"].max()) if timgs["alpha"].numel() else 0.0
-    row["max_err_rgb"] = float((imgs["rgb"].double() - timgs["rgb"]).abs().max()) if imgs["rgb"].numel() else 0.0
-    row["mean_err_rgb"] = float((imgs["rgb"].double() - timgs["rgb"]).abs().mean()) if imgs["rgb"].numel() else 0.0
-    row["max_err_alpha"] = (
-        float((imgs["alpha"].double() - timgs["alpha"]).abs().max()) if imgs["alpha"].numel() else 0.0
-    )
-    errs = []
-    for k, tg in tgrads.items():
-        if k in grads and tg.numel():
-            scale = float(tg.abs().max())
-            errs.append(float((grads[k].double() - tg).abs().max()) / max(scale, 1e-12))
-    row["max_rel_err_grad"] = max(errs) if errs else 0.0
-    row["status"] = "ok" if not (row["nan_out"] or row["nan_grad"]) else "non-finite"
-    return row
+    if isinstance(spec, str):
+        (spec,) = specs((spec,))
+    c = stiff_case(case)
+    row = check(spec, c, cache)
+    row = {"case": case, "renderer": spec.name, "n": c.params["means"].shape[0], "width": c.camera["width"],
+           "height": c.camera["height"]} | row  # fmt: skip
+    return row | {"status": status(row)}
 
 
 def table(rows: list[dict]) -> str:
-    """Markdown: one line per case, one column per renderer: image error vs the twin, or the failure."""
+    """Markdown: one line per case, one column per renderer: image error / gradient error and the
+    verdict against the case's tolerance, or the failure."""
     names = list(dict.fromkeys(r["renderer"] for r in rows))
     md = ["| case | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for case in dict.fromkeys(r["case"] for r in rows):
@@ -212,46 +171,48 @@ def table(rows: list[dict]) -> str:
             r = next((r for r in rows if r["case"] == case and r["renderer"] == n), None)
             if r is None:
                 cells.append("")
+            elif r["verdict"] == "SKIP":
+                cells.append("SKIP")
             elif r["status"].startswith("error"):
-                cells.append("error")
+                cells.append("FAIL (error)")
             else:
                 flags = [f for f, bad in (("NaN out", r["nan_out"]), ("NaN grad", r["nan_grad"])) if bad]
                 err = max(r["max_err_rgb"], r["max_err_alpha"])
-                cells.append((", ".join(flags) + "; " if flags else "") + f"{err:.1e} / {r['max_rel_err_grad']:.1e}")
+                grad = "-" if r.get("grad_err") is None else f"{r['grad_err']:.1e}"
+                cells.append((", ".join(flags) + "; " if flags else "") + f"{err:.1e} / {grad} {r['verdict']}")
         md.append(f"| {case} | " + " | ".join(cells) + " |")
     md.append("")
-    md.append("Cells: max image error against the float64 twin / max gradient error relative to the twin's")
-    md.append("largest gradient; NaN out / NaN grad flag non-finite outputs / gradients.")
+    md.append("Cells: max image error against the float64 twin / worst gradient error (directional derivatives")
+    md.append("against the twin's, relative; conformance.py) and the verdict against the case's tolerance for the")
+    md.append("renderer's class (fixtures/stability_tolerances.json); SKIP: the class does not apply to the case, or")
+    md.append("the renderer lacks what it needs (reasons in the CSV); NaN out / NaN grad flag non-finite outputs.")
     return "\n".join(md) + "\n"
 
 
-def run(out: Path, renderers=RENDERERS, only: list[str] | None = None, progress: bool = True) -> list[dict]:
-
+def run(out: Path, renderers=RENDERERS, only: list[str] | None = None, progress: bool = True, refs=()) -> list[dict]:
+    """Every renderer (built-in ``renderers`` and the user's ``refs``) on every case (``only``: a
+    subset); writes the CSV, the table and the summary with PASS/FAIL/SKIP counts."""
     names = only or list(cases())
     unknown = [c for c in names if c not in cases()]
     if unknown:
         raise ValueError(f"cases: unknown {unknown}; known: {list(cases())}")
-    rows = []
-    todo = [(c, r) for c in names for r in renderers]
+    chosen = specs(renderers, refs)
     from gdbench.core.progress import track
+    from gdbench.refcheck.conformance import summary
 
-    it = track(todo, desc="bm_stability", unit="run", disable=not progress)
-    from gdbench.refcheck.backends import get
-
-    for case, r in it:
-        ok, why = get(r).available() if r != "splat_torch" else (True, "")
-        if not ok:
-            rows.append({"case": case, "renderer": r, "status": f"skipped: {why}"})
-            continue
-        rows.append(run_case(case, r))
+    rows = []
+    for case in track(names, desc="bm_stability", unit="case", disable=not progress):
+        cache: dict = {}  # the twin once per case and alpha clamp
+        rows += [run_case(case, spec, cache) for spec in chosen]
         write_csv(rows, out)
     write_csv(rows, out)
-    out.with_suffix(".md").write_text(table([r for r in rows if not r["status"].startswith("skipped")]))
+    out.with_suffix(".md").write_text(table(rows))
     bad = [r for r in rows if r["status"] != "ok" and not r["status"].startswith("skipped")]
     write_json(
         {
             "environment": environment(),
             "runs": len(rows),
+            "verdicts": summary(rows),
             "not_ok": [{k: r[k] for k in ("case", "renderer", "status")} for r in bad],
         },
         out.with_name(out.stem + "_summary.json"),
@@ -262,13 +223,19 @@ def run(out: Path, renderers=RENDERERS, only: list[str] | None = None, progress:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench_results/stability.csv"))
-    ap.add_argument("--renderers", nargs="+", default=list(RENDERERS), choices=RENDERERS)
+    ap.add_argument("--renderers", nargs="+", default=None, choices=RENDERERS,
+                    help="built-in renderers (default: all of them, or none where --renderer is given)")  # fmt: skip
+    ap.add_argument("--renderer", nargs="+", default=[], help="renderers of your own, module:function")
     ap.add_argument("--cases", nargs="+", default=None, help="case names (default: all)")
     args = ap.parse_args(argv)
-    rows = run(args.out, args.renderers, args.cases)
-    print(table([r for r in rows if not r["status"].startswith("skipped")]))
+    builtins = args.renderers if args.renderers is not None else ([] if args.renderer else list(RENDERERS))
+    rows = run(args.out, builtins, args.cases, refs=args.renderer)
+    print(table(rows))
     print(f"wrote {args.out}, {args.out.with_suffix('.md')}, {args.out.stem}_summary.json")
-    return 0
+    failed = [f"{r['case']}/{r['renderer']}: {r['reason']}" for r in rows if r["verdict"] == "FAIL"]
+    for line in failed:
+        print(f"FAIL {line}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

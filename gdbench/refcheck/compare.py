@@ -38,6 +38,10 @@ class Result:
     rows: list[dict] = field(default_factory=list)
     skipped: list[dict] = field(default_factory=list)
     images: dict[str, torch.Tensor] = field(default_factory=dict)
+    verdicts: list[dict] = field(default_factory=list)
+    """Conformance rows (``conformance.check``), one per renderer of the protocol's shape."""
+    twins: dict = field(default_factory=dict)
+    """The twin's images and gradients by alpha clamp, computed once per scene."""
 
 
 def _timed(fn: Callable[[], object], repeats: int = 3) -> tuple[object, float]:
@@ -253,13 +257,18 @@ BACKENDS: dict[str, Callable] = {
 """How each registered backend (``gdbench/refcheck/backends.py``) is compared against the reference:
 the fixture-specific work (settings ladders, error rows), by the registry's names."""
 
+JUDGED = {"splat": ("splat", "splat_torch"), "gsplat_torch": ("gsplat_torch",),
+          "mitsuba_ellipsoids": ("mitsuba_ellipsoids",)}  # fmt: skip
+"""Backend -> the renderers of the protocol's shape it stands for, each given a conformance verdict
+(at the backend's comparable settings: the C++ and torch paths of splat at their defaults, Mitsuba
+at 16 spp)."""
+
 
 def run_renderer(spec, fx: Fixture, res: Result, truth: torch.Tensor) -> None:
     """A renderer of the user's (``protocol.RendererSpec``) against the float64 twin at its own
-    alpha clamp: one row with its error and, for the exact tolerance class, PASS or FAIL against
-    the fixture's tolerance for an exact float32 rasterizer (its ``reference`` entry); SKIP with the
-    reason where the renderer lacks what the scene needs; FAIL with one line where it raises or
-    returns the wrong thing (the other cases still run)."""
+    alpha clamp: its image row (error against run time) and its conformance verdict (``judge``);
+    SKIP with the reason where the renderer lacks what the scene needs; FAIL with one line where it
+    raises or returns the wrong thing (the other cases still run)."""
     reason = spec.why_not(fx.scene.sh_degree)
     if reason is not None:
         res.skipped.append({"scene": fx.name, "renderer": spec.name, "reason": reason, "verdict": "SKIP"})
@@ -279,16 +288,24 @@ def run_renderer(spec, fx: Fixture, res: Result, truth: torch.Tensor) -> None:
             base | {"time_s": None, "verdict": "FAIL", "reason": f"{type(e).__name__}: {e}".splitlines()[0]}
         )
         return
-    errs = image_errors(out, truth)
-    tol = fx.spec.get("references", {}).get("reference")
-    verdict, why = "compared", ""
-    if spec.tolerance == "exact" and isinstance(tol, dict):
-        over = [
-            f"{k} {errs[k]:.2e} > {tol[k]:g}" for k in ("mean_abs", "max_abs") if k in tol and not errs[k] <= tol[k]
-        ]
-        verdict, why = ("FAIL", "; ".join(over)) if over else ("PASS", "")
-    res.rows.append(base | {"time_s": t, **errs, "verdict": verdict, "reason": why})
+    res.rows.append(base | {"time_s": t, **image_errors(out, truth)})
     res.images[spec.name] = out
+    judge(spec, fx, res, attach=True)
+
+
+def judge(spec, fx: Fixture, res: Result, attach: bool = False) -> dict:
+    """The conformance verdict of ``spec`` on ``fx`` (``conformance.check``: rgb, alpha and the
+    gradients' directional derivatives against the twin, PASS/FAIL/SKIP against the scene's
+    tolerance for the renderer's class), kept in ``res.verdicts`` and, with ``attach``, on the
+    renderer's image row (a user's renderer has one; a built-in's ladder rows are other settings)."""
+    from gdbench.refcheck.conformance import check, fixture_case
+
+    row = check(spec, fixture_case(fx), res.twins)
+    res.verdicts.append(row)
+    for r in res.rows if attach else []:
+        if r["renderer"] == spec.name and r["scene"] == fx.name and r.get("time_s") is not None:
+            r |= {"verdict": row["verdict"], "reason": row["reason"], "grad_err": row.get("grad_err")}
+    return row
 
 
 def scene_key(backend: str) -> str:
@@ -326,6 +343,10 @@ def compare_scene(fx: Fixture, backends: list[str] | None = None, bar=None, rend
             res.skipped.append({"scene": fx.name, "renderer": name, "reason": reason})
             continue
         BACKENDS[name](fx, res, truth)
+        for judged in JUDGED.get(name, ()):
+            from gdbench.refcheck.protocol import builtin
+
+            judge(builtin(judged), fx, res)
     return res
 
 
@@ -348,9 +369,10 @@ def write_report(results: dict[str, Result], out: Path, old: dict | None = None)
     keep = lambda items: [r for r in items if isinstance(r, dict) and r.get("scene") not in results]  # noqa: E731
     rows = keep(old.get("rows", [])) + [r for res in results.values() for r in res.rows]
     skipped = keep(old.get("skipped", [])) + [s for res in results.values() for s in res.skipped]
+    verdicts = keep(old.get("verdicts", [])) + [v for res in results.values() for v in res.verdicts]
     paths = {
         "csv": write_csv(rows, out / "compare.csv"),
-        "json": write_json({"rows": rows, "skipped": skipped}, out / "compare.json"),
+        "json": write_json({"rows": rows, "skipped": skipped, "verdicts": verdicts}, out / "compare.json"),
     }
     for scene, res in results.items():
         paths[f"{scene}_errors"] = _error_maps(res, out / f"{scene}_errors.png")
@@ -429,6 +451,13 @@ def print_table(results: dict[str, Result]) -> None:
             )
         for s in res.skipped:
             print(f"{s['scene']:18s} {s['renderer']:16s} {s.get('verdict', 'skipped')}: {s['reason']}")
+        for v in res.verdicts:
+            errs = "" if "time_s" not in v else (
+                f" (image {max(v['max_err_rgb'], v['max_err_alpha']):.1e}, gradient "
+                + ("-" if v.get("grad_err") is None else f"{v['grad_err']:.1e}") + ")"
+            )  # fmt: skip
+            why = f": {v['reason']}" if v.get("reason") else ""
+            print(f"{v['case']:18s} {v['renderer']:16s} {v['class']} class {v['verdict']}{errs}{why}")
 
 
 def run(

@@ -53,6 +53,8 @@ class RendererSpec:
     twin), or an approximate one (a ray tracer, a point splatter: compared, not judged)."""
     alpha_max: float = 0.99
     """The alpha clamp it applies: the twin is run with the same one."""
+    unavailable: str = ""
+    """Why it cannot run on this machine (what to install): every case is a SKIP with this reason."""
 
     def __post_init__(self) -> None:
         if not callable(self.fn):
@@ -70,6 +72,8 @@ class RendererSpec:
 
     def why_not(self, sh_degree: int, want_depth: bool = False) -> str | None:
         """Why this renderer cannot run a case (a SKIP with the reason), or None."""
+        if self.unavailable:
+            return f"renderer {self.name!r} is not available here: {self.unavailable}"
         if sh_degree > 0:
             return f"renderer {self.name!r} takes SH degree 0 colours; the case has degree {sh_degree}"
         if want_depth and not self.depth:
@@ -124,6 +128,17 @@ def register_renderer(name: str, fn: Callable, **spec) -> RendererSpec:
     return REGISTERED[name]
 
 
+def builtin(name: str) -> RendererSpec:
+    """A built-in backend (``backends.BACKENDS``, one with ``rasterize``'s shape) as a renderer of
+    the protocol: its comparable settings, alpha clamp, tolerance class and availability here."""
+    from gdbench.refcheck.backends import get
+
+    b = get(name)
+    ok, why = b.available()
+    return RendererSpec(name, b.render, gradients=b.differentiable, tolerance=b.tolerance, alpha_max=b.alpha_max,
+                        unavailable="" if ok else (why or "not installed"))  # fmt: skip
+
+
 def load_or_fail(ref: str) -> RendererSpec:
     """``load_renderer(ref)``, or where it cannot load, a renderer that fails every case with that
     one line (so that the other renderers still run and every case reports)."""
@@ -138,17 +153,40 @@ def load_or_fail(ref: str) -> RendererSpec:
         return RendererSpec(ref, cannot)
 
 
+def _import(module: str):
+    """A module by its dotted name, or a Python file by its path (``.py``)."""
+    if not module.endswith(".py"):
+        return importlib.import_module(module)
+    from importlib.util import module_from_spec, spec_from_file_location
+    from pathlib import Path
+
+    path = Path(module)
+    if not path.is_file():
+        raise FileNotFoundError(f"no file {module}")
+    spec = spec_from_file_location(f"gdbench_user_{path.stem}", path)
+    mod = module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def load_renderer(ref: str) -> RendererSpec:
-    """A renderer by a registered name or by ``module:function`` (the function a renderer or a
-    ``RendererSpec``); a reference that cannot be imported or is not callable is a one-line
-    ValueError naming it."""
+    """A renderer by a built-in or registered name, by ``module:function`` or by
+    ``path/to/file.py:function`` (the function a renderer or a
+        ``RendererSpec``); a reference that cannot be imported or is not callable is a one-line
+        ValueError naming it."""
     if ref in REGISTERED:
         return REGISTERED[ref]
-    module, sep, attr = ref.partition(":")
+    from gdbench.refcheck.backends import BACKENDS
+
+    if ref in BACKENDS and BACKENDS[ref].renders:
+        return builtin(ref)
+    module, sep, attr = ref.rpartition(":")
     if not sep or not module or not attr:
-        raise ValueError(f"renderer {ref!r}: expected module:function (pkg.mod:fn) or a registered name")
+        raise ValueError(
+            f"renderer {ref!r}: expected module:function (pkg.mod:fn), path/to/file.py:function or a registered name"
+        )
     try:
-        obj = importlib.import_module(module)
+        obj = _import(module)
     except Exception as e:  # any failure to import is the user's module's: one line
         raise ValueError(f"renderer {ref!r}: cannot import {module!r}: {type(e).__name__}: {e}") from None
     for part in attr.split("."):

@@ -94,9 +94,23 @@ class Fixture:
     scene: GaussianScene
     cameras: Cameras
 
+    @property
+    def tolerances(self) -> dict:
+        """{class: conformance.Tolerance or the reason it does not apply}, checked at load."""
+        from gdbench.refcheck.conformance import parse_tolerances
+
+        return parse_tolerances(self.spec.get("tolerances"), f"fixture {self.name!r}")
+
     def tolerance(self, reference: str) -> dict | None:
-        """{"mean_abs": .., "max_abs": ..} for an applicable reference, else None."""
+        """{"mean_abs": .., "max_abs": ..} for an applicable reference, else None; a reference
+        declared as ``{"class": c}`` takes the image tolerance of the scene's class c."""
         r = self.spec.get("references", {}).get(reference)
+        if isinstance(r, dict) and "class" in r:
+            t = self.tolerances.get(r["class"])
+            if t is None or isinstance(t, str):
+                raise ValueError(f"fixture {self.name!r}: reference {reference!r} names class {r['class']!r}, "
+                                 f"which the scene does not state")  # fmt: skip
+            return {"mean_abs": t.mean_abs, "max_abs": t.max_abs}
         return r if isinstance(r, dict) else None
 
     def skip_reason(self, reference: str) -> str | None:
@@ -141,4 +155,6 @@ def load_fixture(name: str) -> Fixture:
     if gen["name"] not in GENERATORS:
         raise ValueError(f"{path}: unknown generator {gen['name']!r}; known: {sorted(GENERATORS)}")
     scene = GENERATORS[gen["name"]](**gen.get("args", {}))
-    return Fixture(name, spec, scene.with_sh_degree(spec.get("sh_degree", 0)), _cameras(spec["cameras"]))
+    fx = Fixture(name, spec, scene.with_sh_degree(spec.get("sh_degree", 0)), _cameras(spec["cameras"]))
+    assert fx.tolerances  # a missing or malformed tolerance raises at load, not a silent pass
+    return fx

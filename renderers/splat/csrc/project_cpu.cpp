@@ -307,7 +307,11 @@ inline void backward_one(int64_t g, int64_t N, int64_t C, const ProjSettings& s,
     }
     if (gk) {  // conic = (c, -b, a) / det with det = a c - b^2
       const T gA = gather<T>(gk + 3 * qi, 3), gB = gather<T>(gk + 3 * qi + 1, 3), gC = gather<T>(gk + 3 * qi + 2, 3);
-      const T gdet = -(gA * L.c - gB * L.b + gC * L.a) / (L.det * L.det);
+      // d(1/det) = -1/det^2; det^2 overflows float32 once det > 1.8e19 (a Gaussian of scale 1e4
+      // filling the image), which zeroes gdet and flips the scales' gradients: divide twice there
+      // (a select, so every other case keeps the one-division sum, bit for bit)
+      const T gnum = gA * L.c - gB * L.b + gC * L.a, det2 = L.det * L.det;
+      const T gdet = finite(det2) ? -gnum / det2 : -(gnum / L.det) / L.det;
       const T ga = gC / L.det + gdet * L.c;
       const T gc = gA / L.det + gdet * L.a;
       const T gb = -gB / L.det - S(2) * L.b * gdet;
