@@ -22,6 +22,7 @@ from pathlib import Path
 
 from gdbench.refcheck import conformance
 from gdbench.refcheck.protocol import builtin
+from gdbench.refcheck.tolerance import CLASSES, Tolerance
 
 ROOT = Path(__file__).resolve().parents[1]
 EXACT = {"mean_abs": 1e-5, "max_abs": 1e-4, "grad_rel": 1e-3, "grad_floor": 1e-3, "grad_atol": 1e-7}
@@ -34,7 +35,7 @@ EXACT_OVERRIDES = {
 }
 MARGIN = 1.5
 FLOOR, ATOL = 0.2, 1e-4
-"""The approximate class's gradient floor and allowance (conformance.Tolerance), with which the ray
+"""The approximate class's gradient floor and allowance (tolerance.Tolerance), with which the ray
 tracer's errors are measured."""
 
 
@@ -74,7 +75,7 @@ def main() -> int:
     # measured with every class stated as applicable, so that every case is run
     loose = {"mean_abs": 1.0, "max_abs": 1.0, "grad_rel": 1.0, "grad_floor": FLOOR, "grad_atol": ATOL}
     stiff = {}
-    every = {c: conformance.Tolerance(**loose) for c in conformance.CLASSES}
+    every = {c: Tolerance(**loose) for c in CLASSES}
     for name, make in conformance.case_names().items():
         case = make() if name in conformance.case_names(("fixture",)) else conformance.stiff_case(name, every)
         case.tolerances = every

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from gdbench.refcheck import conformance as cf
+from gdbench.refcheck import tolerance as tl
 from gdbench.refcheck.protocol import RendererSpec, builtin, load_renderer
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "docs" / "examples" / "gsplat_renderer.py"
@@ -107,13 +108,13 @@ def test_a_missing_or_malformed_tolerance_is_an_error_at_load(tmp_path, monkeypa
     from gdbench.refcheck import scenes
 
     with pytest.raises(ValueError, match="no 'tolerances' block"):
-        cf.parse_tolerances(None, "fixture 'x'")
+        tl.parse_tolerances(None, "fixture 'x'")
     with pytest.raises(ValueError, match=r"missing \['approximate'\]"):
-        cf.parse_tolerances({"exact": "n/a"}, "fixture 'x'")
+        tl.parse_tolerances({"exact": "n/a"}, "fixture 'x'")
     with pytest.raises(ValueError, match=r"missing \['grad_atol'\]"):
-        cf.Tolerance.parse({"mean_abs": 1, "max_abs": 1, "grad_rel": 1, "grad_floor": 1}, "x.exact")
+        tl.Tolerance.parse({"mean_abs": 1, "max_abs": 1, "grad_rel": 1, "grad_floor": 1}, "x.exact")
     with pytest.raises(ValueError, match="not a positive number"):
-        cf.Tolerance.parse({"mean_abs": 0, "max_abs": 1, "gradients": "none"}, "x.exact")
+        tl.Tolerance.parse({"mean_abs": 0, "max_abs": 1, "gradients": "none"}, "x.exact")
     spec = json.loads((scenes.FIXTURE_DIR / "isotropic.json").read_text())
     del spec["tolerances"]["exact"]
     (tmp_path / "isotropic.json").write_text(json.dumps(spec))
@@ -131,7 +132,7 @@ def test_a_missing_or_malformed_tolerance_is_an_error_at_load(tmp_path, monkeypa
 def test_every_case_states_both_classes_and_the_huge_scale_allowance_judges_its_sign():
     for name, make in cf.case_names().items():
         case = make()
-        assert set(case.tolerances) == set(cf.CLASSES), name
+        assert set(case.tolerances) == set(tl.CLASSES), name
     huge = cf.stiff_case("huge scale 1e4").tolerances["exact"]
     gs = cf.twin(cf.stiff_case("huge scale 1e4"), 0.99)[1]
     top = max(float(g.norm()) for g in gs.values())
@@ -189,3 +190,89 @@ def test_bench_passes_renderers_and_cases_only_where_they_apply(tmp_path):
         run_bench(Bench("render", out=tmp_path, cases=("zero quaternion",)))
     with pytest.raises(SystemExit, match="bench stability: a case failed"):
         run_bench(Bench("stability", out=tmp_path, renderer=("no_such_module:fn",), cases=("zero quaternion",)))
+
+
+BUGGY = """
+from gdbench.refcheck.protocol import RendererSpec
+
+
+def _splat(*args, **kw):
+    from renderers.splat import rasterize
+
+    return rasterize(*args, **kw, backend="torch")
+
+
+def flipped_scales(means, quats, scales, *rest, **kw):
+    import torch
+
+    class Flip(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.view_as(x)
+
+        @staticmethod
+        def backward(ctx, g):
+            return -g[:, [1, 0, 2]]
+
+    return _splat(means, quats, Flip.apply(scales), *rest, **kw)
+
+
+GOOD = RendererSpec("good", _splat)
+"""
+
+
+def test_the_pytest_plugin_collects_the_cases_as_tests_of_a_renderers_own_suite(tmp_path):
+    """``pytest --gdbench-renderer`` in a renderer's own folder (the entry point, as installed):
+    each (renderer, case) a test; the C++ bug's signature fails with the group named."""
+    import subprocess
+    import sys
+
+    (tmp_path / "mine.py").write_text(BUGGY)
+    (tmp_path / "test_own.py").write_text("def test_own():\n    assert True\n")
+    cases = ["huge scale 1e4", "isotropic", "zero quaternion"]
+    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rfs",
+            "--gdbench-renderer", "mine.py:GOOD", "--gdbench-renderer", "mine.py:flipped_scales"]  # fmt: skip
+    for c in cases:
+        argv += ["--gdbench-case", c]
+    done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    out = done.stdout + done.stderr
+    assert done.returncode == 1, out
+    assert "3 failed, 4 passed" in out, out  # the suite's own test and GOOD's three cases pass
+    assert "FAILED ::gdbench[mine.py:flipped_scales::huge scale 1e4]" in out
+    assert "scales gradient error" in out and "with the wrong sign" in out
+    bad = subprocess.run(argv[:6] + ["--gdbench-renderer", "x.py:f", "--gdbench-case", "no such"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert bad.returncode == 4 and "--gdbench-case: unknown ['no such']" in bad.stdout + bad.stderr
+    # without the option the plugin adds nothing
+    plain = subprocess.run(argv[:6], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert plain.returncode == 0 and "1 passed" in plain.stdout
+
+
+def test_the_conformance_report_of_the_worked_example(tmp_path):
+    """docs/references.md's worked example: gsplat's torch stages, written outside the repository,
+    entering only through the protocol, beside the C++ compositor and the torch path."""
+    pytest.importorskip("gsplat")
+    from gdbench.app.cli import main
+    from gdbench.app.cmd_refs import Conformance
+
+    out = tmp_path / "report"
+    cases = ("anisotropic", "huge scale 1e4")
+    got = main(Conformance(renderer=(f"{EXAMPLE}:SPEC",), renderers=("splat", "splat_torch"), out=out, cases=cases))
+    assert got == {"PASS": 6, "FAIL": 0, "SKIP": 0}
+    md = (out / "report.md").read_text()
+    for name in ("splat", "splat_torch", "gsplat_example"):
+        assert f"| {name} | exact | 2 | 0 | 0 |" in md
+    assert "| torch | 2.13" in md and "gsplat_renderer.py" in md and "![maps](error_maps.png)" in md
+    assert (out / "error_maps.png").stat().st_size > 10_000 and (out / "pareto.png").stat().st_size > 10_000
+    got = json.loads((out / "conformance.json").read_text())
+    assert len(got["rows"]) == 6 and got["verdicts"]["gsplat_example"]["PASS"] == 2
+    # the report of a failing renderer says which case and why, and the command exits 1
+    from gdbench.refcheck.protocol import REGISTERED, register_renderer
+
+    register_renderer("flipped_scales", _flip(2, lambda g: -g).fn)
+    try:
+        with pytest.raises(SystemExit, match="huge scale 1e4/flipped_scales: scales gradient error"):
+            main(Conformance(renderer=("flipped_scales",), out=tmp_path / "bad", cases=cases[1:]))
+    finally:
+        REGISTERED.pop("flipped_scales", None)
+    assert "- FAIL huge scale 1e4 / flipped_scales: scales gradient" in (tmp_path / "bad" / "report.md").read_text()

@@ -12,7 +12,7 @@ from typing import Annotated
 import tyro
 
 from gdbench.app.cmd_generate import GenerateBase, generate_command, load_mapping, run_generate
-from gdbench.app.cmd_refs import Bench, Compare, run_bench, run_compare
+from gdbench.app.cmd_refs import Bench, Compare, Conformance, run_bench, run_compare, run_conformance
 from gdbench.app.cmd_scenes import (
     Export,
     JudgeRuns,
@@ -47,6 +47,7 @@ COMMANDS = {
     "generate": (GenerateBase, run_generate),
     "render": (Render, run_render),
     "compare": (Compare, run_compare),
+    "conformance": (Conformance, run_conformance),
     "demo": (Demo, run_demo),
     "noise": (Noise, run_noise),
     "score": (Score, run_score),

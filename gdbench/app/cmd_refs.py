@@ -41,6 +41,39 @@ def run_compare(cmd: Compare) -> dict:
     return {k: {"rows": len(v.rows), "skipped": len(v.skipped)} for k, v in results.items()}
 
 
+@dataclass
+class Conformance:
+    """Check renderers against the float64 twin on every fixture scene and stiff case, images and
+    gradients, PASS/FAIL/SKIP against each case's tolerance for the renderer's class; write a report
+    (report.md with the table, gradient errors, error maps, the error-against-time plot and the
+    versions; conformance.csv/json) to attach to a pull request. Exits 1 when a case fails."""
+
+    renderer: tuple[str, ...] = ()
+    """Renderers of your own: module:function, path/to/file.py:function or a registered name
+    (docs/references.md, "Bring your own renderer")."""
+    renderers: tuple[str, ...] = ()
+    """Built-in renderers to check beside them (splat, splat_torch, gsplat_torch, gsplat_cuda,
+    mitsuba_ellipsoids); default: none with --renderer, else splat and splat_torch."""
+    cases: tuple[str, ...] = ()
+    """Only these cases (fixture names, stiff case names; default: all)."""
+    out: Path = Path("runs/conformance")
+    """Folder for report.md, its plots, conformance.csv and conformance.json."""
+
+
+def run_conformance(cmd: Conformance) -> dict:
+    from gdbench.refcheck.conformance_report import write
+    from gdbench.refcheck.protocol import builtin, load_or_fail
+
+    names = list(cmd.renderers) or ([] if cmd.renderer else ["splat", "splat_torch"])
+    specs = [builtin(n) for n in names] + [load_or_fail(r) for r in cmd.renderer]
+    rows, report = write(specs, cmd.out, list(cmd.cases) or None)
+    failed = [f"{r['case']}/{r['renderer']}: {r['reason']}" for r in rows if r["verdict"] == "FAIL"]
+    print(f"wrote {report} (and conformance.csv, conformance.json, plots) in {cmd.out}")
+    if failed:
+        raise SystemExit(f"conformance: {len(failed)} case(s) FAIL:\n" + "\n".join(failed))
+    return {v: sum(r["verdict"] == v for r in rows) for v in ("PASS", "FAIL", "SKIP")}
+
+
 BENCHES = {
     "render": ("gdbench.refcheck.bm_render", "render.csv", []),
     "peers": ("gdbench.refcheck.bm_render", "peers.csv", ["--peers"]),

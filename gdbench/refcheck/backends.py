@@ -25,7 +25,7 @@ class Backend:
     fast: dict = field(default_factory=dict)
     """Keywords of ``render`` for speed benchmarks (fewer samples where that is a choice)."""
     tolerance: str = "exact"
-    """Its conformance class (``conformance.CLASSES``): an exact float32 rasterizer of gdbench's image
+    """Its conformance class (``tolerance.CLASSES``): an exact float32 rasterizer of gdbench's image
     model, or an approximate one (another image model: the ray-traced ellipsoids)."""
     differentiable: bool = True
     images: bool = True

@@ -34,60 +34,14 @@ from pathlib import Path
 
 import torch
 
+from gdbench.refcheck.tolerance import Tolerance, parse_tolerances
+
 F64 = torch.float64
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
 GROUPS = {"means": "means", "quats": "quats", "scales": "scales", "opacities": "opacities", "sh": "colors"}
 """Parameter -> the group name reports use."""
-CLASSES = ("exact", "approximate")
 DIRECTIONS = 3
 """Random directions per parameter group."""
-
-
-@dataclass(frozen=True)
-class Tolerance:
-    """What a case allows a renderer of one class: image errors (absolute, rgb and alpha in [0, 1])
-    and the gradient's directional derivatives (relative, with a floor; see the module's text)."""
-
-    mean_abs: float
-    max_abs: float
-    grad_rel: float = math.nan
-    grad_floor: float = math.nan
-    grad_atol: float = math.nan
-    gradients: str = ""
-    """Why gradients are not judged in this class on this case ("" where they are)."""
-
-    @classmethod
-    def parse(cls, value, where: str) -> Tolerance | str:
-        """A tolerance from its JSON form, or a reason string (the class does not apply); anything
-        else, or a missing or non-positive field, is a ValueError naming ``where``."""
-        if isinstance(value, str) and value:
-            return value
-        grads = ("grad_rel", "grad_floor", "grad_atol")
-        fields = ("mean_abs", "max_abs", *grads)
-        if not isinstance(value, dict) or set(value) - {*fields, "gradients", "note"}:
-            raise ValueError(f"{where}: expected {{{', '.join(fields)}}} or a reason string, got {value!r}")
-        skip = value.get("gradients", "")
-        need = fields[:2] if skip else fields  # gradients: "reason" stands for the three grad fields
-        missing = [f for f in need if f not in value]
-        bad = [f for f in need if f in value and not (isinstance(value[f], (int, float)) and value[f] > 0)]
-        if missing or bad or not isinstance(skip, str):
-            raise ValueError(
-                f"{where}: missing {missing} / not a positive number {bad} (every field is required, or "
-                f"'gradients': a reason in place of {list(grads)})"
-            )
-        return cls(**{f: float(value[f]) for f in need}, gradients=skip)
-
-
-def parse_tolerances(value, where: str) -> dict[str, Tolerance | str]:
-    """A case's ``tolerances`` block: every class present (a tolerance or a reason); a missing
-    block or class is an error at load, not a silent pass."""
-    if not isinstance(value, dict):
-        raise ValueError(f"{where}: no 'tolerances' block (one entry per class: {list(CLASSES)})")
-    missing = [c for c in CLASSES if c not in value]
-    unknown = [c for c in value if c not in CLASSES]
-    if missing or unknown:
-        raise ValueError(f"{where}: tolerance classes missing {missing}, unknown {unknown}; expected {list(CLASSES)}")
-    return {c: Tolerance.parse(value[c], f"{where}.{c}") for c in CLASSES}
 
 
 @dataclass
@@ -123,7 +77,7 @@ STIFF_TOLERANCES = Path(__file__).resolve().parents[2] / "fixtures" / "stability
 def stiff_case(name: str, tolerances: dict | None = None) -> Case:
     """A stiff case (``bm_stability.cases``) with its tolerances from ``STIFF_TOLERANCES`` (or
     ``tolerances``, already parsed); a case the file does not state is an error."""
-    from gdbench.refcheck.bm_stability import C0, cases
+    from gdbench.refcheck.stiff_cases import C0, cases
 
     gs, cam = cases()[name]()
     params = {k: gs[k] for k in ("means", "quats", "scales", "opacities")}
@@ -138,8 +92,8 @@ def stiff_case(name: str, tolerances: dict | None = None) -> Case:
 
 def case_names(kinds=("fixture", "stiff")) -> dict[str, Callable[[], Case]]:
     """Every case of the given kinds, by name, built lazily."""
-    from gdbench.refcheck.bm_stability import cases
     from gdbench.refcheck.scenes import fixture_names
+    from gdbench.refcheck.stiff_cases import cases
 
     out: dict[str, Callable[[], Case]] = {}
     if "fixture" in kinds:
@@ -213,9 +167,10 @@ def twin(case: Case, alpha_max: float) -> tuple[dict, dict]:
     return {k: v.detach() for k, v in images.items()}, _pullback(images, params)
 
 
-def check(spec, case: Case, twin_cache: dict | None = None) -> dict:
+def check(spec, case: Case, twin_cache: dict | None = None, images_out: dict | None = None) -> dict:
     """One renderer (``protocol.RendererSpec``) on one case: a row with the image errors, the
-    gradient errors per group and the verdict (PASS, FAIL or SKIP) with its reason."""
+    gradient errors per group and the verdict (PASS, FAIL or SKIP) with its reason. ``images_out``
+    receives the first camera's rgb of the renderer and of the twin at its clamp, by (case, renderer)."""
     row: dict = {"case": case.name, "kind": case.kind, "renderer": spec.name, "class": spec.tolerance}
     tol = case.tolerances[spec.tolerance]
     why = spec.why_not(case.sh_degree) or (tol if isinstance(tol, str) else None)
@@ -233,6 +188,8 @@ def check(spec, case: Case, twin_cache: dict | None = None) -> dict:
         row["time_s"] = time.perf_counter() - t0
     except Exception as e:  # the renderer's own failure: this case fails with one line, the rest run
         return row | {"verdict": "FAIL", "reason": f"{type(e).__name__}: {e}".splitlines()[0][:200]}
+    if images_out is not None:
+        images_out[(case.name, spec.name)] = (images["rgb"][0].detach().double().cpu(), t_images["rgb"][0])
     fails = []
     finite = lambda ts: all(bool(torch.isfinite(t).all()) for t in ts)  # noqa: E731
     row["twin_finite"] = finite(t_images.values()) and finite(t_grads.values())
@@ -264,8 +221,10 @@ def check(spec, case: Case, twin_cache: dict | None = None) -> dict:
     return row
 
 
-def run(specs: list, names: list[str] | None = None, kinds=("fixture", "stiff"), progress: bool = True) -> list[dict]:
-    """Every renderer on every case (``names``: a subset of ``case_names(kinds)``), one row each."""
+def run(specs: list, names: list[str] | None = None, kinds=("fixture", "stiff"), progress: bool = True,
+        images_out: dict | None = None) -> list[dict]:  # fmt: skip
+    """Every renderer on every case (``names``: a subset of ``case_names(kinds)``), one row each
+    (``images_out``: as ``check``'s)."""
     known = case_names(kinds)
     names = list(known) if names is None else names
     unknown = [n for n in names if n not in known]
@@ -276,7 +235,7 @@ def run(specs: list, names: list[str] | None = None, kinds=("fixture", "stiff"),
     rows = []
     for n in track(names, desc="conformance", unit="case", disable=not progress):
         case, cache = known[n](), {}
-        rows += [check(spec, case, cache) for spec in specs]
+        rows += [check(spec, case, cache, images_out) for spec in specs]
     return rows
 
 

@@ -96,8 +96,8 @@ class Fixture:
 
     @property
     def tolerances(self) -> dict:
-        """{class: conformance.Tolerance or the reason it does not apply}, checked at load."""
-        from gdbench.refcheck.conformance import parse_tolerances
+        """{class: tolerance.Tolerance or the reason it does not apply}, checked at load."""
+        from gdbench.refcheck.tolerance import parse_tolerances
 
         return parse_tolerances(self.spec.get("tolerances"), f"fixture {self.name!r}")
 
