@@ -48,6 +48,8 @@ def _source(spec) -> str:
                                capture_output=True, text=True, timeout=30)  # fmt: skip
     except (OSError, subprocess.SubprocessError):
         return str(path)
+    if path.is_relative_to(Path.cwd()):
+        path = path.relative_to(Path.cwd())
     if head.returncode != 0:
         return f"{path} (not in a git checkout)"
     return f"{path} at {head.stdout.strip()}" + (" (with uncommitted changes)" if dirty.stdout.strip() else "")
