@@ -41,7 +41,6 @@ from gdbench.core.constraints import AtLeast, Between, Flag, Positive, Range, Wh
 from gdbench.core.rand import randn
 
 Redraw = Literal["step", "run", "ou"]
-Source = Literal["cloud", "pose"]
 RatioMode = Literal["amplitude", "variance"]
 
 
@@ -55,12 +54,13 @@ class NoiseConfig:
     enabled: Annotated[bool, Flag("structured-noise")] = True
     """Use the paper's structured noise (section 3.2); off, the noise is iid (the gd-no-sn ablation).
     Every other noise setting acts only with it."""
-    source: Source = "cloud"
+    source: str = "cloud"
     """What a view's structured noise is: 'cloud' renders the noise cloud from the view's own camera
     (the paper: views share noise at the same surface point; the default); 'pose' is a control
     (the gd-pose-locked preset): a 2D field that is a fixed function of the camera's pose, with the
     same marginals, spectrum and persistence but no 3D correspondence between views
-    (mechanisms/pose_noise.py)."""
+    (mechanisms/pose_noise.py); or your own, pkg.mod:function or file.py:function
+    (mechanisms/methods.py, docs/training.md "Your own method")."""
     n_gaussians: Annotated[int, AtLeast(1)] = 3072
     """M, the number of noise Gaussians (3072 keeps the noise under 30% of a 4k-Gaussian
     training step at 128 px on 2 CPU cores; see docs/noise.md)."""
@@ -93,6 +93,9 @@ class NoiseConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, "noise.")  # every field against its declared type, range and choices
+        from gdbench.mechanisms.methods import check
+
+        check("noise", self.source)  # a built-in name, or the user's method loads
         if self.source == "pose" and self.redraw != "run":
             raise ValueError(
                 f"noise.redraw (--noise-redraw): --noise-source pose is a fixed function of the pose for the "

@@ -25,7 +25,6 @@ table is touched: the built-in backends keep their own registry (``backends.BACK
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -153,22 +152,6 @@ def load_or_fail(ref: str) -> RendererSpec:
         return RendererSpec(ref, cannot)
 
 
-def _import(module: str):
-    """A module by its dotted name, or a Python file by its path (``.py``)."""
-    if not module.endswith(".py"):
-        return importlib.import_module(module)
-    from importlib.util import module_from_spec, spec_from_file_location
-    from pathlib import Path
-
-    path = Path(module)
-    if not path.is_file():
-        raise FileNotFoundError(f"no file {module}")
-    spec = spec_from_file_location(f"gdbench_user_{path.stem}", path)
-    mod = module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def load_renderer(ref: str) -> RendererSpec:
     """A renderer by a built-in or registered name, by ``module:function`` or by
     ``path/to/file.py:function`` (the function a renderer or a
@@ -180,21 +163,15 @@ def load_renderer(ref: str) -> RendererSpec:
 
     if ref in BACKENDS and BACKENDS[ref].renders:
         return builtin(ref)
-    module, sep, attr = ref.rpartition(":")
-    if not sep or not module or not attr:
+    from gdbench.core.imports import import_ref
+
+    if ":" not in ref:
         raise ValueError(
             f"renderer {ref!r}: expected module:function (pkg.mod:fn), path/to/file.py:function or a registered name"
         )
-    try:
-        obj = _import(module)
-    except Exception as e:  # any failure to import is the user's module's: one line
-        raise ValueError(f"renderer {ref!r}: cannot import {module!r}: {type(e).__name__}: {e}") from None
-    for part in attr.split("."):
-        if not hasattr(obj, part):
-            raise ValueError(f"renderer {ref!r}: {module!r} has no {attr!r}")
-        obj = getattr(obj, part)
+    obj = import_ref(ref, "renderer")
     if isinstance(obj, RendererSpec):
         return obj
     if not callable(obj):
-        raise ValueError(f"renderer {ref!r}: {attr!r} is a {type(obj).__name__}, not a function")
+        raise ValueError(f"renderer {ref!r}: {ref.rpartition(':')[2]!r} is a {type(obj).__name__}, not a function")
     return RendererSpec(ref, obj)

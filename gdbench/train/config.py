@@ -68,15 +68,17 @@ class TrainConfig:
     background: Annotated[tuple[float, float, float], Between(0, 1)] = (1.0, 1.0, 1.0)
     """Background colour of the renders and of the prior's bank (the paper: white)."""
     # score distillation
-    guidance: Literal["sjc", "sds"] = "sjc"
+    guidance: str = "sjc"
     """sjc: g = (D(x + sigma n) - x) / sigma with sigma uniform over the prior's ticks;
-    sds: the same residual with DreamGaussian's annealed timestep and weight 1 - abar."""
-    sigma_min: Annotated[float, Positive(), When("guidance", "sjc")] = 0.03
-    """Smallest noise level drawn (VE sigma; guidance 'sjc' only: 'sds' anneals its timestep)."""
-    sigma_max: Annotated[float, Positive(), When("guidance", "sjc")] = 10.0
-    """Largest noise level drawn at the start of the run (VE sigma; guidance 'sjc' only)."""
-    anneal: Annotated[bool, When("guidance", "sjc")] = True
-    """Anneal sigma (guidance 'sjc'): the upper end of its range decays linearly to ``sigma_min``
+    sds: the same residual with DreamGaussian's annealed timestep and weight 1 - abar; or your own,
+    pkg.mod:function or file.py:function, with SJC's sigma (mechanisms/methods.py, docs/training.md
+    "Your own method")."""
+    sigma_min: Annotated[float, Positive(), When("guidance", not_=("sds",))] = 0.03
+    """Smallest noise level drawn (VE sigma; not with guidance 'sds', which anneals its timestep)."""
+    sigma_max: Annotated[float, Positive(), When("guidance", not_=("sds",))] = 10.0
+    """Largest noise level drawn at the start of the run (VE sigma; not with guidance 'sds')."""
+    anneal: Annotated[bool, When("guidance", not_=("sds",))] = True
+    """Anneal sigma (not with guidance 'sds'): the upper end of its range decays linearly to ``sigma_min``
     over the run; off, sigma stays uniform over [sigma_min, sigma_max] (measured: docs/training.md,
     "Options measured")."""
     samples_per_step: Annotated[int, AtLeast(1)] = 1
@@ -124,6 +126,9 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)  # every field against its declared type, range and choices (core.constraints)
+        from gdbench.mechanisms.methods import check
+
+        check("guidance", self.guidance)  # a built-in name, or the user's method loads
         if not self.sigma_min < self.sigma_max:
             raise ValueError(f"sigma_min (--sigma-min): expected < sigma_max ({self.sigma_max}), got {self.sigma_min}")
         for name in ("fovy_range", "azimuth_range", "elevation_range"):

@@ -71,6 +71,9 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
     if ctx.noise is None:
         return [randn(shape, generator=iid, device=ctx.device) for _ in range(cfg.samples_per_step)]
     ratio = ratio_schedule(state.step, cfg.steps, cfg.noise.ratio_start, cfg.noise.ratio_end)
+    if ctx.noise_source is not None:  # the user's noise source (mechanisms/methods.py) in place of the cloud's
+        n_s = _user_noise(ctx, state, views, shape)
+        return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio) for _ in range(cfg.samples_per_step)]
     if cfg.noise.source == "pose":  # the control: one fixed field per pose (mechanisms/pose_noise.py)
         n_s = ctx.noise.render(views.poses, views.prior_cams, generator=state.streams["noise_colors"]).noise
         return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio) for _ in range(cfg.samples_per_step)]
@@ -87,6 +90,31 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
     return [mix(n_s, ratio, generator=iid, mode=cfg.noise.ratio) for _ in range(cfg.samples_per_step)]
 
 
+def _user_noise(ctx: Context, state: TrainState, views: Views, shape) -> Tensor:
+    """The user's noise source's field for this step, checked (shape, dtype, finite)."""
+    from gdbench.mechanisms.methods import NoiseRequest
+
+    p = views.poses
+    req = NoiseRequest(tuple(shape), state.step, ctx.cfg.steps, p.azimuth.float(), p.elevation.float(),
+                       p.fovy.float(), views.prior_cams, state.streams["noise_colors"], ctx.device)  # fmt: skip
+    n = ctx.noise_source(req)
+    if not isinstance(n, Tensor) or tuple(n.shape) != tuple(shape) or not n.is_floating_point():
+        got = f"{n.dtype} {tuple(n.shape)}" if isinstance(n, Tensor) else type(n).__name__
+        raise ValueError(f"noise.source {ctx.cfg.noise.source!r}: expected a float tensor {tuple(shape)}, got {got}")
+    if not bool(torch.isfinite(n).all()):
+        raise ValueError(f"noise.source {ctx.cfg.noise.source!r}: returned NaN or Inf at step {state.step}")
+    return n.to(ctx.device, torch.float32)
+
+
+def _guided(ctx: Context, D: Tensor, xd: Tensor, sigma: float, step: int) -> Tensor:
+    """The user's guidance's gradient on x, checked (shape like x, finite)."""
+    g = ctx.guidance(D, xd, sigma, step, ctx.cfg.steps)
+    if not isinstance(g, Tensor) or g.shape != xd.shape:
+        got = tuple(g.shape) if isinstance(g, Tensor) else type(g).__name__
+        raise ValueError(f"guidance {ctx.cfg.guidance!r}: expected a tensor shaped like x {tuple(xd.shape)}, got {got}")
+    return g
+
+
 def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Tensor | None, update: bool):
     """(score g [B, h, w, C], mean squared residual |D - x|^2, seconds in the noise, seconds in
     the prior) averaged over the K noise samples."""
@@ -101,7 +129,10 @@ def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Te
     for n in noises:
         D = ctx.prior.denoise(xd + sigma * n, sig, ctx.cond, azimuth=az, elevation=el, depth=depth, fovy=fovy)
         diff = D - xd
-        part = diff / sigma if K == 1 else diff / sigma / K  # / 1 is exact: the same bits
+        if ctx.guidance is not None:  # the user's (mechanisms/methods.py), averaged over the K samples
+            part = _guided(ctx, D, xd, sigma, state.step) / K
+        else:
+            part = diff / sigma if K == 1 else diff / sigma / K  # / 1 is exact: the same bits
         score = part if score is None else score + part
         resid += float((diff**2).mean()) / K
     return score, resid, t_noise, time.perf_counter() - t0 - t_noise

@@ -5,6 +5,7 @@ step's parts (``views``, ``distill``, ``update``) read both; ``trainer`` builds 
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -50,6 +51,10 @@ class Context:
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     """Where the parameters, renders and noise live (``cfg.device`` resolved); the random streams
     stay on the CPU, so every device draws the same numbers."""
+    guidance: Callable | None = None
+    """The user's guidance (``mechanisms.methods``), None for the built-in sjc and sds."""
+    noise_source: Callable | None = None
+    """The user's noise source (``mechanisms.methods``), None for the built-in cloud and pose."""
 
     @functools.cached_property
     def sigma_values(self) -> list[float]:

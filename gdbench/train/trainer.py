@@ -77,6 +77,8 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
             noise = PoseLockedNoise(cloud, seed=seed, v_min=cfg.noise.v_min)
         else:
             noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
+    from gdbench.mechanisms.methods import is_builtin, resolve
+
     depth_points, latent_bg = None, None
     if mode != "rgb" and space.endswith("+depth"):  # 3DFuse: depth of the initial cloud
         depth_points = initial_scene(cfg, generator=streams["init"]).means.detach().to(device)
@@ -106,6 +108,8 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         length,
         extent,
         device,
+        None if is_builtin("guidance", cfg.guidance) else resolve("guidance", cfg.guidance),
+        None if is_builtin("noise", cfg.noise.source) else resolve("noise", cfg.noise.source),
     )
 
 
