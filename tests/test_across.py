@@ -299,7 +299,7 @@ def test_raters_labels_unblinded_and_attached_as_shares(tmp_path):
     left out gets none."""
     import json
 
-    from gdbench.experiments.v3_design import attach_labels
+    from gdbench.experiments.outcome import attach_labels
     from gdbench.metrics.label_sheets import unblind
 
     key = {str(n): {"run_id": f"r{n}", "run": f"/x/{n}", "caption": "a corgi"} for n in (1, 2, 3)}
@@ -340,7 +340,8 @@ def test_raters_who_disagree_leave_the_primary_verdicts_undecided(tmp_path, monk
     import csv
 
     from gdbench.experiments import v3_design
-    from gdbench.experiments.v3_design import attach_labels, raters_kappa
+    from gdbench.experiments.outcome import attach_labels
+    from gdbench.experiments.v3_design import raters_kappa
     from gdbench.experiments.v3_report import report
 
     monkeypatch.setattr(v3_design, "prereg_commit", lambda root=None: None)
@@ -418,7 +419,7 @@ def test_what_the_raters_saw_counts_each_label_per_arm(tmp_path):
     import collections
     import csv
 
-    from gdbench.experiments.v3_design import attach_labels
+    from gdbench.experiments.outcome import attach_labels
     from gdbench.experiments.v3_report import what_raters_saw
     from gdbench.metrics.agreement import LABELS
 

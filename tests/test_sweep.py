@@ -140,7 +140,7 @@ def test_changing_a_cell_setting_runs_it_again_instead_of_reusing_it(tiny_sweep,
 
     ran = []
     monkeypatch.setattr(sw, "run_cell", lambda s, **kw: ran.append(s) or {"preset": s.preset})
-    monkeypatch.setattr("gdbench.experiments.tables.tables", lambda rows, out, *a: {})
+    monkeypatch.setattr("gdbench.experiments.tables.tables", lambda rows, out, *a, **k: {})
     sweep(SweepConfig([PROMPT], ["gd"], [0], steps=6, out=out, colmap=False, overrides=TINY, progress=False))
     assert [s.steps for s in ran] == [6]
 
@@ -153,7 +153,9 @@ def test_a_running_sweep_writes_its_tables_on_a_clock_and_once_at_the_end(tmp_pa
 
     calls = []
     real = sweep_tables.tables
-    monkeypatch.setattr(sweep_tables, "tables", lambda rows, out, *a: calls.append(len(rows)) or real(rows, out, *a))
+    monkeypatch.setattr(
+        sweep_tables, "tables", lambda rows, out, *a, **k: calls.append(len(rows)) or real(rows, out, *a, **k)
+    )
     kw = dict(steps=4, colmap=False, overrides=TINY, progress=False)
     rows = sweep(SweepConfig([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "a", **kw))
     assert calls == [3]  # the default clock: one write, at the end, with every cell

@@ -578,6 +578,8 @@ def _changed(cfg, name):
         "log_dir": Path("tb"),
         "sd_controlnet": "controlnet",
         "init": "bank-depth",
+        "guidance": "sds",  # a method's name: built-in ones, or a reference to the user's
+        "source": "pose",
     }
     if name in special:
         new = special[name]

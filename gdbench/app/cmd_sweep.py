@@ -5,9 +5,11 @@ as sweep.yaml) overridden by the command line; every cell takes the chosen prior
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Annotated, Literal
+
+import tyro
 
 from gdbench.app.cmd_generate import _with_options
 from gdbench.core.constraints import AtLeast, Seed
@@ -76,6 +78,16 @@ class SweepBase:
     does (about 2 s a cell), and the sweep's ablation.png (every cell's metrics). Off, a cell
     writes scene.ply, run.json, scores.json and cell.json, what the tables need; run a finished
     sweep again with --figures to draw them (nothing is trained again)."""
+    labels: tuple[Path, ...] = ()
+    """Rater label files (run_id,label per line; two passes, as docs/results/v3/labelling): the
+    claims on the Janus outcome read them; without, the shipped judge. summary.md says which. Run
+    a finished sweep again with --labels: nothing is trained again."""
+    define_presets: tyro.conf.Suppress[dict] = field(default_factory=dict)
+    """(The grid file only.) Presets of this sweep's own, named overlays on a built-in one:
+    {name: {base: gd, overrides: {guidance: pkg.mod:fn, ...}}}; list them in presets."""
+    claims: tyro.conf.Suppress[tuple] = ()
+    """(The grid file only.) Claims of this sweep's own between any two of its presets:
+    [{text, a, b, metric, fails_at}], verdicts in their own family (docs/training.md)."""
 
 
 @functools.cache
@@ -115,7 +127,11 @@ def sweep_from_mapping(d: dict, what: str = "config", prior: str | None = None):
     top, train = {}, {}
     for key, value in d.items():
         k = str(key).replace("-", "_")
-        if k == "overrides":
+        if k in ("define_presets", "claims"):  # the grid file's own: checked by the sweep before any cell
+            if not isinstance(value, dict if k == "define_presets" else list):
+                raise ValueError(f"{what}: {k}: expected a {'mapping' if k == 'define_presets' else 'list'}")
+            top[k] = value if k == "define_presets" else tuple(value)
+        elif k == "overrides":
             if not isinstance(value, dict):
                 raise ValueError(f"{what}: overrides: expected a mapping of training options, got {value!r}")
             flat = {}
@@ -135,7 +151,8 @@ def sweep_from_mapping(d: dict, what: str = "config", prior: str | None = None):
                 else:
                     raise ValueError(f"{what}: overrides: unknown training option {ok!r}")
         elif k in names:
-            if isinstance(value, (str, int, float)) and typing.get_origin(typing.get_args(hints[k])[0]) is tuple:
+            typ = typing.get_args(hints[k])[0] if typing.get_origin(hints[k]) is Annotated else hints[k]
+            if isinstance(value, (str, int, float)) and typing.get_origin(typ) is tuple:
                 value = [value]  # one prompt or seed written without a list
             top[k] = from_json(hints[k], value, k, what)
         else:
@@ -150,7 +167,15 @@ def sweep_mapping(cmd) -> dict:
         if f.name in ("config", "train"):
             continue
         v = getattr(cmd, f.name)
-        d[f.name] = list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
+        if f.name in ("define_presets", "claims"):
+            if v:
+                d[f.name] = dict(v) if f.name == "define_presets" else [dict(c) for c in v]
+            continue
+        d[f.name] = (
+            [str(x) if isinstance(x, Path) else x for x in v]
+            if isinstance(v, tuple)
+            else (str(v) if isinstance(v, Path) else v)
+        )
 
     def plain(v):
         return list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
@@ -192,6 +217,9 @@ def run_sweep(cmd) -> dict:
         colmap_presets=list(cmd.colmap_presets) or None,
         colmap_settings=list(cmd.colmap_settings) or None,
         figures=cmd.figures,
+        defined_presets=cmd.define_presets or None,
+        claims=list(cmd.claims) or None,
+        labels=[str(p) for p in cmd.labels] or None,
     )
     rows = sweep(grid, on_valid=record)
     print((Path(cmd.out) / "summary.md").read_text())

@@ -236,6 +236,33 @@ def reversals(keys: list[tuple], d: np.ndarray, *, decided: bool = True) -> str:
     return "; ".join(out)
 
 
+def user_claims(given, presets: list[str]) -> tuple[Claim, ...]:
+    """A sweep's own claims (``Claim``s or mappings with text, a, b, metric and optionally
+    fails_at), each between two different presets of the sweep, on a metric with a margin
+    (``MARGINS``) or the outcome ('janus', 'failure': rater labels where the sweep is given them,
+    else the judge; ``outcome.read_outcome``); anything else is a ValueError naming the claim."""
+    out = []
+    for i, c in enumerate(given or ()):
+        where = f"claims[{i}]"
+        if isinstance(c, dict):
+            unknown = set(c) - {"text", "a", "b", "metric", "fails_at"}
+            if unknown or not {"text", "a", "b", "metric"} <= set(c):
+                raise ValueError(f"{where}: expected text, a, b, metric (and fails_at), got keys {sorted(c)}")
+            c = Claim(str(c["text"]), str(c["a"]), str(c["b"]), str(c["metric"]), c.get("fails_at"))
+        if not isinstance(c, Claim):
+            raise ValueError(f"{where}: expected a mapping or a Claim, got {type(c).__name__}")
+        bad = [p for p in (c.a, c.b) if p not in presets]
+        if bad or c.a == c.b:
+            raise ValueError(f"{where} ({c.text!r}): a and b must be two different presets of the sweep {presets}")
+        known = sorted(MARGINS) + ["janus", "failure"]  # the outcome: labels where given, else the judge
+        if c.metric not in known:
+            raise ValueError(f"{where} ({c.text!r}): metric: expected one of {known}, got {c.metric!r}")
+        if c.fails_at is not None and not isinstance(c.fails_at, (int, float)):
+            raise ValueError(f"{where} ({c.text!r}): fails_at: expected a number or none, got {c.fails_at!r}")
+        out.append(c)
+    return tuple(out)
+
+
 JANUS_METRICS = ("janus_rate", "multi_face_rate", "front_everywhere_rate", "janus_failure_rate", "judge_janus")
 JANUS_SETTING_METRICS = (
     "janus_rate",

@@ -51,6 +51,10 @@ class CellSpec:
     setting: str = "easy"
     group: str = ""
     """A named set of overrides the sweep crosses with everything else ('' when it has none)."""
+    base: str = ""
+    """For a preset the sweep file defines: the built-in preset it overlays ('' for a built-in)."""
+    overlay: dict = field(default_factory=dict)
+    """... and its overrides, applied to the base before the setting's and the sweep's."""
 
     @property
     def dir(self) -> Path:
@@ -72,7 +76,12 @@ def cell_name(prompt: str) -> str:
 
 
 def validate_grid(
-    prompts: list[str], presets: list[str], seeds: list[int], specs: list[CellSpec], executor: str = "local"
+    prompts: list[str],
+    presets: list[str],
+    seeds: list[int],
+    specs: list[CellSpec],
+    executor: str = "local",
+    defined: set[str] = frozenset(),
 ) -> None:
     """Everything a sweep could fail on, checked before the first cell trains: presets, repeated
     entries, cell folders two prompts would share, prompts no asset matches (or that contradict
@@ -82,9 +91,12 @@ def validate_grid(
     from gdbench.priors.text import CaptionMatcher
     from gdbench.train.config import PRESETS
 
-    bad = [p for p in presets if p not in PRESETS]
+    bad = [p for p in presets if p not in PRESETS and p not in defined]
     if bad:
-        raise ValueError(f"presets: unknown {bad}; expected names from {sorted(PRESETS)}")
+        raise ValueError(
+            f"presets: unknown {bad}; expected names from {sorted(PRESETS)}"
+            + (f" or the sweep's own {sorted(defined)}" if defined else " (or define them: define_presets)")
+        )
     if not prompts or not presets or not seeds:
         raise ValueError("prompts, presets, seeds: expected at least one of each")
     for name, items in (("presets", presets), ("seeds", seeds)):
@@ -142,10 +154,37 @@ def inert_overrides(specs: list[CellSpec]) -> list[str]:
     return lines
 
 
-def cell_config(spec: CellSpec):
-    """The TrainConfig of a cell: the preset, its setting's overrides, then the sweep's."""
-    from gdbench.train.config import preset
+def define_presets(defined: Mapping[str, Mapping] | None) -> dict[str, tuple[str, dict]]:
+    """A sweep file's presets: name -> (the built-in base, its overrides), each checked (a name not a
+    built-in's, a known base, overrides that apply: ``train.config.apply_overrides``)."""
+    from gdbench.train.config import PRESETS, apply_overrides
 
+    out = {}
+    for name, d in (defined or {}).items():
+        where = f"define_presets: {name}"
+        if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_.-]*", name) or name in PRESETS:
+            raise ValueError(f"{where}: expected a new name (lower-case letters, digits, '_-.'; not a built-in's)")
+        if not isinstance(d, Mapping) or set(d) - {"base", "overrides"} or d.get("base") not in PRESETS:
+            raise ValueError(f"{where}: expected {{base: one of {sorted(PRESETS)}, overrides: {{...}}}}, got {d!r}")
+        over = dict(d.get("overrides") or {})
+        try:
+            apply_overrides(PRESETS[d["base"]], over)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+        out[name] = (d["base"], over)
+    return out
+
+
+def cell_config(spec: CellSpec):
+    """The TrainConfig of a cell: the preset (a sweep file's: its base with its overrides), its
+    setting's overrides, then the sweep's."""
+    from gdbench.train.config import PRESETS, apply_overrides, preset
+
+    if spec.base:
+        start = apply_overrides(PRESETS[spec.base], spec.overlay | {"preset": spec.preset})
+        run = {"prompt": spec.prompt, "steps": spec.steps, "seed": spec.seed, "out": spec.dir, "progress": False}
+        setting = setting_overrides(spec.setting, spec.overrides.get("prior"))
+        return apply_overrides(start, run | setting | spec.overrides)
     return preset(
         spec.preset,
         prompt=spec.prompt,
@@ -327,16 +366,28 @@ class SweepConfig:
     """Each cell also writes its turntable and training curves (what ``turntable_grid`` reads), and
     the sweep ablation.png; off, only what the tables need (a finished sweep run again with
     ``figures`` draws them without training)."""
+    defined_presets: Mapping[str, Mapping] | None = None
+    """Presets of the sweep's own: name -> {base: a built-in preset, overrides: {...}} (a user's
+    method enters here: guidance or noise.source as a reference), usable in ``presets``."""
+    claims: Sequence | None = None
+    """Claims of the sweep's own (``claims.Claim``s or their mappings: text, a, b, metric,
+    fails_at), between any two of its presets, verdicts in their own family beside the paper's."""
+    labels: Sequence[str | Path] | None = None
+    """Rater label files (run_id, label: ``gdbench.metrics.label_sheets --unblind``): the claims on
+    the Janus outcome read them; without, the shipped judge (summary.md says which)."""
 
 
-def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
-    """Train and score the grid of ``cfg``; returns the rows. ``on_valid()``, if given, is called
-    once the grid is validated, before any cell runs. ``out/timings.json`` records where the
-    call's time went (validation, cells, tables)."""
-    from gdbench.experiments.tables import tables
-
+def grid(cfg: SweepConfig) -> tuple[list[CellSpec], dict, dict]:
+    """The cells of ``cfg`` (seeds outermost), the claim families its tables read (the paper's, and
+    the sweep's own where it has some) and the presets it defines; its settings, groups and
+    per-setting presets checked."""
     prompts, presets, seeds = list(cfg.prompts), list(cfg.presets), list(cfg.seeds)
     out = Path(cfg.out)
+    from gdbench.experiments.claims import CLAIMS, user_claims
+
+    defined = define_presets(cfg.defined_presets)
+    own = user_claims(cfg.claims, presets)
+    families = {"": CLAIMS} | ({"sweep": own} if own else {})  # the sweep's own claims: a family of their own
     settings = list(cfg.settings or ["easy"])
     bad = [s for s in settings if s not in SETTINGS]
     if bad or len(set(settings)) != len(settings):
@@ -366,6 +417,7 @@ def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
             dict(cfg.overrides or {}) | dict(gov),
             st,
             g,
+            *defined.get(p, ("", {})),
         )
         for sd in seeds
         for g, gov in groups.items()
@@ -373,8 +425,19 @@ def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
         for pr in prompts
         for p in per[st]
     ]
+    return specs, families, defined
+
+
+def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
+    """Train and score the grid of ``cfg``; returns the rows. ``on_valid()``, if given, is called
+    once the grid is validated, before any cell runs. ``out/timings.json`` records where the
+    call's time went (validation, cells, tables)."""
+    from gdbench.experiments.tables import tables
+
+    out = Path(cfg.out)
+    specs, families, defined = grid(cfg)
     t_start = time.perf_counter()
-    validate_grid(prompts, presets, seeds, specs, cfg.executor)
+    validate_grid(list(cfg.prompts), list(cfg.presets), list(cfg.seeds), specs, cfg.executor, set(defined))
     t_valid = time.perf_counter()
     if cfg.executor == "ray" and cfg.address:
         check_ray_address(cfg.address)
@@ -403,7 +466,7 @@ def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
             rows[todo[i]] = row
             if time.monotonic() - written >= TABLES_EVERY_S:  # a look at a long sweep's tables
                 t0 = time.perf_counter()
-                tables([rows[k] for k in sorted(rows)], out, cfg.figures)
+                tables([rows[k] for k in sorted(rows)], out, cfg.figures, claims=families, labels=cfg.labels)
                 tables_s += time.perf_counter() - t0
                 written = time.monotonic()
             if bar is not None:
@@ -415,7 +478,7 @@ def sweep(cfg: SweepConfig, *, on_valid=None) -> list[dict]:
     t_end = time.perf_counter()
     cells_s = t_end - t_cells - tables_s  # without the periodic rewrites of the tables
     ordered = [rows[k] for k in sorted(rows)]
-    tables(ordered, out, cfg.figures)
+    tables(ordered, out, cfg.figures, claims=families, labels=cfg.labels)
     tables_s += time.perf_counter() - t_end
     from gdbench.core.io import write_json
     from gdbench.core.provenance import code_commit

@@ -168,15 +168,21 @@ def _size_note(v: dict) -> str:
     return f" (sizes differ {v['size_ratio']:.1f}x: growth confounds the pair)" if v["size_confounded"] else ""
 
 
-def tables(rows: list[dict], out: Path, figures: bool = True, claims=None, prompt_test: str = "t") -> dict[str, Path]:
+def tables(
+    rows: list[dict], out: Path, figures: bool = True, claims=None, prompt_test: str = "t", labels=None
+) -> dict[str, Path]:
     """cells.csv, summary.csv, verdict.csv, summary.md and, with ``figures``, ablation.png;
     ``claims`` (default: every claim, ``claims.CLAIMS``) and ``prompt_test`` as ``claims.evaluate``;
     ``claims`` may also be a dict of families (name -> claims), each Holm-adjusted on its own and
-    named in the verdict's ``family`` column."""
+    named in the verdict's ``family`` column. With ``labels`` (rater label files by run id) the
+    claims on the Janus outcome read the labels, else the judge (``outcome.read_outcome``), and
+    summary.md says which."""
     from gdbench.core.io import write_csv
     from gdbench.experiments.claims import CLAIMS, evaluate
+    from gdbench.experiments.outcome import attach_labels, outcome_note, read_outcome
 
     out.mkdir(parents=True, exist_ok=True)
+    rows = attach_labels(rows, list(labels)) if labels else rows
     paths = {"cells_csv": write_csv(rows, out / "cells.csv")}
     summary = summarise(rows)
     paths["summary_csv"] = write_csv(summary, out / "summary.csv")
@@ -187,10 +193,10 @@ def tables(rows: list[dict], out: Path, figures: bool = True, claims=None, promp
     verdicts = [
         v | ({"family": name} if name else {}) | {"tables_commit": tables_commit}
         for name, family in families.items()
-        for v in evaluate(rows, family, prompt_test)
+        for v in evaluate(rows, read_outcome(family, bool(labels)), prompt_test)
     ]
     paths["verdict_csv"] = write_csv(verdicts, out / "verdict.csv")
-    (out / "summary.md").write_text(markdown(summary, verdicts, rows))
+    (out / "summary.md").write_text(outcome_note(rows, labels) + "\n\n" + markdown(summary, verdicts, rows))
     paths["summary_md"] = out / "summary.md"
     if figures:
         paths["plot"] = plot(rows, out / "ablation.png")

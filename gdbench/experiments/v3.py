@@ -23,11 +23,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from gdbench.experiments.outcome import attach_labels
 from gdbench.experiments.runner import collect, run_blocks
 from gdbench.experiments.v3_design import (
     PILOT_SEEDS,
     REGISTERED,
-    attach_labels,
     pilot_blocks,
     pilot_prompts,
     prompts,

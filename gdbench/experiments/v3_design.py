@@ -103,23 +103,6 @@ def raters_kappa(files: list, run_ids: set) -> dict:
             "kappa_classes": cohen_kappa([a[i] for i in ids], [b[i] for i in ids])}  # fmt: skip
 
 
-def attach_labels(rows: list[dict], files: list) -> list[dict]:
-    """``rows`` with ``label_janus`` and ``label_failure`` (the share of the label ``files`` that
-    call the result Janus, or not fine) where every file labels the row's run id; files are
-    labels by run id (``gdbench.metrics.label_sheets --unblind``)."""
-    from gdbench.metrics.agreement import JANUS, read_labels
-
-    raters = [{r["run_id"]: r["label"] for r in read_labels(f)} for f in files]
-    out = []
-    for r in rows:
-        got = [lab.get(r.get("run_id")) for lab in raters]
-        if raters and all(got):
-            r = r | {"label_janus": sum(g in JANUS for g in got) / len(got),
-                     "label_failure": sum(g != "fine" for g in got) / len(got)}  # fmt: skip
-        out.append(r)
-    return out
-
-
 EFFECTS = {
     ("learned-v1", "gd", "gd-no-sn", "janus_rate"): 0.19,  # half of -0.38
     ("learned-v4", "gd", "gd-no-sn", "janus_rate"): 0.16,  # half of -0.32

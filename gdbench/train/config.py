@@ -371,9 +371,13 @@ def config_from_dict(d: Mapping[str, object], *, base: TrainConfig | None = None
         raise ValueError(f"{what}: expected a mapping of settings, got {type(d).__name__}")
     name = d.get("preset", base.preset if base is not None else "gd")
     if base is None:
-        if name not in PRESETS:
-            raise ValueError(f"{what}: preset: unknown {name!r}; expected one of {sorted(PRESETS)}")
-        base = PRESETS[name]
+        complete = {f.name for f in fields(TrainConfig)} - {"device"} <= set(d)  # a run.json (its device aside)
+        if name not in PRESETS and not complete:
+            raise ValueError(
+                f"{what}: preset: unknown {name!r}; expected one of {sorted(PRESETS)} (a preset a sweep file "
+                "defines is known to its sweep; its cells' run.json files hold every setting)"
+            )
+        base = PRESETS.get(name, PRESETS["gd"])  # a sweep's own preset: every field comes from the dict
     given: list[tuple[str, object]] = []  # (name as written, value), groups and the prior opened
     prior = d.get("prior")
     kind = prior.get("kind", base.prior.kind) if isinstance(prior, Mapping) else prior if prior is not None else None
