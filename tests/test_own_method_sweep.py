@@ -120,3 +120,34 @@ def test_a_cell_of_the_sweeps_own_preset_reproduces_from_its_run_json(own, tmp_p
     partial.write_text(json.dumps({"preset": "gd-mine", "steps": 3}))
     code, _, err = cli(monkeypatch, capsys, "generate", "--config", str(partial), "--out", str(tmp_path / "p"))
     assert code != 0 and "preset: unknown 'gd-mine'" in err and "known to its sweep" in err
+
+
+def test_the_documented_sweep_file_is_a_valid_grid():
+    """docs/training.md's example sweep file reads, and its grid (presets, claim) is accepted."""
+    import re
+
+    from gdbench.app.cmd_sweep import sweep_from_mapping
+    from gdbench.experiments.sweep import grid
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "training.md").read_text()
+    block = re.search(r"```yaml\n(# sweep.yaml.*?)```", doc, re.S).group(1)
+    cmd = sweep_from_mapping(yaml.safe_load(block))
+    cfg = SweepConfig(list(cmd.prompts), list(cmd.presets), list(cmd.seeds), settings=list(cmd.settings),
+                      defined_presets=cmd.define_presets, claims=list(cmd.claims))  # fmt: skip
+    specs, families, defined = grid(cfg)
+    assert len(specs) == 3 * 2 * 6 and set(defined) == {"gd-smooth"} and len(families["sweep"]) == 1
+
+
+def test_the_ablation_notebook_draws_the_sweeps_own_presets_and_claim(own, monkeypatch, tmp_path):
+    """The notebook takes a sweep's own preset and claim like the built-in ones: its figure of the
+    cells and a forest row for the claim (drawn, or named where it has no interval)."""
+    import json
+    import re
+
+    from tests.test_notebooks import _execute
+
+    out, _ = own
+    text = _execute("ablation", out, tmp_path, monkeypatch)
+    check = json.loads(re.search(r"^FOREST_CHECK (.*)$", text, re.M).group(1))
+    assert check["sweep"] == str(out) and check["forest"]["rows"] == 1
+    assert check["errorbars"] >= 1 or "gd-mine vs gd" in " ".join(check["forest"]["without_interval"])
