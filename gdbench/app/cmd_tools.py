@@ -133,12 +133,31 @@ class TrainPrior:
     """six: the paper's six assets, one embedding per caption (the shipped models); world: every
     caption of `gdbench prompts`, each the sum of its kind's, colour's and accessory's embeddings,
     with the world's held-out combinations never rendered (docs/learned_prior.md)."""
+    teacher: Path | None = None
+    """Guidance distillation: a finished model's weights (a file or a run folder) the new one starts
+    from and learns to match, guided at --teacher-guidance, in one call (its architecture, data and
+    view weighting are the teacher's: --size, --patch, --widths, --emb, --views, --resolution,
+    --catalogue and --front-bias are not used; --lr left at its default trains at 1e-4, a fine-tuning
+    rate; docs/learned_prior.md)."""
+    teacher_guidance: Annotated[float, AtLeast(1)] = 3.0
+    """The teacher's classifier-free guidance scale the one-call model learns (the learned prior's
+    default --learned-guidance: 3)."""
 
 
 def run_train_prior(cmd: TrainPrior) -> dict:
     from gdbench.priors.learned.data import DataConfig
     from gdbench.priors.learned.training import PriorTrainConfig, train_prior, world_config
     from gdbench.priors.learned.unet import UNetConfig
+
+    if cmd.teacher is not None:
+        from gdbench.priors.learned.distillation import distill_config
+
+        cfg = distill_config(
+            cmd.teacher, cmd.teacher_guidance, out=cmd.out, steps=cmd.steps, batch=cmd.batch, seed=cmd.seed,
+            threads=cmd.threads, device=cmd.device, data_workers=cmd.data_workers, progress=cmd.progress,
+            **({} if cmd.lr == 6e-4 else {"lr": cmd.lr}),
+        )  # fmt: skip
+        return train_prior(cfg, stop_at=cmd.stop_at)
 
     if cmd.catalogue == "world":
         cfg = world_config(

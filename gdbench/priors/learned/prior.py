@@ -192,6 +192,14 @@ class LearnedPrior:
         self.matcher = CaptionMatcher(list(self.captions), threshold)
         self.front_bias = float(json.loads(self.meta.get("train", "{}")).get("front_bias", 0.0))
         """kappa of the model's training views (from its metadata)."""
+        self.distilled = float(json.loads(self.meta.get("train", "{}")).get("teacher_guidance", 0.0))
+        """The guidance scale a one-call model was distilled at (``distillation.py``); 0 for a model
+        that guides with two calls."""
+        if self.distilled and guidance_scale != self.distilled:
+            raise ValueError(
+                f"learned_guidance (--learned-guidance): the model {model} gives guidance {self.distilled:g} in one "
+                f"call (distilled); it takes --learned-guidance {self.distilled:g} only, got {guidance_scale:g}"
+            )
         self.abar = sd_abar()
         self.sigmas = ve_sigmas_from_betas().float()
         self._graphs: dict[tuple[bool, bool, float], torch.nn.Module] = {}
@@ -261,7 +269,7 @@ class LearnedPrior:
         cap = torch.full((B,), cond.caption_index, device=self.device)
         var = torch.full((B,), cond.variant_index, device=self.device)
         cam = camera.to(self.device) if camera is not None else None
-        guided = guided and self.guidance_scale != 1
+        guided = guided and self.guidance_scale != 1 and not self.distilled  # a distilled model: one call, guided
         args = (x_t, t, cap, var) + (() if cam is None else (cam,))
         return self._graph(guided, cam is not None)(*args)
 

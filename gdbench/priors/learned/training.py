@@ -77,6 +77,11 @@ class PriorTrainConfig:
     held_out: tuple[str, ...] = ()
     """Captions the model knows (a row of its compositional caption embedding) but never sees in
     training: the generalisation check of held-out combinations (``world_config``)."""
+    teacher: str = ""
+    """Guidance distillation (``distillation.py``): the weights of a finished model this one starts
+    from and learns to match, guided, in one call ('' trains a model of its own)."""
+    teacher_guidance: float = 0.0
+    """... the classifier-free guidance scale of the teacher's prediction it learns (> 1)."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -93,6 +98,7 @@ class PriorTrainConfig:
         ]
         for name in ("caption_drop", "variant_drop", "camera_drop"):
             checks.append((name, 0 <= getattr(self, name) < 1, "a rate in [0, 1)"))
+        checks.append(("teacher_guidance", (self.teacher_guidance > 1) == bool(self.teacher), "> 1 with a teacher"))
         for name, ok, want in checks:
             if not ok:
                 raise ValueError(f"{name}: expected {want}, got {getattr(self, name)!r}")
@@ -122,6 +128,9 @@ class PriorTrainConfig:
         d = self.to_dict()
         for k in ("out", "steps", "threads", "device", "data_workers", "checkpoint_every", "log_every", "progress"):
             d.pop(k)
+        if not self.teacher:  # a model of its own: the identity runs had before distillation existed
+            d.pop("teacher")
+            d.pop("teacher_guidance")
         return d
 
 
@@ -198,9 +207,15 @@ class Batches:
                 "camera_drop": camera_drop}  # fmt: skip
 
 
-def loss_of(model: UNet, b: dict[str, torch.Tensor], device: torch.device) -> torch.Tensor:
+def loss_of(model: UNet, b: dict[str, torch.Tensor], device: torch.device, teacher=None, scale: float = 1.0):
+    """The batch's loss: against the drawn target, or with a ``teacher`` against its guided
+    prediction at ``scale`` for the same inputs (``distillation.guided_target``)."""
     b = {k: v.to(device) for k, v in b.items()}
     emb = model.embedding(b["t"], b["caption"], b["variant"], b["camera"], b["camera_drop"])
+    if teacher is not None:
+        from gdbench.priors.learned.distillation import guided_target
+
+        b["target"] = guided_target(teacher, b, scale)
     return (model(b["x_t"], emb) - b["target"]).pow(2).mean()
 
 
@@ -232,6 +247,12 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
     torch.manual_seed(cfg.seed)  # the initial weights (nn.Module initialises from the global generator)
     model = UNet(cfg.unet).to(device)
     ema = UNet(cfg.unet).to(device)
+    teacher = None
+    if cfg.teacher:  # guidance distillation: start from the teacher's weights (distillation.py)
+        from gdbench.priors.learned.distillation import load_teacher
+
+        teacher = load_teacher(cfg, device)
+        model.load_state_dict(teacher.state_dict())
     ema.load_state_dict(model.state_dict())
     ema.requires_grad_(False)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -278,7 +299,7 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
             while step < last and not interrupted:
                 for group in opt.param_groups:
                     group["lr"] = lr_at(cfg, step)
-                loss = loss_of(model, batches.draw(), device)
+                loss = loss_of(model, batches.draw(), device, teacher, cfg.teacher_guidance)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
