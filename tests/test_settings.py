@@ -22,8 +22,8 @@ SWITCHED = {"noise", "vgs", "densify"}
 
 CASES = [
     # (preset, overrides that make the option inert, the option, the message's words)
-    ("sds-gs", {}, "sigma_min", "--sigma-min acts only with --guidance sjc (this run: --guidance sds)"),
-    ("sds-gs", {}, "anneal", "--anneal acts only with --guidance sjc (this run: --guidance sds)"),
+    ("sds-gs", {}, "sigma_min", "--sigma-min acts only with --guidance other than sds (this run: --guidance sds)"),
+    ("sds-gs", {}, "anneal", "--anneal acts only with --guidance other than sds (this run: --guidance sds)"),
     ("gd", {}, "init_ply", "--init-ply acts only with --init ply (this run: --init sphere)"),
     ("gd", {"init": "bank-depth"}, "init_color", "--init-color acts only with --init sphere (this run: --init bank"),
     ("gd", {"prior": "sd", "init": "ply", "init_ply": "p"}, "init_color",
