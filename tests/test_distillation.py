@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from gdbench.priors import sd_abar
-from gdbench.priors.learned.distillation import distill_config, guided_target
+from gdbench.priors.learned.distillation import distill_config
 from gdbench.priors.learned.prior import LearnedPrior, _Epsilon, load_model
-from gdbench.priors.learned.training import Batches, PriorTrainConfig, loss_of, train_prior
+from gdbench.priors.learned.training import Batches, PriorTrainConfig, guided_target, loss_of, train_prior
 from tests.test_learned_prior import TINY, TINY_DATA
 
 

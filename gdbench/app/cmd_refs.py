@@ -50,12 +50,12 @@ class Conformance:
 
     renderer: tuple[str, ...] = ()
     """Renderers of your own: module:function, path/to/file.py:function or a registered name
-    (docs/references.md, "Bring your own renderer")."""
+    (docs/references.md, "Bring your own renderer") (default: none)."""
     renderers: tuple[str, ...] = ()
-    """Built-in renderers to check beside them (splat, splat_torch, gsplat_torch, gsplat_cuda,
-    mitsuba_ellipsoids); default: none with --renderer, else splat and splat_torch."""
+    """Built-in renderers to check beside them: splat, splat_torch, gsplat_torch, gsplat_cuda,
+    mitsuba_ellipsoids (default: none with --renderer, else splat and splat_torch)."""
     cases: tuple[str, ...] = ()
-    """Only these cases (fixture names, stiff case names; default: all)."""
+    """Only these cases: fixture names, stiff case names (default: all)."""
     out: Path = Path("runs/conformance")
     """Folder for report.md, its plots, conformance.csv and conformance.json."""
 
@@ -117,11 +117,12 @@ class Bench:
     is not per case): a smoke run, not numbers to publish."""
     renderer: tuple[str, ...] = ()
     """stability and error: renderers of your own, module:function or path/file.py:function
-    (docs/references.md, "Bring your own renderer"); PASS, FAIL or SKIP per case, exit 1 on a FAIL."""
+    (docs/references.md, "Bring your own renderer"); PASS, FAIL or SKIP per case, exit 1 on a FAIL
+    (default: none)."""
     renderers: tuple[str, ...] = ()
     """stability and error: only these built-in renderers (default: all, or none with --renderer)."""
     cases: tuple[str, ...] = ()
-    """stability: only these cases (default: all; names as in its table)."""
+    """stability: only these cases, named as in its table (default: all)."""
 
 
 def run_bench(cmd: Bench) -> dict:

@@ -80,8 +80,8 @@ class SweepBase:
     sweep again with --figures to draw them (nothing is trained again)."""
     labels: tuple[Path, ...] = ()
     """Rater label files (run_id,label per line; two passes, as docs/results/v3/labelling): the
-    claims on the Janus outcome read them; without, the shipped judge. summary.md says which. Run
-    a finished sweep again with --labels: nothing is trained again."""
+    claims on the Janus outcome read them. summary.md says which it read. Run a finished sweep
+    again with --labels: nothing is trained again (default: none, the shipped judge)."""
     define_presets: tyro.conf.Suppress[dict] = field(default_factory=dict)
     """(The grid file only.) Presets of this sweep's own, named overlays on a built-in one:
     {name: {base: gd, overrides: {guidance: pkg.mod:fn, ...}}}; list them in presets."""

@@ -138,7 +138,7 @@ class TrainPrior:
     from and learns to match, guided at --teacher-guidance, in one call (its architecture, data and
     view weighting are the teacher's: --size, --patch, --widths, --emb, --views, --resolution,
     --catalogue and --front-bias are not used; --lr left at its default trains at 1e-4, a fine-tuning
-    rate; docs/learned_prior.md)."""
+    rate; docs/learned_prior.md) (default: none, a model of its own)."""
     teacher_guidance: Annotated[float, AtLeast(1)] = 3.0
     """The teacher's classifier-free guidance scale the one-call model learns (the learned prior's
     default --learned-guidance: 3)."""

@@ -8,7 +8,8 @@ prompting 'none'):
 
     loss = |v_student(x_t, t, c) - (v_teacher(x_t, t, 0) + s (v_teacher(x_t, t, c) - v_teacher(x_t, t, 0)))|^2
 
-(the combination is affine, so it is the same in epsilon or v terms). The weights record
+(the combination is affine, so it is the same in epsilon or v terms; ``training.guided_target``,
+and ``training.load_teacher`` checks the teacher against the run). The weights record
 ``teacher_guidance`` in their metadata; the prior then makes one call where the teacher made two,
 and refuses any other ``--learned-guidance`` in one line naming the model (``prior.LearnedPrior``).
 
@@ -21,10 +22,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import torch
-
 from gdbench.priors.learned.training import PriorTrainConfig
-from gdbench.priors.learned.unet import UNet
 
 
 def _identity_of(teacher: str | Path) -> dict:
@@ -61,37 +59,3 @@ def distill_config(teacher: str | Path, scale: float, **kw) -> PriorTrainConfig:
         teacher=str(model_path(teacher).resolve()),
         teacher_guidance=float(scale),
     )
-
-
-def load_teacher(cfg: PriorTrainConfig, device) -> UNet:
-    """The teacher of ``cfg`` (eval mode, no gradients), checked to have the student's architecture
-    and data."""
-    from dataclasses import asdict
-
-    from gdbench.priors.learned.prior import load_model
-
-    net, meta = load_model(cfg.teacher, device)
-    ident = json.loads(meta.get("train", "{}"))
-    if asdict(net.config) != asdict(cfg.unet) or ident.get("data") != json.loads(json.dumps(asdict(cfg.data))):
-        raise ValueError(f"teacher: {cfg.teacher} has another architecture or data than this run; build the run "
-                         "with distill_config (train-prior --teacher)")  # fmt: skip
-    return net
-
-
-@torch.no_grad()
-def guided_target(teacher: UNet, b: dict[str, torch.Tensor], scale: float) -> torch.Tensor:
-    """The teacher's classifier-free guided prediction at ``scale`` for the batch's inputs (its
-    conditions as drawn, with their drops) in the network's own output terms, both evaluations as
-    one batch: the unconditional one drops caption, variant and camera."""
-    c, t, cap, var = teacher.config, b["t"], b["caption"], b["variant"]
-    B = t.shape[0]
-    drop = torch.cat([torch.ones(B, dtype=torch.bool, device=t.device), b["camera_drop"].bool()])
-    emb = teacher.embedding(
-        torch.cat([t, t]),
-        torch.cat([torch.full_like(cap, c.captions), cap]),
-        torch.cat([torch.full_like(var, c.variants), var]),
-        torch.cat([b["camera"], b["camera"]]),
-        drop,
-    )
-    vu, vc = teacher(torch.cat([b["x_t"], b["x_t"]]), emb).chunk(2)
-    return vu + scale * (vc - vu)

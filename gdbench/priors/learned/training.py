@@ -213,8 +213,6 @@ def loss_of(model: UNet, b: dict[str, torch.Tensor], device: torch.device, teach
     b = {k: v.to(device) for k, v in b.items()}
     emb = model.embedding(b["t"], b["caption"], b["variant"], b["camera"], b["camera_drop"])
     if teacher is not None:
-        from gdbench.priors.learned.distillation import guided_target
-
         b["target"] = guided_target(teacher, b, scale)
     return (model(b["x_t"], emb) - b["target"]).pow(2).mean()
 
@@ -249,8 +247,6 @@ def _train(cfg: PriorTrainConfig, stop_at: int | None) -> dict:
     ema = UNet(cfg.unet).to(device)
     teacher = None
     if cfg.teacher:  # guidance distillation: start from the teacher's weights (distillation.py)
-        from gdbench.priors.learned.distillation import load_teacher
-
         teacher = load_teacher(cfg, device)
         model.load_state_dict(teacher.state_dict())
     ema.load_state_dict(model.state_dict())
@@ -430,3 +426,35 @@ def plot_loss(log: list[dict], path: Path, title: str = "") -> None:
     ax.set(xlabel="step", ylabel="loss (v MSE)", yscale="log", title=f"learned prior {title}".strip())
     ax.legend()
     save(fig, path, dpi=120)
+
+
+def load_teacher(cfg: PriorTrainConfig, device) -> UNet:
+    """The teacher of ``cfg`` (eval mode, no gradients), checked to have the student's architecture
+    and data."""
+    from gdbench.priors.learned.prior import load_model
+
+    net, meta = load_model(cfg.teacher, device)
+    ident = json.loads(meta.get("train", "{}"))
+    if asdict(net.config) != asdict(cfg.unet) or ident.get("data") != json.loads(json.dumps(asdict(cfg.data))):
+        raise ValueError(f"teacher: {cfg.teacher} has another architecture or data than this run; build the run "
+                         "with distill_config (train-prior --teacher)")  # fmt: skip
+    return net
+
+
+@torch.no_grad()
+def guided_target(teacher: UNet, b: dict[str, torch.Tensor], scale: float) -> torch.Tensor:
+    """The teacher's classifier-free guided prediction at ``scale`` for the batch's inputs (its
+    conditions as drawn, with their drops) in the network's own output terms, both evaluations as
+    one batch: the unconditional one drops caption, variant and camera."""
+    c, t, cap, var = teacher.config, b["t"], b["caption"], b["variant"]
+    B = t.shape[0]
+    drop = torch.cat([torch.ones(B, dtype=torch.bool, device=t.device), b["camera_drop"].bool()])
+    emb = teacher.embedding(
+        torch.cat([t, t]),
+        torch.cat([torch.full_like(cap, c.captions), cap]),
+        torch.cat([torch.full_like(var, c.variants), var]),
+        torch.cat([b["camera"], b["camera"]]),
+        drop,
+    )
+    vu, vc = teacher(torch.cat([b["x_t"], b["x_t"]]), emb).chunk(2)
+    return vu + scale * (vc - vu)
