@@ -85,3 +85,24 @@ def test_the_six_view_labels_recompute_from_the_committed_sheets():
         pytest.skip(f"judged.csv names the judge {judged[0]['judge']}, the shipped one is {judge_version()}")
     now = judge_fresh(ROOT)
     assert [r["six_views"] for r in now] == [r["six_views"] for r in judged]
+
+
+def test_the_pooled_diagnostic_refits_the_head_on_both_sets_labels():
+    """``judge_fresh --pooled``: the head refitted over v3's and the fresh set's consensus results
+    (counted here from the label files themselves), by source; in sample it cannot do worse than
+    leave-kind-out on the results it was fitted on."""
+    import csv
+
+    from gdbench.experiments.judge_fresh import LABELS, pooled
+
+    def consensus(paths):
+        a, b = ({r["run_id"]: r["label"] for r in csv.DictReader(open(p))} for p in paths)
+        return sum(a[k] == b[k] for k in a if k in b)
+
+    fresh = consensus([LABELS["rater1"], LABELS["rater2"]])
+    rows = {(r["fit"], r["source"]): r for r in pooled()}
+    n_all = rows[("in sample, pooled", "all")]["n"]
+    assert n_all == rows[("in sample, pooled", "v3")]["n"] + fresh
+    blocks = ("learned-janus", "learned-uniform", "empirical-janus")
+    assert sum(rows[("in sample, pooled", b)]["n"] for b in blocks) == fresh
+    assert rows[("in sample, pooled", "all")]["agree"] >= rows[("leave-kind-out, pooled", "all")]["agree"]

@@ -110,6 +110,36 @@ def agreement_rows(judged: list[dict]) -> list[dict]:
     return rows
 
 
+def pooled(root: Path = Path(".")) -> list[dict]:
+    """After the fresh set was read (it is spent as a test): would more labelled results, the fresh
+    set's pooled with v3's, let the head meet the bar? The head refitted leave-kind-out and in sample
+    over the union (six views; the eye as shipped), a row per fit and source (v3, each fresh block).
+    A diagnostic of the head's data against its features, not a test of a judge."""
+    from gdbench.assets.library import PARTS, has_front
+    from gdbench.core.provenance import code_commit
+    from gdbench.experiments.judge_build import sheet_features
+    from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out
+    from gdbench.metrics.judge.judge import load_judge
+    from gdbench.metrics.judge.sheets import v3_results
+
+    judge = load_judge()
+    fresh = fresh_results(root)
+    results = v3_results(root) + fresh
+    source = ["v3"] * (len(results) - len(fresh)) + [block_and_arm(r.run)[0] for r in fresh]
+    x = sheet_features(judge.eye, judge.curves, results)
+    kinds = [PARTS[r.caption][0] for r in results]
+    fronts = [has_front(r.caption) for r in results]
+    rows = []
+    for fit, judged in (("leave-kind-out", leave_kind_out(x, results, kinds, fronts)),
+                        ("in sample", in_sample(x, results, fronts))):  # fmt: skip
+        for part in ("all", "v3", *BLOCKS):
+            idx = [i for i, r in enumerate(results) if r.consensus and part in ("all", source[i])]
+            a = agreement([results[i].consensus for i in idx], [judged[i][0] for i in idx])
+            rows.append({"fit": f"{fit}, pooled", "source": part, **{k: v for k, v in a.items() if k != "confusion"},
+                         "judge": judge.version, "commit": code_commit()})  # fmt: skip
+    return rows
+
+
 def _read(path: Path) -> list[dict]:
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
@@ -124,7 +154,16 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=Path, help="the sweep folder of docs/results/judge/fresh/sweep.sh (run-folder mode)")
     ap.add_argument("--out", type=Path, default=FRESH, help="where judged.csv and agreement.csv go")
     ap.add_argument("--recompute", action="store_true", help="agreement.csv from the committed judged.csv only")
+    ap.add_argument("--pooled", action="store_true", help="the diagnostic: the head refitted on v3's and the fresh "
+                    "set's labels together (pooled.csv); nothing else is written")  # fmt: skip
     args = ap.parse_args(argv)
+    if args.pooled:
+        rows = pooled()
+        write_csv(rows, args.out / "pooled.csv")
+        for r in rows:
+            print(f"{r['fit']:26s} {r['source']:16s} n {r['n']:3d}: kappa {r['kappa_janus']:.2f} (Janus split), "
+                  f"{r['kappa_four']:.2f} (four)")  # fmt: skip
+        return 0
     if args.runs is not None and not args.runs.is_dir():
         ap.error(f"--runs: {args.runs} is not a folder (the fresh sweep's OUT)")
     judged = _read(args.out / "judged.csv") if args.recompute else judge_fresh(runs=args.runs)
