@@ -1,0 +1,97 @@
+"""An experiment for the judge's next reading (not part of the judge): a network-free reading by
+templates. Each view, cropped as the eye crops it and blurred, is correlated in colour with the
+asset's own renders at every azimuth bin (the eye's training crops near the sheets' elevation);
+the softmax over bins is a second 'eye' whose turntable features join the twenty. Prints the
+head's agreement leave-kind-out and in sample on v3's sheets and pooled with the fresh set's
+(docs/scoring.md, "On the fresh set"; the issue's note gives the numbers of 2026-12-05).
+
+    python scripts/judge_template_reading.py [TEMPERATURE 0.05] [BLUR_PX 1.5]
+"""
+
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from gdbench.assets.library import PARTS, has_front
+from gdbench.experiments.judge_build import eye_crops, sheet_features
+from gdbench.experiments.judge_fresh import block_and_arm, fresh_results
+from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out
+from gdbench.metrics.judge.judge import load_judge
+from gdbench.metrics.judge.net import BINS, crop_views
+from gdbench.metrics.judge.reading import turntable_features
+from gdbench.metrics.judge.sheets import SHEET_AZIMUTHS, v3_results
+
+TEMP = float(sys.argv[1]) if len(sys.argv) > 1 else 0.05
+BLUR = float(sys.argv[2]) if len(sys.argv) > 2 else 1.5
+t0 = time.time()
+crops, data = eye_crops(256, 1, False)
+print("crops", crops.shape, time.time() - t0)
+
+
+def blur(x, s=BLUR):
+    k = int(3 * s) * 2 + 1
+    g = torch.exp(-((torch.arange(k) - k // 2) ** 2) / (2 * s * s))
+    g = g / g.sum()
+    x = F.conv2d(F.pad(x, (k // 2,) * 4, mode="replicate"), g.view(1, 1, 1, k).expand(3, 1, 1, k), groups=3)
+    return F.conv2d(x, g.view(1, 1, k, 1).expand(3, 1, k, 1), groups=3)
+
+
+def norm(x):
+    x = x.flatten(1)
+    x = x - x.mean(1, keepdim=True)
+    return x / x.norm(dim=1, keepdim=True).clamp(min=1e-6)
+
+
+near = (data.elevation - 15.0).abs() <= 15.0
+refs = {}
+for ci, cap in enumerate(data.captions):
+    sel = (data.caption == ci) & near
+    refs[cap] = (norm(blur(crops[sel])), data.azimuth[sel])
+print("refs", time.time() - t0)
+
+
+def template_reading(views, cap):
+    r, az = refs[cap]
+    v = norm(blur(crop_views(views)))
+    sim = v @ r.T  # [V, R]
+    b = ((az % 360) / (360 / BINS)).long() % BINS
+    best = torch.full((v.shape[0], BINS), -1.0)
+    best = best.scatter_reduce(1, b.expand(v.shape[0], -1), sim, reduce="amax")
+    return torch.softmax(best / TEMP, 1)
+
+
+judge = load_judge()
+fresh = fresh_results(Path("."))
+results = v3_results(Path(".")) + fresh
+source = ["v3"] * (len(results) - len(fresh)) + [block_and_arm(r.run)[0] for r in fresh]
+x0 = sheet_features(judge.eye, judge.curves, results)
+az = torch.tensor(SHEET_AZIMUTHS)
+xt = torch.stack([turntable_features(template_reading(torch.from_numpy(r.views), r.caption), az) for r in results])
+print("features", time.time() - t0)
+kinds = [PARTS[r.caption][0] for r in results]
+fronts = [has_front(r.caption) for r in results]
+nv3 = len(results) - len(fresh)
+for name, x in (
+    ("eye only", x0),
+    ("template only", torch.cat([xt, x0[:, 10:]], 1)),
+    ("eye + template", torch.cat([x0, xt], 1)),
+):
+    for scope in ("v3", "pooled"):
+        res = results[:nv3] if scope == "v3" else results
+        xs, ks, fs = x[: len(res)], kinds[: len(res)], fronts[: len(res)]
+        j = leave_kind_out(xs, res, ks, fs)
+        ji = in_sample(xs, res, fs)
+        for part in ("all", "empirical-janus"):
+            idx = [i for i, r in enumerate(res) if r.consensus and part in ("all", source[i])]
+            if not idx:
+                continue
+            a = agreement([res[i].consensus for i in idx], [j[i][0] for i in idx])
+            b = agreement([res[i].consensus for i in idx], [ji[i][0] for i in idx])
+            print(
+                f"{name:15s} {scope:6s} {part:16s} n {a['n']:3d} LKO kJ {a['kappa_janus']:.2f} "
+                f"k4 {a['kappa_four']:.2f} rec fe {a['recall_front_everywhere']} blob {a['recall_blob']} "
+                f"fine {a['recall_fine']} | in-sample kJ {b['kappa_janus']:.2f}"
+            )
