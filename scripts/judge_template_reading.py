@@ -69,16 +69,48 @@ results = v3_results(Path(".")) + fresh
 source = ["v3"] * (len(results) - len(fresh)) + [block_and_arm(r.run)[0] for r in fresh]
 x0 = sheet_features(judge.eye, judge.curves, results)
 az = torch.tensor(SHEET_AZIMUTHS)
+
+
+def extra_features(views, cap):
+    """Readings that go through no azimuth: how alike the views are (mean pairwise colour
+    correlation), how alike their silhouettes are, and how much more the views match the asset's
+    front (within 30 degrees) than its sides (60-120 degrees either way), in colour and in silhouette."""
+    r, az = refs[cap]
+    c = blur(crop_views(views))
+    v = norm(c)
+    m = norm((c.mean(1, keepdim=True) < 0.9).float().expand(-1, 3, -1, -1))
+    n = v.shape[0]
+    off = ~torch.eye(n, dtype=torch.bool)
+    same = (v @ v.T)[off].mean()
+    same_sil = (m @ m.T)[off].mean()
+    a = (az % 360 + 180) % 360 - 180
+    front, side = a.abs() <= 30, (a.abs() >= 60) & (a.abs() <= 120)
+    sim = v @ r.T
+    rs = sils[cap]
+    ssim = m @ rs.T
+    return torch.stack([same, same_sil, (sim[:, front].amax(1) - sim[:, side].amax(1)).mean(),
+                        (ssim[:, front].amax(1) - ssim[:, side].amax(1)).mean()])  # fmt: skip
+
+
+sils = {}
+for ci, cap in enumerate(data.captions):
+    sel = (data.caption == ci) & near
+    sils[cap] = norm((blur(crops[sel]).mean(1, keepdim=True) < 0.9).float().expand(-1, 3, -1, -1))
+
 xt = torch.stack([turntable_features(template_reading(torch.from_numpy(r.views), r.caption), az) for r in results])
 print("features", time.time() - t0)
 kinds = [PARTS[r.caption][0] for r in results]
 fronts = [has_front(r.caption) for r in results]
 nv3 = len(results) - len(fresh)
-for name, x in (
-    ("eye only", x0),
-    ("template only", torch.cat([xt, x0[:, 10:]], 1)),
-    ("eye + template", torch.cat([x0, xt], 1)),
-):
+xe = torch.stack([extra_features(torch.from_numpy(r.views), r.caption) for r in results])
+ARMS = {
+    "eye only": x0,
+    "template only": torch.cat([xt, x0[:, 10:]], 1),
+    "eye + template": torch.cat([x0, xt], 1),
+    "eye + sameness": torch.cat([x0, xe], 1),
+    "eye + template + sameness": torch.cat([x0, xt, xe], 1),
+}
+for name, x in ARMS.items():
     for scope in ("v3", "pooled"):
         res = results[:nv3] if scope == "v3" else results
         xs, ks, fs = x[: len(res)], kinds[: len(res)], fronts[: len(res)]
@@ -91,7 +123,7 @@ for name, x in (
             a = agreement([res[i].consensus for i in idx], [j[i][0] for i in idx])
             b = agreement([res[i].consensus for i in idx], [ji[i][0] for i in idx])
             print(
-                f"{name:15s} {scope:6s} {part:16s} n {a['n']:3d} LKO kJ {a['kappa_janus']:.2f} "
+                f"{name:26s} {scope:6s} {part:16s} n {a['n']:3d} LKO kJ {a['kappa_janus']:.2f} "
                 f"k4 {a['kappa_four']:.2f} rec fe {a['recall_front_everywhere']} blob {a['recall_blob']} "
                 f"fine {a['recall_fine']} | in-sample kJ {b['kappa_janus']:.2f}"
             )
