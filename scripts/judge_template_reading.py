@@ -26,6 +26,13 @@ from gdbench.metrics.judge.sheets import SHEET_AZIMUTHS, v3_results
 
 TEMP = float(sys.argv[1]) if len(sys.argv) > 1 else 0.05
 BLUR = float(sys.argv[2]) if len(sys.argv) > 2 else 1.5
+if len(sys.argv) > 3:  # the head's L2 penalty (default: head.L2)
+    import functools
+
+    from gdbench.metrics.judge import evaluate as _evaluate
+    from gdbench.metrics.judge.head import fit as _fit
+
+    _evaluate.fit = functools.partial(_fit, l2=float(sys.argv[3]))
 t0 = time.time()
 crops, data = eye_crops(256, 1, False)
 print("crops", crops.shape, time.time() - t0)
