@@ -43,7 +43,7 @@ def _up(x: float, floor: float) -> float:
     """``x`` times the margin, rounded up to two significant digits, at least ``floor``."""
     x = max(x * MARGIN, floor)
     e = math.floor(math.log10(x)) - 1
-    return math.ceil(x / 10**e) * 10**e
+    return float(f"{math.ceil(x / 10**e) * 10**e:.2g}")  # two digits, no float noise in the JSON
 
 
 def approximate(row: dict) -> dict | str:

@@ -276,3 +276,36 @@ def test_the_conformance_report_of_the_worked_example(tmp_path):
     finally:
         REGISTERED.pop("flipped_scales", None)
     assert "- FAIL huge scale 1e4 / flipped_scales: scales gradient" in (tmp_path / "bad" / "report.md").read_text()
+
+
+def test_review_findings_stay_fixed(tmp_path, capsys):
+    """A file renderer with a dataclass loads; a zero gradient on 10k Gaussians fails (the floor is a
+    derivative's typical size, not Cauchy-Schwarz's bound); a NaN twin passes nothing; verdicts of a
+    scene compared again replace the old ones; a renderer that raises fails `bench error` cleanly."""
+    from gdbench.refcheck import bm_error
+    from gdbench.refcheck.compare import run
+    from gdbench.refcheck.protocol import REGISTERED, register_renderer
+
+    mine = tmp_path / "dc_renderer.py"
+    mine.write_text(
+        "from __future__ import annotations\nfrom dataclasses import dataclass\n\n\n@dataclass\nclass Out:\n"
+        "    rgb: object\n    alpha: object\n\n\ndef fn(*a, **k):\n    from renderers.splat import rasterize\n\n"
+        "    o = rasterize(*a, **k)\n    return Out(o.rgb, o.alpha)\n"
+    )
+    assert cf.check(load_renderer(f"{mine}:fn"), cf.case_names()["isotropic"]())["verdict"] == "PASS"
+    row = cf.check(_flip(0, lambda g: 0 * g), cf.case_names()["random_cloud_10k"]())
+    assert row["verdict"] == "FAIL" and "means gradient" in row["reason"]
+    tol = tl.Tolerance(1e-5, 1e-4, 1e-3, 1e-3, 1e-7)
+    g = {"means": torch.ones(2, 3)}
+    nan = cf.gradient_errors(g, {"means": torch.full((2, 3), float("nan"))}, cf.directions({"means": g["means"]}), tol)
+    assert nan["means"]["ok"] is False
+    register_renderer("raises", lambda *a, **k: 1 / 0)
+    try:
+        for _ in range(2):
+            run("isotropic", backends=[], out=tmp_path / "cmp", renderers=["raises"], verbose=False)
+        verdicts = json.loads((tmp_path / "cmp" / "compare.json").read_text())["verdicts"]
+        assert [(v["case"], v["verdict"]) for v in verdicts] == [("isotropic", "FAIL")]
+        assert bm_error.main(["--out", str(tmp_path / "e.csv"), "--scene", "isotropic", "--renderer", "raises"]) == 1
+        assert "FAIL isotropic/raises: ZeroDivisionError" in capsys.readouterr().out
+    finally:
+        REGISTERED.pop("raises", None)

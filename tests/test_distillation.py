@@ -95,3 +95,11 @@ def test_train_prior_teacher_option(teacher, tmp_path):
     assert json.loads(meta["train"])["teacher_guidance"] == 2.5
     with pytest.raises(ValueError, match="other settings"):  # another scale is another run
         run_train_prior(TrainPrior(out=out, teacher=teacher, teacher_guidance=4.0, steps=6, progress=False))
+
+
+def test_teacher_guidance_without_a_teacher_is_refused(tmp_path):
+    from gdbench.app.cmd_tools import TrainPrior, run_train_prior
+
+    with pytest.raises(ValueError, match="teacher_guidance \\(--teacher-guidance\\): acts only with --teacher"):
+        run_train_prior(TrainPrior(out=tmp_path / "x", teacher_guidance=2.0, steps=2, progress=False))
+    assert not (tmp_path / "x").exists()

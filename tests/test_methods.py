@@ -94,3 +94,12 @@ def test_bad_methods_are_one_line_errors_naming_the_option(prior, tmp_path):
             train(tiny("gd", tmp_path / "flat", **{"noise.source": "flat"}), prior)
     finally:
         methods.REGISTERED["noise"].pop("flat", None)
+
+
+def test_a_guidance_that_returns_nan_is_named(prior, tmp_path):
+    methods.register_method("guidance", "nan", lambda D, x, s, step, steps: D * float("nan"))
+    try:
+        with pytest.raises(ValueError, match="guidance 'nan': returned NaN or Inf at step 0"):
+            train(tiny("gd", tmp_path / "nan", guidance="nan"), prior)
+    finally:
+        methods.REGISTERED["guidance"].pop("nan", None)

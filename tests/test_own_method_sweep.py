@@ -151,3 +151,23 @@ def test_the_ablation_notebook_draws_the_sweeps_own_presets_and_claim(own, monke
     check = json.loads(re.search(r"^FOREST_CHECK (.*)$", text, re.M).group(1))
     assert check["sweep"] == str(out) and check["forest"]["rows"] == 1
     assert check["errorbars"] >= 1 or "gd-mine vs gd" in " ".join(check["forest"]["without_interval"])
+
+
+def test_a_sweep_preset_that_picks_the_learned_prior_gets_its_janus_setting(tmp_path):
+    """The janus setting's front bias follows the prior a sweep's own preset sets (2 on the learned
+    prior, which ships no kappa-1 model), as it follows the sweep's overrides."""
+    from gdbench.experiments.sweep import cell_config, grid
+
+    defined = {"gd-learned": {"base": "gd", "overrides": {"prior": "learned"}}}
+    cfg = SweepConfig([PROMPT], ["gd-learned"], [0], out=tmp_path, settings=["janus"], defined_presets=defined)
+    (spec,), _, _ = grid(cfg)
+    c = cell_config(spec)
+    assert c.prior.kind == "learned" and c.prior.front_bias == 2.0 and c.prior.view_prompting == "none"
+
+
+def test_labels_that_name_no_cell_are_refused(own, tmp_path):
+    out, _ = own
+    other = tmp_path / "other.csv"
+    other.write_text("run_id,label\nnot-a-cell,fine\n")
+    with pytest.raises(ValueError, match="labels: none of the cells' run ids is labelled"):
+        _sweep(out, labels=[str(other)])

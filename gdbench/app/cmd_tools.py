@@ -139,9 +139,9 @@ class TrainPrior:
     view weighting are the teacher's: --size, --patch, --widths, --emb, --views, --resolution,
     --catalogue and --front-bias are not used; --lr left at its default trains at 1e-4, a fine-tuning
     rate; docs/learned_prior.md) (default: none, a model of its own)."""
-    teacher_guidance: Annotated[float, AtLeast(1)] = 3.0
-    """The teacher's classifier-free guidance scale the one-call model learns (the learned prior's
-    default --learned-guidance: 3)."""
+    teacher_guidance: Annotated[float | None, AtLeast(1)] = None
+    """The teacher's classifier-free guidance scale the one-call model learns, with --teacher only
+    (default: 3, the learned prior's default --learned-guidance)."""
 
 
 def run_train_prior(cmd: TrainPrior) -> dict:
@@ -149,11 +149,14 @@ def run_train_prior(cmd: TrainPrior) -> dict:
     from gdbench.priors.learned.training import PriorTrainConfig, train_prior, world_config
     from gdbench.priors.learned.unet import UNetConfig
 
+    if cmd.teacher is None and cmd.teacher_guidance is not None:
+        raise ValueError("teacher_guidance (--teacher-guidance): acts only with --teacher (a model to distil)")
     if cmd.teacher is not None:
         from gdbench.priors.learned.distillation import distill_config
 
+        scale = 3.0 if cmd.teacher_guidance is None else cmd.teacher_guidance
         cfg = distill_config(
-            cmd.teacher, cmd.teacher_guidance, out=cmd.out, steps=cmd.steps, batch=cmd.batch, seed=cmd.seed,
+            cmd.teacher, scale, out=cmd.out, steps=cmd.steps, batch=cmd.batch, seed=cmd.seed,
             threads=cmd.threads, device=cmd.device, data_workers=cmd.data_workers, progress=cmd.progress,
             **({} if cmd.lr == 6e-4 else {"lr": cmd.lr}),
         )  # fmt: skip

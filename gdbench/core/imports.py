@@ -11,15 +11,32 @@ def import_module(module: str):
     """A module by its dotted name, or a Python file by its path (``.py``)."""
     if not module.endswith(".py"):
         return importlib.import_module(module)
+    import hashlib
+    import sys
     from importlib.util import module_from_spec, spec_from_file_location
 
-    path = Path(module)
+    path = Path(module).resolve()
     if not path.is_file():
         raise FileNotFoundError(f"no file {module}")
-    spec = spec_from_file_location(f"gdbench_user_{path.stem}", path)
+    stat = path.stat()
+    key = (str(path), stat.st_mtime_ns, stat.st_size)
+    if key in _FILES:  # once per version of the file: its top level runs once, its state is shared
+        return _FILES[key]
+    name = f"gdbench_user_{path.stem}_{hashlib.sha256(str(path).encode()).hexdigest()[:8]}"
+    spec = spec_from_file_location(name, path)
     mod = module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    sys.modules[name] = mod  # dataclasses and pickling look their module up by name
+    try:
+        spec.loader.exec_module(mod)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    _FILES[key] = mod
     return mod
+
+
+_FILES: dict[tuple, object] = {}
+"""Python files imported by path in this process, by (path, modification time, size)."""
 
 
 def is_ref(text: str) -> bool:

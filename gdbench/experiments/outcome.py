@@ -40,7 +40,8 @@ def read_outcome(claims, labelled: bool) -> tuple[Claim, ...]:
             m = OUTCOMES[m][0 if labelled else 1]
         elif labelled and m.startswith("judge_"):
             m = "label_" + m.removeprefix("judge_")
-        out.append(replace(c, metric=m, text=c.text) if m != c.metric else c)
+        text = c.text + (" (read from rater labels)" if labelled and m.startswith("label_") and m != c.metric else "")
+        out.append(replace(c, metric=m, text=text) if m != c.metric else c)
     return tuple(out)
 
 

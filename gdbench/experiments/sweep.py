@@ -183,7 +183,7 @@ def cell_config(spec: CellSpec):
     if spec.base:
         start = apply_overrides(PRESETS[spec.base], spec.overlay | {"preset": spec.preset})
         run = {"prompt": spec.prompt, "steps": spec.steps, "seed": spec.seed, "out": spec.dir, "progress": False}
-        setting = setting_overrides(spec.setting, spec.overrides.get("prior"))
+        setting = setting_overrides(spec.setting, (spec.overlay | spec.overrides).get("prior"))
         return apply_overrides(start, run | setting | spec.overrides)
     return preset(
         spec.preset,

@@ -182,7 +182,11 @@ def tables(
     from gdbench.experiments.outcome import attach_labels, outcome_note, read_outcome
 
     out.mkdir(parents=True, exist_ok=True)
-    rows = attach_labels(rows, list(labels)) if labels else rows
+    if labels:
+        rows = attach_labels(rows, list(labels))
+        if not any("label_janus" in r for r in rows):  # files for another sweep: no verdict reads nothing
+            files = [str(f) for f in labels]
+            raise ValueError(f"labels: none of the cells' run ids is labelled in every file of {files}")
     paths = {"cells_csv": write_csv(rows, out / "cells.csv")}
     summary = summarise(rows)
     paths["summary_csv"] = write_csv(summary, out / "summary.csv")

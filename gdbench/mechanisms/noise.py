@@ -42,6 +42,8 @@ from gdbench.core.rand import randn
 
 Redraw = Literal["step", "run", "ou"]
 RatioMode = Literal["amplitude", "variance"]
+CLOUD = When("source", "cloud", "pose")
+"""The noise cloud's settings act only with gdbench's own sources (a user's source replaces the cloud)."""
 
 
 @dataclass(frozen=True)
@@ -61,24 +63,24 @@ class NoiseConfig:
     same marginals, spectrum and persistence but no 3D correspondence between views
     (mechanisms/pose_noise.py); or your own, pkg.mod:function or file.py:function
     (mechanisms/methods.py, docs/training.md "Your own method")."""
-    n_gaussians: Annotated[int, AtLeast(1)] = 3072
+    n_gaussians: Annotated[int, AtLeast(1), CLOUD] = 3072
     """M, the number of noise Gaussians (3072 keeps the noise under 30% of a 4k-Gaussian
     training step at 128 px on 2 CPU cores; see docs/noise.md)."""
-    radius: Annotated[float, Positive()] = 0.5
+    radius: Annotated[float, Positive(), CLOUD] = 0.5
     """Largest distance of a noise Gaussian from the origin."""
-    scale: Annotated[float, Positive()] = 0.02
+    scale: Annotated[float, Positive(), CLOUD] = 0.02
     """Isotropic standard deviation of each noise Gaussian (world units); sets the noise's
     correlation length (about 10 px at 128 px, camera radius 1, see docs/noise.md)."""
-    opacity: Annotated[float, Range(0, 1, lo_open=True)] = 0.6
+    opacity: Annotated[float, Range(0, 1, lo_open=True), CLOUD] = 0.6
     """Opacity of each noise Gaussian."""
-    azimuth_range: Annotated[tuple[float, float], Between(-360, 360, unit="degrees")] = (-180.0, 180.0)
-    elevation_range: Annotated[tuple[float, float], Between(-90, 90, unit="degrees")] = (-45.0, 45.0)
-    redraw: Redraw = "run"
+    azimuth_range: Annotated[tuple[float, float], Between(-360, 360, unit="degrees"), CLOUD] = (-180.0, 180.0)
+    elevation_range: Annotated[tuple[float, float], Between(-90, 90, unit="degrees"), CLOUD] = (-45.0, 45.0)
+    redraw: Annotated[Redraw, CLOUD] = "run"
     """When the noise cloud's colours are redrawn: 'run' keeps one draw for the whole run (the
     paper: every view sees one fixed 3D source; the default), 'ou' drifts them slowly
     (Ornstein-Uhlenbeck, --noise-ou-beta), 'step' redraws every step (an ablation: no two steps
     share a source)."""
-    ou_beta: Annotated[float, Range(0, 1, lo_open=True), When("redraw", "ou")] = 0.1
+    ou_beta: Annotated[float, Range(0, 1, lo_open=True), When("redraw", "ou"), CLOUD] = 0.1
     """b of the Ornstein-Uhlenbeck drift c_t = sqrt(1 - b) c_{t-1} + sqrt(b) eps (0 < b <= 1; 1 is
     the same as 'step'; default 0.1); acts only with --noise-redraw ou."""
     ratio_start: Annotated[float, Between(0, 1)] = 0.3
@@ -88,7 +90,7 @@ class NoiseConfig:
     ratio: RatioMode = "variance"
     """How the paper's 'proportion of structured noise' r_t (0.3 -> 0.05) mixes: 'variance' (the
     default: n = sqrt(r) n_s + sqrt(1 - r) n_iid) or 'amplitude' (n = r n_s + sqrt(1 - r^2) n_iid)."""
-    v_min: Annotated[float, AtLeast(0)] = 1e-6
+    v_min: Annotated[float, AtLeast(0), CLOUD] = 1e-6
     """Pixels with sum_i w_i^2 below this get iid noise."""
 
     def __post_init__(self) -> None:

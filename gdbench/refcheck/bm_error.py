@@ -57,7 +57,11 @@ def run(
     verdicts = [v for res in results.values() for v in res.verdicts]
     write_csv(verdicts, out.with_name(f"{out.stem}_verdicts.csv"))
     rows = [r | {"status": "ok"} for res in results.values() for r in res.rows if r["renderer"] != "reference"]
-    for r, flag in zip(rows, pareto_flags(rows)):
+    timed = [r for r in rows if r.get("time_s") is not None]  # a renderer that raised has no time
+    for r in rows:
+        if r.get("time_s") is None:
+            r |= {"status": f"error: {r.get('reason', '')}", "pareto": False}
+    for r, flag in zip(timed, pareto_flags(timed)):
         r["pareto"] = flag
     refs = [
         r | {"status": "ok", "pareto": True}
@@ -73,7 +77,7 @@ def run(
     all_rows = refs + rows + skipped
     write_csv(all_rows, out)
     front = {}
-    for r in rows:
+    for r in timed:
         if r["pareto"]:
             front.setdefault(r["scene"], []).append(
                 {k: r[k] for k in ("renderer", "settings", "against", "quantity", "time_s", "max_abs")}

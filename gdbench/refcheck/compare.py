@@ -270,8 +270,10 @@ def run_renderer(spec, fx: Fixture, res: Result, truth: torch.Tensor) -> None:
     SKIP with the reason where the renderer lacks what the scene needs; FAIL with one line where it
     raises or returns the wrong thing (the other cases still run)."""
     reason = spec.why_not(fx.scene.sh_degree)
+    verdict = {"case": fx.name, "kind": "fixture", "renderer": spec.name, "class": spec.tolerance}
     if reason is not None:
         res.skipped.append({"scene": fx.name, "renderer": spec.name, "reason": reason, "verdict": "SKIP"})
+        res.verdicts.append(verdict | {"verdict": "SKIP", "reason": reason})
         return
     a = _render_args(fx)
     if spec.alpha_max != 0.99:  # the twin at the renderer's clamp
@@ -284,9 +286,9 @@ def run_renderer(spec, fx: Fixture, res: Result, truth: torch.Tensor) -> None:
     try:
         out, t = _timed(lambda: spec.render(*args, background=a["background"], outputs=("rgb", "alpha"))["rgb"])
     except Exception as e:  # the renderer's own failure: a row of its own, then the next case
-        res.rows.append(
-            base | {"time_s": None, "verdict": "FAIL", "reason": f"{type(e).__name__}: {e}".splitlines()[0]}
-        )
+        why = f"{type(e).__name__}: {e}".splitlines()[0]
+        res.rows.append(base | {"time_s": None, "verdict": "FAIL", "reason": why})
+        res.verdicts.append(verdict | {"verdict": "FAIL", "reason": why})
         return
     res.rows.append(base | {"time_s": t, **image_errors(out, truth)})
     res.images[spec.name] = out
@@ -369,7 +371,8 @@ def write_report(results: dict[str, Result], out: Path, old: dict | None = None)
     keep = lambda items: [r for r in items if isinstance(r, dict) and r.get("scene") not in results]  # noqa: E731
     rows = keep(old.get("rows", [])) + [r for res in results.values() for r in res.rows]
     skipped = keep(old.get("skipped", [])) + [s for res in results.values() for s in res.skipped]
-    verdicts = keep(old.get("verdicts", [])) + [v for res in results.values() for v in res.verdicts]
+    verdicts = [v for v in old.get("verdicts", []) if isinstance(v, dict) and v.get("case") not in results]
+    verdicts += [v for res in results.values() for v in res.verdicts]
     paths = {
         "csv": write_csv(rows, out / "compare.csv"),
         "json": write_json({"rows": rows, "skipped": skipped, "verdicts": verdicts}, out / "compare.json"),

@@ -15,11 +15,12 @@ alpha clamp. Gradients (where the renderer declares them): a fixed random cotang
 through rgb and alpha, and per parameter group (means, quats, scales, opacities, colours) the
 gradient's directional derivative along ``DIRECTIONS`` seeded random directions is compared with the
 twin's, exact in float64. A derivative passes when ``|d - d_twin| <= max(grad_rel * max(|d_twin|,
-grad_floor * |g_twin| |v|), grad_atol |G_twin| |v|)``: relative, with a floor for derivatives near
-zero stated as a fraction of the largest the group's twin gradient could give along that direction
-(Cauchy-Schwarz), which scales with the group, and an allowance for a group whose gradient is zero in
-exact arithmetic (an isotropic Gaussian's rotation, where float32 leaves ~3e-8 of the scales'
-gradient), stated as a fraction of the case's largest group gradient ``|G_twin|`` (at least 1).
+grad_floor * |g_twin| u), grad_atol |G_twin| u)`` with ``u = |v| / sqrt(n)`` (n: the group's size, so
+``|g| u`` is a derivative's typical size along a random direction): relative, with a floor for
+derivatives near zero stated as a fraction of that typical size, which scales with the group, and
+an allowance for a group whose gradient is zero in exact arithmetic (an isotropic Gaussian's
+rotation, where float32 leaves ~3e-8 of the scales' gradient), stated as a fraction of the case's
+largest group gradient ``|G_twin|`` (at least 1), on the same footing.
 With ``grad_rel`` < 1 a wrong sign fails wherever the twin's derivative is above the allowances;
 the report counts such derivatives.
 """
@@ -137,13 +138,15 @@ def gradient_errors(grads: dict, twin: dict, dirs: dict, tol: Tolerance) -> dict
         v = dirs[name]
         d_t = (v * tg.double()).flatten(1).sum(1)
         d_r = (v * grads[name].double()).flatten(1).sum(1) if name in grads else torch.zeros_like(d_t)
-        vn = v.flatten(1).norm(dim=1)
+        # a derivative's typical size along a random direction: |g| |v| / sqrt(n), not Cauchy-Schwarz's |g| |v|
+        # (sqrt(n) times larger for a group of n numbers: a floor that large would pass anything at 10k Gaussians)
+        vn = v.flatten(1).norm(dim=1) / math.sqrt(max(tg.numel(), 1))
         scale = torch.maximum(d_t.abs(), tol.grad_floor * float(tg.double().norm()) * vn)
         scale = torch.maximum(scale, tol.grad_atol / tol.grad_rel * top * vn)
         miss = (d_r - d_t).abs()
         err = torch.where(miss == 0, torch.zeros_like(miss), miss / torch.clamp_min(scale, 1e-300))
         bad = err > tol.grad_rel
-        finite = bool(torch.isfinite(d_r).all())
+        finite = bool(torch.isfinite(d_r).all()) and bool(torch.isfinite(d_t).all())  # a NaN twin passes nothing
         worst = float(err.max()) if finite else math.inf
         wrong = int((bad & (d_r * d_t < 0)).sum())
         out[GROUPS[name]] = {"err": worst, "ok": finite and not bool(bad.any()), "wrong_sign": wrong}

@@ -133,6 +133,9 @@ def builtin(name: str) -> RendererSpec:
     from gdbench.refcheck.backends import get
 
     b = get(name)
+    if not b.renders:
+        raise ValueError(f"renderer {name!r}: a built-in backend without rasterize's call shape (compare drives it); "
+                         "expected splat, splat_torch, gsplat_torch, gsplat_cuda or mitsuba_ellipsoids")  # fmt: skip
     ok, why = b.available()
     return RendererSpec(name, b.render, gradients=b.differentiable, tolerance=b.tolerance, alpha_max=b.alpha_max,
                         unavailable="" if ok else (why or "not installed"))  # fmt: skip

@@ -68,7 +68,7 @@ def _noise_fields(ctx: Context, state: TrainState, views: Views, shape, update: 
     """The K unit-variance noise fields of this step (structured + iid, or iid)."""
     cfg = ctx.cfg
     iid = state.streams["noise_iid"]
-    if ctx.noise is None:
+    if ctx.noise is None and ctx.noise_source is None:
         return [randn(shape, generator=iid, device=ctx.device) for _ in range(cfg.samples_per_step)]
     ratio = ratio_schedule(state.step, cfg.steps, cfg.noise.ratio_start, cfg.noise.ratio_end)
     if ctx.noise_source is not None:  # the user's noise source (mechanisms/methods.py) in place of the cloud's
@@ -109,10 +109,14 @@ def _user_noise(ctx: Context, state: TrainState, views: Views, shape) -> Tensor:
 def _guided(ctx: Context, D: Tensor, xd: Tensor, sigma: float, step: int) -> Tensor:
     """The user's guidance's gradient on x, checked (shape like x, finite)."""
     g = ctx.guidance(D, xd, sigma, step, ctx.cfg.steps)
-    if not isinstance(g, Tensor) or g.shape != xd.shape:
-        got = tuple(g.shape) if isinstance(g, Tensor) else type(g).__name__
-        raise ValueError(f"guidance {ctx.cfg.guidance!r}: expected a tensor shaped like x {tuple(xd.shape)}, got {got}")
-    return g
+    if not isinstance(g, Tensor) or g.shape != xd.shape or not g.is_floating_point():
+        got = f"{g.dtype} {tuple(g.shape)}" if isinstance(g, Tensor) else type(g).__name__
+        raise ValueError(
+            f"guidance {ctx.cfg.guidance!r}: expected a float tensor shaped like x {tuple(xd.shape)}, got {got}"
+        )
+    if not bool(torch.isfinite(g).all()):
+        raise ValueError(f"guidance {ctx.cfg.guidance!r}: returned NaN or Inf at step {step}")
+    return g.to(xd.device, xd.dtype)
 
 
 def distill(ctx: Context, state: TrainState, views: Views, xd: Tensor, depth: Tensor | None, update: bool):

@@ -68,7 +68,9 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
     factor = int(prior.factor)
     streams = make_streams(cfg.seed)
     noise = None
-    if cfg.noise.enabled:
+    from gdbench.mechanisms.methods import is_builtin, resolve
+
+    if cfg.noise.enabled and is_builtin("noise", cfg.noise.source):  # a user's source replaces the cloud
         cloud = make_noise_cloud(cfg.noise, prior.channels, generator=streams["noise_cloud"])
         if cfg.noise.source == "pose":  # the control: fields locked to the pose, seeded from the cloud's stream
             from gdbench.mechanisms.pose_noise import PoseLockedNoise
@@ -77,8 +79,6 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
             noise = PoseLockedNoise(cloud, seed=seed, v_min=cfg.noise.v_min)
         else:
             noise = NoiseRenderer(cloud, v_min=cfg.noise.v_min, cache_size=0)
-    from gdbench.mechanisms.methods import is_builtin, resolve
-
     depth_points, latent_bg = None, None
     if mode != "rgb" and space.endswith("+depth"):  # 3DFuse: depth of the initial cloud
         depth_points = initial_scene(cfg, generator=streams["init"]).means.detach().to(device)
@@ -109,7 +109,7 @@ def make_context(cfg: TrainConfig, prior=None) -> Context:
         extent,
         device,
         None if is_builtin("guidance", cfg.guidance) else resolve("guidance", cfg.guidance),
-        None if is_builtin("noise", cfg.noise.source) else resolve("noise", cfg.noise.source),
+        None if is_builtin("noise", cfg.noise.source) or not cfg.noise.enabled else resolve("noise", cfg.noise.source),
     )
 
 
