@@ -5,6 +5,7 @@ file's own tables, written by hand from the docs, not read from the code."""
 
 import dataclasses
 import inspect
+from pathlib import Path
 
 import pytest
 
@@ -14,14 +15,21 @@ CONDITIONAL = {
     "sigma_min", "sigma_max", "anneal", "init_ply", "init_color", "sh_degree", "log_every",
     "views.spread_deg", "noise.ou_beta", "prior.view_window_deg", "prior.front_bias", "prior.semantic_steps",
     "prior.sd_controlnet",
+    # the noise cloud's settings: gdbench's own sources only (a user's source replaces the cloud)
+    "noise.n_gaussians", "noise.radius", "noise.scale", "noise.opacity", "noise.azimuth_range",
+    "noise.elevation_range", "noise.redraw", "noise.v_min",
 }  # fmt: skip
 """Fields with a rule of their own (docs/training.md's options table)."""
 
 SWITCHED = {"noise", "vgs", "densify"}
 """Groups switched on and off by their ``enabled`` field: every other field acts only when on."""
 
+EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
+
 CASES = [
     # (preset, overrides that make the option inert, the option, the message's words)
+    ("gd", {"noise.source": f"{EXAMPLES / 'my_method.py'}:smooth_noise"}, "noise.n_gaussians",
+     "--noise-n-gaussians acts only with --noise-source cloud or --noise-source pose (this run: --noise-source /"),
     ("sds-gs", {}, "sigma_min", "--sigma-min acts only with --guidance other than sds (this run: --guidance sds)"),
     ("sds-gs", {}, "anneal", "--anneal acts only with --guidance other than sds (this run: --guidance sds)"),
     ("gd", {}, "init_ply", "--init-ply acts only with --init ply (this run: --init sphere)"),
