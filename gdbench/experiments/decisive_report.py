@@ -53,8 +53,8 @@ def report(out: Path, results: Path, collect, prompt: str, plain: list[tuple[Pat
     all its claims, and each block's turntable grid of ``prompt``; ``collect``: the experiment's
     reader of its cells (``decisive.collect``), passed in so that the report does not import its
     definition."""
-    from gdbench.experiments.sweep import turntable_grid
     from gdbench.experiments.tables import tables
+    from gdbench.experiments.turntables import turntable_grid
 
     rows = collect(out, plain)
     if not rows:

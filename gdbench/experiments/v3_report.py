@@ -178,7 +178,7 @@ def example_turntables(blocks: Path, chosen: dict[str, str], seed: int, path: Pa
     None when no cell kept its turntable."""
     from PIL import Image
 
-    from gdbench.experiments.sweep import turntable_grid
+    from gdbench.experiments.turntables import turntable_grid
 
     parts = []
     for kind, prompt in chosen.items():
