@@ -3,11 +3,14 @@ templates. Each view, cropped as the eye crops it and blurred, is correlated in 
 asset's own renders at every azimuth bin (the eye's training crops near the sheets' elevation);
 the softmax over bins is a second 'eye' whose turntable features join the twenty. Prints the
 head's agreement leave-kind-out and in sample on v3's sheets and pooled with the fresh set's
-(docs/scoring.md, "On the fresh set"; the issue's note gives the numbers of 2026-12-05).
+(docs/scoring.md, "The next reading, explored", gives the numbers of 2026-12-05).
 
-    python scripts/judge_template_reading.py [TEMPERATURE 0.05] [BLUR_PX 1.5]
+    python scripts/judge_template_reading.py [TEMPERATURE 0.05] [BLUR_PX 1.5] [L2]
+    RELATIVE=1 python scripts/judge_template_reading.py 0.05 1.5 0.01      # + relative sameness
+    RELATIVE=1 SHEETNET=/tmp/sheetnet_probs_3000_1.pt python scripts/judge_template_reading.py 0.05 1.5 0.01
 """
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -95,8 +98,15 @@ def extra_features(views, cap):
     sim = v @ r.T
     rs = sils[cap]
     ssim = m @ rs.T
-    return torch.stack([same, same_sil, (sim[:, front].amax(1) - sim[:, side].amax(1)).mean(),
-                        (ssim[:, front].amax(1) - ssim[:, side].amax(1)).mean()])  # fmt: skip
+    out = [same, same_sil, (sim[:, front].amax(1) - sim[:, side].amax(1)).mean(),
+           (ssim[:, front].amax(1) - ssim[:, side].amax(1)).mean()]  # fmt: skip
+    if os.environ.get("RELATIVE"):  # the asset's own sameness at the sheet's azimuths subtracted
+        pick = torch.stack([((a - t + 180) % 360 - 180).abs().argmin() for t in (0, 60, 120, 180, -120, -60)])
+        ra, rsa = r[pick], rs[pick]
+        own = (ra @ ra.T)[off].mean()
+        own_sil = (rsa @ rsa.T)[off].mean()
+        out += [same - own, same_sil - own_sil]
+    return torch.stack(out)
 
 
 sils = {}
@@ -117,6 +127,26 @@ ARMS = {
     "eye + sameness": torch.cat([x0, xe], 1),
     "eye + template + sameness": torch.cat([x0, xt, xe], 1),
 }
+if os.environ.get("RELATIVE"):  # the twenty features less the asset's own (its clean six views)
+    from gdbench.metrics.judge.reading import result_features
+
+    xa = {}
+    for ci, cap in enumerate(data.captions):
+        sel = ((data.caption == ci) & (data.variant == 0)).nonzero().flatten()
+        d = ((data.azimuth[sel][None] - az[:, None] + 180) % 360 - 180).abs() + (data.elevation[sel][None] - 15).abs()
+        xa[cap] = result_features(judge.eye, judge.curves, data.images[sel[d.argmin(1)]], az, cap)[0]
+    xrel = x0 - torch.stack([xa[r.caption] for r in results])
+    ARMS["eye + rel + sameness"] = torch.cat([x0, xrel, xe], 1)
+    ARMS["rel + sameness"] = torch.cat([xrel[:, :0], x0[:, :0], xrel, xe], 1)
+if os.environ.get("SHEETNET"):  # a sheet network's probabilities (scripts/judge_sheet_net.py)
+    saved = torch.load(os.environ["SHEETNET"])
+    assert saved["run_ids"] == [r.run_id for r in results]
+    lp = saved["probs"].clamp(min=1e-4).log()
+    ARMS = {k: v for k, v in ARMS.items() if "rel" in k} | {
+        "eye + sameness": ARMS["eye + sameness"],
+        "eye + net": torch.cat([x0, lp], 1),
+        "eye + sameness + net": torch.cat([x0, xe, lp], 1),
+    }
 for name, x in ARMS.items():
     for scope in ("v3", "pooled"):
         res = results[:nv3] if scope == "v3" else results
