@@ -106,9 +106,20 @@ def extra_features(views, cap):
         own = (ra @ ra.T)[off].mean()
         own_sil = (rsa @ rsa.T)[off].mean()
         out += [same - own, same_sil - own_sil]
+    if os.environ.get("DETAIL"):  # the features drawn: the best template's match less its smeared twin's
+        best = sim.argmax(1)
+        gain = sim.gather(1, best[:, None])[:, 0] - (v * smeared[cap][best]).sum(1)
+        out += [gain.amax(), gain.mean()]
     return torch.stack(out)
 
 
+smeared = {}
+for ci, cap in enumerate(data.captions):
+    sel = (data.caption == ci) & near
+    c = crops[sel]
+    ink = ((1 - c.min(1, keepdim=True).values) > 0.1).float()
+    mean = (c * ink).sum((2, 3), keepdim=True) / ink.sum((2, 3), keepdim=True).clamp(min=1)
+    smeared[cap] = norm(blur(c + ink * (mean - c)))
 sils = {}
 for ci, cap in enumerate(data.captions):
     sel = (data.caption == ci) & near
@@ -159,6 +170,8 @@ for name, x in ARMS.items():
                 continue
             a = agreement([res[i].consensus for i in idx], [j[i][0] for i in idx])
             b = agreement([res[i].consensus for i in idx], [ji[i][0] for i in idx])
+            if os.environ.get("CONFUSION") and part == "all":
+                print(a["confusion"])
             print(
                 f"{name:26s} {scope:6s} {part:16s} n {a['n']:3d} LKO kJ {a['kappa_janus']:.2f} "
                 f"k4 {a['kappa_four']:.2f} rec fe {a['recall_front_everywhere']} blob {a['recall_blob']} "
