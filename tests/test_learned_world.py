@@ -163,3 +163,42 @@ def test_a_worker_error_is_raised_and_the_finished_parts_resume(tmp_path):
     assert all((parts / n).stat().st_mtime_ns == t for n, t in finished.items())  # kept, not rendered again
     for k in ("images", "caption", "variant", "azimuth", "elevation", "fovy"):
         assert torch.equal(getattr(one, k), getattr(two, k)), k
+
+
+def test_a_64px_models_checks_render_and_match_at_its_own_size():
+    """The world models' checks take a 64 px model beside a 32 px one: `camera_sensitivity` noises
+    renders at the prior's own size (a stub denoiser that returns its input scores the noise's own
+    PSNR, 10 log10(4 / sigma^2) for images in [-1, 1], to within the draw's spread), and
+    `sample_scores` matches a 64 px sample to the 32 px references by box-filtering it: a stub
+    sampler that draws each asked reference upsampled 2 x 2 is matched to that very reference."""
+    import math
+    from types import SimpleNamespace
+
+    from gdbench.priors.learned.evaluation import camera_sensitivity, sample_scores, to_size
+
+    seen = []
+
+    def denoise(y, sigma, cond, **cam):
+        seen.append(tuple(y.shape))
+        return y
+
+    stub = SimpleNamespace(size=64, encode=lambda c: c, denoise=denoise)
+    rows = camera_sensitivity(stub, ["a yellow duck"], sigmas=(2.0,), offsets=(0.0,))
+    assert seen == [(6, 64, 64, 3)]
+    assert abs(rows[0]["psnr"] - 10 * math.log10(4 / 4.0)) < 0.3
+
+    g = torch.Generator().manual_seed(0)
+    refs = torch.rand(2, 3, 4, 32, 32, 3, generator=g) * 2 - 1  # [captions, variants, azimuths, 32, 32, 3]
+    ref_az = torch.tensor([-180.0, -90.0, 0.0, 90.0])
+
+    def sample(cond, cam, generator=None, steps=30, n=1):
+        a = ((cam[:, 0] + 180) % 360 / 90).long()
+        x = refs[cond, 0, a]
+        return x.repeat_interleave(2, 1).repeat_interleave(2, 2)  # 64 px
+
+    stub = SimpleNamespace(captions=(0, 1), encode=lambda c: c, sample=sample)
+    rows, grid = sample_scores(stub, refs, ref_az, views=(0.0, 90.0, -90.0), seeds=2)
+    assert grid.shape[-2] == 64 and len(rows) == 12
+    assert all(r["caption_ok"] and r["variant_ok"] and r["azimuth_ok"] for r in rows)
+    with pytest.raises(ValueError, match="multiple of 32"):
+        to_size(torch.zeros(1, 48, 48, 3), 32)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch import Tensor
+from torch.nn import functional as F
 
 SIZE = 32
 
@@ -152,6 +153,17 @@ def reference_set(captions: list[str], *, elevation: float = 15.0, fovy: float =
     return refs, az
 
 
+def to_size(images: Tensor, size: int) -> Tensor:
+    """Images [B, h, h, 3] box-filtered to [B, size, size, 3] (h a multiple of ``size``): a 64 px
+    model's samples are matched to the same 32 px references as a 32 px model's."""
+    h = images.shape[1]
+    if h == size:
+        return images
+    if h % size:
+        raise ValueError(f"images: expected a multiple of {size} px, got {h}")
+    return F.avg_pool2d(images.permute(0, 3, 1, 2), h // size).permute(0, 2, 3, 1)
+
+
 def match(images: Tensor, refs: Tensor, ref_az: Tensor) -> list[Match]:
     """Nearest reference (MSE) of each image [B, size, size, 3]."""
     C, V, A = refs.shape[:3]
@@ -175,7 +187,7 @@ def sample_scores(prior, refs: Tensor, ref_az: Tensor, *, views=(0.0, 90.0, 180.
         g = torch.Generator().manual_seed(1000 + c)
         x = prior.sample(cond, cam if camera else None, generator=g, steps=steps, n=len(cam))
         grid.append(x.reshape(len(views), seeds, *x.shape[1:]))
-        for i, m in enumerate(match(x, refs, ref_az)):
+        for i, m in enumerate(match(to_size(x, refs.shape[-2]), refs, ref_az)):
             asked = float(cam[i, 0])
             rows.append({
                 "caption": caption, "asked_azimuth": asked, "camera": camera,
@@ -336,7 +348,7 @@ def camera_sensitivity(prior, captions: list[str], *, sigmas=(2.0, 5.0, 10.0), o
     az = torch.tensor([0.0, 60.0, 120.0, 180.0, -120.0, -60.0])
     rows = []
     for caption in captions:
-        x0 = render_views(caption, az, 15.0, 55.0)
+        x0 = render_views(caption, az, 15.0, 55.0, size=prior.size)
         cond = prior.encode(caption)
         for s in sigmas:
             y = x0 + s * torch.randn(x0.shape, generator=g)
