@@ -144,12 +144,12 @@ MUTATIONS = [
     Mutation("resume-ignores-a-result-field", "gdbench/train/checkpoint.py", '    {"out", "progress",',
              '    {"samples_per_step", "out", "progress",',
              "a result-changing field ignored by resume and the run id", "run folder",
-             _train("test_every_config_field_is_classified_and_result_fields_change_the_run_id")),
+             ("tests/test_train_identity.py::test_every_config_field_is_classified_and_result_fields_change_the_run_id",)),
     Mutation("outputs-after-lock", "gdbench/train/run.py",
              "        if write_outputs and state.step >= cfg.steps:\n            paths |= write_run_outputs(",
              "    if write_outputs and state.step >= cfg.steps:\n        paths |= write_run_outputs(",
              "the run's outputs written after its folder lock is released", "run folder",
-             _train("test_run_outputs_are_written_while_the_folder_lock_is_held")),
+             ("tests/test_train_identity.py::test_run_outputs_are_written_while_the_folder_lock_is_held",)),
 ]  # fmt: skip
 
 

