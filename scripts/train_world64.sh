@@ -10,6 +10,13 @@
 #                                                        and start (or resume) both runs in the background
 #   bash scripts/train_world64.sh status CLONE           each run's step and the log's last line
 #   bash scripts/train_world64.sh pause|cont CLONE       stop the runs while timings are taken, go on after
+#   bash scripts/train_world64.sh distil CLONE TEACHERS [COMMIT]
+#                                                        guidance in one call: clone main at COMMIT into
+#                                                        CLONE (a second clone: the distillation code is
+#                                                        newer than the teachers'), then distil both
+#                                                        finished teachers of the clone TEACHERS at
+#                                                        guidance 3 (DSTEPS, default 3000) into
+#                                                        CLONE/runs/prior-world64p4-{uniform,front}-1call
 #
 # Resumable: `start` again after any interruption resumes both runs from their checkpoints (every
 # 500 steps). Runs go to CLONE/runs/prior-world64p4-{uniform,front}; logs beside them.
@@ -17,24 +24,30 @@
 # packages the clone uses; the clone's own sources come first on the path).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
-cmd=${1:?usage: bash scripts/train_world64.sh start|status|pause|cont CLONE [COMMIT]}
-clone=${2:?usage: bash scripts/train_world64.sh start|status|pause|cont CLONE [COMMIT]}
+cmd=${1:?usage: bash scripts/train_world64.sh start|distil|status|pause|cont CLONE [TEACHERS] [COMMIT]}
+clone=${2:?usage: bash scripts/train_world64.sh start|distil|status|pause|cont CLONE [TEACHERS] [COMMIT]}
 PATCH=${PATCH:-4}
 STEPS=${STEPS:-24000}
 PYTHON=${PYTHON:-$here/.venv/bin/python}
 runs=(uniform front)
+DSTEPS=${DSTEPS:-3000}
+GUIDANCE=${GUIDANCE:-3}
 
-pids() { pgrep -f "train-prior .*--out runs/prior-world64p${PATCH}-" || true; }
+clone_at() {  # clone main into $1 at $2 (default HEAD) unless it is there; refuse a clone at another commit
+  if [ ! -d "$1/.git" ]; then
+    git clone -q "$here" "$1"
+    git -C "$1" checkout -q "${2:-$(git -C "$here" rev-parse HEAD)}"
+  elif [ -n "${2:-}" ] && [ "$(git -C "$1" rev-parse HEAD)" != "$(git -C "$1" rev-parse "$2" 2>/dev/null)" ]; then
+    echo "train_world64: $1 is at $(git -C "$1" rev-parse --short HEAD), not $2: its runs belong to that commit"
+    exit 2
+  fi
+}
+
+pids() { pgrep -f "train-prior .*--out runs/prior-world64p${PATCH}-${1:-}" || true; }  # all runs, or those ending $1
 
 case $cmd in
   start)
-    if [ ! -d "$clone/.git" ]; then
-      git clone -q "$here" "$clone"
-      git -C "$clone" checkout -q "${3:-$(git -C "$here" rev-parse HEAD)}"
-    elif [ -n "${3:-}" ] && [ "$(git -C "$clone" rev-parse HEAD)" != "$(git -C "$clone" rev-parse "$3" 2>/dev/null)" ]; then
-      echo "train_world64: $clone is at $(git -C "$clone" rev-parse --short HEAD), not $3: its runs belong to that commit"
-      exit 2
-    fi
+    clone_at "$clone" "${3:-}"
     if [ -n "$(pids)" ]; then
       echo "train_world64: already running (pids $(pids | tr '\n' ' '))"
       exit 0
@@ -66,8 +79,36 @@ PY
     ) < /dev/null > /dev/null 2>&1 &
     disown
     ;;
-  status)
+  distil)
+    teachers=${3:?usage: bash scripts/train_world64.sh distil CLONE TEACHERS [COMMIT]}
+    teachers=$(cd "$teachers" && pwd)
     for run in "${runs[@]}"; do
+      t=$teachers/runs/prior-world64p${PATCH}-$run/model.safetensors
+      [ -f "$t" ] || { echo "train_world64: no finished teacher at $t (its training has not ended)" >&2; exit 2; }
+    done
+    clone_at "$clone" "${4:-}"
+    if [ -n "$(pids '[a-z]*-1call')" ]; then
+      echo "train_world64: already distilling (pids $(pids '[a-z]*-1call' | tr '\n' ' '))"
+      exit 0
+    fi
+    cd "$clone"
+    export PYTHONPATH=$PWD
+    mkdir -p runs
+    echo "train_world64: clone at $(git rev-parse --short HEAD); distilling both teachers of $teachers at guidance $GUIDANCE"
+    (
+      for run in "${runs[@]}"; do
+        nice -n 19 "$PYTHON" -m gdbench.app.cli train-prior \
+          --teacher "$teachers/runs/prior-world64p${PATCH}-$run/model.safetensors" --teacher-guidance "$GUIDANCE" \
+          --steps "$DSTEPS" --threads 1 --out "runs/prior-world64p${PATCH}-$run-1call" \
+          >> "runs/world64-$run-1call.log" 2>&1 &
+      done
+      wait
+    ) < /dev/null > /dev/null 2>&1 &
+    disown
+    ;;
+  status)
+    for run in "${runs[@]}" "${runs[@]/%/-1call}"; do
+      [ -d "$clone/runs/prior-world64p${PATCH}-$run" ] || continue
       f=$clone/runs/prior-world64p${PATCH}-$run/loss.csv
       echo "$run: $(tail -n 1 "$f" 2>/dev/null || echo 'no loss yet') | $(tail -c 300 "$clone/runs/world64-$run.log" 2>/dev/null | tr '\r' '\n' | tail -n 1)"
     done
@@ -78,5 +119,5 @@ PY
     [ -n "$p" ] || { echo "train_world64: no run to $cmd"; exit 0; }
     kill "-$([ "$cmd" = pause ] && echo STOP || echo CONT)" $p && echo "$cmd: $(echo $p | tr '\n' ' ')"
     ;;
-  *) echo "train_world64: unknown command $cmd (start, status, pause, cont)" >&2; exit 2 ;;
+  *) echo "train_world64: unknown command $cmd (start, distil, status, pause, cont)" >&2; exit 2 ;;
 esac
