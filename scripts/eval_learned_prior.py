@@ -8,7 +8,8 @@ camera.csv (the estimates' PSNR with the right camera and with its azimuth turne
 denoising_error.csv (the model against the exact posterior mean of its training views, per
 noise level), off_grid.csv (learned vs the runtime empirical prior between the bank's cameras),
 samples.csv (DDIM samples matched to ground-truth renders), mechanism.csv (structured vs
-independent noise, per prior), summary.json; figures learned_prior_{loss,denoising,off_grid,
+independent noise, per prior), guided_error.csv (with --students: each one-call model against its
+teacher's two-call guidance, per noise level), summary.json; figures learned_prior_{loss,denoising,off_grid,
 samples_uniform,samples_front,mechanism}.png. About 10 minutes on 2 cores.
 """
 
@@ -182,11 +183,17 @@ def main(argv=None) -> int:
     p.add_argument("--figures", type=Path, default=Path("docs/figures"))
     p.add_argument("--separations", nargs="*", type=float, default=[30.0, 5.0],
                    help="azimuth separations (deg) of the mechanism's view pairs")  # fmt: skip
+    p.add_argument("--students", nargs="*", default=[],
+                   help="distilled one-call models of --uniform and --front, in that order (a name or path "
+                        "each; their guided error against the teacher, and the samples check beside the "
+                        "teachers')")  # fmt: skip
     p.add_argument("--quick", action="store_true", help="fewer queries and draws (a smoke run)")
-    parts_help = "parts to run: loss camera denoising off_grid samples mechanism (default: all)"
+    parts_help = "parts to run: loss camera denoising off_grid samples mechanism distillation (default: all)"
     p.add_argument("--only", nargs="*", default=[], help=parts_help)
     a = p.parse_args(argv)
-    parts = set(a.only) or {"loss", "camera", "denoising", "off_grid", "samples", "mechanism"}
+    parts = set(a.only) or {"loss", "camera", "denoising", "off_grid", "samples", "mechanism", "distillation"}
+    if len(a.students) > 2:
+        p.error(f"--students: expected at most two (the uniform model's, then the front one's), got {len(a.students)}")
     torch.manual_seed(0)
     commit = code_commit()
     a.out.mkdir(parents=True, exist_ok=True)
@@ -195,8 +202,9 @@ def main(argv=None) -> int:
     models = {"uniform": a.uniform, "front": a.front}
     from gdbench.priors.learned.prior import load_model
 
+    students = dict(zip(("uniform", "front"), a.students))
     summary["models"] = {k: {m: load_model(v)[1].get(m) for m in ("commit", "steps", "final_loss")}
-                         for k, v in models.items()}  # fmt: skip
+                         for k, v in (models | {f"{k}-1call": v for k, v in students.items()}).items()}  # fmt: skip
     q = 2 if a.quick else 1
     t0 = time.perf_counter()
 
@@ -258,11 +266,31 @@ def main(argv=None) -> int:
         }  # fmt: skip
         print(f"off-grid done ({time.perf_counter() - t0:.0f} s)")
 
+    if "distillation" in parts and students:
+        from gdbench.priors.learned.evaluation import guided_error
+
+        rows = []
+        for name, m in students.items():
+            scale = float(json.loads(load_model(m)[1]["train"])["teacher_guidance"])
+            one = LearnedPrior(m, guidance_scale=scale, view_mode="window")
+            two = LearnedPrior(models[name], guidance_scale=scale, view_mode="window")
+            unguided = LearnedPrior(models[name], guidance_scale=1.0, view_mode="window")
+            rows += [{"model": f"{name}-1call", "guidance": scale, **r}
+                     for r in guided_error(one, two, unguided, list(two.captions))]  # fmt: skip
+        write_csv(a.out / "guided_error.csv", rows, commit)
+        keys = ("mse_student_teacher", "mse_guided_unguided", "psnr_student", "psnr_teacher")
+        summary["distillation"] = {
+            f"{m} sigma {s:g}": {k: float(np.mean([r[k] for r in rows if r["model"] == m and r["sigma"] == s]))
+                                 for k in keys}
+            for m in sorted({r["model"] for r in rows}) for s in sorted({r["sigma"] for r in rows})
+        }  # fmt: skip
+        print(f"distillation done ({time.perf_counter() - t0:.0f} s)")
+
     if "samples" in parts:
         refs, ref_az = reference_set(captions)
         rows, views = [], (0.0, 90.0, 180.0, -90.0)
         summary["samples"] = {}
-        for name, m in models.items():
+        for name, m in (models | {f"{k}-1call": v for k, v in students.items()}).items():
             prior = LearnedPrior(m, view_mode="window")
             grids = {}
             for camera in (True, False):

@@ -103,3 +103,21 @@ def test_teacher_guidance_without_a_teacher_is_refused(tmp_path):
     with pytest.raises(ValueError, match="teacher_guidance \\(--teacher-guidance\\): acts only with --teacher"):
         run_train_prior(TrainPrior(out=tmp_path / "x", teacher_guidance=2.0, steps=2, progress=False))
     assert not (tmp_path / "x").exists()
+
+
+def test_the_students_check_measures_its_distance_to_the_guided_teacher(teacher):
+    """`evaluation.guided_error` on its own oracles: the guided teacher checked against itself is
+    0 away at every sigma, and the unguided teacher put in the student's place is exactly as far
+    from the guided teacher as guidance moves it (the row's own scale), which is not 0."""
+    from gdbench.priors.learned.evaluation import guided_error
+
+    guided = LearnedPrior(teacher, guidance_scale=3.0, view_mode="window")
+    unguided = LearnedPrior(teacher, guidance_scale=1.0, view_mode="window")
+    caption = guided.captions[0]
+    same = guided_error(guided, guided, unguided, [caption], sigmas=(0.5, 5.0))
+    assert [r["mse_student_teacher"] for r in same] == [0.0, 0.0]
+    assert all(r["psnr_student"] == r["psnr_teacher"] for r in same)
+    off = guided_error(unguided, guided, unguided, [caption], sigmas=(0.5, 5.0))
+    for r in off:
+        assert r["mse_student_teacher"] == pytest.approx(r["mse_guided_unguided"], rel=1e-6)
+        assert r["mse_guided_unguided"] > 1e-6
