@@ -1,0 +1,146 @@
+"""The 64 px one-call uniform model against the shipped 32 px uniform model on text to 3D (the
+prior issue's item 4; docs/learned_prior.md): one row per caption from the two sweeps of
+``docs/results/learned_prior/world64/sweep.sh`` (GT PSNR, Gaussians and the judge's label of
+each, the difference in PSNR), the targets read from the rows (the median difference at least
+1 dB), and the duck's seeds on the new model.
+
+    python -m gdbench.experiments.prior64 --runs OUT --to docs/results/learned_prior/world64
+
+Writes ``table.csv`` (a row per caption, with both cells' run ids and commits), ``duck.csv`` and
+``table.md``. The turntables are read by eye from blinded sheets before this table is read
+(``python -m gdbench.metrics.label_sheets --runs OUT/shipped OUT/world64 --out SHEETS --key KEY``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import statistics
+from pathlib import Path
+
+TARGET_DB = 1.0
+"""The issue's target: the median GT PSNR over the 38 captions at least this far above the shipped
+model's."""
+
+
+def read_cells(sweep: Path) -> dict[tuple[str, int], dict]:
+    """(prompt, seed) -> the row of a sweep's cells.csv; a missing file is an error naming it."""
+    path = Path(sweep) / "cells.csv"
+    if not path.is_file():
+        raise FileNotFoundError(f"runs: no cells.csv in {sweep} (has its sweep run?)")
+    with open(path) as f:
+        return {(r["prompt"], int(r["seed"])): r for r in csv.DictReader(f)}
+
+
+def _num(v: str | None) -> float | None:
+    try:
+        return float(v) if v not in (None, "") else None
+    except ValueError:
+        return None
+
+
+def table_rows(shipped: dict, world64: dict, held_out: tuple[str, ...] = ()) -> list[dict]:
+    """One row per prompt both sweeps have at seed 0: each model's GT PSNR, Gaussians and judge
+    label, and the difference new - shipped."""
+    rows = []
+    for prompt, seed in sorted(k for k in shipped if k in world64 and k[1] == 0):
+        a, b = shipped[(prompt, seed)], world64[(prompt, seed)]
+        pa, pb = _num(a.get("gt_psnr")), _num(b.get("gt_psnr"))
+        rows.append({
+            "prompt": prompt, "held_out": prompt in held_out,
+            "psnr_shipped": pa, "psnr_world64": pb,
+            "psnr_gain": None if pa is None or pb is None else pb - pa,
+            "gaussians_shipped": a.get("gaussians"), "gaussians_world64": b.get("gaussians"),
+            "judge_shipped": a.get("judge_label", ""), "judge_world64": b.get("judge_label", ""),
+            "run_shipped": a.get("run_id"), "run_world64": b.get("run_id"),
+            "commit_shipped": a.get("train_commit"), "commit_world64": b.get("train_commit"),
+        })  # fmt: skip
+    return rows
+
+
+def summary(rows: list[dict]) -> dict:
+    """The medians, the median gain against ``TARGET_DB`` and the count of captions that gain."""
+    gains = [r["psnr_gain"] for r in rows if r["psnr_gain"] is not None]
+    if not gains:
+        raise ValueError("rows: no caption has a GT PSNR in both sweeps")
+    return {
+        "captions": len(gains),
+        "median_shipped": statistics.median(r["psnr_shipped"] for r in rows if r["psnr_gain"] is not None),
+        "median_world64": statistics.median(r["psnr_world64"] for r in rows if r["psnr_gain"] is not None),
+        "median_gain": statistics.median(gains),
+        "gain_meets_target": statistics.median(gains) >= TARGET_DB,
+        "captions_gaining": sum(g > 0 for g in gains),
+        "commits": sorted({r[k] for r in rows for k in ("commit_shipped", "commit_world64") if r[k]}),
+    }
+
+
+def markdown(rows: list[dict], s: dict, duck: list[dict]) -> str:
+    f = lambda v: "" if v is None else f"{v:.2f}"  # noqa: E731
+    out = [
+        f"Text to 3D on {s['captions']} captions, seed 0, at the defaults (commit {', '.join(s['commits'])}): "
+        f"median GT PSNR {s['median_shipped']:.2f} dB (shipped 32 px) -> {s['median_world64']:.2f} dB (64 px one "
+        f"call), median gain {s['median_gain']:+.2f} dB (target {TARGET_DB:+.1f}: "
+        f"{'met' if s['gain_meets_target'] else 'not met'}); {s['captions_gaining']} captions gain.",
+        "",
+        "| caption | shipped dB | 64 px dB | gain | Gaussians shipped / 64 px | judge shipped / 64 px |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        name = r["prompt"] + (" (held out)" if r["held_out"] else "")
+        counts = f"{r['gaussians_shipped']} / {r['gaussians_world64']}"
+        judged = f"{r['judge_shipped']} / {r['judge_world64']}"
+        out.append(
+            f"| {name} | {f(r['psnr_shipped'])} | {f(r['psnr_world64'])} | {f(r['psnr_gain'])} | {counts} | {judged} |"
+        )
+    if duck:
+        out += ["", "| the duck, 64 px one call: seed | GT PSNR | judge |", "|---|---|---|"]
+        out += [f"| {d['seed']} | {f(_num(d.get('gt_psnr')))} | {d.get('judge_label', '')} |" for d in duck]
+    return "\n".join(out) + "\n"
+
+
+def main(argv=None) -> int:
+    from gdbench.core.io import atomic_write
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--runs", type=Path, required=True, help="the OUT of sweep.sh (shipped/, world64/, duck/)")
+    p.add_argument("--to", type=Path, required=True, help="where table.csv, duck.csv and table.md go")
+    p.add_argument("--held-out", nargs="*", default=None, help="captions held out of training (default: the "
+                   "shipped uniform model's)")  # fmt: skip
+    a = p.parse_args(argv)
+    held = tuple(a.held_out) if a.held_out is not None else _held_out()
+    rows = table_rows(read_cells(a.runs / "shipped"), read_cells(a.runs / "world64"), held)
+    s = summary(rows)
+    duck_cells = read_cells(a.runs / "duck") if (a.runs / "duck" / "cells.csv").is_file() else {}
+    duck = [dict(r, seed=k[1]) for k, r in sorted(duck_cells.items())]
+    a.to.mkdir(parents=True, exist_ok=True)
+    _write_csv(a.to / "table.csv", rows)
+    if duck:
+        _write_csv(a.to / "duck.csv", [{k: d.get(k) for k in ("prompt", "seed", "gt_psnr", "gaussians", "judge_label",
+                                                              "run_id", "train_commit")} for d in duck])  # fmt: skip
+    text = markdown(rows, s, duck).encode()
+    atomic_write(a.to / "table.md", lambda f: f.write(text))
+    print(markdown(rows, s, duck))
+    return 0
+
+
+def _held_out() -> tuple[str, ...]:
+    from gdbench.priors.learned.prior import LearnedPrior
+
+    return tuple(LearnedPrior("uniform").held_out)
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    import io
+
+    from gdbench.core.io import atomic_write
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    data = buf.getvalue().encode()
+    atomic_write(path, lambda f: f.write(data))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
