@@ -106,6 +106,13 @@ def extra_features(views, cap):
         own = (ra @ ra.T)[off].mean()
         own_sil = (rsa @ rsa.T)[off].mean()
         out += [same - own, same_sil - own_sil]
+    if os.environ.get("OUTLINE"):  # the outline's fit at 48 px: each view's best IoU with the asset's
+        vm = (crop_views(views, 48).min(1).values < 0.9).float().flatten(1)
+        rm = outlines[cap]
+        inter = vm @ rm.T
+        iou = inter / (vm.sum(1, keepdim=True) + rm.sum(1)[None] - inter).clamp(min=1)
+        best = iou.amax(1)
+        out += [best.mean(), best.amin()]
     if os.environ.get("DETAIL"):  # the features drawn: the best template's match less its smeared twin's
         best = sim.argmax(1)
         gain = sim.gather(1, best[:, None])[:, 0] - (v * smeared[cap][best]).sum(1)
@@ -120,6 +127,11 @@ for ci, cap in enumerate(data.captions):
     ink = ((1 - c.min(1, keepdim=True).values) > 0.1).float()
     mean = (c * ink).sum((2, 3), keepdim=True) / ink.sum((2, 3), keepdim=True).clamp(min=1)
     smeared[cap] = norm(blur(c + ink * (mean - c)))
+outlines = {}
+if os.environ.get("OUTLINE"):
+    for ci, cap in enumerate(data.captions):
+        sel = ((data.caption == ci) & near).nonzero().flatten()
+        outlines[cap] = (crop_views(data.images[sel], 48).min(1).values < 0.9).float().flatten(1)
 sils = {}
 for ci, cap in enumerate(data.captions):
     sel = (data.caption == ci) & near
