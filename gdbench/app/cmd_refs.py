@@ -123,6 +123,9 @@ class Bench:
     """stability and error: only these built-in renderers (default: all, or none with --renderer)."""
     cases: tuple[str, ...] = ()
     """stability: only these cases, named as in its table (default: all)."""
+    learned_models: tuple[str, ...] = ()
+    """train: learned models of your own (names or model.safetensors), each step timed in the same
+    alternating blocks as the shipped learned model's, with its ratio to it (default: none)."""
 
 
 def run_bench(cmd: Bench) -> dict:
@@ -136,7 +139,8 @@ def run_bench(cmd: Bench) -> dict:
         argv += ["--quick"] + (["--inprocess"] if cmd.which == "render" else [])
     for flag, values, benches in (("--renderer", cmd.renderer, ("stability", "error")),
                                   ("--renderers", cmd.renderers, ("stability", "error")),
-                                  ("--cases", cmd.cases, ("stability",))):  # fmt: skip
+                                  ("--cases", cmd.cases, ("stability",)),
+                                  ("--learned-models", cmd.learned_models, ("train",))):  # fmt: skip
         if values and cmd.which not in benches:
             raise ValueError(f"{flag[2:]}: only the {' and '.join(benches)} benchmarks take it, not {cmd.which!r}")
         argv += [flag, *values] if values else []

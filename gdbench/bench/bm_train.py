@@ -8,9 +8,12 @@ machine's float32
 matrix product just before and after the run (the shared machine's phase moves every time here
 by up to 2x); and the training step with the empirical and the learned prior side by side (target
 for the learned prior with classifier-free guidance: 7.75 ms, half of issue 32's 15.5 ms), with the
-learned prior's network time at the shipped width and at 1.5 and 2 times wider.
+learned prior's network time at the shipped width and at 1.5 and 2 times wider. With
+``--learned-models``, each of those models' training steps in the same alternating blocks, with its
+ratio to the shipped learned model's step (the prior issue's target for the 64 px one-call model:
+at most ``MAX_MODEL_RATIO``).
 
-    python -m gdbench.bench.bm_train --out bench_results/train.csv [--skip-run]
+    python -m gdbench.bench.bm_train --out bench_results/train.csv [--skip-run] [--learned-models M ...]
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ TARGET_DENOISE_S = 0.005
 TARGET_RUN_S = 120.0
 TARGET_STEP_S = 0.004  # issue 32 (issue 15: 8 ms, met in fast phases)
 TARGET_LEARNED_STEP_S = 0.00775  # issue 56: half of 15.5 ms (issue 32's target was 40 ms)
+MAX_MODEL_RATIO = 1.1  # the prior issue: a new learned model's step at most 1.1x the shipped one's
 WIDTHS = ((64, 96, 128), (96, 144, 192), (128, 192, 256))
 """UNet widths of ``learned_scaling``: the shipped models' and 1.5 and 2 times wider."""
 PARTS = ("t_views", "t_render", "t_noise", "t_prior", "t_update")
@@ -92,17 +96,22 @@ def learned_scaling(widths=WIDTHS, repeats: int = 5, block: int = 10) -> list[di
     return rows
 
 
-def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -> list[dict]:
+def prior_steps(
+    out: Path, blocks: int = 6, block: int = 20, warmup: int = 30, models: tuple[str, ...] = ()
+) -> list[dict]:
     """Median training step (gd preset, 64 px) with the empirical prior and with the learned prior
-    (classifier-free guidance: two network evaluations per view; target 7.75 ms), measured in one
-    process in alternating blocks of steps (an A/B: the machine's phase moves both alike), after
-    ``warmup`` steps of each (the empirical prior's zoom levels fill its cache as they are met)."""
+    (classifier-free guidance: two network evaluations per view; target 7.75 ms), and with each of
+    the learned ``models`` (names or model.safetensors), measured in one process in alternating
+    blocks of steps (an A/B: the machine's phase moves all alike), after ``warmup`` steps of each
+    (the empirical prior's zoom levels fill its cache as they are met)."""
     from gdbench.train.config import preset
     from gdbench.train.trainer import init_state, make_context, train_step
 
     runs = {}
-    for name in ("empirical", "learned"):
-        cfg = preset("gd", prior=name, out=out / name, progress=False)
+    settings = {"empirical": {"prior": "empirical"}, "learned": {"prior": "learned"}}
+    settings |= {f"learned {m}": {"prior": "learned", "prior.learned_model": str(m)} for m in models}
+    for i, (name, kw) in enumerate(settings.items()):
+        cfg = preset("gd", out=out / f"run{i}", progress=False, **kw)
         ctx = make_context(cfg)
         state = init_state(ctx)
         for _ in range(warmup):
@@ -116,13 +125,19 @@ def prior_steps(out: Path, blocks: int = 6, block: int = 20, warmup: int = 30) -
                 times.append(time.perf_counter() - t0)
                 prior_times.append(m["t_prior"])
     rows = []
+    shipped = statistics.median(runs["learned"][2])
     for name, (_, _, times, prior_times) in runs.items():
         step = statistics.median(times)
-        target = TARGET_LEARNED_STEP_S if name == "learned" else TARGET_STEP_S
-        what = "learned prior (guidance 3, 32 px model)" if name == "learned" else "empirical prior"
-        rows.append({"what": f"training step with the {what}, median of {len(times)}", "seconds": step,
-                     "target_s": target, "met": step <= target, "p10_s": sorted(times)[len(times) // 10],
-                     "p90_s": sorted(times)[(9 * len(times)) // 10]})  # fmt: skip
+        spread = {"p10_s": sorted(times)[len(times) // 10], "p90_s": sorted(times)[(9 * len(times)) // 10]}
+        if name.startswith("learned "):
+            rows.append({"what": f"training step with the {name} model, median of {len(times)}", "seconds": step,
+                         "ratio": step / shipped, "target_ratio": MAX_MODEL_RATIO,
+                         "met": step / shipped <= MAX_MODEL_RATIO, **spread})  # fmt: skip
+        else:
+            target = TARGET_LEARNED_STEP_S if name == "learned" else TARGET_STEP_S
+            what = "learned prior (guidance 3, 32 px model)" if name == "learned" else "empirical prior"
+            rows.append({"what": f"training step with the {what}, median of {len(times)}", "seconds": step,
+                         "target_s": target, "met": step <= target, **spread})  # fmt: skip
         rows.append({"what": "  of which the prior (median)", "seconds": statistics.median(prior_times),
                      "share": statistics.median(prior_times) / step})  # fmt: skip
     return rows
@@ -251,12 +266,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench_results/train.csv"))
     ap.add_argument("--skip-run", action="store_true", help="only time the denoiser and the priors' steps")
+    ap.add_argument("--learned-models", nargs="*", default=[],
+                    help="learned models (names or model.safetensors) timed beside the shipped one")  # fmt: skip
     args = ap.parse_args(argv)
     from gdbench.bench.roofline import peak_gflops
 
     rows = [denoise_time("window"), denoise_time("none")]
     rows.append({"what": "machine: float32 matrix product (GFLOP/s)", "seconds": float("nan"), "gflops": peak_gflops()})
-    rows += prior_steps(args.out.parent / "bm_train_priors")
+    rows += prior_steps(args.out.parent / "bm_train_priors", models=tuple(args.learned_models))
     rows += learned_scaling()
     if not args.skip_run:
         rows += default_run(args.out.parent / "bm_train_run")
@@ -264,6 +281,10 @@ def main(argv: list[str] | None = None) -> int:
         tail = ""
         if r.get("target_s") == r.get("target_s") and "target_s" in r:
             tail = f" (target <= {r['target_s']} s) -> {'met' if r['met'] else 'NOT met'}"
+        elif "target_ratio" in r:
+            tail = f" ({r['ratio']:.2f}x the shipped model's; target <= {r['target_ratio']}x) -> " + (
+                "met" if r["met"] else "NOT met"
+            )
         elif "share" in r:
             tail = f" ({100 * r['share']:.0f}% of the step)"
         elif "gflops" in r and r["seconds"] == r["seconds"]:
