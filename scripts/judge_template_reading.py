@@ -143,6 +143,48 @@ kinds = [PARTS[r.caption][0] for r in results]
 fronts = [has_front(r.caption) for r in results]
 nv3 = len(results) - len(fresh)
 xe = torch.stack([extra_features(torch.from_numpy(r.views), r.caption) for r in results])
+if os.environ.get("SYNTH"):  # each feature against the asset's own synthetic results of each class
+    from dataclasses import replace
+
+    from gdbench.metrics.judge.reading import result_features
+    from gdbench.metrics.judge.train import EyeTrainConfig, degrade
+
+    g = torch.Generator().manual_seed(0)
+    cam = torch.arange(6) * 60.0
+    base = EyeTrainConfig(smear=0.0)
+
+    def synth_views(ci, kind):
+        sel = ((data.caption == ci) & (data.variant == 0) & near).nonzero().flatten()
+        off = float(torch.rand((), generator=g)) * 360
+        front = torch.where(torch.rand(6, generator=g) < 0.25, 180.0, 0.0)
+        t = {"fine": off + cam, "profile": off + cam, "front": front, "shapeless": torch.rand(6, generator=g) * 360}
+        t = t[kind] + torch.randn(6, generator=g) * 8
+        d = ((data.azimuth[sel][None] - t[:, None] + 180) % 360 - 180).abs()
+        x = crops[sel[d.argmin(1)]]
+        cfg = replace(base, blobify=1.0, blob_blur=3.0) if kind == "shapeless" else replace(base, blobify=0.4)
+        x = degrade(x, cfg, g)
+        ink = ((1 - x.min(1, keepdim=True).values) > 0.1).float()
+        mean = (x * ink).sum((2, 3), keepdim=True) / ink.sum((2, 3), keepdim=True).clamp(min=1)
+        sm = {"fine": 0.3, "profile": 1.0, "front": float(torch.rand((), generator=g)), "shapeless": 1.0}[kind]
+        return (x + ink * sm * (mean - x)).permute(0, 2, 3, 1).contiguous()
+
+    KINDS = ("fine", "profile", "front", "shapeless")
+    feats = {}
+    for ci, cap in enumerate(data.captions):
+        for kind in KINDS:
+            fs = []
+            for _ in range(int(os.environ.get("SYNTH_N", "6"))):
+                v = synth_views(ci, kind)
+                f0 = result_features(judge.eye, judge.curves, v, az, cap)[0]
+                fs.append(torch.cat([f0, extra_features(v, cap)]))
+            feats[(cap, kind)] = torch.stack(fs)
+    sd = torch.stack([f - f.mean(0) for f in feats.values()]).flatten(0, 1).std(0).clamp(min=1e-3)
+    xr = torch.cat([x0, xe], 1)
+    xs = torch.stack([
+        torch.stack([(((xr[i] - feats[(r.caption, k)].mean(0)) / sd) ** 2).mean().log() for k in KINDS])
+        for i, r in enumerate(results)
+    ])  # fmt: skip
+    print("synth", time.time() - t0)
 ARMS = {
     "eye only": x0,
     "template only": torch.cat([xt, x0[:, 10:]], 1),
@@ -150,6 +192,8 @@ ARMS = {
     "eye + sameness": torch.cat([x0, xe], 1),
     "eye + template + sameness": torch.cat([x0, xt, xe], 1),
 }
+if os.environ.get("SYNTH"):
+    ARMS["eye + sameness + synth"] = torch.cat([x0, xe, xs], 1)
 if os.environ.get("RELATIVE"):  # the twenty features less the asset's own (its clean six views)
     from gdbench.metrics.judge.reading import result_features
 
