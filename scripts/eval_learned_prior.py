@@ -194,6 +194,8 @@ def main(argv=None) -> int:
     parts = set(a.only) or {"loss", "camera", "denoising", "off_grid", "samples", "mechanism", "distillation"}
     if len(a.students) > 2:
         p.error(f"--students: expected at most two (the uniform model's, then the front one's), got {len(a.students)}")
+    if "distillation" in set(a.only) and not a.students:
+        p.error("--only distillation: needs --students (the one-call models to check against their teachers)")
     torch.manual_seed(0)
     commit = code_commit()
     a.out.mkdir(parents=True, exist_ok=True)
@@ -203,6 +205,16 @@ def main(argv=None) -> int:
     from gdbench.priors.learned.prior import load_model
 
     students = dict(zip(("uniform", "front"), a.students))
+    from gdbench.priors.learned.prior import model_path
+
+    scale_of = {}  # each student's distilled scale; its teacher must be the model given for its name
+    for name, m in students.items():
+        train = json.loads(load_model(m)[1]["train"])
+        if "teacher" not in train:
+            p.error(f"--students: {m} is not distilled (no teacher in its metadata)")
+        if Path(train["teacher"]).resolve() != model_path(models[name]).resolve():
+            p.error(f"--students: {m} was distilled from {train['teacher']}, not from --{name} {models[name]}")
+        scale_of[f"{name}-1call"] = float(train["teacher_guidance"])
     summary["models"] = {k: {m: load_model(v)[1].get(m) for m in ("commit", "steps", "final_loss")}
                          for k, v in (models | {f"{k}-1call": v for k, v in students.items()}).items()}  # fmt: skip
     q = 2 if a.quick else 1
@@ -271,7 +283,7 @@ def main(argv=None) -> int:
 
         rows = []
         for name, m in students.items():
-            scale = float(json.loads(load_model(m)[1]["train"])["teacher_guidance"])
+            scale = scale_of[f"{name}-1call"]
             one = LearnedPrior(m, guidance_scale=scale, view_mode="window")
             two = LearnedPrior(models[name], guidance_scale=scale, view_mode="window")
             unguided = LearnedPrior(models[name], guidance_scale=1.0, view_mode="window")
@@ -291,7 +303,7 @@ def main(argv=None) -> int:
         rows, views = [], (0.0, 90.0, 180.0, -90.0)
         summary["samples"] = {}
         for name, m in (models | {f"{k}-1call": v for k, v in students.items()}).items():
-            prior = LearnedPrior(m, view_mode="window")
+            prior = LearnedPrior(m, view_mode="window", guidance_scale=scale_of.get(name, 3.0))
             grids = {}
             for camera in (True, False):
                 r, grid = sample_scores(prior, refs, ref_az, views=views, seeds=8 // q, camera=camera)

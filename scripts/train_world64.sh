@@ -24,8 +24,10 @@
 # packages the clone uses; the clone's own sources come first on the path).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
-cmd=${1:?usage: bash scripts/train_world64.sh start|distil|status|pause|cont CLONE [TEACHERS] [COMMIT]}
-clone=${2:?usage: bash scripts/train_world64.sh start|distil|status|pause|cont CLONE [TEACHERS] [COMMIT]}
+usage="usage: bash scripts/train_world64.sh start CLONE [COMMIT] | distil CLONE TEACHERS [COMMIT] | status|pause|cont CLONE"
+cmd=${1:?$usage}
+clone=${2:?$usage}
+clone_abs=$(realpath -m "$clone")
 PATCH=${PATCH:-4}
 STEPS=${STEPS:-24000}
 PYTHON=${PYTHON:-$here/.venv/bin/python}
@@ -43,7 +45,27 @@ clone_at() {  # clone main into $1 at $2 (default HEAD) unless it is there; refu
   fi
 }
 
-pids() { pgrep -f "train-prior .*--out runs/prior-world64p${PATCH}-${1:-}" || true; }  # all runs, or those ending $1
+pids() {  # this clone's runs (their working folder is the clone), all or those whose name ends $1
+  local p
+  for p in $(pgrep -f "train-prior .*--out runs/prior-world64p${PATCH}-${1:-}" || true); do
+    [ "$(readlink "/proc/$p/cwd" 2>/dev/null)" = "$clone_abs" ] && echo "$p"
+  done
+  true
+}
+
+data_step() {  # in the clone: the data (49,152 views at 64 px, the 32 px world models' key) in two
+  # processes, cached; a file with a main guard, not stdin: the render's worker processes are spawned
+  # and import it
+  cat > runs/world64_data.py <<'PY'
+from gdbench.priors.learned.data import data_key, load_dataset
+from gdbench.priors.learned.training import world_config
+
+if __name__ == "__main__":
+    cfg = world_config(data={"views": 512}).data
+    print(len(load_dataset(cfg, progress=True, workers=2)), "views, key", data_key(cfg))
+PY
+  nice -n 19 "$PYTHON" runs/world64_data.py > runs/world64-data.log 2>&1
+}
 
 case $cmd in
   start)
@@ -57,17 +79,7 @@ case $cmd in
     mkdir -p runs
     echo "train_world64: clone at $(git rev-parse --short HEAD); data, then both runs (log: runs/world64-*.log)"
     (
-      # the data (49,152 views at 64 px, the 32 px world models' key) in two processes, cached; a file
-      # with a main guard, not stdin: the render's worker processes are spawned and import it
-      cat > runs/world64_data.py <<'PY'
-from gdbench.priors.learned.data import data_key, load_dataset
-from gdbench.priors.learned.training import world_config
-
-if __name__ == "__main__":
-    cfg = world_config(data={"views": 512}).data
-    print(len(load_dataset(cfg, progress=True, workers=2)), "views, key", data_key(cfg))
-PY
-      nice -n 19 "$PYTHON" runs/world64_data.py > runs/world64-data.log 2>&1
+      data_step
       for run in "${runs[@]}"; do
         bias=0
         [ "$run" = front ] && bias=2
@@ -80,7 +92,7 @@ PY
     disown
     ;;
   distil)
-    teachers=${3:?usage: bash scripts/train_world64.sh distil CLONE TEACHERS [COMMIT]}
+    teachers=${3:?$usage}
     teachers=$(cd "$teachers" && pwd)
     for run in "${runs[@]}"; do
       t=$teachers/runs/prior-world64p${PATCH}-$run/model.safetensors
@@ -96,6 +108,7 @@ PY
     mkdir -p runs
     echo "train_world64: clone at $(git rev-parse --short HEAD); distilling both teachers of $teachers at guidance $GUIDANCE"
     (
+      data_step  # the teachers' data (their key), rendered once here if this clone's cache lacks it
       for run in "${runs[@]}"; do
         nice -n 19 "$PYTHON" -m gdbench.app.cli train-prior \
           --teacher "$teachers/runs/prior-world64p${PATCH}-$run/model.safetensors" --teacher-guidance "$GUIDANCE" \
@@ -119,5 +132,5 @@ PY
     [ -n "$p" ] || { echo "train_world64: no run to $cmd"; exit 0; }
     kill "-$([ "$cmd" = pause ] && echo STOP || echo CONT)" $p && echo "$cmd: $(echo $p | tr '\n' ' ')"
     ;;
-  *) echo "train_world64: unknown command $cmd (start, distil, status, pause, cont)" >&2; exit 2 ;;
+  *) echo "train_world64: unknown command $cmd; $usage" >&2; exit 2 ;;
 esac

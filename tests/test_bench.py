@@ -411,15 +411,15 @@ def test_bench_quick_runs_render_in_one_process_and_peers_as_asked(monkeypatch, 
 
 def test_train_benchmark_times_other_learned_models_beside_the_shipped_one(tmp_path):
     """`bench train --learned-models`: each model's step is timed in the same alternating blocks and
-    reported as its ratio to the shipped learned model's median step (the shipped model named
-    again reads about 1x: same work, same blocks); the model really reaches the prior (an unknown
+    reported as its ratio to the shipped learned model's step, round by round (the shipped model
+    named again reads about 1x: same work, same blocks); the model really reaches the prior (an unknown
     one is refused naming learned_model)."""
     from gdbench.bench import bm_train
 
     rows = bm_train.prior_steps(tmp_path, blocks=3, block=4, warmup=2, models=("uniform",))
     shipped = next(r for r in rows if r["what"].startswith("training step with the learned prior"))
     mine = next(r for r in rows if r["what"].startswith("training step with the learned uniform model"))
-    assert mine["ratio"] == pytest.approx(mine["seconds"] / shipped["seconds"])
+    assert shipped["seconds"] > 0 and mine["seconds"] > 0
     assert mine["met"] == (mine["ratio"] <= bm_train.MAX_MODEL_RATIO)
     assert 0.3 < mine["ratio"] < 3.0  # the same model: the same work, whatever the machine's phase
     with pytest.raises(FileNotFoundError, match="learned_model: expected"):

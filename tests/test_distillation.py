@@ -107,8 +107,10 @@ def test_teacher_guidance_without_a_teacher_is_refused(tmp_path):
 
 def test_the_students_check_measures_its_distance_to_the_guided_teacher(teacher):
     """`evaluation.guided_error` on its own oracles: the guided teacher checked against itself is
-    0 away at every sigma, and the unguided teacher put in the student's place is exactly as far
-    from the guided teacher as guidance moves it (the row's own scale), which is not 0."""
+    0 away at every sigma, the unguided teacher put in the student's place is exactly as far
+    from the guided teacher as guidance moves it (the row's own scale), which is not 0, and that
+    scale is the MSE between the two teachers' estimates computed directly, whatever the student;
+    the teacher at scale 2 lies between."""
     from gdbench.priors.learned.evaluation import guided_error
 
     guided = LearnedPrior(teacher, guidance_scale=3.0, view_mode="window")
@@ -121,3 +123,20 @@ def test_the_students_check_measures_its_distance_to_the_guided_teacher(teacher)
     for r in off:
         assert r["mse_student_teacher"] == pytest.approx(r["mse_guided_unguided"], rel=1e-6)
         assert r["mse_guided_unguided"] > 1e-6
+    # a third model in the student's place moves only the student's column; guidance's own effect is
+    # the MSE between the two teachers' estimates of the same noisy renders, computed here directly
+    from gdbench.priors.learned.evaluation import render_views
+
+    other = guided_error(LearnedPrior(teacher, guidance_scale=2.0, view_mode="window"), guided, unguided, [caption],
+                         sigmas=(0.5, 5.0))  # fmt: skip
+    g = torch.Generator().manual_seed(0)
+    az = torch.tensor([0.0, 60.0, 120.0, 180.0, -120.0, -60.0])
+    cam = {"azimuth": az, "elevation": torch.full((6,), 15.0), "fovy": torch.full((6,), 55.0)}
+    x0 = render_views(caption, az, 15.0, 55.0, size=guided.size)
+    cond = guided.encode(caption)
+    for r, s in zip(other, (0.5, 5.0)):
+        y = x0 + s * torch.randn(x0.shape, generator=g)
+        sig = torch.full((6,), s)
+        direct = float(((guided.denoise(y, sig, cond, **cam) - unguided.denoise(y, sig, cond, **cam)) ** 2).mean())
+        assert r["mse_guided_unguided"] == pytest.approx(direct, rel=1e-6)
+        assert 0 < r["mse_student_teacher"] < r["mse_guided_unguided"]  # scale 2 lies between 1 and 3

@@ -8,7 +8,7 @@ import statistics
 
 import pytest
 
-from gdbench.experiments.prior64 import TARGET_DB, main, read_cells, summary, table_rows
+from gdbench.experiments.prior64 import main, read_cells, summary, table_rows
 
 
 def _sweep(folder, rows):
@@ -35,11 +35,21 @@ def test_the_table_reads_both_sweeps_and_the_median_gain(tmp_path):
     assert gains == {"a blue duck": 0.5, "a corgi": 1.5, "a penguin": None, "a sofa": -1.0}
     assert [r["held_out"] for r in rows] == [True, False, False, False]
     s = summary(rows)
-    assert s["median_gain"] == statistics.median([0.5, 1.5, -1.0]) and s["captions"] == 3
-    assert s["gain_meets_target"] == (0.5 >= TARGET_DB) and s["captions_gaining"] == 2
-    assert main(["--runs", str(tmp_path / "runs"), "--to", str(tmp_path / "out"), "--held-out", "a blue duck"]) == 0
+    # the target is a difference of medians over the captions both sweeps scored
+    assert s["median_gain"] == statistics.median([23.5, 20.5, 23.0]) - statistics.median([22.0, 20.0, 24.0])
+    assert s["median_of_gains"] == statistics.median([0.5, 1.5, -1.0]) and s["captions"] == 3
+    assert s["missing"] == 35 and not s["gain_meets_target"] and s["captions_gaining"] == 2
+    assert main(["--runs", str(tmp_path / "runs"), "--to", str(tmp_path / "out"), "--held-out", "a blue duck",
+                 "--model", "uniform"]) == 0  # fmt: skip
+    import hashlib
+    import json
+
+    from gdbench.priors.learned.prior import model_path
+
+    ident = json.loads((tmp_path / "out" / "model.json").read_text())
+    assert ident["sha256"] == hashlib.sha256(model_path("uniform").read_bytes()).hexdigest()
     md = (tmp_path / "out" / "table.md").read_text()
-    assert "median gain +0.50 dB" in md and "not met" in md and "a blue duck (held out)" in md
+    assert "+1.00 dB (target +1.0 over all 38: not met, 35 captions missing)" in md and "a blue duck (held out)" in md
     assert len(list(csv.DictReader(open(tmp_path / "out" / "duck.csv")))) == 4
     with pytest.raises(FileNotFoundError, match=r"no cells\.csv in"):
         read_cells(tmp_path / "nothing")

@@ -1,7 +1,7 @@
 """scripts/train_world64.sh's distillation stage: it refuses to start before both teachers have
-finished, and otherwise launches one student per teacher from a clone at one commit, each with
-its teacher's weights, the guidance and the schedule (the python it runs is a stub that records
-its arguments)."""
+finished, and otherwise renders (or finds) the data, then launches one student per teacher from a
+clone at one commit, each with its teacher's weights, the guidance and the schedule (the python it
+runs is a stub that records its arguments). Runs of other clones on the machine are not its own."""
 
 import subprocess
 import time
@@ -36,12 +36,14 @@ def test_distil_waits_for_both_teachers_then_starts_one_student_each(tmp_path):
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     got = _run("distil", str(tmp_path / "students"), str(teachers), head, env=env)
     assert got.returncode == 0, got.stderr
+    calls = []
     for _ in range(100):
-        if record.exists() and len(record.read_text().splitlines()) == 2:
+        calls = sorted(c for c in (record.read_text().splitlines() if record.exists() else []) if "train-prior" in c)
+        if len(calls) == 2:
             break
         time.sleep(0.1)
-    calls = sorted(record.read_text().splitlines())
     assert len(calls) == 2
+    assert "runs/world64_data.py" in record.read_text().splitlines()[0]  # the data first (cached)
     for call, run in zip(calls, ("front", "uniform")):
         words = call.split()
         assert words[0] == str(tmp_path / "students")  # run from the clone

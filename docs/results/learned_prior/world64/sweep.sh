@@ -5,7 +5,7 @@
 # MODEL (the prior issue's item 4; docs/learned_prior.md). Resumable: run it again to go on. OUT
 # gets one sweep folder each: shipped/, world64/, duck/.
 #   bash docs/results/learned_prior/world64/sweep.sh CLONE OUT MODEL
-#   python -m gdbench.experiments.prior64 --runs OUT --to docs/results/learned_prior/world64
+#   python -m gdbench.experiments.prior64 --runs OUT --to docs/results/learned_prior/world64 --model MODEL
 set -euo pipefail
 here=$(cd "$(dirname "$0")/../../../.." && pwd)
 clone=${1:?usage: sweep.sh CLONE OUT MODEL}
