@@ -25,8 +25,8 @@ from torch import nn
 
 from gdbench.assets.library import PARTS, has_front
 from gdbench.experiments.judge_build import eye_crops, sheet_features
-from gdbench.experiments.judge_fresh import block_and_arm, fresh_results
-from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out
+from gdbench.experiments.judge_fresh import arm_agreements, block_and_arm, fresh_results
+from gdbench.metrics.judge.evaluate import agreement
 from gdbench.metrics.judge.judge import load_judge
 from gdbench.metrics.judge.net import crop_views
 from gdbench.metrics.judge.sheets import v3_results
@@ -219,19 +219,10 @@ x0 = sheet_features(judge.eye, judge.curves, results)
 kinds = [PARTS[r.caption][0] for r in results]
 lp = probs.clamp(min=1e-4).log()
 for name, x in {"eye": x0, "eye + net": torch.cat([x0, lp], 1)}.items():
-    for scope in ("v3", "pooled"):
-        res = results[:nv3] if scope == "v3" else results
-        xs, ks, fs = x[: len(res)], kinds[: len(res)], fronts[: len(res)]
-        j, ji = leave_kind_out(xs, res, ks, fs), in_sample(xs, res, fs)
-        for part in ("all", "empirical-janus"):
-            idx = [i for i, r in enumerate(res) if r.consensus and part in ("all", source[i])]
-            if not idx:
-                continue
-            a = agreement([res[i].consensus for i in idx], [j[i][0] for i in idx])
-            b = agreement([res[i].consensus for i in idx], [ji[i][0] for i in idx])
-            print(
-                f"{name:10s} {scope:6s} {part:16s} n {a['n']:3d} kJ {a['kappa_janus']:.2f} k4 {a['kappa_four']:.2f} "
-                f"rec fe {a['recall_front_everywhere']} blob {a['recall_blob']} fine {a['recall_fine']} | "
-                f"in-sample kJ {b['kappa_janus']:.2f}"
-            )
+    for scope, part, a, b in arm_agreements(x, results, kinds, fronts, source, nv3):
+        print(
+            f"{name:10s} {scope:6s} {part:16s} n {a['n']:3d} kJ {a['kappa_janus']:.2f} k4 {a['kappa_four']:.2f} "
+            f"rec fe {a['recall_front_everywhere']} blob {a['recall_blob']} fine {a['recall_fine']} | "
+            f"in-sample kJ {b['kappa_janus']:.2f}"
+        )
 print("done", time.time() - t0)

@@ -20,8 +20,7 @@ import torch.nn.functional as F
 
 from gdbench.assets.library import PARTS, has_front
 from gdbench.experiments.judge_build import eye_crops, sheet_features
-from gdbench.experiments.judge_fresh import block_and_arm, fresh_results
-from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out
+from gdbench.experiments.judge_fresh import arm_agreements, block_and_arm, fresh_results
 from gdbench.metrics.judge.judge import load_judge
 from gdbench.metrics.judge.net import BINS, crop_views
 from gdbench.metrics.judge.reading import turntable_features
@@ -215,21 +214,11 @@ if os.environ.get("SHEETNET"):  # a sheet network's probabilities (scripts/judge
         "eye + sameness + net": torch.cat([x0, xe, lp], 1),
     }
 for name, x in ARMS.items():
-    for scope in ("v3", "pooled"):
-        res = results[:nv3] if scope == "v3" else results
-        xs, ks, fs = x[: len(res)], kinds[: len(res)], fronts[: len(res)]
-        j = leave_kind_out(xs, res, ks, fs)
-        ji = in_sample(xs, res, fs)
-        for part in ("all", "empirical-janus"):
-            idx = [i for i, r in enumerate(res) if r.consensus and part in ("all", source[i])]
-            if not idx:
-                continue
-            a = agreement([res[i].consensus for i in idx], [j[i][0] for i in idx])
-            b = agreement([res[i].consensus for i in idx], [ji[i][0] for i in idx])
-            if os.environ.get("CONFUSION") and part == "all":
-                print(a["confusion"])
-            print(
-                f"{name:26s} {scope:6s} {part:16s} n {a['n']:3d} LKO kJ {a['kappa_janus']:.2f} "
-                f"k4 {a['kappa_four']:.2f} rec fe {a['recall_front_everywhere']} blob {a['recall_blob']} "
-                f"fine {a['recall_fine']} | in-sample kJ {b['kappa_janus']:.2f}"
-            )
+    for scope, part, a, b in arm_agreements(x, results, kinds, fronts, source, nv3):
+        if os.environ.get("CONFUSION") and part == "all":
+            print(a["confusion"])
+        print(
+            f"{name:26s} {scope:6s} {part:16s} n {a['n']:3d} LKO kJ {a['kappa_janus']:.2f} "
+            f"k4 {a['kappa_four']:.2f} rec fe {a['recall_front_everywhere']} blob {a['recall_blob']} "
+            f"fine {a['recall_fine']} | in-sample kJ {b['kappa_janus']:.2f}"
+        )

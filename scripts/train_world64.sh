@@ -67,29 +67,54 @@ PY
   nice -n 19 "$PYTHON" runs/world64_data.py > runs/world64-data.log 2>&1
 }
 
+enter_clone() {  # the clone's sources, not the editable install's; its runs' folder
+  cd "$clone"
+  export PYTHONPATH=$PWD
+  mkdir -p runs
+}
+
+busy() {  # say so (and succeed) when this clone's runs whose name ends $1 are running; $2: what they do
+  local p
+  p=$(pids "$1")
+  [ -n "$p" ] || return 1
+  echo "train_world64: already $2 (pids $(echo $p | tr '\n' ' '))"
+}
+
+detached() {  # run the function "$@" in the background, away from this shell's terminal
+  ("$@") < /dev/null > /dev/null 2>&1 &
+  disown
+}
+
+train_teachers() {
+  data_step
+  for run in "${runs[@]}"; do
+    bias=0
+    [ "$run" = front ] && bias=2
+    nice -n 19 "$PYTHON" -m gdbench.app.cli train-prior --catalogue world --views 512 --steps "$STEPS" \
+      --front-bias "$bias" --threads 1 --size 64 --patch "$PATCH" --out "runs/prior-world64p${PATCH}-$run" \
+      >> "runs/world64-$run.log" 2>&1 &
+  done
+  wait
+}
+
+train_students() {
+  data_step  # the teachers' data (their key), rendered once here if this clone's cache lacks it
+  for run in "${runs[@]}"; do
+    nice -n 19 "$PYTHON" -m gdbench.app.cli train-prior \
+      --teacher "$teachers/runs/prior-world64p${PATCH}-$run/model.safetensors" --teacher-guidance "$GUIDANCE" \
+      --steps "$DSTEPS" --threads 1 --out "runs/prior-world64p${PATCH}-$run-1call" \
+      >> "runs/world64-$run-1call.log" 2>&1 &
+  done
+  wait
+}
+
 case $cmd in
   start)
     clone_at "$clone" "${3:-}"
-    if [ -n "$(pids)" ]; then
-      echo "train_world64: already running (pids $(pids | tr '\n' ' '))"
-      exit 0
-    fi
-    cd "$clone"
-    export PYTHONPATH=$PWD  # the clone's sources, not the editable install's
-    mkdir -p runs
+    busy "" running && exit 0
+    enter_clone
     echo "train_world64: clone at $(git rev-parse --short HEAD); data, then both runs (log: runs/world64-*.log)"
-    (
-      data_step
-      for run in "${runs[@]}"; do
-        bias=0
-        [ "$run" = front ] && bias=2
-        nice -n 19 "$PYTHON" -m gdbench.app.cli train-prior --catalogue world --views 512 --steps "$STEPS" \
-          --front-bias "$bias" --threads 1 --size 64 --patch "$PATCH" --out "runs/prior-world64p${PATCH}-$run" \
-          >> "runs/world64-$run.log" 2>&1 &
-      done
-      wait
-    ) < /dev/null > /dev/null 2>&1 &
-    disown
+    detached train_teachers
     ;;
   distil)
     teachers=${3:?$usage}
@@ -99,25 +124,10 @@ case $cmd in
       [ -f "$t" ] || { echo "train_world64: no finished teacher at $t (its training has not ended)" >&2; exit 2; }
     done
     clone_at "$clone" "${4:-}"
-    if [ -n "$(pids '[a-z]*-1call')" ]; then
-      echo "train_world64: already distilling (pids $(pids '[a-z]*-1call' | tr '\n' ' '))"
-      exit 0
-    fi
-    cd "$clone"
-    export PYTHONPATH=$PWD
-    mkdir -p runs
+    busy '[a-z]*-1call' distilling && exit 0
+    enter_clone
     echo "train_world64: clone at $(git rev-parse --short HEAD); distilling both teachers of $teachers at guidance $GUIDANCE"
-    (
-      data_step  # the teachers' data (their key), rendered once here if this clone's cache lacks it
-      for run in "${runs[@]}"; do
-        nice -n 19 "$PYTHON" -m gdbench.app.cli train-prior \
-          --teacher "$teachers/runs/prior-world64p${PATCH}-$run/model.safetensors" --teacher-guidance "$GUIDANCE" \
-          --steps "$DSTEPS" --threads 1 --out "runs/prior-world64p${PATCH}-$run-1call" \
-          >> "runs/world64-$run-1call.log" 2>&1 &
-      done
-      wait
-    ) < /dev/null > /dev/null 2>&1 &
-    disown
+    detached train_students
     ;;
   status)
     for run in "${runs[@]}" "${runs[@]/%/-1call}"; do

@@ -296,3 +296,21 @@ def script(name: str):
     sys.modules.setdefault(spec.name, module)
     spec.loader.exec_module(module)
     return module
+
+
+def csv_rows(path) -> list[dict]:
+    """A CSV's rows as strings, as a reader of the file sees them."""
+    import csv
+
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def strict_json(path):
+    """json.loads that refuses NaN and Infinity, as browsers and strict readers do."""
+    import json
+
+    def refuse(name):
+        raise ValueError(f"{path}: non-standard JSON constant {name}")
+
+    return json.loads(path.read_text(), parse_constant=refuse)

@@ -2,7 +2,6 @@
 run folder, the sweep's tables against its own cells, resumability, and the Ray executor
 against the local one (same seed, same cell)."""
 
-import csv
 import json
 import math
 import shutil
@@ -16,24 +15,10 @@ from gdbench.app.cmd_sweep import Sweep
 from gdbench.experiments.sweep import CellSpec, SweepConfig, cell_config, run_cell, sweep
 from gdbench.metrics.run_scores import score_run
 from gdbench.train.run import train
-from tests._util import TINY_CELL
+from tests._util import TINY_CELL, csv_rows, strict_json
 
 PROMPT = "a yellow duck"
 TINY = TINY_CELL
-
-
-def _read_csv(path):
-    with open(path) as f:
-        return list(csv.DictReader(f))
-
-
-def _strict(path):
-    """json.loads that refuses NaN and Infinity, as browsers and strict readers do."""
-
-    def refuse(name):
-        raise ValueError(f"{path}: non-standard JSON constant {name}")
-
-    return json.loads(path.read_text(), parse_constant=refuse)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +33,7 @@ def tiny_sweep(tmp_path_factory):
 def test_sweep_writes_every_cell_and_tables_that_summarise_them(tiny_sweep):
     out, rows = tiny_sweep
     assert [(r["preset"], r["seed"]) for r in rows] == [("gd", 0), ("sjc-gs", 0), ("gd", 1), ("sjc-gs", 1)]
-    cells = _read_csv(out / "cells.csv")
+    cells = csv_rows(out / "cells.csv")
     assert len(cells) == 4
     for r in rows:
         run = json.loads((CellSpec(PROMPT, r["preset"], r["seed"], 4, str(out)).dir / "run.json").read_text())
@@ -60,7 +45,7 @@ def test_sweep_writes_every_cell_and_tables_that_summarise_them(tiny_sweep):
         assert r["gt_offset_deg"] == scores["gt"]["offset_deg"] and r["run_id"] == run["run_id"]
         assert r["gt_psnr_unaligned"] == scores["gt"]["psnr_unaligned"] <= r["gt_psnr"]
     # the summary is the mean over seeds of the per-cell values, recomputed here from cells.csv
-    summary = {s["preset"]: s for s in _read_csv(out / "summary.csv")}
+    summary = {s["preset"]: s for s in csv_rows(out / "summary.csv")}
     for p in ("gd", "sjc-gs"):
         ps = [float(c["gt_psnr"]) for c in cells if c["preset"] == p]
         assert float(summary[p]["gt_psnr_mean"]) == pytest.approx(statistics.mean(ps), rel=1e-9)
@@ -170,7 +155,7 @@ def test_a_running_sweep_writes_its_tables_on_a_clock_and_once_at_the_end(tmp_pa
     calls.clear()
     sweep(SweepConfig([PROMPT], ["gd"], [0, 1, 2], out=tmp_path / "b", **kw))
     assert calls == [1, 2, 3, 3]  # after each cell, then the end
-    untimed = lambda path: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in _read_csv(path)]  # noqa: E731
+    untimed = lambda path: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in csv_rows(path)]  # noqa: E731
     assert untimed(tmp_path / "a" / "cells.csv") == untimed(tmp_path / "b" / "cells.csv") and len(rows) == 3
 
 
@@ -344,7 +329,7 @@ def test_settings_dial_the_prior_and_pair_cells(tmp_path):
     assert cfg["config"]["prior"]["variants"] == 3 and cfg["config"]["prior"]["view_prompting"] == "window"
     for r in rows:
         assert 0 <= r["multi_face_rate"] <= 1 and 0 <= r["instance_inconsistency"] <= 1 and 0 <= r["floaters"] <= 1
-    verdicts = _read_csv(tmp_path / "verdict.csv")
+    verdicts = csv_rows(tmp_path / "verdict.csv")
     assert {(v["setting"], v["a"], v["b"]) for v in verdicts} >= {("janus", "gd", "gd-no-sn"), ("easy", "gd", "sjc-gs")}
     with pytest.raises(ValueError, match="settings: expected distinct names"):
         sweep(SweepConfig([PROMPT], ["gd"], [0], out=tmp_path, settings=["hard"]))
@@ -408,7 +393,7 @@ def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypa
     s = score_run(run, gt=False, colmap=True, views=7, size=48)
     assert calls == [(9, 48), (7, 48)] and s["reused"] == [] and "reused" not in report(s)
     # GT blocks made under other parameters (here: another background) are computed again
-    blob = _strict(run / "scores.json")
+    blob = strict_json(run / "scores.json")
     for name in ("gt", "views"):
         blob[name]["made"]["params"]["background"] = [0.0, 0.0, 0.0]
     (run / "scores.json").write_text(json.dumps(blob))
@@ -416,12 +401,12 @@ def test_a_stale_or_foreign_block_is_never_shown_as_current(tiny_sweep, monkeypa
     assert s["reused"] == ["judge"] and s["gt"]["made"]["params"]["background"] == [1.0, 1.0, 1.0]
     assert s["gt"]["psnr"] == blob["gt"]["psnr"]  # the same scene and parameters: the same score
     # a block made by other code (or planted with made-up numbers) is dropped, never printed
-    blob = _strict(run / "scores.json")
+    blob = strict_json(run / "scores.json")
     blob["colmap"] = {"registration_rate": 0.93, "var_theta_deg2": 1.5, "failure_rate": 0.1,
                       "translation_dir_err_deg": 2.0, "made": dict(made, commit="0123456789ab")}  # fmt: skip
     (run / "scores.json").write_text(json.dumps(blob))
     s = score_run(run, gt=False, colmap=False)
-    assert "colmap" not in s and "colmap" not in _strict(run / "scores.json")
+    assert "colmap" not in s and "colmap" not in strict_json(run / "scores.json")
     text = report(s)
     assert "0.93" not in text and "COLMAP" not in text and "GT:" not in text
     assert "nothing scored" in text and "also keeps, not recomputed now: gt, judge, views" in text
@@ -447,12 +432,12 @@ def test_a_cell_holds_only_what_the_sweep_asked_for(tiny_sweep, monkeypatch, tmp
     row = run_cell(spec)
     assert calls == [(8, 256)] and row["colmap_failure_rate"] == 1.0 and math.isnan(row["var_theta_deg2"])
     for name in ("scores.json", "cell.json", "run.json"):
-        _strict(spec.dir / name)  # NaN written as null
-    assert _strict(spec.dir / "scores.json")["colmap"]["var_theta_deg2"] is None
-    assert _strict(spec.dir / "cell.json")["row"]["var_theta_deg2"] is None
+        strict_json(spec.dir / name)  # NaN written as null
+    assert strict_json(spec.dir / "scores.json")["colmap"]["var_theta_deg2"] is None
+    assert strict_json(spec.dir / "cell.json")["row"]["var_theta_deg2"] is None
     asked_less = CellSpec(PROMPT, "sjc-gs", 0, 4, str(tmp_path), colmap=False, overrides=TINY)
     row = run_cell(asked_less)
-    assert "colmap" in _strict(spec.dir / "scores.json")  # kept in the file (same scene and code) ...
+    assert "colmap" in strict_json(spec.dir / "scores.json")  # kept in the file (same scene and code) ...
     assert math.isnan(row["colmap_failure_rate"]) and math.isnan(row["registration_rate"])  # ... not in the row
     assert row["gt_psnr"] == rows[1]["gt_psnr"] and row["score_commit"] == row["train_commit"]
     assert "torch " in row["versions"] and "pycolmap " in row["versions"]  # the packages that made it
@@ -467,11 +452,11 @@ def test_every_json_a_sweep_writes_is_strict_and_tables_are_numeric(tiny_sweep):
     files = sorted(out.rglob("*.json"))
     assert {f.name for f in files} >= {"run.json", "scores.json", "cell.json"}
     for f in files:
-        _strict(f)
-    summary = _read_csv(out / "summary.csv")
+        strict_json(f)
+    summary = csv_rows(out / "summary.csv")
     for row in summary:
         for key, value in row.items():
             if key.endswith(("_mean", "_std", "_median", "_n")):
                 assert value == "" or math.isfinite(float(value)), (key, value)
-    for row in _read_csv(out / "cells.csv") + _read_csv(out / "verdict.csv"):
+    for row in csv_rows(out / "cells.csv") + csv_rows(out / "verdict.csv"):
         assert "nan" not in {v.lower() for v in row.values()} and "n/a" not in row.values()

@@ -1,8 +1,6 @@
 """A sweep's tables and verdicts from any mix of values (checked against an oracle verdict), the
 code's name, the turned class, the decisive script's rounds and the docs' janus settings."""
 
-import csv
-import json
 import math
 import shutil
 import statistics
@@ -11,24 +9,10 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from tests._util import TINY_CELL
+from tests._util import TINY_CELL, csv_rows, strict_json
 
 PROMPT = "a yellow duck"
 TINY = TINY_CELL
-
-
-def _read_csv(path):
-    with open(path) as f:
-        return list(csv.DictReader(f))
-
-
-def _strict(path):
-    """json.loads that refuses NaN and Infinity, as browsers and strict readers do."""
-
-    def refuse(name):
-        raise ValueError(f"{path}: non-standard JSON constant {name}")
-
-    return json.loads(path.read_text(), parse_constant=refuse)
 
 
 def _oracle_verdict(a: list, b: list, fails_at) -> str:
@@ -93,15 +77,15 @@ def test_tables_from_any_mix_of_values_are_strict_and_numeric_with_the_right_ver
         return
     tables(rows, out)
     write_json({"rows": rows}, out / "rows.json")
-    back = _strict(out / "rows.json")["rows"]
+    back = strict_json(out / "rows.json")["rows"]
     assert [num(r["multi_face_rate"]) == num(r["multi_face_rate"]) for r in back] == [
         r["multi_face_rate"] is not None and r["multi_face_rate"] == r["multi_face_rate"] for r in rows
     ]
-    for row in _read_csv(out / "summary.csv"):
+    for row in csv_rows(out / "summary.csv"):
         for key, value in row.items():
             if key.endswith(("_mean", "_std", "_median", "_n")):
                 assert value == "" or math.isfinite(float(value)), (key, value)
-    verdicts = {v["metric"]: v for v in _read_csv(out / "verdict.csv")}
+    verdicts = {v["metric"]: v for v in csv_rows(out / "verdict.csv")}
     want = _oracle_verdict([a for a, _ in pairs], [b for _, b in pairs], 1.0)
     for metric in ("multi_face_rate",):
         got = verdicts[metric]["verdict"]
@@ -206,9 +190,9 @@ def test_decisive_script_runs_blocks_in_rounds_and_merges_them(tmp_path, monkeyp
     from gdbench.experiments.decisive_report import report
 
     report(tmp_path, tmp_path / "results", dec.collect, PROMPT)
-    verdicts = _read_csv(tmp_path / "results" / "verdict.csv")
+    verdicts = csv_rows(tmp_path / "results" / "verdict.csv")
     assert {v["group"] for v in verdicts} == {"empirical-v1, 4 steps"}  # block b has one preset: no claim
-    assert len(_read_csv(tmp_path / "results" / "cells.csv")) == 6
+    assert len(csv_rows(tmp_path / "results" / "cells.csv")) == 6
     assert (tmp_path / "results" / "turntables_a.png").is_file() and (
         tmp_path / "results" / "turntables_b.png"
     ).is_file()

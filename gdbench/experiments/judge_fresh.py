@@ -140,6 +140,30 @@ def pooled(root: Path = Path(".")) -> list[dict]:
     return rows
 
 
+def arm_agreements(x, results: list, kinds: list[str], fronts: list[bool], source: list[str], nv3: int,
+                   parts=("all", "empirical-janus")):  # fmt: skip
+    """For the judge's experiments with features ``x`` [R, F] of ``results`` (v3's first ``nv3``,
+    then the fresh set's, each from ``source``): over v3's results alone and pooled with the
+    fresh set's, the head fitted leave-kind-out and in sample; yields (scope, part, agreement
+    leave-kind-out, agreement in sample) with the consensus, per part (all, or one source)."""
+    from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out
+
+    for scope in ("v3", "pooled"):
+        res = results[:nv3] if scope == "v3" else results
+        n = len(res)
+        lko, ins = leave_kind_out(x[:n], res, kinds[:n], fronts[:n]), in_sample(x[:n], res, fronts[:n])
+        for part in parts:
+            idx = [i for i, r in enumerate(res) if r.consensus and part in ("all", source[i])]
+            if idx:
+                truth = [res[i].consensus for i in idx]
+                yield (
+                    scope,
+                    part,
+                    agreement(truth, [lko[i][0] for i in idx]),
+                    agreement(truth, [ins[i][0] for i in idx]),
+                )
+
+
 def _read(path: Path) -> list[dict]:
     with open(path, newline="") as f:
         return list(csv.DictReader(f))

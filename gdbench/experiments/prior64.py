@@ -122,7 +122,7 @@ def markdown(rows: list[dict], s: dict, duck: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    from gdbench.core.io import atomic_write
+    from gdbench.core.io import atomic_write, write_csv, write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--runs", type=Path, required=True, help="the OUT of sweep.sh (shipped/, world64/, duck/)")
@@ -142,61 +142,38 @@ def main(argv=None) -> int:
     duck_cells = read_cells(a.runs / "duck") if (a.runs / "duck" / "cells.csv").is_file() else {}
     duck = [dict(r, seed=k[1]) for k, r in sorted(duck_cells.items())]
     a.to.mkdir(parents=True, exist_ok=True)
-    _write_csv(a.to / "table.csv", rows)
+    write_csv(rows, a.to / "table.csv")
     if duck:
-        _write_csv(a.to / "duck.csv", [{k: d.get(k) for k in ("prompt", "seed", "gt_psnr", "gaussians", "judge_label",
-                                                              "run_id", "train_commit")} for d in duck])  # fmt: skip
+        write_csv([{k: d.get(k) for k in ("prompt", "seed", "gt_psnr", "gaussians", "judge_label", "run_id",
+                                          "train_commit")} for d in duck], a.to / "duck.csv")  # fmt: skip
     if a.model:
-        ident = model_identity(a.model)
-        s["model"] = ident
-        _write_json(a.to / "model.json", ident)
-    text = markdown(rows, s, duck).encode()
-    atomic_write(a.to / "table.md", lambda f: f.write(text))
-    print(markdown(rows, s, duck))
+        s["model"] = model_identity(a.model)
+        write_json(s["model"], a.to / "model.json")
+    text = markdown(rows, s, duck)
+    atomic_write(a.to / "table.md", lambda f: f.write(text.encode()))
+    print(text)
     return 0
 
 
 def model_identity(model: str) -> dict:
     """A model's file, sha256 and training metadata (commit, steps, final loss, distilled scale)."""
-    import hashlib
     import json
 
+    from gdbench.core.io import sha256_file
     from gdbench.priors.learned.prior import load_model, model_path
 
     path = model_path(model)
     meta = load_model(path)[1]
     train = json.loads(meta.get("train", "{}"))
-    return {"path": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+    return {"path": str(path), "sha256": sha256_file(path),
             **{k: meta.get(k) for k in ("commit", "steps", "final_loss")},
             "teacher_guidance": train.get("teacher_guidance")}  # fmt: skip
-
-
-def _write_json(path: Path, obj: dict) -> None:
-    import json
-
-    from gdbench.core.io import atomic_write
-
-    data = (json.dumps(obj, indent=1) + "\n").encode()
-    atomic_write(path, lambda f: f.write(data))
 
 
 def _held_out() -> tuple[str, ...]:
     from gdbench.priors.learned.prior import LearnedPrior
 
     return tuple(LearnedPrior("uniform").held_out)
-
-
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    import io
-
-    from gdbench.core.io import atomic_write
-
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, list(rows[0]))
-    w.writeheader()
-    w.writerows(rows)
-    data = buf.getvalue().encode()
-    atomic_write(path, lambda f: f.write(data))
 
 
 if __name__ == "__main__":

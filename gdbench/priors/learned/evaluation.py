@@ -338,25 +338,35 @@ def paired_ratio(rows: list[dict], *, seed: int = 0, boot: int = 2000) -> dict:
 
 
 # ----------------------------------------------------------------------------- the camera
+SIX_AZIMUTHS = (0.0, 60.0, 120.0, 180.0, -120.0, -60.0)
+"""The checks' cameras: six azimuths about the asset, at elevation 15 and fovy 55."""
+
+
+def noised_renders(prior, captions: list[str], sigmas, seed: int = 0):
+    """(caption, its condition, sigma, renders [6, size, size, 3] at ``SIX_AZIMUTHS`` (the prior's
+    size), those renders noised at sigma) for each caption and sigma in turn, the noise drawn from
+    one generator of ``seed`` in that order."""
+    g = torch.Generator().manual_seed(seed)
+    for caption in captions:
+        x0 = render_views(caption, torch.tensor(SIX_AZIMUTHS), 15.0, 55.0, size=prior.size)
+        cond = prior.encode(caption)
+        for s in sigmas:
+            yield caption, cond, s, x0, x0 + s * torch.randn(x0.shape, generator=g)
+
+
 def camera_sensitivity(prior, captions: list[str], *, sigmas=(2.0, 5.0, 10.0), offsets=(0.0, 90.0, 180.0),
                        seed: int = 0) -> list[dict]:  # fmt: skip
     """Does the prior see the camera? Renders of each caption at six azimuths (elevation 15, fovy
     55), noised at sigma and denoised with the right camera and with its azimuth turned by each
     offset: the PSNR of the estimates to the renders (a prior that ignores the azimuth reads the same
     at every offset)."""
-    g = torch.Generator().manual_seed(seed)
-    az = torch.tensor([0.0, 60.0, 120.0, 180.0, -120.0, -60.0])
+    az, n = torch.tensor(SIX_AZIMUTHS), len(SIX_AZIMUTHS)
     rows = []
-    for caption in captions:
-        x0 = render_views(caption, az, 15.0, 55.0, size=prior.size)
-        cond = prior.encode(caption)
-        for s in sigmas:
-            y = x0 + s * torch.randn(x0.shape, generator=g)
-            n = len(az)
-            for off in offsets:
-                D = prior.denoise(y, torch.full((n,), s), cond, azimuth=az + off, elevation=torch.full((n,), 15.0),
-                                  fovy=torch.full((n,), 55.0))  # fmt: skip
-                rows.append({"caption": caption, "sigma": s, "offset_deg": off, "psnr": float(psnr(D, x0).mean())})
+    for caption, cond, s, x0, y in noised_renders(prior, captions, sigmas, seed):
+        for off in offsets:
+            D = prior.denoise(y, torch.full((n,), s), cond, azimuth=az + off, elevation=torch.full((n,), 15.0),
+                              fovy=torch.full((n,), 55.0))  # fmt: skip
+            rows.append({"caption": caption, "sigma": s, "offset_deg": off, "psnr": float(psnr(D, x0).mean())})
     return rows
 
 
@@ -369,21 +379,15 @@ def guided_error(student, teacher, unguided, captions: list[str], *, sigmas=(0.5
     student's x0 estimate to the teacher's, beside how far guidance itself moves the teacher's
     estimate (its MSE to ``unguided``, the teacher at scale 1) and each estimate's PSNR to the
     render."""
-    g = torch.Generator().manual_seed(seed)
-    az = torch.tensor([0.0, 60.0, 120.0, 180.0, -120.0, -60.0])
-    n = len(az)
-    cam = {"azimuth": az, "elevation": torch.full((n,), 15.0), "fovy": torch.full((n,), 55.0)}
+    n = len(SIX_AZIMUTHS)
+    cam = {"azimuth": torch.tensor(SIX_AZIMUTHS), "elevation": torch.full((n,), 15.0), "fovy": torch.full((n,), 55.0)}
     mse = lambda a, b: float(((a - b) ** 2).mean())  # noqa: E731
     rows = []
-    for caption in captions:
-        x0 = render_views(caption, az, 15.0, 55.0, size=teacher.size)
-        cond = teacher.encode(caption)
-        for s in sigmas:
-            y = x0 + s * torch.randn(x0.shape, generator=g)
-            sig = torch.full((n,), s)
-            d_s, d_t = student.denoise(y, sig, cond, **cam), teacher.denoise(y, sig, cond, **cam)
-            d_u = unguided.denoise(y, sig, cond, **cam)
-            rows.append({"caption": caption, "sigma": s, "mse_student_teacher": mse(d_s, d_t),
-                         "mse_guided_unguided": mse(d_t, d_u), "psnr_student": float(psnr(d_s, x0).mean()),
-                         "psnr_teacher": float(psnr(d_t, x0).mean())})  # fmt: skip
+    for caption, cond, s, x0, y in noised_renders(teacher, captions, sigmas, seed):
+        sig = torch.full((n,), s)
+        d_s, d_t = student.denoise(y, sig, cond, **cam), teacher.denoise(y, sig, cond, **cam)
+        d_u = unguided.denoise(y, sig, cond, **cam)
+        rows.append({"caption": caption, "sigma": s, "mse_student_teacher": mse(d_s, d_t),
+                     "mse_guided_unguided": mse(d_t, d_u), "psnr_student": float(psnr(d_s, x0).mean()),
+                     "psnr_teacher": float(psnr(d_t, x0).mean())})  # fmt: skip
     return rows
