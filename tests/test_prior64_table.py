@@ -53,3 +53,33 @@ def test_the_table_reads_both_sweeps_and_the_median_gain(tmp_path):
     assert len(list(csv.DictReader(open(tmp_path / "out" / "duck.csv")))) == 4
     with pytest.raises(FileNotFoundError, match=r"no cells\.csv in"):
         read_cells(tmp_path / "nothing")
+
+
+def test_the_blind_readings_join_their_cells_through_the_key(tmp_path):
+    """Sheet numbers become run ids through the key; each rater's counts are the rows' own (counted
+    by hand here), and a number the key lacks is an error naming the file."""
+    import json
+
+    from gdbench.experiments.prior64 import eye_readings, eye_summary
+
+    rows = [{"prompt": "a corgi", "held_out": False, "run_shipped": "c0", "run_world64": "c1"},
+            {"prompt": "a blue duck", "held_out": True, "run_shipped": "d0", "run_world64": "d1"}]  # fmt: skip
+    duck = [{"run_id": "y0"}, {"run_id": "y1"}]
+    key = {"1": {"run_id": "c1"}, "2": {"run_id": "c0"}, "3": {"run_id": "d0"}, "4": {"run_id": "d1"},
+           "5": {"run_id": "y0"}, "6": {"run_id": "y1"}}  # fmt: skip
+    (tmp_path / "key.json").write_text(json.dumps(key))
+    labels = {"rater1": ["yes,yes", "yes,no", "no,no", "yes,yes", "yes,no", "yes,yes"],
+              "rater2": ["no,no", "yes,yes", "yes,no", "no,no", "yes,yes", "yes,yes"]}  # fmt: skip
+    for rater, rs in labels.items():
+        lines = ["number,reads_as_caption,features_drawn"] + [f"{i + 1},{v}" for i, v in enumerate(rs)]
+        (tmp_path / f"{rater}.csv").write_text("\n".join(lines) + "\n")
+    eye = eye_readings(tmp_path)
+    assert eye["c1"] == {"rater1": ("yes", "yes"), "rater2": ("no", "no")}
+    s = eye_summary(rows, duck, eye)
+    assert s["rater1"] == {"reads_shipped": 1, "reads_world64": 2, "held_out_reads_shipped": 0,
+                           "held_out_reads_world64": 1, "duck_features_drawn": 1, "duck_seeds": 2}  # fmt: skip
+    assert s["rater2"] == {"reads_shipped": 2, "reads_world64": 0, "held_out_reads_shipped": 1,
+                           "held_out_reads_world64": 0, "duck_features_drawn": 2, "duck_seeds": 2}  # fmt: skip
+    (tmp_path / "rater3.csv").write_text("number,reads_as_caption,features_drawn\n9,yes,yes\n")
+    with pytest.raises(ValueError, match=r"rater3\.csv labels sheet number 9"):
+        eye_readings(tmp_path)

@@ -11,7 +11,10 @@ Writes ``table.csv`` (a row per caption, with both cells' run ids and commits), 
 weights file can change under its path, and a sweep's run id names the path). The turntables
 are read by eye from blinded sheets before this table is read:
 
-    python -m gdbench.metrics.label_sheets --runs OUT/shipped OUT/world64 --out SHEETS --key KEY
+    python -m gdbench.metrics.label_sheets --runs OUT/shipped OUT/world64 OUT/duck --out SHEETS --key KEY
+
+and ``--eye DIR`` (the key as key.json, each rater's labels as rater*.csv: number,
+reads_as_caption, features_drawn) puts the raters' readings beside each cell and counts them.
 """
 
 from __future__ import annotations
@@ -84,6 +87,49 @@ def summary(rows: list[dict]) -> dict:
     }
 
 
+def eye_readings(folder: Path) -> dict[str, dict[str, tuple[str, str]]]:
+    """run id -> rater -> (reads_as_caption, features_drawn), from a blind reading's folder (key.json:
+    sheet number -> run id; rater*.csv: number, reads_as_caption, features_drawn). A number the key
+    lacks is an error naming the file."""
+    import json
+
+    folder = Path(folder)
+    key = json.loads((folder / "key.json").read_text())
+    out: dict[str, dict[str, tuple[str, str]]] = {}
+    raters = sorted(folder.glob("rater*.csv"))
+    if not raters:
+        raise FileNotFoundError(f"eye: no rater*.csv in {folder}")
+    for path in raters:
+        with open(path, newline="") as f:
+            for row in csv.DictReader(f):
+                if row["number"] not in key:
+                    raise ValueError(f"eye: {path} labels sheet number {row['number']}, which key.json lacks")
+                run = key[row["number"]]["run_id"]
+                out.setdefault(run, {})[path.stem] = (row["reads_as_caption"], row["features_drawn"])
+    return out
+
+
+def eye_summary(rows: list[dict], duck: list[dict], eye: dict) -> dict:
+    """Per rater: captions read as their caption on each model (all, held out), the duck's seeds
+    with its features drawn."""
+    raters = sorted({r for v in eye.values() for r in v})
+    out = {}
+    for rater in raters:
+
+        def yes(run, i, rater=rater):
+            return eye.get(run, {}).get(rater, ("", ""))[i] == "yes"
+
+        out[rater] = (
+            {f"reads_{arm}": sum(yes(r[f"run_{arm}"], 0) for r in rows) for arm in ("shipped", "world64")}
+            | {
+                f"held_out_reads_{arm}": sum(yes(r[f"run_{arm}"], 0) for r in rows if r["held_out"])
+                for arm in ("shipped", "world64")
+            }
+            | {"duck_features_drawn": sum(yes(d.get("run_id"), 1) for d in duck), "duck_seeds": len(duck)}
+        )
+    return out
+
+
 def markdown(rows: list[dict], s: dict, duck: list[dict]) -> str:
     f = lambda v: "" if v is None else f"{v:.2f}"  # noqa: E731
     verdict = "met" if s["gain_meets_target"] else "not met"
@@ -105,19 +151,35 @@ def markdown(rows: list[dict], s: dict, duck: list[dict]) -> str:
         f"call): {s['median_gain']:+.2f} dB (target {TARGET_DB:+.1f} over all {CAPTIONS}: {verdict}); the "
         f"median of the captions' own gains {s['median_of_gains']:+.2f} dB; {s['captions_gaining']} captions gain.",
         "",
-        "| caption | shipped dB | 64 px dB | gain | Gaussians shipped / 64 px | judge shipped / 64 px |",
-        "|---|---|---|---|---|---|",
+        *(
+            [
+                f"By eye ({rater}, blind): read as the caption {e['reads_shipped']} of {len(rows)} (shipped) and "
+                f"{e['reads_world64']} (64 px); held out {e['held_out_reads_shipped']} and {e['held_out_reads_world64']} "
+                f"of {sum(r['held_out'] for r in rows)}; the duck's front features drawn in {e['duck_features_drawn']} "
+                f"of its {e['duck_seeds']} seeds on the 64 px model."
+                for rater, e in s.get("eye", {}).items()
+            ]
+            + [""]
+            if s.get("eye")
+            else []
+        ),
+        "| caption | shipped dB | 64 px dB | gain | Gaussians shipped / 64 px | judge shipped / 64 px "
+        "| eye shipped / 64 px |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         name = r["prompt"] + (" (held out)" if r["held_out"] else "")
         counts = f"{r['gaussians_shipped']} / {r['gaussians_world64']}"
         judged = f"{r['judge_shipped']} / {r['judge_world64']}"
+        seen = f"{r.get('eye_shipped', '')} / {r.get('eye_world64', '')}"
         out.append(
-            f"| {name} | {f(r['psnr_shipped'])} | {f(r['psnr_world64'])} | {f(r['psnr_gain'])} | {counts} | {judged} |"
+            f"| {name} | {f(r['psnr_shipped'])} | {f(r['psnr_world64'])} | {f(r['psnr_gain'])} | {counts} | {judged} "
+            f"| {seen} |"
         )
     if duck:
-        out += ["", "| the duck, 64 px one call: seed | GT PSNR | judge |", "|---|---|---|"]
-        out += [f"| {d['seed']} | {f(_num(d.get('gt_psnr')))} | {d.get('judge_label', '')} |" for d in duck]
+        out += ["", "| the duck, 64 px one call: seed | GT PSNR | judge | eye: features drawn |", "|---|---|---|---|"]
+        out += [f"| {d['seed']} | {f(_num(d.get('gt_psnr')))} | {d.get('judge_label', '')} | {d.get('eye', '')} |"
+                for d in duck]  # fmt: skip
     return "\n".join(out) + "\n"
 
 
@@ -133,6 +195,8 @@ def main(argv=None) -> int:
         help="the 64 px model the world64 sweep ran (its sha256 and "
         "training metadata go into model.json and the table; a weights file can change under its path)",
     )
+    p.add_argument("--eye", type=Path, default=None, help="a blind reading's folder (key.json, rater*.csv): the "
+                   "raters' readings beside each cell")  # fmt: skip
     p.add_argument("--held-out", nargs="*", default=None, help="captions held out of training (default: the "
                    "shipped uniform model's)")  # fmt: skip
     a = p.parse_args(argv)
@@ -141,10 +205,18 @@ def main(argv=None) -> int:
     s = summary(rows)
     duck_cells = read_cells(a.runs / "duck") if (a.runs / "duck" / "cells.csv").is_file() else {}
     duck = [dict(r, seed=k[1]) for k, r in sorted(duck_cells.items())]
+    if a.eye:
+        eye = eye_readings(a.eye)
+        for r in rows:
+            for arm in ("shipped", "world64"):
+                r[f"eye_{arm}"] = "/".join(v[0] for _, v in sorted(eye.get(r[f"run_{arm}"], {}).items()))
+        for d in duck:
+            d["eye"] = "/".join(v[1] for _, v in sorted(eye.get(d.get("run_id"), {}).items()))
+        s["eye"] = eye_summary(rows, duck, eye)
     a.to.mkdir(parents=True, exist_ok=True)
     write_csv(rows, a.to / "table.csv")
     if duck:
-        write_csv([{k: d.get(k) for k in ("prompt", "seed", "gt_psnr", "gaussians", "judge_label", "run_id",
+        write_csv([{k: d.get(k) for k in ("prompt", "seed", "gt_psnr", "gaussians", "judge_label", "eye", "run_id",
                                           "train_commit")} for d in duck], a.to / "duck.csv")  # fmt: skip
     if a.model:
         s["model"] = model_identity(a.model)
