@@ -183,9 +183,11 @@ def run_train_prior(cmd: TrainPrior) -> dict:
 class TrainJudge:
     """Train the Janus judge (docs/scoring.md, "The Janus judge"): its eye, which reads which side of the
     asset a view shows, on the assets' own renders (every caption, rendered on first use and
-    cached; no label of any result), then its head on the consensus labels of v3's committed
-    sheets. Writes eye.safetensors, head.json and provenance.json to --out (default: the shipped
-    judge's folder, so `gdbench judge` and `score` then use it)."""
+    cached; no label of any result), draws the templates its sameness reading compares views with
+    from the same renders, then fits its head on the consensus labels of v3's committed sheets and
+    the first fresh set's. Writes eye.safetensors, templates.safetensors, head.json and
+    provenance.json to --out (default: the shipped judge's folder, so `gdbench judge` and `score`
+    then use it)."""
 
     out: Path | None = None
     """Where the judge goes (default: gdbench/metrics/judge/weights, the shipped judge)."""
@@ -199,6 +201,9 @@ class TrainJudge:
     """Seed of the eye's weights and draws."""
     progress: bool = True
     """Report progress."""
+    eye_from: Path | None = None
+    """Take this judge folder's eye as it is (byte for byte) instead of training one: only the
+    templates and the head are made again."""
 
 
 def run_train_judge(cmd: TrainJudge) -> dict:
@@ -207,7 +212,8 @@ def run_train_judge(cmd: TrainJudge) -> dict:
 
     out = cmd.out or WEIGHTS
     prov = build_judge(out, steps=cmd.steps, views=cmd.views, workers=cmd.data_workers, seed=cmd.seed,
-                       root=Path(__file__).resolve().parents[2], progress=cmd.progress)  # fmt: skip
+                       root=Path(__file__).resolve().parents[2], progress=cmd.progress,
+                       eye_from=cmd.eye_from)  # fmt: skip
     print(f"judge trained in {prov['seconds']:.0f} s (data {prov['seconds_data']:.0f} s) -> {out}")
     return prov
 

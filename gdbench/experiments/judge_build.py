@@ -4,11 +4,14 @@
    and the hamburger included), each variant at ``views`` cameras about the turntables' elevation
    (``EYE_DATA``), rendered by pyrender as the learned prior's data is (cached the same way).
 2. **The eye**: ``metrics/judge/train.py`` on those renders alone: no label of any result.
-3. **The head**: fitted on the consensus results of v3's committed sheets (both passes agree), after
-   the leave-kind-out evaluation (every kind held out in turn) that says how it does out of sample.
+3. **The sameness templates**: each caption's renders from the same data (``sameness.Templates``).
+4. **The head**: fitted on the consensus results (both passes agree) of v3's committed sheets and the
+   first fresh set's (``fit_results``), after the leave-kind-out evaluation (every kind held out in
+   turn) that says how it does out of sample.
 
 Writes ``out/eye.safetensors`` (the eye's weights in float16, its settings, the data's key and the
-commit as metadata), ``out/head.json`` (the head and where it was fitted) and, beside them,
+commit as metadata), ``out/templates.safetensors``, ``out/head.json`` (the head and where it was
+fitted) and, beside them,
 ``out/provenance.json``; ``evaluate_v3`` writes the agreement tables.
 """
 
@@ -43,14 +46,14 @@ def eye_crops(views: int = EYE_VIEWS, workers: int = 1, progress: bool = True):
     return crops, data
 
 
-def sheet_features(judge_eye, curves: dict, results) -> torch.Tensor:
+def sheet_features(judge_eye, curves: dict, results, templates=None) -> torch.Tensor:
     """[R, F] features (``reading.result_features``) of sheet results, six views each."""
     from gdbench.metrics.judge.reading import result_features
     from gdbench.metrics.judge.sheets import SHEET_AZIMUTHS
 
     az = torch.tensor(SHEET_AZIMUTHS)
     return torch.stack(
-        [result_features(judge_eye, curves, torch.from_numpy(r.views), az, r.caption)[0] for r in results]
+        [result_features(judge_eye, curves, torch.from_numpy(r.views), az, r.caption, templates)[0] for r in results]
     )
 
 
@@ -65,12 +68,14 @@ def data_curves(data) -> dict:
 
 
 def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers: int = 1, seed: int = 0,
-                root: Path = Path("."), progress: bool = True) -> dict:  # fmt: skip
-    """Train the eye, fit the head on v3's sheets, write both to ``out``; returns the provenance."""
+                root: Path = Path("."), progress: bool = True, eye_from: Path | None = None) -> dict:  # fmt: skip
+    """Train the eye (or take ``eye_from``'s, byte for byte), draw the sameness templates, fit the
+    head on the labelled sheets (``fit_results``), write the three to ``out``; returns the provenance."""
     from gdbench.core.io import atomic_write, write_json
     from gdbench.core.provenance import code_commit
+    from gdbench.metrics.judge.fixtures import HELD_OUT, fixture_rows
     from gdbench.metrics.judge.head import fit
-    from gdbench.metrics.judge.sheets import v3_results
+    from gdbench.metrics.judge.sameness import Templates
     from gdbench.metrics.judge.train import EyeTrainConfig, train_eye
     from gdbench.priors.learned.data import data_key
 
@@ -78,31 +83,55 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     crops, data = eye_crops(views, workers, progress)
     t_data = time.perf_counter() - t0
     cfg = replace(EyeTrainConfig(), steps=steps, seed=seed)
-    eye, log = train_eye(crops, data.caption, data.azimuth, data.elevation, data.captions, cfg, progress=progress)
-    t_eye = time.perf_counter() - t0 - t_data
-    curves = data_curves(data)
-    results = v3_results(root)
-    x = sheet_features(eye, curves, results)
-    fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
-    head = fit(x[fit_on], [results[i].consensus for i in fit_on])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    from safetensors.torch import save
+    if eye_from is not None:
+        from gdbench.metrics.judge.judge import Judge
 
-    meta = {"config": json.dumps(eye.config.to_dict()), "train": json.dumps(cfg.to_dict()),
-            "data_key": data_key(eye_data_config(views)), "commit": code_commit()}  # fmt: skip
-    state = {k: v.detach().to(torch.float16).contiguous() for k, v in eye.state_dict().items()}
-    blob = save(state, metadata=meta)
-    atomic_write(out / "eye.safetensors", lambda f: f.write(blob))
-    head_info = {"head": head.to_dict(), "fitted_on": f"v3 sheets C-F: {len(fit_on)} consensus results",
+        eye_bytes = (Path(eye_from) / "eye.safetensors").read_bytes()
+        eye, log, meta = Judge(Path(eye_from)).eye, [], {"data_key": data_key(eye_data_config(views))}
+        atomic_write(out / "eye.safetensors", lambda f: f.write(eye_bytes))
+    else:
+        eye, log = train_eye(crops, data.caption, data.azimuth, data.elevation, data.captions, cfg,
+                             progress=progress)  # fmt: skip
+        from safetensors.torch import save
+
+        meta = {"config": json.dumps(eye.config.to_dict()), "train": json.dumps(cfg.to_dict()),
+                "data_key": data_key(eye_data_config(views)), "commit": code_commit()}  # fmt: skip
+        state = {k: v.detach().to(torch.float16).contiguous() for k, v in eye.state_dict().items()}
+        blob = save(state, metadata=meta)
+        atomic_write(out / "eye.safetensors", lambda f: f.write(blob))
+    t_eye = time.perf_counter() - t0 - t_data
+    curves = data_curves(data)
+    templates = Templates.from_data(crops, data)
+    templates.save(out / "templates.safetensors", {"data_key": meta["data_key"], "commit": code_commit()})
+    results, where = fit_results(root)
+    x = sheet_features(eye, curves, results, templates)
+    fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
+    fx, fy, names = fixture_rows(eye, curves, templates, data.captions, progress=progress)
+    head = fit(torch.cat([x[fit_on], fx]), [results[i].consensus for i in fit_on] + fy)
+    head_info = {"head": head.to_dict(),
+                 "fitted_on": f"{where}: {len(fit_on)} consensus results; {len(fy)} fixtures of the ground truth",
+                 "fixture_rows": {"names": names, "labels": fy, "features": fx.tolist(), "held_out": list(HELD_OUT)},
                  "commit": code_commit(), "aspect_curves": curves}  # fmt: skip
     write_json(head_info, out / "head.json")
     prov = {"commit": code_commit(), "eye_data_key": meta["data_key"], "eye_views": len(data), "steps": steps,
-            "seed": seed, "final_loss": log[-1]["loss"] if log else None, "seconds_data": round(t_data, 1),
+            "seed": seed, "eye_from": str(eye_from) if eye_from else None,
+            "final_loss": log[-1]["loss"] if log else None, "seconds_data": round(t_data, 1),
             "seconds_eye": round(t_eye, 1), "seconds": round(time.perf_counter() - t0, 1),
             "threads": torch.get_num_threads()}  # fmt: skip
     write_json(prov, out / "provenance.json")
     return prov
+
+
+def fit_results(root: Path = Path(".")) -> tuple[list, str]:
+    """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
+    (batches C-F) and the first fresh set's, which its reading spent (docs/judge_fresh.md). A
+    fresh set registered after this judge is never among them."""
+    from gdbench.experiments.judge_fresh import fresh_results
+    from gdbench.metrics.judge.sheets import v3_results
+
+    return v3_results(root) + fresh_results(root), "v3 sheets C-F and the first fresh set's sheets"
 
 
 def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
@@ -114,16 +143,18 @@ def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
     from gdbench.assets.library import PARTS, has_front
     from gdbench.core.io import write_csv
     from gdbench.core.provenance import code_commit
-    from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out, passes
+    from gdbench.metrics.judge.evaluate import agreement, in_sample, judge_extra, leave_kind_out, passes
     from gdbench.metrics.judge.judge import Judge
     from gdbench.metrics.judge.sheets import v3_results
 
     judge = Judge(Path(folder))
     results = v3_results(root)
-    x = sheet_features(judge.eye, judge.curves, results)
+    x = sheet_features(judge.eye, judge.curves, results, judge.templates)
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
-    fits = {"leave-kind-out": leave_kind_out(x, results, kinds, fronts), "in sample": in_sample(x, results, fronts)}
+    extra = judge_extra(judge)
+    fits = {"leave-kind-out": leave_kind_out(x, results, kinds, fronts, extra),
+            "in sample": in_sample(x, results, fronts, extra)}  # fmt: skip
     rows, commit = [], code_commit()
     for fit_name, judged in fits.items():
         labels = [lab for lab, _ in judged]

@@ -118,7 +118,7 @@ def pooled(root: Path = Path(".")) -> list[dict]:
     from gdbench.assets.library import PARTS, has_front
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.judge_build import sheet_features
-    from gdbench.metrics.judge.evaluate import agreement, in_sample, leave_kind_out
+    from gdbench.metrics.judge.evaluate import agreement, in_sample, judge_extra, leave_kind_out
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.sheets import v3_results
 
@@ -126,12 +126,13 @@ def pooled(root: Path = Path(".")) -> list[dict]:
     fresh = fresh_results(root)
     results = v3_results(root) + fresh
     source = ["v3"] * (len(results) - len(fresh)) + [block_and_arm(r.run)[0] for r in fresh]
-    x = sheet_features(judge.eye, judge.curves, results)
+    x = sheet_features(judge.eye, judge.curves, results, judge.templates)
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
     rows = []
-    for fit, judged in (("leave-kind-out", leave_kind_out(x, results, kinds, fronts)),
-                        ("in sample", in_sample(x, results, fronts))):  # fmt: skip
+    extra = judge_extra(judge)
+    for fit, judged in (("leave-kind-out", leave_kind_out(x, results, kinds, fronts, extra)),
+                        ("in sample", in_sample(x, results, fronts, extra))):  # fmt: skip
         for part in ("all", "v3", *BLOCKS):
             idx = [i for i, r in enumerate(results) if r.consensus and part in ("all", source[i])]
             a = agreement([results[i].consensus for i in idx], [judged[i][0] for i in idx])

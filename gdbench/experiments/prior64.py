@@ -154,7 +154,8 @@ def markdown(rows: list[dict], s: dict, duck: list[dict]) -> str:
         *(
             [
                 f"By eye ({rater}, blind): read as the caption {e['reads_shipped']} of {len(rows)} (shipped) and "
-                f"{e['reads_world64']} (64 px); held out {e['held_out_reads_shipped']} and {e['held_out_reads_world64']} "
+                f"{e['reads_world64']} (64 px); held out {e['held_out_reads_shipped']} and "
+                f"{e['held_out_reads_world64']} "
                 f"of {sum(r['held_out'] for r in rows)}; the duck's front features drawn in {e['duck_features_drawn']} "
                 f"of its {e['duck_seeds']} seeds on the 64 px model."
                 for rater, e in s.get("eye", {}).items()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections import Counter
 
+import torch
 from torch import Tensor
 
 from gdbench.metrics.agreement import JANUS, LABELS
@@ -49,14 +50,16 @@ def passes(row: dict) -> dict[str, bool]:
     return {k: row.get(k) is not None and row[k] >= v for k, v in THRESHOLDS.items()}
 
 
-def leave_kind_out(features: Tensor, results: list, kinds: list[str], fronts: list[bool]) -> list[tuple[str, float]]:
+def leave_kind_out(features: Tensor, results: list, kinds: list[str], fronts: list[bool],
+                   extra: tuple[Tensor, list[str]] | None = None) -> list[tuple[str, float]]:  # fmt: skip
     """Each result's (label, confidence) from a head fitted without its kind's results (only
-    consensus results are fitted on)."""
+    consensus results are fitted on), with the ``extra`` rows (features, labels: the fixtures made
+    from the ground truth, ``fixtures.fixture_rows``) in every fit."""
     out: list[tuple[str, float] | None] = [None] * len(results)
     consensus = [r.consensus for r in results]
     for kind in sorted(set(kinds)):
         fit_on = [i for i, r in enumerate(results) if kinds[i] != kind and consensus[i] is not None]
-        head = fit(features[fit_on], [consensus[i] for i in fit_on])
+        head = _fit(features[fit_on], [consensus[i] for i in fit_on], extra)
         mine = [i for i in range(len(results)) if kinds[i] == kind]
         p = head.probabilities(features[mine])
         for j, i in enumerate(mine):
@@ -64,9 +67,27 @@ def leave_kind_out(features: Tensor, results: list, kinds: list[str], fronts: li
     return out  # type: ignore[return-value]
 
 
-def in_sample(features: Tensor, results: list, fronts: list[bool]) -> list[tuple[str, float]]:
-    """Each result's (label, confidence) from one head fitted on every consensus result."""
+def in_sample(features: Tensor, results: list, fronts: list[bool],
+              extra: tuple[Tensor, list[str]] | None = None) -> list[tuple[str, float]]:  # fmt: skip
+    """Each result's (label, confidence) from one head fitted on every consensus result (and the
+    ``extra`` rows)."""
     fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
-    head = fit(features[fit_on], [results[i].consensus for i in fit_on])
+    head = _fit(features[fit_on], [results[i].consensus for i in fit_on], extra)
     p = head.probabilities(features)
     return [decide(p[i], features[i], fronts[i]) for i in range(len(results))]
+
+
+def _fit(x: Tensor, labels: list[str], extra: tuple[Tensor, list[str]] | None):
+    if extra is None or not len(extra[1]):
+        return fit(x, labels)
+    return fit(torch.cat([x, extra[0]]), labels + list(extra[1]))
+
+
+def judge_extra(judge) -> tuple[Tensor, list[str]] | None:
+    """The rows a judge's head was fitted on beside the labelled results (its fixtures, kept in
+    head.json), so that an evaluation refits the head exactly as it was made; None for a judge
+    fitted on labels alone."""
+    rows = judge.head_info.get("fixture_rows")
+    if not rows:
+        return None
+    return torch.tensor(rows["features"], dtype=torch.float32), list(rows["labels"])

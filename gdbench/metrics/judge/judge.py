@@ -22,7 +22,9 @@ import numpy as np
 import torch
 
 WEIGHTS = Path(__file__).parent / "weights"
-"""The shipped judge: eye.safetensors (the eye's weights and its settings) and head.json."""
+"""The shipped judge: eye.safetensors (the eye's weights and its settings), head.json and, from the
+judge's second version, templates.safetensors (the assets' renders its sameness reading compares
+views with: ``sameness.py``; a folder without them is a first-version judge, read as it was)."""
 TURNTABLE_FRAMES = 36
 """A run turntable's frames (azimuths 0, 10, ..., 350)."""
 
@@ -47,11 +49,41 @@ class Judge:
         self.head_info = json.loads(head_path.read_text())
         self.head = Head.from_dict(self.head_info["head"])
         self.curves = self.head_info["aspect_curves"]
-        digest = hashlib.sha256(eye_path.read_bytes() + head_path.read_bytes()).hexdigest()
-        self.version = digest[:12]
+        parts = [eye_path.read_bytes(), head_path.read_bytes()]
+        self.templates = None
+        if (folder / "templates.safetensors").is_file():
+            from gdbench.metrics.judge.sameness import Templates
+
+            self.templates = Templates.load(folder / "templates.safetensors")
+            parts.append((folder / "templates.safetensors").read_bytes())
+        from gdbench.metrics.judge.reading import FEATURES
+        from gdbench.metrics.judge.sameness import SAMENESS
+
+        n = 2 * len(FEATURES) + (len(SAMENESS) if self.templates is not None else 0)
+        if self.head.weight.shape[0] != n:
+            raise ValueError(
+                f"judge: {head_path} reads {self.head.weight.shape[0]} features, the folder's parts give {n} "
+                "(templates.safetensors missing or extra?); train it again with `gdbench train-judge`"
+            )
+        self.version = hashlib.sha256(b"".join(parts)).hexdigest()[:12]
 
     def knows(self, caption: str | None) -> bool:
         return bool(caption) and caption in self.eye.config.captions
+
+    def feature_names(self) -> list[str]:
+        """The names of ``features``' values: the eye's turntable features, the outline's
+        (``outline_`` before each) and, with templates, the sameness reading's."""
+        from gdbench.metrics.judge.reading import FEATURES
+        from gdbench.metrics.judge.sameness import SAMENESS
+
+        return [*FEATURES, *(f"outline_{k}" for k in FEATURES), *(SAMENESS if self.templates is not None else ())]
+
+    def features(self, views, azimuths, caption: str):
+        """(features [F], the eye's readings [V, BINS]) of one result (``reading.result_features``)."""
+        from gdbench.metrics.judge.reading import result_features
+
+        return result_features(self.eye, self.curves, torch.as_tensor(views), torch.as_tensor(azimuths),
+                               caption, self.templates)  # fmt: skip
 
     def views(self, views, azimuths, caption: str) -> dict:
         """Judge one result from ``views`` [V, H, W, 3] (uint8 or float in [0, 1], white
@@ -59,7 +91,7 @@ class Judge:
         from gdbench.assets.library import has_front
         from gdbench.metrics.judge.head import CLASSES3, decide
         from gdbench.metrics.judge.net import BINS
-        from gdbench.metrics.judge.reading import FEATURES, best_turn, result_features
+        from gdbench.metrics.judge.reading import best_turn
 
         views = torch.as_tensor(np.asarray(views))
         azimuths = torch.as_tensor(azimuths, dtype=torch.float32)
@@ -76,7 +108,7 @@ class Judge:
             )
         if not self.knows(caption):
             raise ValueError(f"caption: the judge knows no asset {caption!r}")
-        x, q = result_features(self.eye, self.curves, views[..., :3], azimuths, caption)
+        x, q = self.features(views[..., :3], azimuths, caption)
         p = self.head.probabilities(x[None])[0]
         label, confidence = decide(p, x, has_front(caption))
         step = 360.0 / BINS
@@ -86,11 +118,7 @@ class Judge:
             "confidence": round(confidence, 4),
             "probabilities": {c: round(float(v), 4) for c, v in zip(CLASSES3, p)},
             "turn_deg": best_turn(q, azimuths),
-            "features": {
-                f"{part}{k}": round(float(v), 4)
-                for part, xs in (("", x[: len(FEATURES)]), ("outline_", x[len(FEATURES) :]))
-                for k, v in zip(FEATURES, xs)
-            },
+            "features": dict(zip(self.feature_names(), (round(float(v), 4) for v in x))),
             "views": [
                 {"azimuth": round(float(a), 2), "reads_deg": float(r), "reading_confidence": round(float(c), 4)}
                 for a, r, c in zip(azimuths, reading, q.max(1).values)

@@ -162,13 +162,21 @@ def aspect_curves(aspect: Tensor, caption: Tensor, azimuth: Tensor, captions: tu
     return out
 
 
-def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption: str) -> tuple[Tensor, Tensor]:
-    """One result's features [2 * len(FEATURES)]: ``turntable_features`` of the eye's readings,
-    then of the outline's (``aspect_readings`` against ``curves[caption]``); and the eye's
-    readings [V, BINS]. ``views`` [V, H, W, 3] at camera ``azimuths`` [V]."""
+def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption: str,
+                    templates=None) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """One result's features: ``turntable_features`` of the eye's readings, then of the outline's
+    (``aspect_readings`` against ``curves[caption]``), then, with ``templates``, the views' sameness
+    (``sameness.sameness_features``); and the eye's readings [V, BINS]. ``views`` [V, H, W, 3] at
+    camera ``azimuths`` [V]."""
     from gdbench.metrics.judge.net import crop_views
 
-    q = read_views(eye, crop_views(views), caption)
+    crops = crop_views(views)
+    q = read_views(eye, crops, caption)
     c = curves[caption]
     qa = aspect_readings(log_aspect(views), torch.tensor(c["mean"]), torch.tensor(c["spread"]))
-    return torch.cat([turntable_features(q, azimuths), turntable_features(qa, azimuths)]), q
+    parts = [turntable_features(q, azimuths), turntable_features(qa, azimuths)]
+    if templates is not None:
+        from gdbench.metrics.judge.sameness import sameness_features
+
+        parts.append(sameness_features(crops, azimuths, templates, caption))
+    return torch.cat(parts), q

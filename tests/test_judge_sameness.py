@@ -1,0 +1,114 @@
+"""The judge's sameness reading (gdbench/metrics/judge/sameness.py): its templates drawn and kept,
+its numbers against closed forms, and the judge folder's parts checked against its head."""
+
+from __future__ import annotations
+
+import shutil
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from gdbench.metrics.judge.sameness import BINS, SAMENESS, SHEET, Templates, sameness_features, sheet_picks
+
+SIX = torch.tensor(SHEET)
+
+
+def _fake_data(n_per: int = 90, captions=("a", "b"), variants: int = 2, seed: int = 0):
+    """A stand-in for the eye's data: random crops at random cameras, elevations 0-30."""
+    g = torch.Generator().manual_seed(seed)
+    n = n_per * len(captions) * variants
+    caption = torch.arange(len(captions)).repeat_interleave(n_per * variants)
+    variant = torch.arange(variants).repeat_interleave(n_per).repeat(len(captions))
+    crops = torch.rand(n, 3, 32, 32, generator=g)
+    return crops, SimpleNamespace(
+        captions=tuple(captions), caption=caption, variant=variant,
+        azimuth=torch.rand(n, generator=g) * 360, elevation=torch.rand(n, generator=g) * 30,
+    )  # fmt: skip
+
+
+def test_templates_are_the_renders_nearest_each_azimuth_and_read_back(tmp_path):
+    crops, data = _fake_data()
+    t = Templates.from_data(crops, data)
+    for ci, cap in enumerate(data.captions):
+        assert t.crops[cap].shape == (BINS * 2, 3, 32, 32) and t.crops[cap].dtype == torch.uint8
+        for k in range(len(t.azimuth[cap])):
+            target = (k % BINS) * 360.0 / BINS
+            sel = (data.caption == ci) & (data.variant == t.variant[cap][k])
+            d = ((data.azimuth[sel] - target + 180) % 360 - 180).abs() + (data.elevation[sel] - 15).abs()
+            i = int(d.argmin())  # brute force over every render of that caption and variant
+            assert float(t.azimuth[cap][k]) == float(data.azimuth[sel][i])
+            want = (crops[sel][i] * 255).round().to(torch.uint8)
+            assert torch.equal(t.crops[cap][k], want)
+    t.save(tmp_path / "t.safetensors", {"commit": "x"})
+    back = Templates.load(tmp_path / "t.safetensors")
+    for kind in ("crops", "azimuth", "variant"):
+        for cap in data.captions:
+            assert torch.equal(getattr(back, kind)[cap], getattr(t, kind)[cap])
+
+
+def _asset_views(t: Templates, cap: str, azimuths) -> torch.Tensor:
+    """The templates' own crops nearest ``azimuths`` (variant 0), as floats in [0, 1]."""
+    a = t.azimuth[cap]
+    pick = [int((((a - x + 180) % 360 - 180).abs() + 1000 * t.variant[cap]).argmin()) for x in azimuths]
+    return t.crops[cap][pick].float() / 255.0
+
+
+def _blob_crops(n: int, g: torch.Generator) -> torch.Tensor:
+    """White crops with a coloured disc off centre at a random place: an object, a silhouette."""
+    yy, xx = torch.meshgrid(torch.arange(32.0), torch.arange(32.0), indexing="ij")
+    out = torch.ones(n, 3, 32, 32)
+    for i in range(n):
+        cy, cx = (torch.rand(2, generator=g) * 12 + 10).tolist()
+        r = float(torch.rand((), generator=g) * 5 + 5)
+        disc = ((yy - cy) ** 2 + (xx - cx) ** 2) <= r * r
+        out[i][:, disc] = torch.rand(3, 1, generator=g) * 0.6
+    return out
+
+
+def test_sameness_against_closed_forms():
+    """Six copies of one view correlate perfectly (sameness 1); a result made of the asset's own
+    views, with one variant, is exactly as alike as the asset (relative sameness 0) and matches its
+    front better than its sides only where it shows the front; the numbers follow the views' order
+    and not their count (a turntable's 36 frames read as the six nearest the sheet's azimuths)."""
+    g = torch.Generator().manual_seed(3)
+    crops = _blob_crops(BINS, g)
+    data = SimpleNamespace(captions=("a",), caption=torch.zeros(BINS, dtype=torch.long),
+                           variant=torch.zeros(BINS, dtype=torch.long),
+                           azimuth=torch.arange(BINS) * 360.0 / BINS, elevation=torch.full((BINS,), 15.0))  # fmt: skip
+    t = Templates.from_data(crops, data)
+    same = dict(zip(SAMENESS, sameness_features(crops[:1].expand(6, -1, -1, -1), SIX, t, "a").tolist()))
+    assert same["same_colour"] == pytest.approx(1.0, abs=1e-5)
+    assert same["same_outline"] == pytest.approx(1.0, abs=1e-5)
+    own = _asset_views(t, "a", SHEET)
+    f = dict(zip(SAMENESS, sameness_features(own, SIX, t, "a").tolist()))
+    assert f["same_colour_rel"] == pytest.approx(0.0, abs=1e-5)
+    assert f["same_outline_rel"] == pytest.approx(0.0, abs=1e-5)
+    front = sameness_features(_asset_views(t, "a", [0.0] * 6), SIX, t, "a")
+    side = sameness_features(_asset_views(t, "a", [90.0] * 6), SIX, t, "a")
+    assert float(front[2]) > 0 > float(side[2])  # a perfect match to a front template, or to a side one
+    thirty_six = torch.arange(36) * 10.0
+    frames = _asset_views(t, "a", thirty_six.tolist())
+    assert torch.equal(sheet_picks(thirty_six), torch.arange(0, 36, 6))
+    assert torch.allclose(sameness_features(frames, thirty_six, t, "a"), sameness_features(own, SIX, t, "a"), atol=1e-6)
+
+
+def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
+    """The shipped judge reads 26 features (eye, outline, sameness); without its templates its head
+    cannot read, which is one clear error; changed templates change the judge's version."""
+    from gdbench.metrics.judge.judge import WEIGHTS, Judge
+
+    if not (WEIGHTS / "templates.safetensors").is_file():
+        pytest.fail(f"the shipped judge has no templates in {WEIGHTS}: run `gdbench train-judge`")
+    for name in ("eye.safetensors", "head.json"):
+        shutil.copy(WEIGHTS / name, tmp_path / name)
+    with pytest.raises(ValueError, match=r"templates\.safetensors"):
+        Judge(tmp_path)
+    shipped = Judge(WEIGHTS)
+    t = shipped.templates
+    cap = next(iter(t.crops))
+    t.crops[cap] = 255 - t.crops[cap]
+    t.save(tmp_path / "templates.safetensors")
+    changed = Judge(tmp_path)
+    assert changed.version != shipped.version
+    assert len(changed.feature_names()) == len(changed.head.mean) == 26
