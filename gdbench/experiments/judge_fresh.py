@@ -76,10 +76,10 @@ def judge_fresh(root: Path = Path("."), runs: Path | None = None) -> list[dict]:
     return rows
 
 
-def agreement_rows(judged: list[dict]) -> list[dict]:
-    """Per mode, truth (the consensus, each pass) and block (all, then each): the judge's agreement
-    (``evaluate.agreement``), the thresholds it passes, and the share of consensus-fine results it
-    warns on; then the two passes against each other."""
+def agreement_rows(judged: list[dict], blocks: tuple[str, ...] = BLOCKS) -> list[dict]:
+    """Per mode, truth (the consensus, each pass) and block (all, then each of ``blocks``): the
+    judge's agreement (``evaluate.agreement``), the thresholds it passes, and the share of
+    consensus-fine results it warns on; then the two passes against each other."""
     from gdbench.metrics.judge.evaluate import agreement, passes
 
     rows = []
@@ -88,7 +88,7 @@ def agreement_rows(judged: list[dict]) -> list[dict]:
     for mode in MODES:
         col = mode.replace(" ", "_")
         for truth in ("consensus", "rater1", "rater2"):
-            for block in ("all", *BLOCKS):
+            for block in ("all", *blocks):
                 sel = [r for r in judged if r[truth] and r[col] and block in ("all", r["block"])]
                 if not sel:
                     continue
