@@ -128,8 +128,7 @@ def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
     (batches C-F) and the first fresh set's, which its reading spent (docs/judge_fresh.md). A
     fresh set registered after this judge is never among them."""
-    from gdbench.experiments.judge_fresh import fresh_results
-    from gdbench.metrics.judge.sheets import v3_results
+    from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
     return v3_results(root) + fresh_results(root), "v3 sheets C-F and the first fresh set's sheets"
 

@@ -22,11 +22,9 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-FRESH = Path("docs/results/judge/fresh")
-"""The committed fresh set: sheets/ (WebP), fresh_key.json, and the tables this module writes."""
-LABELS = {"rater1": Path("fixtures/labels/fresh_rater1.csv"), "rater2": Path("fixtures/labels/fresh_rater2.csv")}
-BATCH = "fresh"
-"""The labels' batch column."""
+from gdbench.metrics.judge.sheets import FRESH, FRESH_BATCH, FRESH_LABELS, fresh_results
+
+LABELS, BATCH = FRESH_LABELS, FRESH_BATCH
 BLOCKS = ("learned-janus", "learned-uniform", "empirical-janus")
 MODES = ("six views", "run folder")
 FINE_WARNED_MAX = 0.1
@@ -38,15 +36,6 @@ def block_and_arm(run: str) -> tuple[str, str]:
     parts = Path(run).parts
     block = next((b for b in BLOCKS if b in parts), "")
     return block, parts[-2]
-
-
-def fresh_results(root: Path = Path(".")):
-    """The fresh set's results from the committed sheets, with both passes' labels."""
-    from gdbench.metrics.judge.sheets import attach_labels, read_batch
-
-    root = Path(root)
-    results = read_batch(root / FRESH / "sheets", root / FRESH / "fresh_key.json", batch=BATCH)
-    return attach_labels(results, {k: root / v for k, v in LABELS.items()})
 
 
 def judge_fresh(root: Path = Path("."), runs: Path | None = None) -> list[dict]:

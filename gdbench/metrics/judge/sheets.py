@@ -118,3 +118,17 @@ def v3_results(root: Path = Path("."), batches: tuple[str, ...] = ("C", "D", "E"
     root = Path(root)
     results = [r for b in batches for r in read_batch(root / V3_SHEETS / b, root / V3_SHEETS / f"{b}_key.json")]
     return attach_labels(results, {k: root / v for k, v in V3_LABELS.items()})
+
+
+FRESH = Path("docs/results/judge/fresh")
+"""The judge's first fresh set (docs/judge_fresh.md): sheets/ (WebP), fresh_key.json, its tables."""
+FRESH_LABELS = {"rater1": Path("fixtures/labels/fresh_rater1.csv"), "rater2": Path("fixtures/labels/fresh_rater2.csv")}
+FRESH_BATCH = "fresh"
+"""The fresh set's labels' batch column."""
+
+
+def fresh_results(root: Path = Path(".")) -> list[SheetResult]:
+    """The first fresh set's results from the committed sheets, with both passes' labels."""
+    root = Path(root)
+    results = read_batch(root / FRESH / "sheets", root / FRESH / "fresh_key.json", batch=FRESH_BATCH)
+    return attach_labels(results, {k: root / v for k, v in FRESH_LABELS.items()})
