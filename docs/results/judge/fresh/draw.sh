@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The fresh set's blind sheets and the raters' folders (docs/judge_fresh.md, "The labels"):
-#   bash docs/results/judge/fresh/draw.sh OUT WORK
+#   [DRAW_SEED=61] bash docs/results/judge/fresh/draw.sh OUT WORK   (61: the second set, docs/judge_fresh2.md)
 # OUT: the sweep folder of sweep.sh (its three blocks); WORK gets sheets/ (every finished result,
 # grouped by prompt and shuffled within it: --seed 58 --per-sheet 10), fresh_key.json (number ->
 # run, which names block and arm: never given to a rater) and raters/p{1,2}_g{1..4} (v3's split:
@@ -13,6 +13,6 @@ work=${2:?usage: draw.sh OUT WORK}
 py=$root/.venv/bin/python
 mkdir -p "$work"
 "$py" -m gdbench.metrics.label_sheets --runs "$out/learned-janus" "$out/learned-uniform" "$out/empirical-janus" \
-  --out "$work/sheets" --key "$work/fresh_key.json" --per-sheet 10 --seed 58
+  --out "$work/sheets" --key "$work/fresh_key.json" --per-sheet 10 --seed "${DRAW_SEED:-58}"
 rm -f "$work/sheets/labels_template.csv"
 "$py" "$root/docs/results/v3/labelling/split.py" "$work/sheets" "$work/fresh_key.json" "$work/raters"
