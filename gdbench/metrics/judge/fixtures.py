@@ -37,12 +37,10 @@ HELD_OUT = ("a yellow duck",)
 
 def fixture_views(caption: str, kind: str, size: int = 128) -> Tensor:
     """[6, size, size, 3] uint8: the fixture's six sheet views on the run turntable's orbit."""
-    from gdbench.core.camera import SphericalPoses
-    from gdbench.core.turntable import RUN_TURNTABLE, render_views, to_uint8
     from gdbench.metrics.failures3d import failure_scene
+    from gdbench.metrics.judge.judge import turntable_frames
 
-    cams = SphericalPoses.orbit(6, **RUN_TURNTABLE).cameras(size, size)
-    return torch.from_numpy(to_uint8(render_views(failure_scene(caption, kind), cams, (1.0, 1.0, 1.0))))
+    return torch.from_numpy(turntable_frames(failure_scene(caption, kind), size, frames=6))
 
 
 def fixture_rows(eye, curves: dict, templates, captions, progress: bool = False) -> tuple[Tensor, list[str], list[str]]:

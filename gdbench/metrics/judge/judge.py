@@ -154,14 +154,15 @@ class Judge:
         return out
 
 
-def turntable_frames(scene, size: int = 128) -> np.ndarray:
-    """[36, size, size, 3] uint8: ``scene`` on the run turntable's orbit (``turntable.RUN_TURNTABLE``,
-    azimuths 0, 10, ..., 350) on white, as a run's turntable.gif shows it (its frames are 128 px at
-    the default training resolution; the GIF's palette aside)."""
+def turntable_frames(scene, size: int = 128, frames: int = TURNTABLE_FRAMES) -> np.ndarray:
+    """[frames, size, size, 3] uint8: ``scene`` on the run turntable's orbit (``turntable.RUN_TURNTABLE``,
+    azimuths 0, 10, ..., 350 for the default 36; 0, 60, ..., 300 for a sheet's 6) on white, as a run's
+    turntable.gif shows it (its frames are 128 px at the default training resolution; the GIF's
+    palette aside)."""
     from gdbench.core.camera import SphericalPoses
     from gdbench.core.turntable import RUN_TURNTABLE, render_views, to_uint8
 
-    cams = SphericalPoses.orbit(TURNTABLE_FRAMES, **RUN_TURNTABLE).cameras(size, size)
+    cams = SphericalPoses.orbit(frames, **RUN_TURNTABLE).cameras(size, size)
     return to_uint8(render_views(scene.to("cpu"), cams, (1.0, 1.0, 1.0)))
 
 
