@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-FRESH = ROOT / "docs" / "results" / "judge" / "fresh"
 
 
 def test_block_and_arm_from_the_run_folder():
@@ -50,22 +49,32 @@ def _read(path):
         return list(csv.DictReader(f))
 
 
-@pytest.mark.skipif(not (FRESH / "judged.csv").is_file(), reason="the fresh set is not judged yet")
-def test_the_committed_agreement_recomputes_from_the_committed_judgements():
+SETS = ("fresh", "fresh2")
+
+
+def _judged_or_skip(name):
+    folder = ROOT / "docs" / "results" / "judge" / name
+    if not (folder / "judged.csv").is_file():
+        pytest.skip(f"the fresh set {name} is not judged yet")
+    return folder, _read(folder / "judged.csv")
+
+
+@pytest.mark.parametrize("name", SETS)
+def test_the_committed_agreement_recomputes_from_the_committed_judgements(name):
     """agreement.csv is what agreement_rows makes of judged.csv, and judged.csv's raters' columns
     are the committed labels of the key's results."""
     from gdbench.experiments.judge_fresh import agreement_rows
 
-    judged = _read(FRESH / "judged.csv")
-    stored = _read(FRESH / "agreement.csv")
+    folder, judged = _judged_or_skip(name)
+    stored = _read(folder / "agreement.csv")
     again = agreement_rows(judged)
     assert len(again) == len(stored)
     for a, s in zip(again, stored):
         assert (a["mode"], a["truth"], a["block"], a["n"]) == (s["mode"], s["truth"], s["block"], int(s["n"]))
         assert a["kappa_janus"] == pytest.approx(float(s["kappa_janus"]), abs=1e-9)
-    key = json.loads((FRESH / "fresh_key.json").read_text())
+    key = json.loads((folder / f"{name}_key.json").read_text())
     assert len(judged) == len(key) >= 120
-    labels = {p: {r["run_id"]: r["label"] for r in _read(ROOT / "fixtures" / "labels" / f"fresh_rater{p}.csv")}
+    labels = {p: {r["run_id"]: r["label"] for r in _read(ROOT / "fixtures" / "labels" / f"{name}_rater{p}.csv")}
               for p in (1, 2)}  # fmt: skip
     for r in judged:
         assert (r["rater1"], r["rater2"]) == (labels[1][r["run_id"]], labels[2][r["run_id"]])
@@ -73,18 +82,33 @@ def test_the_committed_agreement_recomputes_from_the_committed_judgements():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (FRESH / "judged.csv").is_file(), reason="the fresh set is not judged yet")
-def test_the_six_view_labels_recompute_from_the_committed_sheets():
+@pytest.mark.parametrize("name", SETS)
+def test_the_six_view_labels_recompute_from_the_committed_sheets(name):
     """The shipped judge reads the committed sheets as judged.csv says, when it is the judge the
     table names (a retrained judge is read again, not compared)."""
     from gdbench.experiments.judge_fresh import judge_fresh
     from gdbench.metrics.judge.judge import judge_version
 
-    judged = _read(FRESH / "judged.csv")
+    _, judged = _judged_or_skip(name)
     if judged[0]["judge"] != judge_version():
         pytest.skip(f"judged.csv names the judge {judged[0]['judge']}, the shipped one is {judge_version()}")
-    now = judge_fresh(ROOT)
+    now = judge_fresh(ROOT, which=name)
     assert [r["six_views"] for r in now] == [r["six_views"] for r in judged]
+
+
+def test_the_fresh_sets_read_back_whole_with_both_passes():
+    """Every committed fresh set's sheets give one result per key entry, in the key's run ids, each
+    labelled by both passes (the label files name exactly the key's results)."""
+    from gdbench.metrics.judge.sheets import FRESH_SETS, fresh_results
+
+    for name, fs in FRESH_SETS.items():
+        if not (ROOT / fs.labels["rater2"]).is_file():
+            continue
+        key = json.loads((ROOT / fs.key).read_text())
+        got = fresh_results(ROOT, name)
+        assert sorted(r.run_id for r in got) == sorted(k["run_id"] for k in key.values())
+        assert all(set(r.labels) == {"rater1", "rater2"} for r in got)
+        assert all(r.batch == name and r.views.shape[0] == 6 and r.views.std() > 5 for r in got)
 
 
 def test_the_pooled_diagnostic_refits_the_head_on_both_sets_labels():

@@ -93,8 +93,38 @@ def test_sameness_against_closed_forms():
     assert torch.allclose(sameness_features(frames, thirty_six, t, "a"), sameness_features(own, SIX, t, "a"), atol=1e-6)
 
 
+def test_the_aligned_numbers_against_closed_forms():
+    """The asset's own six views match it where their cameras are (aligned 1, nothing fits better,
+    the front fits no better than the view's own side); six copies of the front view match the
+    front template perfectly everywhere, so each side view's number is its correlation with the
+    template where its camera is, less 1, checked here by brute force over the templates."""
+    from gdbench.metrics.judge.sameness import ALIGNED, ALIGNED_DEG, _colour_and_outline
+
+    g = torch.Generator().manual_seed(5)
+    crops = _blob_crops(BINS, g)
+    data = SimpleNamespace(captions=("a",), caption=torch.zeros(BINS, dtype=torch.long),
+                           variant=torch.zeros(BINS, dtype=torch.long),
+                           azimuth=torch.arange(BINS) * 360.0 / BINS, elevation=torch.full((BINS,), 15.0))  # fmt: skip
+    t = Templates.from_data(crops, data)
+    names = SAMENESS[-ALIGNED:]
+    own = dict(zip(names, sameness_features(_asset_views(t, "a", SHEET), SIX, t, "a")[-ALIGNED:].tolist()))
+    assert own["aligned"] == pytest.approx(1.0, abs=1e-5) and own["aligned_min"] == pytest.approx(1.0, abs=1e-5)
+    assert own["aligned_over_best"] == pytest.approx(0.0, abs=1e-5) and own["aligned_over_front"] >= -1e-5
+    fronts = _asset_views(t, "a", [0.0] * 6)
+    got = dict(zip(names, sameness_features(fronts, SIX, t, "a")[-ALIGNED:].tolist()))
+    u, _ = _colour_and_outline(fronts[:1])
+    r, _ = _colour_and_outline(t.crops["a"].float() / 255.0)
+    sides = []
+    for view_az in SHEET[1:]:
+        near = [k for k in range(len(r)) if abs((float(t.azimuth["a"][k]) - view_az + 180) % 360 - 180) <= ALIGNED_DEG]
+        sides.append(max(float(u[0] @ r[k]) for k in near))
+    assert got["aligned_over_front"] == pytest.approx(sum(s - 1.0 for s in sides) / 5, abs=1e-5)
+    assert got["aligned_min"] == pytest.approx(min(sides), abs=1e-5) and got["aligned_over_best"] < 0
+    assert got["aligned"] == pytest.approx((1.0 + sum(sides)) / 6, abs=1e-5)
+
+
 def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
-    """The shipped judge reads 26 features (eye, outline, sameness); without its templates its head
+    """The shipped judge reads 30 features (eye, outline, sameness); without its templates its head
     cannot read, which is one clear error; changed templates change the judge's version."""
     from gdbench.metrics.judge.judge import WEIGHTS, Judge
 
@@ -111,4 +141,4 @@ def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
     t.save(tmp_path / "templates.safetensors")
     changed = Judge(tmp_path)
     assert changed.version != shipped.version
-    assert len(changed.feature_names()) == len(changed.head.mean) == 26
+    assert len(changed.feature_names()) == len(changed.head.mean) == 30

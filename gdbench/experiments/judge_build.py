@@ -148,7 +148,7 @@ def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
 
     judge = Judge(Path(folder))
     results = v3_results(root)
-    x = sheet_features(judge.eye, judge.curves, results, judge.templates)
+    x = sheet_features(judge.eye, judge.curves, results, judge.templates)[:, : judge.n_features]
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
     extra = judge_extra(judge)

@@ -1,8 +1,8 @@
-"""The Janus judge on its fresh set (docs/judge_fresh.md): results no rule or head was fitted on,
-labelled blind by two passes of raters before the judge read them, read in both of the judge's
-modes against the registered thresholds.
+"""The Janus judge on a fresh set (docs/judge_fresh.md, docs/judge_fresh2.md): results no rule or
+head was fitted on, labelled blind by two passes of raters before the judge read them, read in both
+of the judge's modes against the registered thresholds.
 
-    python -m gdbench.experiments.judge_fresh [--runs OUT] [--out docs/results/judge/fresh]
+    python -m gdbench.experiments.judge_fresh [--set fresh2] [--runs OUT] [--out DIR]
 
 - **six views**: each result's row of the committed sheets (``Judge.views`` at azimuths 0, 60,
   ..., 300), so this mode recomputes from the repository alone;
@@ -22,7 +22,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from gdbench.metrics.judge.sheets import FRESH, FRESH_BATCH, FRESH_LABELS, fresh_results
+from gdbench.metrics.judge.sheets import FRESH_BATCH, FRESH_LABELS, FRESH_SETS, fresh_results
 
 LABELS, BATCH = FRESH_LABELS, FRESH_BATCH
 BLOCKS = ("learned-janus", "learned-uniform", "empirical-janus")
@@ -38,16 +38,18 @@ def block_and_arm(run: str) -> tuple[str, str]:
     return block, parts[-2]
 
 
-def judge_fresh(root: Path = Path("."), runs: Path | None = None) -> list[dict]:
-    """Every result judged in the six-view mode, and in the run-folder mode where ``runs`` (the sweep
-    folder the sheets were drawn from) holds the runs; a row per result."""
+def judge_fresh(root: Path = Path("."), runs: Path | None = None, which: str = "fresh",
+                judge_dir: Path | None = None) -> list[dict]:  # fmt: skip
+    """Every result of the fresh set ``which`` (``sheets.FRESH_SETS``) judged by the judge in
+    ``judge_dir`` (default: the shipped one) in the six-view mode, and in the run-folder mode where
+    ``runs`` (the sweep folder the sheets were drawn from) holds the runs; a row per result."""
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.sheets import SHEET_AZIMUTHS
 
-    judge, commit = load_judge(), code_commit()
+    judge, commit = load_judge(str(judge_dir) if judge_dir else None), code_commit()
     rows = []
-    for r in fresh_results(root):
+    for r in fresh_results(root, which):
         six = judge.views(r.views, SHEET_AZIMUTHS, r.caption)
         block, arm = block_and_arm(r.run)
         rel, folder = Path(r.run).parts, None
@@ -99,7 +101,7 @@ def agreement_rows(judged: list[dict], blocks: tuple[str, ...] = BLOCKS) -> list
     return rows
 
 
-def pooled(root: Path = Path(".")) -> list[dict]:
+def pooled(root: Path = Path("."), which: str = "fresh") -> list[dict]:
     """After the fresh set was read (it is spent as a test): would more labelled results, the fresh
     set's pooled with v3's, let the head meet the bar? The head refitted leave-kind-out and in sample
     over the union (six views; the eye as shipped), a row per fit and source (v3, each fresh block).
@@ -112,10 +114,10 @@ def pooled(root: Path = Path(".")) -> list[dict]:
     from gdbench.metrics.judge.sheets import v3_results
 
     judge = load_judge()
-    fresh = fresh_results(root)
+    fresh = fresh_results(root, which)
     results = v3_results(root) + fresh
     source = ["v3"] * (len(results) - len(fresh)) + [block_and_arm(r.run)[0] for r in fresh]
-    x = sheet_features(judge.eye, judge.curves, results, judge.templates)
+    x = sheet_features(judge.eye, judge.curves, results, judge.templates)[:, : judge.n_features]
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
     rows = []
@@ -166,13 +168,23 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m gdbench.experiments.judge_fresh", description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=Path, help="the sweep folder of docs/results/judge/fresh/sweep.sh (run-folder mode)")
-    ap.add_argument("--out", type=Path, default=FRESH, help="where judged.csv and agreement.csv go")
+    ap.add_argument(
+        "--set",
+        dest="which",
+        choices=sorted(FRESH_SETS),
+        default="fresh",
+        help="which fresh set: fresh (docs/judge_fresh.md) or fresh2 (docs/judge_fresh2.md)",
+    )
+    ap.add_argument("--out", type=Path, help="where judged.csv and agreement.csv go (default: the set's folder)")
+    ap.add_argument("--judge", type=Path, help="the judge's folder (default: the shipped one; an earlier judge's "
+                    "folder reads the set as that judge did)")  # fmt: skip
     ap.add_argument("--recompute", action="store_true", help="agreement.csv from the committed judged.csv only")
     ap.add_argument("--pooled", action="store_true", help="the diagnostic: the head refitted on v3's and the fresh "
                     "set's labels together (pooled.csv); nothing else is written")  # fmt: skip
     args = ap.parse_args(argv)
+    args.out = args.out or FRESH_SETS[args.which].folder
     if args.pooled:
-        rows = pooled()
+        rows = pooled(which=args.which)
         write_csv(rows, args.out / "pooled.csv")
         for r in rows:
             print(f"{r['fit']:26s} {r['source']:16s} n {r['n']:3d}: kappa {r['kappa_janus']:.2f} (Janus split), "
@@ -180,7 +192,12 @@ def main(argv=None) -> int:
         return 0
     if args.runs is not None and not args.runs.is_dir():
         ap.error(f"--runs: {args.runs} is not a folder (the fresh sweep's OUT)")
-    judged = _read(args.out / "judged.csv") if args.recompute else judge_fresh(runs=args.runs)
+    if args.judge is not None and not (args.judge / "head.json").is_file():
+        ap.error(f"--judge: {args.judge} holds no judge (head.json and eye.safetensors)")
+    if args.recompute:
+        judged = _read(args.out / "judged.csv")
+    else:
+        judged = judge_fresh(runs=args.runs, which=args.which, judge_dir=args.judge)
     if not args.recompute:
         write_csv(judged, args.out / "judged.csv")
     rows = agreement_rows(judged)

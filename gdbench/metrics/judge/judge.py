@@ -57,14 +57,18 @@ class Judge:
             self.templates = Templates.load(folder / "templates.safetensors")
             parts.append((folder / "templates.safetensors").read_bytes())
         from gdbench.metrics.judge.reading import FEATURES
-        from gdbench.metrics.judge.sameness import SAMENESS
+        from gdbench.metrics.judge.sameness import ALIGNED, SAMENESS
 
-        n = 2 * len(FEATURES) + (len(SAMENESS) if self.templates is not None else 0)
-        if self.head.weight.shape[0] != n:
+        n, first = self.head.weight.shape[0], 2 * len(FEATURES)
+        known = (first + len(SAMENESS) - ALIGNED, first + len(SAMENESS)) if self.templates is not None else (first,)
+        if n not in known:
             raise ValueError(
-                f"judge: {head_path} reads {self.head.weight.shape[0]} features, the folder's parts give {n} "
+                f"judge: {head_path} reads {n} features, the folder's parts give {' or '.join(map(str, known))} "
                 "(templates.safetensors missing or extra?); train it again with `gdbench train-judge`"
             )
+        self.n_features = n
+        """How many of the readings' features the head reads, in order: a judge reads the ones it was
+        fitted on (the first version 20, the second 26, the third 30)."""
         self.version = hashlib.sha256(b"".join(parts)).hexdigest()[:12]
 
     def knows(self, caption: str | None) -> bool:
@@ -76,14 +80,16 @@ class Judge:
         from gdbench.metrics.judge.reading import FEATURES
         from gdbench.metrics.judge.sameness import SAMENESS
 
-        return [*FEATURES, *(f"outline_{k}" for k in FEATURES), *(SAMENESS if self.templates is not None else ())]
+        names = [*FEATURES, *(f"outline_{k}" for k in FEATURES), *(SAMENESS if self.templates is not None else ())]
+        return names[: self.n_features]
 
     def features(self, views, azimuths, caption: str):
         """(features [F], the eye's readings [V, BINS]) of one result (``reading.result_features``)."""
         from gdbench.metrics.judge.reading import result_features
 
-        return result_features(self.eye, self.curves, torch.as_tensor(views), torch.as_tensor(azimuths),
+        x, q = result_features(self.eye, self.curves, torch.as_tensor(views), torch.as_tensor(azimuths),
                                caption, self.templates)  # fmt: skip
+        return x[: self.n_features], q
 
     def views(self, views, azimuths, caption: str) -> dict:
         """Judge one result from ``views`` [V, H, W, 3] (uint8 or float in [0, 1], white

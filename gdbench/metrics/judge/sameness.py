@@ -14,7 +14,16 @@ numbers compare the views as pictures instead (``SAMENESS``):
   averaged over the views (a front from every camera matches the front everywhere);
 - ``same_colour_rel``, ``same_outline_rel``: the first two less the asset's own six views' (a
   teapot's views are alike by nature, a corgi's are not), so that the numbers mean the same on
-  every kind.
+  every kind;
+- from the judge's third version, four more in colour (``ALIGNED``), each view against the asset's
+  renders where its camera is (within ``ALIGNED_DEG`` of its azimuth): how well they match
+  (``aligned``, a mean over the views), that less the best match at any azimuth
+  (``aligned_over_best``: 0 where each view shows what its camera should see, below 0 where some
+  other side of the asset fits it better), less the best match with the asset's front
+  (``aligned_over_front``, over the five views that are not the front: below 0 where the front is
+  seen from the side) and the worst view's match (``aligned_min``, of those five). A result that
+  shows the asset as it is matches it where it should; a front everywhere matches the front; a
+  blob matches nothing well.
 
 The asset's renders are ``Templates``: for every caption, each procedural variant at ``BINS``
 azimuths about the turntables' elevation, cropped as the eye crops them (uint8, shipped in the
@@ -37,8 +46,17 @@ SAMENESS = (
     "front_over_side_outline",
     "same_colour_rel",
     "same_outline_rel",
+    "aligned",
+    "aligned_over_best",
+    "aligned_over_front",
+    "aligned_min",
 )
-"""The names of ``sameness_features``' values, in order."""
+"""The names of ``sameness_features``' values, in order (the second judge read the first six)."""
+ALIGNED = 4
+"""The last ``ALIGNED`` of ``SAMENESS`` are the views matched where their cameras are (the third judge's)."""
+ALIGNED_DEG = 15.0
+"""A template is where a view's camera is when their azimuths are within this many degrees (and shows
+the front within this many of 0)."""
 BLUR_PX = 1.5
 """The blur (Gaussian sigma, pixels of the 32 px crop) before views are compared: a result's
 detail is not the asset's."""
@@ -148,9 +166,22 @@ def sameness_features(crops: Tensor, azimuths: Tensor, templates: Templates, cap
     over = (sim[:, front].amax(1) - sim[:, side].amax(1)).mean()
     over_sil = (sim_sil[:, front].amax(1) - sim_sil[:, side].amax(1)).mean()
     own, own_sil = [], []
-    for v in templates.variant[caption].unique():
-        pick = torch.stack([(_wrap(a - t).abs() + 1000.0 * (templates.variant[caption] != v)).argmin() for t in SHEET])
-        own.append(_mean_off_diagonal(r[pick]))
-        own_sil.append(_mean_off_diagonal(rs[pick]))
+    for variant in templates.variant[caption].unique():
+        away = 1000.0 * (templates.variant[caption] != variant)
+        mine = torch.stack([(_wrap(a - t).abs() + away).argmin() for t in SHEET])
+        own.append(_mean_off_diagonal(r[mine]))
+        own_sil.append(_mean_off_diagonal(rs[mine]))
     rel, rel_sil = same - torch.stack(own).mean(), same_sil - torch.stack(own_sil).mean()
-    return torch.stack([same, same_sil, over, over_sil, rel, rel_sil])
+    return torch.cat([torch.stack([same, same_sil, over, over_sil, rel, rel_sil]), _aligned(sim, a, azimuths[pick])])
+
+
+def _aligned(sim: Tensor, a: Tensor, view_az: Tensor) -> Tensor:
+    """The ``ALIGNED`` numbers from the views' colour similarity to the templates ``sim`` [6, K],
+    the templates' azimuths ``a`` [K] and the views' camera azimuths [6] (degrees)."""
+    floor = torch.tensor(-2.0)  # below any correlation: excluded from a max
+    here = _wrap(a[None] - view_az[:, None]).abs() <= ALIGNED_DEG
+    aligned = torch.where(here, sim, floor).amax(1)
+    front = torch.where((a.abs() <= ALIGNED_DEG)[None], sim, floor).amax(1)
+    not_front = _wrap(view_az).abs() > ALIGNED_DEG
+    return torch.stack([aligned.mean(), (aligned - sim.amax(1)).mean(), (aligned - front)[not_front].mean(),
+                        aligned[not_front].min()])  # fmt: skip

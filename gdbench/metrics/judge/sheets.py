@@ -120,15 +120,40 @@ def v3_results(root: Path = Path("."), batches: tuple[str, ...] = ("C", "D", "E"
     return attach_labels(results, {k: root / v for k, v in V3_LABELS.items()})
 
 
-FRESH = Path("docs/results/judge/fresh")
+@dataclass(frozen=True)
+class FreshSet:
+    """A registered fresh set of the judge: its committed sheets (WebP), key and both passes' labels."""
+
+    name: str
+    """The labels' batch column, and the key's name (``<name>_key.json``)."""
+    folder: Path
+    """sheets/, the key and the set's tables."""
+    registration: str
+    """The document that registered it."""
+
+    @property
+    def labels(self) -> dict[str, Path]:
+        return {f"rater{p}": Path(f"fixtures/labels/{self.name}_rater{p}.csv") for p in (1, 2)}
+
+    @property
+    def key(self) -> Path:
+        return self.folder / f"{self.name}_key.json"
+
+
+FRESH_SETS = {
+    "fresh": FreshSet("fresh", Path("docs/results/judge/fresh"), "docs/judge_fresh.md"),
+    "fresh2": FreshSet("fresh2", Path("docs/results/judge/fresh2"), "docs/judge_fresh2.md"),
+}
+"""The judge's fresh sets: the first (spent: the second judge is fitted on it) and the second."""
+FRESH = FRESH_SETS["fresh"].folder
 """The judge's first fresh set (docs/judge_fresh.md): sheets/ (WebP), fresh_key.json, its tables."""
-FRESH_LABELS = {"rater1": Path("fixtures/labels/fresh_rater1.csv"), "rater2": Path("fixtures/labels/fresh_rater2.csv")}
+FRESH_LABELS = FRESH_SETS["fresh"].labels
 FRESH_BATCH = "fresh"
 """The fresh set's labels' batch column."""
 
 
-def fresh_results(root: Path = Path(".")) -> list[SheetResult]:
-    """The first fresh set's results from the committed sheets, with both passes' labels."""
-    root = Path(root)
-    results = read_batch(root / FRESH / "sheets", root / FRESH / "fresh_key.json", batch=FRESH_BATCH)
-    return attach_labels(results, {k: root / v for k, v in FRESH_LABELS.items()})
+def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:
+    """A fresh set's results (default: the first) from the committed sheets, with both passes' labels."""
+    root, fs = Path(root), FRESH_SETS[which]
+    results = read_batch(root / fs.folder / "sheets", root / fs.key, batch=fs.name)
+    return attach_labels(results, {k: root / v for k, v in fs.labels.items()})
