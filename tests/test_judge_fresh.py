@@ -66,12 +66,14 @@ def test_the_committed_agreement_recomputes_from_the_committed_judgements(name):
     from gdbench.experiments.judge_fresh import agreement_rows
 
     folder, judged = _judged_or_skip(name)
-    stored = _read(folder / "agreement.csv")
-    again = agreement_rows(judged)
-    assert len(again) == len(stored)
-    for a, s in zip(again, stored):
-        assert (a["mode"], a["truth"], a["block"], a["n"]) == (s["mode"], s["truth"], s["block"], int(s["n"]))
-        assert a["kappa_janus"] == pytest.approx(float(s["kappa_janus"]), abs=1e-9)
+    readings = [folder, *(d for d in sorted(folder.iterdir()) if (d / "judged.csv").is_file())]  # other judges'
+    for where in readings:
+        stored = _read(where / "agreement.csv")
+        again = agreement_rows(_read(where / "judged.csv"))
+        assert len(again) == len(stored)
+        for a, s in zip(again, stored):
+            assert (a["mode"], a["truth"], a["block"], a["n"]) == (s["mode"], s["truth"], s["block"], int(s["n"]))
+            assert a["kappa_janus"] == pytest.approx(float(s["kappa_janus"]), abs=1e-9)
     key = json.loads((folder / f"{name}_key.json").read_text())
     assert len(judged) == len(key) >= 120
     labels = {p: {r["run_id"]: r["label"] for r in _read(ROOT / "fixtures" / "labels" / f"{name}_rater{p}.csv")}
@@ -130,3 +132,24 @@ def test_the_pooled_diagnostic_refits_the_head_on_both_sets_labels():
     blocks = ("learned-janus", "learned-uniform", "empirical-janus")
     assert sum(rows[("in sample, pooled", b)]["n"] for b in blocks) == fresh
     assert rows[("in sample, pooled", "all")]["agree"] >= rows[("leave-kind-out, pooled", "all")]["agree"]
+
+
+def test_the_reading_refuses_bad_arguments_in_one_line(tmp_path, monkeypatch, capsys):
+    """Another judge without --out (it would replace the shipped judge's committed reading), a
+    folder that holds no judge, and a registered set whose sheets are not committed yet are each a
+    one-line error naming the argument; nothing is written."""
+    from gdbench.experiments.judge_fresh import main
+    from gdbench.metrics.judge.judge import WEIGHTS
+    from gdbench.metrics.judge.sheets import FRESH_SETS, FreshSet
+
+    cases = [
+        (["--set", "fresh", "--judge", str(WEIGHTS)], "--judge: give --out too"),
+        (["--set", "fresh", "--judge", str(tmp_path), "--out", str(tmp_path)], "missing eye.safetensors, head.json"),
+    ]
+    monkeypatch.setitem(FRESH_SETS, "later", FreshSet("later", tmp_path / "later", "docs/judge_later.md"))
+    cases.append((["--set", "later"], "--set later: "))
+    for argv, message in cases:
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2 and message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

@@ -107,13 +107,18 @@ def test_the_aligned_numbers_against_closed_forms():
                            azimuth=torch.arange(BINS) * 360.0 / BINS, elevation=torch.full((BINS,), 15.0))  # fmt: skip
     t = Templates.from_data(crops, data)
     names = SAMENESS[-ALIGNED:]
-    own = dict(zip(names, sameness_features(_asset_views(t, "a", SHEET), SIX, t, "a")[-ALIGNED:].tolist()))
+    own_views = _asset_views(t, "a", SHEET)
+    own = dict(zip(names, sameness_features(own_views, SIX, t, "a")[-ALIGNED:].tolist()))
     assert own["aligned"] == pytest.approx(1.0, abs=1e-5) and own["aligned_min"] == pytest.approx(1.0, abs=1e-5)
-    assert own["aligned_over_best"] == pytest.approx(0.0, abs=1e-5) and own["aligned_over_front"] >= -1e-5
+    assert own["aligned_over_best"] == pytest.approx(0.0, abs=1e-5)
+    r, _ = _colour_and_outline(t.crops["a"].float() / 255.0)
+    u_own, _ = _colour_and_outline(own_views)
+    front_k = [k for k in range(len(r)) if abs((float(t.azimuth["a"][k]) + 180) % 360 - 180) <= ALIGNED_DEG]
+    best_front = [max(float(u_own[v] @ r[k]) for k in front_k) for v in range(1, 6)]
+    assert own["aligned_over_front"] == pytest.approx(sum(1.0 - b for b in best_front) / 5, abs=1e-5)
     fronts = _asset_views(t, "a", [0.0] * 6)
     got = dict(zip(names, sameness_features(fronts, SIX, t, "a")[-ALIGNED:].tolist()))
     u, _ = _colour_and_outline(fronts[:1])
-    r, _ = _colour_and_outline(t.crops["a"].float() / 255.0)
     sides = []
     for view_az in SHEET[1:]:
         near = [k for k in range(len(r)) if abs((float(t.azimuth["a"][k]) - view_az + 180) % 360 - 180) <= ALIGNED_DEG]
@@ -121,6 +126,19 @@ def test_the_aligned_numbers_against_closed_forms():
     assert got["aligned_over_front"] == pytest.approx(sum(s - 1.0 for s in sides) / 5, abs=1e-5)
     assert got["aligned_min"] == pytest.approx(min(sides), abs=1e-5) and got["aligned_over_best"] < 0
     assert got["aligned"] == pytest.approx((1.0 + sum(sides)) / 6, abs=1e-5)
+    # the views' own azimuths, not the sheet's: the asset's views 20 degrees on from the sheet's,
+    # at their cameras, match where they are (a reading at the sheet's azimuths would not: 20 > 15)
+    on = [x + 20.0 for x in SHEET]
+    shifted = sameness_features(_asset_views(t, "a", on), torch.tensor(on), t, "a")[-ALIGNED:]
+    assert float(shifted[0]) == pytest.approx(1.0, abs=1e-5) and float(shifted[1]) == pytest.approx(0.0, abs=1e-5)
+    keep = torch.tensor([0, 1, 2, 8, 9])  # renders at 0-20 and 80-90 degrees only: none near 180
+    far = Templates({"a": t.crops["a"][keep]}, {"a": t.azimuth["a"][keep]}, {"a": t.variant["a"][keep]})
+    with pytest.raises(ValueError, match="no render of the asset within 15 degrees of a view"):
+        sameness_features(own_views, SIX, far, "a")
+    keep = torch.tensor([0, 1])  # no side at all
+    bare = Templates({"a": t.crops["a"][keep]}, {"a": t.azimuth["a"][keep]}, {"a": t.variant["a"][keep]})
+    with pytest.raises(ValueError, match="no render of the asset within 30 degrees of its front or between"):
+        sameness_features(own_views, SIX, bare, "a")
 
 
 def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
@@ -142,3 +160,31 @@ def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
     changed = Judge(tmp_path)
     assert changed.version != shipped.version
     assert len(changed.feature_names()) == len(changed.head.mean) == 30
+
+
+def test_an_earlier_judges_head_reads_the_features_it_was_fitted_on(tmp_path):
+    """A second-version folder (a head over 26 features) reads the first 26 of the readings, the
+    same numbers the third version's first 26 are; a head over a count no version had is refused."""
+    import json
+
+    from gdbench.metrics.judge.judge import WEIGHTS, Judge
+
+    for name in ("eye.safetensors", "templates.safetensors"):
+        shutil.copy(WEIGHTS / name, tmp_path / name)
+    info = json.loads((WEIGHTS / "head.json").read_text())
+    info["head"] = {k: v[:26] if k in ("mean", "scale", "weight") else v for k, v in info["head"].items()}
+    (tmp_path / "head.json").write_text(json.dumps(info))
+    second, third = Judge(tmp_path), Judge(WEIGHTS)
+    assert second.n_features == 26 and third.n_features == 30
+    assert second.feature_names() == third.feature_names()[:26]
+    g = torch.Generator().manual_seed(1)
+    views = (torch.rand(6, 64, 64, 3, generator=g) * 255).to(torch.uint8)
+    views[:, 16:48, 20:44] = torch.tensor([200, 150, 40], dtype=torch.uint8)
+    views[:, :16] = 255
+    x2, _ = second.features(views, SIX, "a yellow duck")
+    x3, _ = third.features(views, SIX, "a yellow duck")
+    assert x2.shape == (26,) and torch.equal(x2, x3[:26])
+    info["head"] = {k: v[:23] if k in ("mean", "scale", "weight") else v for k, v in info["head"].items()}
+    (tmp_path / "head.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match="reads 23 features"):
+        Judge(tmp_path)

@@ -101,11 +101,12 @@ def agreement_rows(judged: list[dict], blocks: tuple[str, ...] = BLOCKS) -> list
     return rows
 
 
-def pooled(root: Path = Path("."), which: str = "fresh") -> list[dict]:
+def pooled(root: Path = Path("."), which: str = "fresh", judge_dir: Path | None = None) -> list[dict]:
     """After the fresh set was read (it is spent as a test): would more labelled results, the fresh
     set's pooled with v3's, let the head meet the bar? The head refitted leave-kind-out and in sample
     over the union (six views; the eye as shipped), a row per fit and source (v3, each fresh block).
-    A diagnostic of the head's data against its features, not a test of a judge."""
+    A diagnostic of the head's data against its features, not a test of a judge. ``judge_dir``: the
+    judge whose eye and features are read (default: the shipped one)."""
     from gdbench.assets.library import PARTS, has_front
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.judge_build import sheet_features
@@ -113,7 +114,7 @@ def pooled(root: Path = Path("."), which: str = "fresh") -> list[dict]:
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.sheets import v3_results
 
-    judge = load_judge()
+    judge = load_judge(str(judge_dir) if judge_dir else None)
     fresh = fresh_results(root, which)
     results = v3_results(root) + fresh
     source = ["v3"] * (len(results) - len(fresh)) + [block_and_arm(r.run)[0] for r in fresh]
@@ -168,23 +169,29 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m gdbench.experiments.judge_fresh", description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=Path, help="the sweep folder of docs/results/judge/fresh/sweep.sh (run-folder mode)")
-    ap.add_argument(
-        "--set",
-        dest="which",
-        choices=sorted(FRESH_SETS),
-        default="fresh",
-        help="which fresh set: fresh (docs/judge_fresh.md) or fresh2 (docs/judge_fresh2.md)",
-    )
-    ap.add_argument("--out", type=Path, help="where judged.csv and agreement.csv go (default: the set's folder)")
+    sets = ", ".join(f"{k} ({v.registration})" for k, v in FRESH_SETS.items())
+    ap.add_argument("--set", dest="which", choices=sorted(FRESH_SETS), default="fresh", help=f"which fresh set: {sets}")
+    ap.add_argument("--out", type=Path, help="where judged.csv and agreement.csv go (default: the set's folder; "
+                    "required with --judge, so another judge's reading never replaces the shipped one's)")  # fmt: skip
     ap.add_argument("--judge", type=Path, help="the judge's folder (default: the shipped one; an earlier judge's "
                     "folder reads the set as that judge did)")  # fmt: skip
     ap.add_argument("--recompute", action="store_true", help="agreement.csv from the committed judged.csv only")
     ap.add_argument("--pooled", action="store_true", help="the diagnostic: the head refitted on v3's and the fresh "
                     "set's labels together (pooled.csv); nothing else is written")  # fmt: skip
     args = ap.parse_args(argv)
-    args.out = args.out or FRESH_SETS[args.which].folder
+    fs = FRESH_SETS[args.which]
+    if args.judge is not None:
+        if args.out is None:
+            ap.error("--judge: give --out too (the set's folder holds the shipped judge's reading)")
+        missing = [n for n in ("eye.safetensors", "head.json") if not (args.judge / n).is_file()]
+        if missing:
+            ap.error(f"--judge: {args.judge} holds no judge (missing {', '.join(missing)})")
+    if not fs.key.is_file():
+        ap.error(f"--set {args.which}: {fs.key} is missing (its sheets and labels are not committed yet: "
+                 f"{fs.registration})")  # fmt: skip
+    args.out = args.out or fs.folder
     if args.pooled:
-        rows = pooled(which=args.which)
+        rows = pooled(which=args.which, judge_dir=args.judge)
         write_csv(rows, args.out / "pooled.csv")
         for r in rows:
             print(f"{r['fit']:26s} {r['source']:16s} n {r['n']:3d}: kappa {r['kappa_janus']:.2f} (Janus split), "
@@ -192,8 +199,6 @@ def main(argv=None) -> int:
         return 0
     if args.runs is not None and not args.runs.is_dir():
         ap.error(f"--runs: {args.runs} is not a folder (the fresh sweep's OUT)")
-    if args.judge is not None and not (args.judge / "head.json").is_file():
-        ap.error(f"--judge: {args.judge} holds no judge (head.json and eye.safetensors)")
     if args.recompute:
         judged = _read(args.out / "judged.csv")
     else:

@@ -21,7 +21,8 @@ numbers compare the views as pictures instead (``SAMENESS``):
   (``aligned_over_best``: 0 where each view shows what its camera should see, below 0 where some
   other side of the asset fits it better), less the best match with the asset's front
   (``aligned_over_front``, over the five views that are not the front: below 0 where the front is
-  seen from the side) and the worst view's match (``aligned_min``, of those five). A result that
+  seen from the side) and the worst view's match (``aligned_min``, of those five; of every view
+  where all are bunched at the front). A result that
   shows the asset as it is matches it where it should; a front everywhere matches the front; a
   blob matches nothing well.
 
@@ -161,6 +162,9 @@ def sameness_features(crops: Tensor, azimuths: Tensor, templates: Templates, cap
     a = _wrap(templates.azimuth[caption])
     front = a.abs() <= FRONT_DEG
     side = (a.abs() >= SIDE_DEG[0]) & (a.abs() <= SIDE_DEG[1])
+    if not front.any() or not side.any():
+        raise ValueError(f"templates: no render of the asset within {FRONT_DEG:g} degrees of its front or between "
+                         f"{SIDE_DEG[0]:g} and {SIDE_DEG[1]:g} of it, for {caption!r}; draw them again")  # fmt: skip
     same, same_sil = _mean_off_diagonal(v), _mean_off_diagonal(vs)
     sim, sim_sil = v @ r.T, vs @ rs.T
     over = (sim[:, front].amax(1) - sim[:, side].amax(1)).mean()
@@ -177,11 +181,20 @@ def sameness_features(crops: Tensor, azimuths: Tensor, templates: Templates, cap
 
 def _aligned(sim: Tensor, a: Tensor, view_az: Tensor) -> Tensor:
     """The ``ALIGNED`` numbers from the views' colour similarity to the templates ``sim`` [6, K],
-    the templates' azimuths ``a`` [K] and the views' camera azimuths [6] (degrees)."""
-    floor = torch.tensor(-2.0)  # below any correlation: excluded from a max
+    the templates' azimuths ``a`` [K] and the views' camera azimuths [6] (degrees). Where no view
+    is away from the front (views bunched within ``ALIGNED_DEG`` of it), the last two are over
+    every view."""
     here = _wrap(a[None] - view_az[:, None]).abs() <= ALIGNED_DEG
+    at_front = a.abs() <= ALIGNED_DEG
+    if not here.any(1).all() or not at_front.any():
+        gap = float(_wrap(a[None] - view_az[:, None]).abs().amin(1).max())
+        raise ValueError(f"templates: no render of the asset within {ALIGNED_DEG:g} degrees of a view's azimuth or of "
+                         f"the front (the nearest is {gap:.1f} degrees off); draw the templates again")  # fmt: skip
+    floor = torch.tensor(-2.0)  # below any correlation: excluded from a max
     aligned = torch.where(here, sim, floor).amax(1)
-    front = torch.where((a.abs() <= ALIGNED_DEG)[None], sim, floor).amax(1)
-    not_front = _wrap(view_az).abs() > ALIGNED_DEG
-    return torch.stack([aligned.mean(), (aligned - sim.amax(1)).mean(), (aligned - front)[not_front].mean(),
-                        aligned[not_front].min()])  # fmt: skip
+    front = torch.where(at_front[None], sim, floor).amax(1)
+    away = _wrap(view_az).abs() > ALIGNED_DEG
+    if not away.any():
+        away = torch.ones_like(away)
+    return torch.stack([aligned.mean(), (aligned - sim.amax(1)).mean(), (aligned - front)[away].mean(),
+                        aligned[away].min()])  # fmt: skip
