@@ -144,9 +144,11 @@ FRESH_SETS = {
     "fresh": FreshSet("fresh", Path("docs/results/judge/fresh"), "docs/judge_fresh.md"),
     "fresh2": FreshSet("fresh2", Path("docs/results/judge/fresh2"), "docs/judge_fresh2.md"),
     "fresh3": FreshSet("fresh3", Path("docs/results/judge/fresh3"), "docs/judge_fresh3.md"),
+    "fresh4": FreshSet("fresh4", Path("docs/results/judge/fresh4"), "docs/judge_fresh4.md"),
 }
-"""The judge's fresh sets: the first (spent: the second judge is fitted on it), the second (spent:
-read by the second and third judges) and the third (registered 2026-12-06)."""
+"""The judge's fresh sets: the first (spent: the second judge is fitted on it), the second and the
+third (spent: read by the second and third judges) and the fourth (registered 2026-12-06, its
+labels not drawn yet)."""
 FRESH = FRESH_SETS["fresh"].folder
 """The judge's first fresh set (docs/judge_fresh.md): sheets/ (WebP), fresh_key.json, its tables."""
 FRESH_LABELS = FRESH_SETS["fresh"].labels
