@@ -11,6 +11,7 @@ root=$(cd "$here/../../../.." && pwd)
 out=${1:?usage: draw.sh OUT WORK}
 work=${2:?usage: draw.sh OUT WORK}
 py=$root/.venv/bin/python
+[ -x "$py" ] || { echo "draw.sh: $py is missing: run this script from the checkout that holds the virtual environment (make test or scripts/setup.sh makes it)"; exit 1; }
 mkdir -p "$work"
 "$py" -m gdbench.metrics.label_sheets --runs "$out/learned-janus" "$out/learned-uniform" "$out/empirical-janus" \
   --out "$work/sheets" --key "$work/fresh_key.json" --per-sheet 10 --seed "${DRAW_SEED:-58}"

@@ -6,10 +6,11 @@
 #   [SEED=6] bash docs/results/judge/fresh/sweep.sh CLONE OUT
 set -euo pipefail
 here=$(cd "$(dirname "$0")/../../../.." && pwd)
+py=$here/.venv/bin/python
+[ -x "$py" ] || { echo "sweep.sh: $py is missing: run this script from the checkout that holds the virtual environment (make test or scripts/setup.sh makes it)"; exit 1; }
 clone=${1:?usage: sweep.sh CLONE OUT}
 out=${2:?usage: sweep.sh CLONE OUT}
 [ -d "$clone/.git" ] || git clone -q "$here" "$clone"
-py=$here/.venv/bin/python
 cd "$clone"
 export PYTHONPATH=$PWD  # the clone's sources, not the editable install's
 mapfile -t prompts < <("$py" -c "from gdbench.experiments.v3_design import prompts; print('\n'.join(prompts()))")
