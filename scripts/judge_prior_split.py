@@ -27,8 +27,7 @@ def main(argv=None) -> int:
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.judge_build import sheet_features
     from gdbench.experiments.judge_fresh import block_and_arm
-    from gdbench.metrics.judge.evaluate import agreement, judge_extra
-    from gdbench.metrics.judge.head import decide, fit
+    from gdbench.metrics.judge.evaluate import agreement, judge_extra, leave_kind_out
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
@@ -58,13 +57,7 @@ def main(argv=None) -> int:
         xs, fxs = x, fx
         if variant != "as shipped":
             xs, fxs = torch.cat([x, x * emp, emp], 1), torch.cat([fx, torch.zeros_like(fx), torch.zeros(len(fx), 1)], 1)
-        label = [None] * len(x)
-        for kind in sorted(set(kinds)):
-            on = [i for i in range(len(x)) if kinds[i] != kind and truth[i]]
-            head = fit(torch.cat([xs[on], fxs]), [truth[i] for i in on] + list(fy))
-            mine = [i for i in range(len(x)) if kinds[i] == kind]
-            for p, i in zip(head.probabilities(xs[mine]), mine):
-                label[i] = decide(p, x[i], fronts[i])[0]
+        label = [lab for lab, _ in leave_kind_out(xs, results, kinds, fronts, (fxs, list(fy)))]
         for part in ("all", "v3", "learned-janus", "learned-uniform", "empirical-janus"):
             idx = [i for i in range(len(x)) if truth[i] and part in ("all", block[i])]
             a = agreement([truth[i] for i in idx], [label[i] for i in idx])

@@ -66,17 +66,22 @@ def _blob_crops(n: int, g: torch.Generator) -> torch.Tensor:
     return out
 
 
+def _one_variant_templates(seed: int) -> tuple[torch.Tensor, Templates]:
+    """(crops, templates) of one caption "a" with one variant: a disc crop every 10 degrees at the
+    turntables' elevation, so that each template is exactly one crop."""
+    crops = _blob_crops(BINS, torch.Generator().manual_seed(seed))
+    data = SimpleNamespace(captions=("a",), caption=torch.zeros(BINS, dtype=torch.long),
+                           variant=torch.zeros(BINS, dtype=torch.long),
+                           azimuth=torch.arange(BINS) * 360.0 / BINS, elevation=torch.full((BINS,), 15.0))  # fmt: skip
+    return crops, Templates.from_data(crops, data)
+
+
 def test_sameness_against_closed_forms():
     """Six copies of one view correlate perfectly (sameness 1); a result made of the asset's own
     views, with one variant, is exactly as alike as the asset (relative sameness 0) and matches its
     front better than its sides only where it shows the front; the numbers follow the views' order
     and not their count (a turntable's 36 frames read as the six nearest the sheet's azimuths)."""
-    g = torch.Generator().manual_seed(3)
-    crops = _blob_crops(BINS, g)
-    data = SimpleNamespace(captions=("a",), caption=torch.zeros(BINS, dtype=torch.long),
-                           variant=torch.zeros(BINS, dtype=torch.long),
-                           azimuth=torch.arange(BINS) * 360.0 / BINS, elevation=torch.full((BINS,), 15.0))  # fmt: skip
-    t = Templates.from_data(crops, data)
+    crops, t = _one_variant_templates(3)
     same = dict(zip(SAMENESS, sameness_features(crops[:1].expand(6, -1, -1, -1), SIX, t, "a").tolist()))
     assert same["same_colour"] == pytest.approx(1.0, abs=1e-5)
     assert same["same_outline"] == pytest.approx(1.0, abs=1e-5)
@@ -100,12 +105,7 @@ def test_the_aligned_numbers_against_closed_forms():
     template where its camera is, less 1, checked here by brute force over the templates."""
     from gdbench.metrics.judge.sameness import ALIGNED, ALIGNED_DEG, _colour_and_outline
 
-    g = torch.Generator().manual_seed(5)
-    crops = _blob_crops(BINS, g)
-    data = SimpleNamespace(captions=("a",), caption=torch.zeros(BINS, dtype=torch.long),
-                           variant=torch.zeros(BINS, dtype=torch.long),
-                           azimuth=torch.arange(BINS) * 360.0 / BINS, elevation=torch.full((BINS,), 15.0))  # fmt: skip
-    t = Templates.from_data(crops, data)
+    _, t = _one_variant_templates(5)
     names = SAMENESS[-ALIGNED:]
     own_views = _asset_views(t, "a", SHEET)
     own = dict(zip(names, sameness_features(own_views, SIX, t, "a")[-ALIGNED:].tolist()))

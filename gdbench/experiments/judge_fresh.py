@@ -22,9 +22,10 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from gdbench.metrics.judge.sheets import FRESH_BATCH, FRESH_LABELS, FRESH_SETS, fresh_results
+from gdbench.metrics.judge.sheets import FRESH_SETS, fresh_results
 
-LABELS, BATCH = FRESH_LABELS, FRESH_BATCH
+LABELS = FRESH_SETS["fresh"].labels
+"""The first fresh set's two passes' label files."""
 BLOCKS = ("learned-janus", "learned-uniform", "empirical-janus")
 MODES = ("six views", "run folder")
 FINE_WARNED_MAX = 0.1

@@ -149,11 +149,6 @@ FRESH_SETS = {
 """The judge's fresh sets: the first (spent: the second judge is fitted on it), the second and the
 third (spent: read by the second and third judges) and the fourth (registered 2026-12-06, its
 labels not drawn yet)."""
-FRESH = FRESH_SETS["fresh"].folder
-"""The judge's first fresh set (docs/judge_fresh.md): sheets/ (WebP), fresh_key.json, its tables."""
-FRESH_LABELS = FRESH_SETS["fresh"].labels
-FRESH_BATCH = "fresh"
-"""The fresh set's labels' batch column."""
 
 
 def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:
