@@ -142,8 +142,9 @@ def test_the_aligned_numbers_against_closed_forms():
 
 
 def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
-    """The shipped judge reads 30 features (eye, outline, sameness); without its templates its head
-    cannot read, which is one clear error; changed templates change the judge's version."""
+    """The shipped judge reads the templates' features (sameness, and from the fourth version the
+    look); without its templates its head cannot read, which is one clear error; changed templates
+    change the judge's version."""
     from gdbench.metrics.judge.judge import WEIGHTS, Judge
 
     if not (WEIGHTS / "templates.safetensors").is_file():
@@ -159,31 +160,40 @@ def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
     t.save(tmp_path / "templates.safetensors")
     changed = Judge(tmp_path)
     assert changed.version != shipped.version
-    assert len(changed.feature_names()) == len(changed.head.mean) == 30
+    assert len(changed.feature_names()) == changed.head.n_features == shipped.n_features > 26
 
 
 def test_an_earlier_judges_head_reads_the_features_it_was_fitted_on(tmp_path):
-    """A second-version folder (a head over 26 features) reads the first 26 of the readings, the
-    same numbers the third version's first 26 are; a head over a count no version had is refused."""
+    """Regression heads over 26 and 30 features (the second and third versions' shapes) read the
+    first 26 and 30 of the readings, the same numbers the shipped (fourth, 50: the look too) judge's
+    first ones are; a head over a count no version had is refused."""
     import json
 
+    from gdbench.metrics.judge.head import fit
     from gdbench.metrics.judge.judge import WEIGHTS, Judge
 
     for name in ("eye.safetensors", "templates.safetensors"):
         shutil.copy(WEIGHTS / name, tmp_path / name)
     info = json.loads((WEIGHTS / "head.json").read_text())
+    g = torch.Generator().manual_seed(0)
+    labels = ["front_everywhere", "blob", "fine"] * 20
+    info["head"] = fit(torch.randn(60, 30, generator=g), labels).to_dict()
+    (tmp_path / "head.json").write_text(json.dumps(info))
+    third = Judge(tmp_path)
     info["head"] = {k: v[:26] if k in ("mean", "scale", "weight") else v for k, v in info["head"].items()}
     (tmp_path / "head.json").write_text(json.dumps(info))
-    second, third = Judge(tmp_path), Judge(WEIGHTS)
-    assert second.n_features == 26 and third.n_features == 30
-    assert second.feature_names() == third.feature_names()[:26]
+    second, shipped = Judge(tmp_path), Judge(WEIGHTS)
+    assert second.n_features == 26 and third.n_features == 30 and shipped.n_features == 30
+    assert second.feature_names() == shipped.feature_names()[:26]
+    assert third.feature_names() == shipped.feature_names()[:30]
     g = torch.Generator().manual_seed(1)
     views = (torch.rand(6, 64, 64, 3, generator=g) * 255).to(torch.uint8)
     views[:, 16:48, 20:44] = torch.tensor([200, 150, 40], dtype=torch.uint8)
     views[:, :16] = 255
     x2, _ = second.features(views, SIX, "a yellow duck")
     x3, _ = third.features(views, SIX, "a yellow duck")
-    assert x2.shape == (26,) and torch.equal(x2, x3[:26])
+    x4, _ = shipped.features(views, SIX, "a yellow duck")
+    assert x2.shape == (26,) and torch.equal(x2, x4[:26]) and torch.equal(x3, x4[:30])
     info["head"] = {k: v[:23] if k in ("mean", "scale", "weight") else v for k, v in info["head"].items()}
     (tmp_path / "head.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="reads 23 features"):

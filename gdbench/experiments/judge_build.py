@@ -5,9 +5,10 @@
    (``EYE_DATA``), rendered by pyrender as the learned prior's data is (cached the same way).
 2. **The eye**: ``metrics/judge/train.py`` on those renders alone: no label of any result.
 3. **The sameness templates**: each caption's renders from the same data (``sameness.Templates``).
-4. **The head**: fitted on the consensus results (both passes agree) of v3's committed sheets and the
-   first fresh set's (``fit_results``), after the leave-kind-out evaluation (every kind held out in
-   turn) that says how it does out of sample.
+4. **The head** (``HEAD``: boosted trees over the features and the look numbers): fitted on the
+   consensus results (both passes agree) of v3's committed sheets and the three spent fresh sets'
+   (``fit_results``) and the ground truth's fixtures; the leave-kind-out evaluation (every kind held
+   out in turn) and the next fresh set say how it does out of sample.
 
 Writes ``out/eye.safetensors`` (the eye's weights in float16, its settings, the data's key and the
 commit as metadata), ``out/templates.safetensors``, ``out/head.json`` (the head and where it was
@@ -26,6 +27,9 @@ import torch
 
 EYE_VIEWS = 256
 """Cameras per (caption, variant) of the eye's data."""
+HEAD = "trees"
+"""The head's kind (``head.HEADS``): boosted trees over the features and the look numbers from the
+fourth judge on (the first three: the regression)."""
 
 
 def eye_data_config(views: int = EYE_VIEWS):
@@ -74,7 +78,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     from gdbench.core.io import atomic_write, write_json
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.judge.fixtures import HELD_OUT, fixture_rows
-    from gdbench.metrics.judge.head import fit
+    from gdbench.metrics.judge.head import fit_head
     from gdbench.metrics.judge.sameness import Templates
     from gdbench.metrics.judge.train import EyeTrainConfig, train_eye
     from gdbench.priors.learned.data import data_key
@@ -109,7 +113,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     x = sheet_features(eye, curves, results, templates)
     fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
     fx, fy, names = fixture_rows(eye, curves, templates, data.captions, progress=progress)
-    head = fit(torch.cat([x[fit_on], fx]), [results[i].consensus for i in fit_on] + fy)
+    head = fit_head(torch.cat([x[fit_on], fx]), [results[i].consensus for i in fit_on] + fy, HEAD, seed=seed)
     head_info = {"head": head.to_dict(),
                  "fitted_on": f"{where}: {len(fit_on)} consensus results; {len(fy)} fixtures of the ground truth",
                  "fixture_rows": {"names": names, "labels": fy, "features": fx.tolist(), "held_out": list(HELD_OUT)},
@@ -126,11 +130,18 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
 
 def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
-    (batches C-F) and the first fresh set's, which its reading spent (docs/judge_fresh.md). A
-    fresh set registered after this judge is never among them."""
+    (batches C-F) and the first three fresh sets' (``SPENT``), which their readings spent
+    (docs/judge_fresh.md, judge_fresh2.md, judge_fresh3.md). A fresh set registered after this
+    judge is never among them."""
     from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
-    return v3_results(root) + fresh_results(root), "v3 sheets C-F and the first fresh set's sheets"
+    results = v3_results(root) + [r for which in SPENT for r in fresh_results(root, which)]
+    return results, "v3 sheets C-F and the sheets of the fresh sets " + ", ".join(SPENT)
+
+
+SPENT = ("fresh", "fresh2", "fresh3")
+"""The fresh sets whose labels the head is fitted on: each was read by the judge before it (the
+first by the first judge, the second and third by the second and third) and is spent as a test."""
 
 
 def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
@@ -143,6 +154,7 @@ def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
     from gdbench.core.io import write_csv
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.judge.evaluate import agreement, in_sample, judge_extra, leave_kind_out, passes
+    from gdbench.metrics.judge.head import head_kind
     from gdbench.metrics.judge.judge import Judge
     from gdbench.metrics.judge.sheets import v3_results
 
@@ -152,8 +164,8 @@ def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
     extra = judge_extra(judge)
-    fits = {"leave-kind-out": leave_kind_out(x, results, kinds, fronts, extra),
-            "in sample": in_sample(x, results, fronts, extra)}  # fmt: skip
+    fits = {"leave-kind-out": leave_kind_out(x, results, kinds, fronts, extra, head_kind(judge.head)),
+            "in sample": in_sample(x, results, fronts, extra, head_kind(judge.head))}  # fmt: skip
     rows, commit = [], code_commit()
     for fit_name, judged in fits.items():
         labels = [lab for lab, _ in judged]

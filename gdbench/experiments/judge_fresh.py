@@ -112,6 +112,7 @@ def pooled(root: Path = Path("."), which: str = "fresh", judge_dir: Path | None 
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.judge_build import sheet_features
     from gdbench.metrics.judge.evaluate import agreement, in_sample, judge_extra, leave_kind_out
+    from gdbench.metrics.judge.head import head_kind
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.sheets import v3_results
 
@@ -124,8 +125,8 @@ def pooled(root: Path = Path("."), which: str = "fresh", judge_dir: Path | None 
     fronts = [has_front(r.caption) for r in results]
     rows = []
     extra = judge_extra(judge)
-    for fit, judged in (("leave-kind-out", leave_kind_out(x, results, kinds, fronts, extra)),
-                        ("in sample", in_sample(x, results, fronts, extra))):  # fmt: skip
+    for fit, judged in (("leave-kind-out", leave_kind_out(x, results, kinds, fronts, extra, head_kind(judge.head))),
+                        ("in sample", in_sample(x, results, fronts, extra, head_kind(judge.head)))):  # fmt: skip
         for part in ("all", "v3", *BLOCKS):
             idx = [i for i, r in enumerate(results) if r.consensus and part in ("all", source[i])]
             a = agreement([results[i].consensus for i in idx], [judged[i][0] for i in idx])

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from gdbench.metrics.agreement import JANUS, LABELS
-from gdbench.metrics.judge.head import decide, fit
+from gdbench.metrics.judge.head import decide, fit_head
 
 THRESHOLDS = {"kappa_janus": 0.8, "kappa_four": 0.7, "recall_front_everywhere": 0.7, "recall_blob": 0.7,
               "recall_fine": 0.7}  # fmt: skip
@@ -51,36 +51,37 @@ def passes(row: dict) -> dict[str, bool]:
 
 
 def leave_kind_out(features: Tensor, results: list, kinds: list[str], fronts: list[bool],
-                   extra: tuple[Tensor, list[str]] | None = None) -> list[tuple[str, float]]:  # fmt: skip
-    """Each result's (label, confidence) from a head fitted without its kind's results (only
-    consensus results are fitted on), with the ``extra`` rows (features, labels: the fixtures made
-    from the ground truth, ``fixtures.fixture_rows``) in every fit."""
+                   extra: tuple[Tensor, list[str]] | None = None,
+                   head: str = "linear") -> list[tuple[str, float]]:  # fmt: skip
+    """Each result's (label, confidence) from a head of kind ``head`` (``head.HEADS``) fitted without
+    its kind's results (only consensus results are fitted on), with the ``extra`` rows (features,
+    labels: the fixtures made from the ground truth, ``fixtures.fixture_rows``) in every fit."""
     out: list[tuple[str, float] | None] = [None] * len(results)
     consensus = [r.consensus for r in results]
     for kind in sorted(set(kinds)):
         fit_on = [i for i, r in enumerate(results) if kinds[i] != kind and consensus[i] is not None]
-        head = _fit(features[fit_on], [consensus[i] for i in fit_on], extra)
+        fitted = _fit(features[fit_on], [consensus[i] for i in fit_on], extra, head)
         mine = [i for i in range(len(results)) if kinds[i] == kind]
-        p = head.probabilities(features[mine])
+        p = fitted.probabilities(features[mine])
         for j, i in enumerate(mine):
             out[i] = decide(p[j], features[i], fronts[i])
     return out  # type: ignore[return-value]
 
 
-def in_sample(features: Tensor, results: list, fronts: list[bool],
-              extra: tuple[Tensor, list[str]] | None = None) -> list[tuple[str, float]]:  # fmt: skip
-    """Each result's (label, confidence) from one head fitted on every consensus result (and the
-    ``extra`` rows)."""
+def in_sample(features: Tensor, results: list, fronts: list[bool], extra: tuple[Tensor, list[str]] | None = None,
+              head: str = "linear") -> list[tuple[str, float]]:  # fmt: skip
+    """Each result's (label, confidence) from one head of kind ``head`` fitted on every consensus
+    result (and the ``extra`` rows)."""
     fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
-    head = _fit(features[fit_on], [results[i].consensus for i in fit_on], extra)
-    p = head.probabilities(features)
+    fitted = _fit(features[fit_on], [results[i].consensus for i in fit_on], extra, head)
+    p = fitted.probabilities(features)
     return [decide(p[i], features[i], fronts[i]) for i in range(len(results))]
 
 
-def _fit(x: Tensor, labels: list[str], extra: tuple[Tensor, list[str]] | None):
+def _fit(x: Tensor, labels: list[str], extra: tuple[Tensor, list[str]] | None, head: str = "linear"):
     if extra is None or not len(extra[1]):
-        return fit(x, labels)
-    return fit(torch.cat([x, extra[0]]), labels + list(extra[1]))
+        return fit_head(x, labels, head)
+    return fit_head(torch.cat([x, extra[0]]), labels + list(extra[1]), head)
 
 
 def judge_extra(judge) -> tuple[Tensor, list[str]] | None:

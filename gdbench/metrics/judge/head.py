@@ -40,6 +40,10 @@ class Head:
         """[N, F] features -> [N, 3] probabilities of ``CLASSES3``."""
         return torch.softmax(((x - self.mean) / self.scale) @ self.weight + self.bias, -1)
 
+    @property
+    def n_features(self) -> int:
+        return self.weight.shape[0]
+
     def to_dict(self) -> dict:
         return {k: getattr(self, k).tolist() for k in ("mean", "scale", "weight", "bias")}
 
@@ -75,6 +79,46 @@ def fit(x: Tensor, labels: list[str], l2: float = L2) -> Head:
 
     opt.step(closure)
     return Head(mean, scale, weight.detach(), bias.detach())
+
+
+def class_weights(labels: list[str]) -> tuple[Tensor, Tensor]:
+    """(class indices [N] of ``CLASSES3``, row weights [N] summing to 1 with each class weighing the
+    same) of rule labels."""
+    y = torch.tensor([to3(lab) for lab in labels])
+    counts = torch.bincount(y, minlength=3).double().clamp(min=1)
+    w = (1.0 / counts)[y]
+    return y, w / w.sum()
+
+
+HEADS = ("linear", "trees")
+"""The kinds of head: the regression (``fit``; the first three judges) and boosted trees over the
+features and the look numbers (``trees.fit_forest``; the fourth)."""
+
+
+def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
+    """A head of ``kind`` (``HEADS``) fitted to ``labels`` on features ``x`` [N, F], classes
+    weighted equally."""
+    if kind == "linear":
+        return fit(x, labels)
+    if kind == "trees":
+        from gdbench.metrics.judge.trees import fit_forest
+
+        y, w = class_weights(labels)
+        return fit_forest(x, y, w, seed=seed)
+    raise ValueError(f"kind: expected one of {HEADS}, got {kind!r}")
+
+
+def load_head(d: dict):
+    """A head from its ``to_dict``: a ``Head`` or, where ``d['kind']`` says trees, a ``trees.Forest``."""
+    if d.get("kind", "linear") == "trees":
+        from gdbench.metrics.judge.trees import Forest
+
+        return Forest.from_dict(d)
+    return Head.from_dict(d)
+
+
+def head_kind(head) -> str:
+    return "linear" if isinstance(head, Head) else "trees"
 
 
 def decide(probabilities: Tensor, features: Tensor, has_front: bool) -> tuple[str, float]:

@@ -33,7 +33,7 @@ class Judge:
     def __init__(self, folder: Path = WEIGHTS):
         from safetensors.torch import load_file, safe_open
 
-        from gdbench.metrics.judge.head import Head
+        from gdbench.metrics.judge.head import load_head
         from gdbench.metrics.judge.net import Eye, EyeConfig
 
         folder = Path(folder)
@@ -47,7 +47,7 @@ class Judge:
         self.eye.load_state_dict({k: v.float() for k, v in load_file(str(eye_path)).items()})
         self.eye.eval().requires_grad_(False)
         self.head_info = json.loads(head_path.read_text())
-        self.head = Head.from_dict(self.head_info["head"])
+        self.head = load_head(self.head_info["head"])
         self.curves = self.head_info["aspect_curves"]
         parts = [eye_path.read_bytes(), head_path.read_bytes()]
         self.templates = None
@@ -56,11 +56,14 @@ class Judge:
 
             self.templates = Templates.load(folder / "templates.safetensors")
             parts.append((folder / "templates.safetensors").read_bytes())
+        from gdbench.metrics.judge.look import LOOK
         from gdbench.metrics.judge.reading import FEATURES
         from gdbench.metrics.judge.sameness import ALIGNED, SAMENESS
 
-        n, first = self.head.weight.shape[0], 2 * len(FEATURES)
-        known = (first + len(SAMENESS) - ALIGNED, first + len(SAMENESS)) if self.templates is not None else (first,)
+        n, first, same = self.head.n_features, 2 * len(FEATURES), len(SAMENESS)
+        known = (first,)
+        if self.templates is not None:
+            known = (first + same - ALIGNED, first + same, first + same + len(LOOK))
         if n not in known:
             raise ValueError(
                 f"judge: {head_path} reads {n} features, the folder's parts give {' or '.join(map(str, known))} "
@@ -68,7 +71,7 @@ class Judge:
             )
         self.n_features = n
         """How many of the readings' features the head reads, in order: a judge reads the ones it was
-        fitted on (the first version 20, the second 26, the third 30)."""
+        fitted on (the first version 20, the second 26, the third 30, the fourth 50: the look too)."""
         self.version = hashlib.sha256(b"".join(parts)).hexdigest()[:12]
 
     def knows(self, caption: str | None) -> bool:
@@ -76,11 +79,14 @@ class Judge:
 
     def feature_names(self) -> list[str]:
         """The names of ``features``' values: the eye's turntable features, the outline's
-        (``outline_`` before each) and, with templates, the sameness reading's."""
+        (``outline_`` before each) and, with templates, the sameness reading's and the look's."""
+        from gdbench.metrics.judge.look import LOOK
         from gdbench.metrics.judge.reading import FEATURES
         from gdbench.metrics.judge.sameness import SAMENESS
 
-        names = [*FEATURES, *(f"outline_{k}" for k in FEATURES), *(SAMENESS if self.templates is not None else ())]
+        names = [*FEATURES, *(f"outline_{k}" for k in FEATURES)]
+        if self.templates is not None:
+            names += [*SAMENESS, *LOOK]
         return names[: self.n_features]
 
     def features(self, views, azimuths, caption: str):

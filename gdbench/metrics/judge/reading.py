@@ -166,8 +166,9 @@ def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption:
                     templates=None) -> tuple[Tensor, Tensor]:  # fmt: skip
     """One result's features: ``turntable_features`` of the eye's readings, then of the outline's
     (``aspect_readings`` against ``curves[caption]``), then, with ``templates``, the views' sameness
-    (``sameness.sameness_features``); and the eye's readings [V, BINS]. ``views`` [V, H, W, 3] at
-    camera ``azimuths`` [V]."""
+    (``sameness.sameness_features``) and their look (``look.look_numbers``); and the eye's readings
+    [V, BINS]. ``views`` [V, H, W, 3] at camera ``azimuths`` [V]. A judge reads the first of them
+    that its head was fitted on (``Judge.n_features``)."""
     from gdbench.metrics.judge.net import crop_views
 
     crops = crop_views(views)
@@ -176,7 +177,23 @@ def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption:
     qa = aspect_readings(log_aspect(views), torch.tensor(c["mean"]), torch.tensor(c["spread"]))
     parts = [turntable_features(q, azimuths), turntable_features(qa, azimuths)]
     if templates is not None:
+        from gdbench.metrics.judge.look import look_numbers
         from gdbench.metrics.judge.sameness import sameness_features
 
-        parts.append(sameness_features(crops, azimuths, templates, caption))
+        six = sheet_views(azimuths)
+        parts += [sameness_features(crops, azimuths, templates, caption), look_numbers(views[six], crops[six])]
     return torch.cat(parts), q
+
+
+def sheet_views(azimuths: Tensor) -> Tensor:
+    """The indices of the views at a sheet's six azimuths (0, 60, ..., 300, within a degree) where
+    ``azimuths`` [V] hold all six (a run turntable's 36 frames do), else every view: the look is
+    read on the views a sheet shows, so that a run folder and its sheet give the same numbers (over
+    36 frames the look's spreads differ from the six views' by up to 0.3 of their spread)."""
+    from gdbench.metrics.judge.sameness import SHEET
+
+    d = (azimuths.float()[:, None] - torch.tensor(SHEET)[None] + 180.0) % 360.0 - 180.0
+    near = d.abs() < 1.0  # [V, 6]
+    if not bool(near.any(0).all()):
+        return torch.arange(len(azimuths))
+    return near.float().argmax(0)
