@@ -146,9 +146,9 @@ FRESH_SETS = {
     "fresh3": FreshSet("fresh3", Path("docs/results/judge/fresh3"), "docs/judge_fresh3.md"),
     "fresh4": FreshSet("fresh4", Path("docs/results/judge/fresh4"), "docs/judge_fresh4.md"),
 }
-"""The judge's fresh sets: the first (spent: the second judge is fitted on it), the second and the
-third (spent: read by the second and third judges) and the fourth (registered 2026-12-06, its
-labels not drawn yet)."""
+"""The judge's fresh sets: the first (spent: the second and third judges are fitted on it), the
+second and the third (spent: read by the second and third judges; the fourth judge is fitted on all
+three) and the fourth (registered 2026-12-06, read by the fourth judge)."""
 
 
 def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:

@@ -1,0 +1,90 @@
+"""Why the fourth judge's head is trees: the two kinds of head on the labelled sets that were spent
+before it (v3's sheets and the first three fresh sets), held out two ways.
+
+    python scripts/judge_leave_set_out.py [--judge DIR] [--out docs/results/judge/fourth]
+
+- **leave-set-out** (``leave_set_out.csv``): each fresh set in turn is judged by a head fitted on
+  v3's and the other two sets' consensus results and the fixtures: what a fresh set measures (new
+  results of the same prompts, from a seed no head saw);
+- **leave-kind-out pooled** (``leave_kind_out_pooled.csv``): every kind held out in turn over all
+  four sets: what a kind the head never saw gets.
+
+Both heads read the judge's features (``--judge``, default the shipped one): the regression the
+first 30 of them (eye, outline, sameness: the third judge's head), the trees all 50 (the look too).
+Six views each, from the committed sheets; the eye as shipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+HEADS = (("linear", 30), ("trees", 50))
+"""(head kind, how many of the judge's features it reads)."""
+SETS = ("fresh", "fresh2", "fresh3")
+
+
+def main(argv=None) -> int:
+    from gdbench.assets.library import PARTS, has_front
+    from gdbench.core.io import write_csv
+    from gdbench.core.provenance import code_commit
+    from gdbench.experiments.judge_build import sheet_features
+    from gdbench.experiments.judge_fresh import block_and_arm
+    from gdbench.metrics.judge.evaluate import agreement, judge_extra, leave_kind_out
+    from gdbench.metrics.judge.head import decide, fit_head
+    from gdbench.metrics.judge.judge import load_judge
+    from gdbench.metrics.judge.sheets import fresh_results, v3_results
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--judge", type=Path, default=None, help="a judge folder (default: the shipped judge)")
+    ap.add_argument("--out", type=Path, default=Path("docs/results/judge/fourth"))
+    args = ap.parse_args(argv)
+    judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
+    if judge.n_features < max(n for _, n in HEADS):
+        ap.error(f"--judge: expected a judge reading {max(n for _, n in HEADS)} features, got {judge.n_features}")
+    results = v3_results() + [r for s in SETS for r in fresh_results(which=s)]
+    source = [r.batch if r.batch in SETS else "v3" for r in results]
+    block = [block_and_arm(r.run)[0] or "v3" for r in results]
+    x = sheet_features(judge.eye, judge.curves, results, judge.templates)
+    fx, fy = judge_extra(judge)
+    truth = [r.consensus for r in results]
+    fronts, kinds = [has_front(r.caption) for r in results], [PARTS[r.caption][0] for r in results]
+    lso, lko = [], []
+    for kind, n in HEADS:
+        label: list[str | None] = [None] * len(results)
+        for held in SETS:
+            fit_on = [i for i in range(len(results)) if source[i] != held and truth[i]]
+            head = fit_head(torch.cat([x[fit_on, :n], fx[:, :n]]), [truth[i] for i in fit_on] + list(fy), kind)
+            mine = [i for i in range(len(results)) if source[i] == held]
+            p = head.probabilities(x[mine, :n])
+            for j, i in enumerate(mine):
+                label[i] = decide(p[j], x[i], fronts[i])[0]
+        for held in SETS:
+            idx = [i for i in range(len(results)) if source[i] == held and truth[i]]
+            a = agreement([truth[i] for i in idx], [label[i] for i in idx])
+            lso.append(row(kind, n, held, a, judge.version, commit))
+            print(f"{kind:6s} leave-set-out {held:6s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} (Janus split), "
+                  f"{a['kappa_four']:.2f} (four), recall fe {a['recall_front_everywhere']:.2f} "
+                  f"blob {a['recall_blob']:.2f} fine {a['recall_fine']:.2f}", flush=True)  # fmt: skip
+        pooled = leave_kind_out(x[:, :n], results, kinds, fronts, (fx[:, :n], list(fy)), kind)
+        for part in ("all", "v3", "learned-janus", "learned-uniform", "empirical-janus"):
+            idx = [i for i in range(len(results)) if truth[i] and part in ("all", block[i])]
+            a = agreement([truth[i] for i in idx], [pooled[i][0] for i in idx])
+            lko.append(row(kind, n, part, a, judge.version, commit))
+            print(f"{kind:6s} leave-kind-out pooled {part:16s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} "
+                  f"(Janus split), {a['kappa_four']:.2f} (four), blob {a['recall_blob']:.2f}", flush=True)  # fmt: skip
+    write_csv(lso, args.out / "leave_set_out.csv")
+    write_csv(lko, args.out / "leave_kind_out_pooled.csv")
+    print(f"-> {args.out}")
+    return 0
+
+
+def row(kind: str, n: int, part: str, a: dict, version: str, commit: str) -> dict:
+    return {"head": kind, "features": n, "part": part, **{k: v for k, v in a.items() if k != "confusion"},
+            "confusion": str(a["confusion"]), "judge": version, "commit": commit}  # fmt: skip
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
