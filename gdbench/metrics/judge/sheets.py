@@ -145,10 +145,12 @@ FRESH_SETS = {
     "fresh2": FreshSet("fresh2", Path("docs/results/judge/fresh2"), "docs/judge_fresh2.md"),
     "fresh3": FreshSet("fresh3", Path("docs/results/judge/fresh3"), "docs/judge_fresh3.md"),
     "fresh4": FreshSet("fresh4", Path("docs/results/judge/fresh4"), "docs/judge_fresh4.md"),
+    "fresh5": FreshSet("fresh5", Path("docs/results/judge/fresh5"), "docs/judge_fresh5.md"),
 }
 """The judge's fresh sets: the first (spent: the second and third judges are fitted on it), the
 second and the third (spent: read by the second and third judges; the fourth judge is fitted on all
-three) and the fourth (registered 2026-12-06, read by the fourth judge)."""
+three), the fourth (spent: read by the fourth judge) and the fifth (registered 2026-12-06, its
+labels not drawn yet)."""
 
 
 def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:
