@@ -1,5 +1,5 @@
-"""Why the fourth judge's head is trees: the two kinds of head on the labelled sets that were spent
-before it (v3's sheets and the first three fresh sets), held out two ways.
+"""Why the judge's head is trees: the kinds of head on the labelled sets spent before the shipped
+judge (v3's sheets and the fresh sets in ``SETS``), held out two ways.
 
     python scripts/judge_leave_set_out.py [--judge DIR] [--out docs/results/judge/fourth]
 
@@ -9,9 +9,10 @@ before it (v3's sheets and the first three fresh sets), held out two ways.
 - **leave-kind-out pooled** (``leave_kind_out_pooled.csv``): every kind held out in turn over all
   four sets: what a kind the head never saw gets.
 
-Both heads read the judge's features (``--judge``, default the shipped one): the regression the
-first 30 of them (eye, outline, sameness: the third judge's head), the trees all 50 (the look too).
-Six views each, from the committed sheets; the eye as shipped.
+The heads (``HEADS``) read the judge's features (``--judge``, default the shipped one): the
+regression the first 30 of them (eye, outline, sameness: the third judge's head), the trees all 50
+(the look too): one forest (the fourth judge's head) and five averaged with the blob offset (the
+fifth's, ``trees.fit_trees``). Six views each, from the committed sheets; the eye as shipped.
 """
 
 from __future__ import annotations
@@ -21,9 +22,20 @@ from pathlib import Path
 
 import torch
 
-HEADS = (("linear", 30), ("trees", 50))
-"""(head kind, how many of the judge's features it reads)."""
-SETS = ("fresh", "fresh2", "fresh3")
+HEADS = (("linear", 30), ("one forest", 50), ("trees", 50))
+"""(head, how many of the judge's features it reads): ``head.fit_head``'s kinds, and the fourth
+judge's one forest."""
+SETS = ("fresh", "fresh2", "fresh3", "fresh4")
+
+
+def fit(x, labels: list[str], kind: str):
+    from gdbench.metrics.judge.head import class_weights, fit_head
+    from gdbench.metrics.judge.trees import fit_forest
+
+    if kind == "one forest":
+        y, w = class_weights(labels)
+        return fit_forest(x, y, w)
+    return fit_head(x, labels, kind)
 
 
 def main(argv=None) -> int:
@@ -33,7 +45,7 @@ def main(argv=None) -> int:
     from gdbench.experiments.judge_build import sheet_features
     from gdbench.experiments.judge_fresh import block_and_arm
     from gdbench.metrics.judge.evaluate import agreement, judge_extra, leave_kind_out
-    from gdbench.metrics.judge.head import decide, fit_head
+    from gdbench.metrics.judge.head import decide
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
@@ -56,7 +68,7 @@ def main(argv=None) -> int:
         label: list[str | None] = [None] * len(results)
         for held in SETS:
             fit_on = [i for i in range(len(results)) if source[i] != held and truth[i]]
-            head = fit_head(torch.cat([x[fit_on, :n], fx[:, :n]]), [truth[i] for i in fit_on] + list(fy), kind)
+            head = fit(torch.cat([x[fit_on, :n], fx[:, :n]]), [truth[i] for i in fit_on] + list(fy), kind)
             mine = [i for i in range(len(results)) if source[i] == held]
             p = head.probabilities(x[mine, :n])
             for j, i in enumerate(mine):
@@ -65,15 +77,17 @@ def main(argv=None) -> int:
             idx = [i for i in range(len(results)) if source[i] == held and truth[i]]
             a = agreement([truth[i] for i in idx], [label[i] for i in idx])
             lso.append(row(kind, n, held, a, judge.version, commit))
-            print(f"{kind:6s} leave-set-out {held:6s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} (Janus split), "
+            print(f"{kind:10s} leave-set-out {held:6s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} (Janus split), "
                   f"{a['kappa_four']:.2f} (four), recall fe {a['recall_front_everywhere']:.2f} "
                   f"blob {a['recall_blob']:.2f} fine {a['recall_fine']:.2f}", flush=True)  # fmt: skip
+        if kind == "one forest":  # its leave-kind-out: the fourth judge's own table, docs/results/judge/fourth
+            continue
         pooled = leave_kind_out(x[:, :n], results, kinds, fronts, (fx[:, :n], list(fy)), kind)
         for part in ("all", "v3", "learned-janus", "learned-uniform", "empirical-janus"):
             idx = [i for i in range(len(results)) if truth[i] and part in ("all", block[i])]
             a = agreement([truth[i] for i in idx], [pooled[i][0] for i in idx])
             lko.append(row(kind, n, part, a, judge.version, commit))
-            print(f"{kind:6s} leave-kind-out pooled {part:16s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} "
+            print(f"{kind:10s} leave-kind-out pooled {part:16s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} "
                   f"(Janus split), {a['kappa_four']:.2f} (four), blob {a['recall_blob']:.2f}", flush=True)  # fmt: skip
     write_csv(lso, args.out / "leave_set_out.csv")
     write_csv(lko, args.out / "leave_kind_out_pooled.csv")

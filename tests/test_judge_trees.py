@@ -158,3 +158,20 @@ def test_the_look_is_read_on_a_sheets_six_views():
     shuffled = torch.tensor([300.0, 10.0, 0.0, 180.0, 60.4, 240.0, 120.0, 359.6])
     assert sheet_views(shuffled).tolist() == [2, 4, 6, 3, 5, 0]
     assert sheet_views(torch.tensor([0.0, 60.0, 120.0, 180.0, 240.0])).tolist() == [0, 1, 2, 3, 4]
+
+
+def test_an_average_of_forests_scores_their_mean_plus_the_offset():
+    from gdbench.metrics.judge.trees import average
+
+    g = torch.Generator().manual_seed(5)
+    x, y = torch.randn(90, 4, generator=g), torch.randint(0, 3, (90,), generator=g)
+    w = torch.ones(90, dtype=torch.float64)
+    forests = [fit_forest(x, y, w, rounds=8, depth=d, seed=s) for s, d in ((0, 2), (1, 1), (2, 2))]
+    offset = torch.tensor([0.0, 0.3, -0.1])
+    mean = average(forests, offset)
+    test = torch.randn(25, 4, generator=g)
+    want = torch.stack([f.scores(test) for f in forests]).mean(0) + offset
+    assert torch.allclose(mean.scores(test), want, atol=1e-5)
+    assert Forest.from_dict(mean.to_dict()).scores(test).tolist() == mean.scores(test).tolist()
+    with pytest.raises(ValueError, match="forests"):
+        average([])

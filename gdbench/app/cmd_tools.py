@@ -185,7 +185,7 @@ class TrainJudge:
     asset a view shows, on the assets' own renders (every caption, rendered on first use and
     cached; no label of any result), draws the templates its sameness reading compares views with
     from the same renders, then fits its head (boosted trees over the turntable readings and the
-    views' look) on the consensus labels of v3's committed sheets and the three spent fresh sets'
+    views' look) on the consensus labels of v3's committed sheets and the spent fresh sets'
     and the ground truth's fixtures. Writes eye.safetensors, templates.safetensors, head.json and
     provenance.json to --out (default: the shipped judge's folder, so `gdbench judge` and `score`
     then use it)."""

@@ -6,7 +6,7 @@
 2. **The eye**: ``metrics/judge/train.py`` on those renders alone: no label of any result.
 3. **The sameness templates**: each caption's renders from the same data (``sameness.Templates``).
 4. **The head** (``HEAD``: boosted trees over the features and the look numbers): fitted on the
-   consensus results (both passes agree) of v3's committed sheets and the three spent fresh sets'
+   consensus results (both passes agree) of v3's committed sheets and the spent fresh sets'
    (``fit_results``) and the ground truth's fixtures; the leave-kind-out evaluation (every kind held
    out in turn) and the next fresh set say how it does out of sample.
 
@@ -130,18 +130,18 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
 
 def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
-    (batches C-F) and the first three fresh sets' (``SPENT``), which their readings spent
-    (docs/judge_fresh.md, judge_fresh2.md, judge_fresh3.md). A fresh set registered after this
-    judge is never among them."""
+    (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh4.md).
+    A fresh set registered after this judge is never among them."""
     from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
     results = v3_results(root) + [r for which in SPENT for r in fresh_results(root, which)]
     return results, "v3 sheets C-F and the sheets of the fresh sets " + ", ".join(SPENT)
 
 
-SPENT = ("fresh", "fresh2", "fresh3")
+SPENT = ("fresh", "fresh2", "fresh3", "fresh4")
 """The fresh sets whose labels the head is fitted on: each was read by the judge before it (the
-first by the first judge, the second and third by the second and third) and is spent as a test."""
+first by the first judge, the second and third by the second and third, the fourth by the fourth)
+and is spent as a test."""
 
 
 def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:

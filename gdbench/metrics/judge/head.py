@@ -92,7 +92,8 @@ def class_weights(labels: list[str]) -> tuple[Tensor, Tensor]:
 
 HEADS = ("linear", "trees")
 """The kinds of head: the regression (``fit``; the first three judges) and boosted trees over the
-features and the look numbers (``trees.fit_forest``; the fourth)."""
+features and the look numbers (``trees.fit_trees``: the fourth judge one forest, the fifth five
+averaged with the blob offset)."""
 
 
 def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
@@ -101,10 +102,10 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
     if kind == "linear":
         return fit(x, labels)
     if kind == "trees":
-        from gdbench.metrics.judge.trees import fit_forest
+        from gdbench.metrics.judge.trees import fit_trees
 
         y, w = class_weights(labels)
-        return fit_forest(x, y, w, seed=seed)
+        return fit_trees(x, y, w, seed=seed)
     raise ValueError(f"kind: expected one of {HEADS}, got {kind!r}")
 
 

@@ -15,6 +15,7 @@ numbers first (how sharp, how coloured, how soft the result is) and the turntabl
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -25,6 +26,13 @@ DEPTH = 2
 RATE = 0.05
 SUBSAMPLE = 0.8
 """The boosting's settings: rounds, tree depth, learning rate, share of rows each round sees."""
+SEEDS = 5
+"""The head's forests, one per seed of the rows' draws, averaged (``average``; from the fifth judge:
+the fourth's one forest read the held-out sets less evenly)."""
+OFFSETS = (0.0, math.log(1.25), 0.0)
+"""Added to the classes' scores (Janus, blob, fine) of the averaged forest, from the fifth judge: a
+result is read blob where its blob probability is 4/5 of what the forest says. Chosen with the
+number of seeds by holding each spent fresh set out in turn (docs/scoring.md, the fifth judge)."""
 
 
 @dataclass
@@ -83,6 +91,28 @@ class Forest:
         return cls(rate=float(d["rate"]), n_features=int(d["n_features"]), **ints, **floats)
 
 
+def average(forests: list[Forest], offset: Tensor | None = None) -> Forest:
+    """One forest whose scores are the mean of ``forests``' scores (their trees side by side, each
+    leaf divided by their count), plus ``offset`` [C] on the classes' scores where given (a
+    calibration of the classes' thresholds: log 1.25 on a class reads it where its probability is
+    4/5 of what it was)."""
+    k = len(forests)
+    if not k or len({(f.classes, f.n_features, f.rate) for f in forests}) != 1:
+        raise ValueError("forests: expected one or more forests of the same classes, features and rate")
+    m = max(f.feature.shape[1] for f in forests)
+
+    def pad(t: Tensor, fill) -> Tensor:
+        return torch.nn.functional.pad(t, (0, m - t.shape[1]), value=fill)
+
+    fills = {"feature": -1, "threshold": 0.0, "left": -1, "right": -1, "value": 0.0}
+    cat = {name: torch.cat([pad(getattr(f, name), fill) for f in forests]) for name, fill in fills.items()}
+    cat["value"] = cat["value"] / k
+    init = torch.stack([f.init for f in forests]).mean(0)
+    if offset is not None:
+        init = init + offset.to(init.dtype)
+    return Forest(init=init, rate=forests[0].rate, n_features=forests[0].n_features, **cat)
+
+
 def _best_split(x: Tensor, r: Tensor, w: Tensor) -> tuple[int, float, float] | None:
     """(feature, threshold, improvement) of the best split of rows ``x`` [n, F] with residuals
     ``r`` and weights ``w`` by Friedman's improvement W_l W_r / (W_l + W_r) (mean_l - mean_r)^2,
@@ -132,6 +162,13 @@ def _tree(x: Tensor, r: Tensor, w: Tensor, p: Tensor, depth: int, classes: int) 
 
     grow(torch.arange(len(x)), 0)
     return nodes
+
+
+def fit_trees(x: Tensor, y: Tensor, weight: Tensor, seed: int = 0) -> Forest:
+    """The judge's trees head: ``SEEDS`` forests (seeds ``seed``, ``seed`` + 1, ...) averaged, with
+    ``OFFSETS`` on the classes' scores."""
+    forests = [fit_forest(x, y, weight, seed=seed + i) for i in range(SEEDS)]
+    return average(forests, torch.tensor(OFFSETS[: int(y.max()) + 1], dtype=torch.float64))
 
 
 def fit_forest(x: Tensor, y: Tensor, weight: Tensor, *, rounds: int = ROUNDS, depth: int = DEPTH,
