@@ -190,10 +190,8 @@ def sheet_views(azimuths: Tensor) -> Tensor:
     ``azimuths`` [V] hold all six (a run turntable's 36 frames do), else every view: the look is
     read on the views a sheet shows, so that a run folder and its sheet give the same numbers (over
     36 frames the look's spreads differ from the six views' by up to 0.3 of their spread)."""
-    from gdbench.metrics.judge.sameness import SHEET
+    from gdbench.metrics.judge.sameness import SHEET, sheet_picks
 
-    d = (azimuths.float()[:, None] - torch.tensor(SHEET)[None] + 180.0) % 360.0 - 180.0
-    near = d.abs() < 1.0  # [V, 6]
-    if not bool(near.any(0).all()):
-        return torch.arange(len(azimuths))
-    return near.float().argmax(0)
+    pick = sheet_picks(azimuths.float())
+    off = (azimuths.float()[pick] - torch.tensor(SHEET) + 180.0) % 360.0 - 180.0
+    return pick if bool((off.abs() < 1.0).all()) else torch.arange(len(azimuths))
