@@ -1,18 +1,19 @@
 """Why the judge's head is trees: the kinds of head on the labelled sets spent before the shipped
-judge (v3's sheets and the fresh sets in ``SETS``), held out two ways.
+judge (v3's sheets and the fresh sets in ``judge_build.SPENT``), held out two ways.
 
     python scripts/judge_leave_set_out.py [--judge DIR] [--out docs/results/judge/fourth]
 
 - **leave-set-out** (``leave_set_out.csv``): each fresh set in turn is judged by a head fitted on
-  v3's and the other two sets' consensus results and the fixtures: what a fresh set measures (new
+  v3's and the other sets' consensus results and the fixtures: what a fresh set measures (new
   results of the same prompts, from a seed no head saw);
 - **leave-kind-out pooled** (``leave_kind_out_pooled.csv``): every kind held out in turn over all
   four sets: what a kind the head never saw gets.
 
 The heads (``HEADS``) read the judge's features (``--judge``, default the shipped one): the
 regression the first 30 of them (eye, outline, sameness: the third judge's head), the trees all 50
-(the look too): one forest (the fourth judge's head) and five averaged with the blob offset (the
-fifth's, ``trees.fit_trees``). Six views each, from the committed sheets; the eye as shipped.
+(the look too): one forest (the fourth judge's head), five averaged with the blob offset (the
+fifth's and sixth's, ``trees.fit_trees``) and a random forest (``bagging.fit_bagged``). Six views
+each, from the committed sheets; the eye as shipped.
 """
 
 from __future__ import annotations
@@ -22,10 +23,9 @@ from pathlib import Path
 
 import torch
 
-HEADS = (("linear", 30), ("one forest", 50), ("trees", 50))
+HEADS = (("linear", 30), ("one forest", 50), ("trees", 50), ("bagged", 50))
 """(head, how many of the judge's features it reads): ``head.fit_head``'s kinds, and the fourth
 judge's one forest."""
-SETS = ("fresh", "fresh2", "fresh3", "fresh4")
 
 
 def fit(x, labels: list[str], kind: str):
@@ -42,6 +42,7 @@ def main(argv=None) -> int:
     from gdbench.assets.library import PARTS, has_front
     from gdbench.core.io import write_csv
     from gdbench.core.provenance import code_commit
+    from gdbench.experiments.judge_build import SPENT as SETS
     from gdbench.experiments.judge_build import sheet_features
     from gdbench.experiments.judge_fresh import block_and_arm
     from gdbench.metrics.judge.evaluate import agreement, judge_extra, leave_kind_out

@@ -130,7 +130,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
 
 def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
-    (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh4.md).
+    (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh5.md).
     A fresh set registered after this judge is never among them."""
     from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
@@ -138,10 +138,10 @@ def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     return results, "v3 sheets C-F and the sheets of the fresh sets " + ", ".join(SPENT)
 
 
-SPENT = ("fresh", "fresh2", "fresh3", "fresh4")
+SPENT = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5")
 """The fresh sets whose labels the head is fitted on: each was read by the judge before it (the
-first by the first judge, the second and third by the second and third, the fourth by the fourth)
-and is spent as a test."""
+first by the first judge, the second and third by the second and third, the fourth by the fourth,
+the fifth by the fifth) and is spent as a test. The sixth judge is the first fitted on the fifth."""
 
 
 def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:

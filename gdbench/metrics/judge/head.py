@@ -90,10 +90,11 @@ def class_weights(labels: list[str]) -> tuple[Tensor, Tensor]:
     return y, w / w.sum()
 
 
-HEADS = ("linear", "trees")
-"""The kinds of head: the regression (``fit``; the first three judges) and boosted trees over the
+HEADS = ("linear", "trees", "bagged")
+"""The kinds of head: the regression (``fit``; the first three judges), boosted trees over the
 features and the look numbers (``trees.fit_trees``: the fourth judge one forest, the fifth five
-averaged with the blob offset)."""
+averaged with the blob offset) and a random forest over the same (``bagging.fit_bagged``: the
+sixth)."""
 
 
 def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
@@ -106,12 +107,23 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
 
         y, w = class_weights(labels)
         return fit_trees(x, y, w, seed=seed)
+    if kind == "bagged":
+        from gdbench.metrics.judge.bagging import fit_bagged
+
+        y, w = class_weights(labels)
+        return fit_bagged(x, y, w, seed=seed)
     raise ValueError(f"kind: expected one of {HEADS}, got {kind!r}")
 
 
 def load_head(d: dict):
-    """A head from its ``to_dict``: a ``Head`` or, where ``d['kind']`` says trees, a ``trees.Forest``."""
-    if d.get("kind", "linear") == "trees":
+    """A head from its ``to_dict``: a ``Head``, or where ``d['kind']`` says so a ``trees.Forest``
+    (trees) or a ``bagging.Bagged`` (bagged)."""
+    kind = d.get("kind", "linear")
+    if kind == "bagged":
+        from gdbench.metrics.judge.bagging import Bagged
+
+        return Bagged.from_dict(d)
+    if kind == "trees":
         from gdbench.metrics.judge.trees import Forest
 
         return Forest.from_dict(d)
@@ -119,7 +131,10 @@ def load_head(d: dict):
 
 
 def head_kind(head) -> str:
-    return "linear" if isinstance(head, Head) else "trees"
+    """The ``HEADS`` kind of a fitted head."""
+    if isinstance(head, Head):
+        return "linear"
+    return "bagged" if type(head).__name__ == "Bagged" else "trees"
 
 
 def decide(probabilities: Tensor, features: Tensor, has_front: bool) -> tuple[str, float]:
