@@ -146,11 +146,12 @@ FRESH_SETS = {
     "fresh3": FreshSet("fresh3", Path("docs/results/judge/fresh3"), "docs/judge_fresh3.md"),
     "fresh4": FreshSet("fresh4", Path("docs/results/judge/fresh4"), "docs/judge_fresh4.md"),
     "fresh5": FreshSet("fresh5", Path("docs/results/judge/fresh5"), "docs/judge_fresh5.md"),
+    "fresh6": FreshSet("fresh6", Path("docs/results/judge/fresh6"), "docs/judge_fresh6.md"),
 }
 """The judge's fresh sets: the first (spent: the second and third judges are fitted on it), the
 second and the third (spent: read by the second and third judges; the fourth judge is fitted on all
-three), the fourth (spent: read by the fourth judge) and the fifth (registered 2026-12-06, its
-labels not drawn yet)."""
+three), the fourth and the fifth (spent: read by the fourth and fifth judges; the sixth is fitted on
+all five) and the sixth (registered 2026-12-06, read by the sixth judge)."""
 
 
 def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:
