@@ -1,13 +1,13 @@
 """Why the judge's head is trees: the kinds of head on the labelled sets spent before the shipped
 judge (v3's sheets and the fresh sets in ``judge_build.SPENT``), held out two ways.
 
-    python scripts/judge_leave_set_out.py [--judge DIR] [--out docs/results/judge/fourth]
+    python scripts/judge_leave_set_out.py --out docs/results/judge/sixth [--judge DIR]
 
 - **leave-set-out** (``leave_set_out.csv``): each fresh set in turn is judged by a head fitted on
   v3's and the other sets' consensus results and the fixtures: what a fresh set measures (new
   results of the same prompts, from a seed no head saw);
-- **leave-kind-out pooled** (``leave_kind_out_pooled.csv``): every kind held out in turn over all
-  four sets: what a kind the head never saw gets.
+- **leave-kind-out pooled** (``leave_kind_out_pooled.csv``): every kind held out in turn over v3
+  and all the spent sets: what a kind the head never saw gets.
 
 The heads (``HEADS``) read the judge's features (``--judge``, default the shipped one): the
 regression the first 30 of them (eye, outline, sameness: the third judge's head), the trees all 50
@@ -52,7 +52,8 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--judge", type=Path, default=None, help="a judge folder (default: the shipped judge)")
-    ap.add_argument("--out", type=Path, default=Path("docs/results/judge/fourth"))
+    ap.add_argument("--out", type=Path, required=True,
+                    help="where the two tables go (each judge keeps its own: fourth, fifth, sixth)")  # fmt: skip
     args = ap.parse_args(argv)
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
     if judge.n_features < max(n for _, n in HEADS):

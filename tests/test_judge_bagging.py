@@ -1,10 +1,12 @@
-"""The sixth judge's head (a random forest, ``metrics/judge/bagging.py``) against independent oracles:
-a brute-force Gini split search in plain Python, the bootstrap's class shares where no node may
-split, a row-by-row walk of the trees, and a rule whose best accuracy is known."""
+"""The random-forest head (``metrics/judge/bagging.py``, compared for the sixth judge, not shipped)
+against independent oracles: a brute-force Gini split search in plain Python, hand-placed splits
+under the leaf bound, the bootstrap's class shares where no node may split, a row-by-row walk of
+the trees, and a rule whose best accuracy is known."""
 
 from __future__ import annotations
 
 import itertools
+import json
 
 import numpy as np
 import pytest
@@ -51,6 +53,35 @@ def test_gini_split_matches_brute_force(min_leaf):
         bf, bt, bgain = _brute_gini(x, yw, min_leaf)
         assert gain == pytest.approx(bgain, rel=1e-9)
         assert (f, t) == (bf, bt)
+
+
+def test_the_leaf_bound_holds_on_either_side():
+    """Ten sorted rows, the last two of the other class: the best split (after row 8) would leave 2
+    rows on its right; with at least 3 a side the split falls after row 7 (threshold 6.5), and
+    mirrored (the first two rows the other class) before row 3 (threshold 2.5)."""
+    x = np.arange(10.0)[:, None]
+    assert _gini_split(x, np.eye(2)[[0] * 8 + [1] * 2], 1)[1] == 7.5
+    assert _gini_split(x, np.eye(2)[[0] * 8 + [1] * 2], 3)[1] == 6.5
+    assert _gini_split(x, np.eye(2)[[1] * 2 + [0] * 8], 3)[1] == 2.5
+
+
+def test_every_leaf_keeps_the_fewest_rows_and_nodes_draw_their_features():
+    """Every leaf holds at least ``min_leaf`` distinct rows of its tree's bootstrap, so walking all
+    the rows reaches each leaf at least that often; and with one feature drawn per node the roots
+    split on several features across the trees."""
+    g = torch.Generator().manual_seed(9)
+    x = torch.randn(200, 5, generator=g)
+    y = (x[:, 0] + 0.5 * x[:, 1] > 0).long()
+    forest = fit_bagged(x, y, torch.ones(200), trees=20, min_leaf=6, max_features=0.2, seed=1)
+    assert len({int(f) for f in forest.feature[:, 0]}) >= 3
+    from gdbench.metrics.judge.trees import leaf_nodes
+
+    node = leaf_nodes(forest.feature, forest.threshold, forest.left, forest.right, x)  # [T, N]
+    for t in range(node.shape[0]):
+        counts = torch.bincount(node[t], minlength=forest.feature.shape[1])
+        leaves = (forest.feature[t] < 0) & (forest.value[t].sum(-1) > 0)
+        reached = counts[leaves]
+        assert int(reached[reached > 0].min()) >= 6
 
 
 def test_no_split_below_twice_the_leaf_or_on_constant_features():
@@ -131,14 +162,21 @@ def test_seeded_and_round_trips():
     c = fit_bagged(x, y, torch.ones(80), trees=5, seed=12)
     assert all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("feature", "threshold", "value"))
     assert not torch.equal(a.threshold, c.threshold)
-    back = load_head(a.to_dict())
+    d = json.loads(json.dumps(a.to_dict()))
+    assert [len(row) for row in d["feature"]] == d["nodes"]  # stored without the padding
+    back = load_head(d)
     assert head_kind(back) == "bagged"
     assert torch.equal(back.probabilities(x), a.probabilities(x))
+    with pytest.raises(ValueError, match="kind: expected a head of one of"):
+        load_head({"kind": "forest"})
+    with pytest.raises(ValueError, match="head: expected a fitted head"):
+        head_kind(object())
 
 
 def test_fit_head_bagged_weighs_the_classes_alike():
-    """90 fine rows and 10 blob rows on one uninformative feature: with the classes weighed alike
-    the unsplittable forest reads blob and fine as equally likely (within the bootstrap's noise)."""
+    """90 fine, 10 blob and 10 front_everywhere rows on uninformative features: with the classes
+    weighed alike the unsplittable forest reads the three as equally likely (within the bootstrap's
+    noise)."""
     labels = ["fine"] * 90 + ["blob"] * 10 + ["front_everywhere"] * 10
     x = torch.zeros(110, 2)
     head = fit_head(x, labels, "bagged")
@@ -150,5 +188,12 @@ def test_fit_head_bagged_weighs_the_classes_alike():
 def test_bad_input_names_the_argument():
     with pytest.raises(ValueError, match="x, y, weight"):
         fit_bagged(torch.zeros(3, 2), torch.zeros(4, dtype=torch.long), torch.ones(3))
+    with pytest.raises(ValueError, match="y: expected class indices"):
+        fit_bagged(torch.zeros(3, 2), torch.zeros(3), torch.ones(3))
+    with pytest.raises(ValueError, match="weight: expected non-negative"):
+        fit_bagged(torch.zeros(3, 2), torch.zeros(3, dtype=torch.long), -torch.ones(3))
+    forest = fit_bagged(torch.randn(6, 2), torch.tensor([0, 1] * 3), torch.ones(6), trees=2)
+    with pytest.raises(ValueError, match=r"x: expected \[N, 2\] features"):
+        forest.probabilities(torch.zeros(4, 3))
     with pytest.raises(ValueError, match="max_features"):
         fit_bagged(torch.zeros(3, 2), torch.zeros(3, dtype=torch.long), torch.ones(3), max_features=0.0)

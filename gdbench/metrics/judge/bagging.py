@@ -25,6 +25,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from gdbench.metrics.judge.trees import leaf_nodes
+
 TREES = 300
 MIN_LEAF = 5
 MAX_FEATURES = 0.3
@@ -54,18 +56,10 @@ class Bagged:
 
     def probabilities(self, x: Tensor) -> Tensor:
         """[N, F] features -> [N, C] the mean over the trees of the class shares of each row's leaf."""
-        x = x.double()
-        t, n = self.feature.shape[0], x.shape[0]
-        node = torch.zeros(t, n, dtype=torch.long)
-        rows = torch.arange(n)[None].expand(t, n)
-        for _ in range(self.feature.shape[1]):
-            f = self.feature.gather(1, node)
-            leaf = f < 0
-            if bool(leaf.all()):
-                break
-            go_left = x[rows, f.clamp(min=0)] <= self.threshold.gather(1, node)
-            nxt = torch.where(go_left, self.left.gather(1, node), self.right.gather(1, node))
-            node = torch.where(leaf, node, nxt)
+        if x.ndim != 2 or x.shape[1] != self.n_features:
+            raise ValueError(f"x: expected [N, {self.n_features}] features, got {tuple(x.shape)}")
+        node = leaf_nodes(self.feature, self.threshold, self.left, self.right, x)
+        t, n = node.shape
         shares = self.value.gather(1, node[..., None].expand(t, n, self.classes))  # [T, N, C]
         return shares.mean(0).float()
 
@@ -152,6 +146,11 @@ def fit_bagged(x: Tensor, y: Tensor, weight: Tensor, *, trees: int = TREES, min_
     if x.ndim != 2 or len(x) != len(y) or len(y) != len(weight):
         raise ValueError(f"x, y, weight: expected [N, F], [N], [N], got {tuple(x.shape)}, {tuple(y.shape)}, "
                          f"{tuple(weight.shape)}")  # fmt: skip
+    if y.is_floating_point() or not len(y) or int(y.min()) < 0:
+        raise ValueError(f"y: expected class indices 0 .. C-1 (integers) of at least one row, got {y.dtype} "
+                         f"{tuple(y.shape)}")  # fmt: skip
+    if bool((weight < 0).any()) or not float(weight.sum()) > 0:
+        raise ValueError("weight: expected non-negative row weights with a positive sum")
     if trees < 1 or min_leaf < 1 or not 0 < max_features <= 1:
         raise ValueError(f"trees, min_leaf, max_features: expected >= 1, >= 1, (0, 1], got {trees}, {min_leaf}, "
                          f"{max_features}")  # fmt: skip

@@ -92,9 +92,9 @@ def class_weights(labels: list[str]) -> tuple[Tensor, Tensor]:
 
 HEADS = ("linear", "trees", "bagged")
 """The kinds of head: the regression (``fit``; the first three judges), boosted trees over the
-features and the look numbers (``trees.fit_trees``: the fourth judge one forest, the fifth five
-averaged with the blob offset) and a random forest over the same (``bagging.fit_bagged``: the
-sixth)."""
+features and the look numbers (``trees.fit_trees``: the fourth judge one forest, the fifth and
+sixth five averaged with the blob offset) and a random forest over the same (``bagging.fit_bagged``:
+compared for the sixth judge by holding each spent set out, not shipped)."""
 
 
 def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
@@ -116,8 +116,8 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
 
 
 def load_head(d: dict):
-    """A head from its ``to_dict``: a ``Head``, or where ``d['kind']`` says so a ``trees.Forest``
-    (trees) or a ``bagging.Bagged`` (bagged)."""
+    """A head from its ``to_dict``: a ``Head`` (no kind, or linear), a ``trees.Forest`` (trees) or a
+    ``bagging.Bagged`` (bagged)."""
     kind = d.get("kind", "linear")
     if kind == "bagged":
         from gdbench.metrics.judge.bagging import Bagged
@@ -127,14 +127,20 @@ def load_head(d: dict):
         from gdbench.metrics.judge.trees import Forest
 
         return Forest.from_dict(d)
-    return Head.from_dict(d)
+    if kind == "linear":
+        return Head.from_dict(d)
+    raise ValueError(f"kind: expected a head of one of {HEADS}, got {kind!r}")
 
 
 def head_kind(head) -> str:
     """The ``HEADS`` kind of a fitted head."""
-    if isinstance(head, Head):
-        return "linear"
-    return "bagged" if type(head).__name__ == "Bagged" else "trees"
+    from gdbench.metrics.judge.bagging import Bagged
+    from gdbench.metrics.judge.trees import Forest
+
+    for kind, cls in (("linear", Head), ("trees", Forest), ("bagged", Bagged)):
+        if isinstance(head, cls):
+            return kind
+    raise ValueError(f"head: expected a fitted head of one of {HEADS}, got {type(head).__name__}")
 
 
 def decide(probabilities: Tensor, features: Tensor, has_front: bool) -> tuple[str, float]:

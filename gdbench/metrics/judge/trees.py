@@ -59,20 +59,9 @@ class Forest:
 
     def scores(self, x: Tensor) -> Tensor:
         """[N, F] -> [N, C] the classes' scores (logits)."""
-        x = x.double()
-        t, n = self.feature.shape[0], x.shape[0]
-        node = torch.zeros(t, n, dtype=torch.long)
-        rows = torch.arange(n)[None].expand(t, n)
-        for _ in range(self.feature.shape[1]):  # no tree is deeper than its node count
-            f = self.feature.gather(1, node)
-            leaf = f < 0
-            if bool(leaf.all()):
-                break
-            go_left = x[rows, f.clamp(min=0)] <= self.threshold.gather(1, node)
-            nxt = torch.where(go_left, self.left.gather(1, node), self.right.gather(1, node))
-            node = torch.where(leaf, node, nxt)
+        node = leaf_nodes(self.feature, self.threshold, self.left, self.right, x)
         leaf_values = self.value.gather(1, node)  # [T, N]
-        per_class = leaf_values.reshape(-1, self.classes, n).sum(0)  # [C, N]
+        per_class = leaf_values.reshape(-1, self.classes, x.shape[0]).sum(0)  # [C, N]
         return (self.init[None] + self.rate * per_class.T).float()
 
     def probabilities(self, x: Tensor) -> Tensor:
@@ -89,6 +78,24 @@ class Forest:
         ints = {k: torch.tensor(d[k], dtype=torch.long) for k in ("feature", "left", "right")}
         floats = {k: torch.tensor(d[k], dtype=torch.float64) for k in ("init", "threshold", "value")}
         return cls(rate=float(d["rate"]), n_features=int(d["n_features"]), **ints, **floats)
+
+
+def leaf_nodes(feature: Tensor, threshold: Tensor, left: Tensor, right: Tensor, x: Tensor) -> Tensor:
+    """[T, N] the leaf each row of ``x`` [N, F] reaches in each of T trees stored as flat node arrays
+    [T, M] (``Forest``'s layout: a node splits on ``feature`` at ``threshold``, x <= t going
+    ``left``; ``feature`` -1 marks a leaf); compared in float64."""
+    x = x.double()
+    t, n = feature.shape[0], x.shape[0]
+    node = torch.zeros(t, n, dtype=torch.long)
+    rows = torch.arange(n)[None].expand(t, n)
+    for _ in range(feature.shape[1]):  # no tree is deeper than its node count
+        f = feature.gather(1, node)
+        leaf = f < 0
+        if bool(leaf.all()):
+            break
+        go_left = x[rows, f.clamp(min=0)] <= threshold.gather(1, node)
+        node = torch.where(leaf, node, torch.where(go_left, left.gather(1, node), right.gather(1, node)))
+    return node
 
 
 def average(forests: list[Forest], offset: Tensor | None = None) -> Forest:
