@@ -12,9 +12,10 @@ Everything random takes the fit's seed: the same rows and seed give the same tre
 CPU.
 
 Why it is there: one boosted forest read blob unevenly across the held-out sets (recall 0.54-0.76),
-and a random forest is the usual remedy for a learner's variance; held out the same way it read the
-sets no better than the fifth judge's five averaged forests (docs/scoring.md, the sixth judge), so
-it is not the shipped head.
+and a random forest is the usual remedy for a learner's variance; held out the same way over the
+five spent sets it reads them about as the five averaged boosted forests do, not better (the Janus
+split 0.76-0.90 against 0.77-0.88, blob 0.68-0.77 against 0.68-0.77;
+docs/results/judge/sixth/leave_set_out.csv), so it is not the shipped head.
 """
 
 from __future__ import annotations
