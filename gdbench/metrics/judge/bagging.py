@@ -165,11 +165,5 @@ def fit_bagged(x: Tensor, y: Tensor, weight: Tensor, *, trees: int = TREES, min_
         counts = torch.bincount(torch.randint(len(x), (len(x),), generator=g), minlength=len(x))
         rows = counts.nonzero().flatten().numpy()
         grown.append(_grow(xn[rows], yw[rows] * counts.numpy()[rows, None], g, min_leaf, k))
-    m = max(len(t["feature"]) for t in grown)
-    pad = {"feature": -1, "threshold": 0.0, "left": -1, "right": -1}
-    arrays = {key: [t[key] + [v] * (m - len(t[key])) for t in grown] for key, v in pad.items()}
-    value = [t["value"] + [[0.0] * classes] * (m - len(t["value"])) for t in grown]
-    return Bagged(n_features=x.shape[1],
-                  **{key: torch.tensor(arrays[key], dtype=torch.long) for key in ("feature", "left", "right")},
-                  threshold=torch.tensor(arrays["threshold"], dtype=torch.float64),
-                  value=torch.tensor(value, dtype=torch.float64))  # fmt: skip
+    return Bagged.from_dict({"n_features": x.shape[1], "nodes": [len(t["feature"]) for t in grown],
+                             **{key: [t[key] for t in grown] for key in grown[0]}})  # fmt: skip

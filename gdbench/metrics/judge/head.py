@@ -103,16 +103,13 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
     if kind == "linear":
         return fit(x, labels)
     if kind == "trees":
-        from gdbench.metrics.judge.trees import fit_trees
-
-        y, w = class_weights(labels)
-        return fit_trees(x, y, w, seed=seed)
-    if kind == "bagged":
-        from gdbench.metrics.judge.bagging import fit_bagged
-
-        y, w = class_weights(labels)
-        return fit_bagged(x, y, w, seed=seed)
-    raise ValueError(f"kind: expected one of {HEADS}, got {kind!r}")
+        from gdbench.metrics.judge.trees import fit_trees as fit_kind
+    elif kind == "bagged":
+        from gdbench.metrics.judge.bagging import fit_bagged as fit_kind
+    else:
+        raise ValueError(f"kind: expected one of {HEADS}, got {kind!r}")
+    y, w = class_weights(labels)
+    return fit_kind(x, y, w, seed=seed)
 
 
 def load_head(d: dict):
