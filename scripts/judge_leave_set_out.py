@@ -12,8 +12,10 @@ judge (v3's sheets and the fresh sets in ``judge_build.SPENT``), held out two wa
 The heads (``HEADS``) read the judge's features (``--judge``, default the shipped one): the
 regression the first 30 of them (eye, outline, sameness: the third judge's head), the trees all 50
 (the look too): one forest (the fourth judge's head), five averaged with the blob offset (the
-fifth's and sixth's, ``trees.fit_trees``) and a random forest (``bagging.fit_bagged``). Six views
-each, from the committed sheets; the eye as shipped.
+fifth's and sixth's, ``trees.fit_trees``) and a random forest (``bagging.fit_bagged``); and the
+five forests over the 50 and the 50 less the asset's reference fixtures' (200, the seventh judge's
+head, ``reference.against``; the references the judge's own, or read from its fixtures where it
+has none). Six views each, from the committed sheets; the eye as shipped.
 """
 
 from __future__ import annotations
@@ -23,9 +25,9 @@ from pathlib import Path
 
 import torch
 
-HEADS = (("linear", 30), ("one forest", 50), ("trees", 50), ("bagged", 50))
-"""(head, how many of the judge's features it reads): ``head.fit_head``'s kinds, and the fourth
-judge's one forest."""
+HEADS = (("linear", 30), ("one forest", 50), ("trees", 50), ("bagged", 50), ("trees", 200))
+"""(head, how many of the judge's features it reads; 200: the 50 against the references):
+``head.fit_head``'s kinds, and the fourth judge's one forest."""
 
 
 def fit(x, labels: list[str], kind: str):
@@ -45,9 +47,10 @@ def main(argv=None) -> int:
     from gdbench.experiments.judge_build import SPENT as SETS
     from gdbench.experiments.judge_build import sheet_features
     from gdbench.experiments.judge_fresh import block_and_arm
-    from gdbench.metrics.judge.evaluate import agreement, judge_extra, leave_kind_out
+    from gdbench.metrics.judge.evaluate import agreement, leave_kind_out
     from gdbench.metrics.judge.head import decide
     from gdbench.metrics.judge.judge import load_judge
+    from gdbench.metrics.judge.reference import against, reference_rows
     from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -56,13 +59,18 @@ def main(argv=None) -> int:
                     help="where the two tables go (each judge keeps its own: fourth, fifth, sixth)")  # fmt: skip
     args = ap.parse_args(argv)
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
-    if judge.n_features < max(n for _, n in HEADS):
-        ap.error(f"--judge: expected a judge reading {max(n for _, n in HEADS)} features, got {judge.n_features}")
+    if judge.templates is None or judge.head_info.get("fixture_rows") is None:
+        ap.error("--judge: expected a judge with templates and fixture rows (the fourth or later)")
     results = v3_results() + [r for s in SETS for r in fresh_results(which=s)]
     source = [r.batch if r.batch in SETS else "v3" for r in results]
     block = [block_and_arm(r.run)[0] or "v3" for r in results]
-    x = sheet_features(judge.eye, judge.curves, results, judge.templates)
-    fx, fy = judge_extra(judge)
+    x50 = sheet_features(judge.eye, judge.curves, results, judge.templates)
+    rows = judge.head_info["fixture_rows"]
+    fx50, fy = torch.tensor(rows["features"], dtype=torch.float32), list(rows["labels"])
+    known = dict(zip(rows["names"], fx50))
+    refs = judge.references or reference_rows(judge.eye, judge.curves, judge.templates, sorted(judge.curves), known)
+    x = torch.cat([x50, against(x50, [r.caption for r in results], refs)[:, 50:]], 1)
+    fx = torch.cat([fx50, against(fx50, [n.rsplit("/", 1)[0] for n in rows["names"]], refs)[:, 50:]], 1)
     truth = [r.consensus for r in results]
     fronts, kinds = [has_front(r.caption) for r in results], [PARTS[r.caption][0] for r in results]
     lso, lko = [], []
@@ -79,7 +87,7 @@ def main(argv=None) -> int:
             idx = [i for i in range(len(results)) if source[i] == held and truth[i]]
             a = agreement([truth[i] for i in idx], [label[i] for i in idx])
             lso.append(row(kind, n, held, a, judge.version, commit))
-            print(f"{kind:10s} leave-set-out {held:6s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} (Janus split), "
+            print(f"{kind:10s} {n:3d} leave-set-out {held:6s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} (Janus), "
                   f"{a['kappa_four']:.2f} (four), recall fe {a['recall_front_everywhere']:.2f} "
                   f"blob {a['recall_blob']:.2f} fine {a['recall_fine']:.2f}", flush=True)  # fmt: skip
         if kind == "one forest":  # its leave-kind-out: the fourth judge's own table, docs/results/judge/fourth
@@ -89,7 +97,7 @@ def main(argv=None) -> int:
             idx = [i for i in range(len(results)) if truth[i] and part in ("all", block[i])]
             a = agreement([truth[i] for i in idx], [pooled[i][0] for i in idx])
             lko.append(row(kind, n, part, a, judge.version, commit))
-            print(f"{kind:10s} leave-kind-out pooled {part:16s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} "
+            print(f"{kind:10s} {n:3d} leave-kind-out pooled {part:16s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} "
                   f"(Janus split), {a['kappa_four']:.2f} (four), blob {a['recall_blob']:.2f}", flush=True)  # fmt: skip
     write_csv(lso, args.out / "leave_set_out.csv")
     write_csv(lko, args.out / "leave_kind_out_pooled.csv")

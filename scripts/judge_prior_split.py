@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     judge, commit = load_judge(), code_commit()
     results = v3_results() + [r for s in ("fresh", "fresh2", "fresh3") for r in fresh_results(which=s)]
     block = [block_and_arm(r.run)[0] or "v3" for r in results]
-    x = sheet_features(judge.eye, judge.curves, results, judge.templates)[:, : judge.n_features]
+    x = judge.head_rows(sheet_features(judge.eye, judge.curves, results, judge.templates), [r.caption for r in results])
     truth = [r.consensus for r in results]
     rows = []
     for k, name in enumerate(judge.feature_names()):

@@ -184,11 +184,12 @@ class TrainJudge:
     """Train the Janus judge (docs/scoring.md, "The Janus judge"): its eye, which reads which side of the
     asset a view shows, on the assets' own renders (every caption, rendered on first use and
     cached; no label of any result), draws the templates its sameness reading compares views with
-    from the same renders, then fits its head (boosted trees over the turntable readings and the
-    views' look) on the consensus labels of v3's committed sheets and the spent fresh sets'
-    and the ground truth's fixtures. Writes eye.safetensors, templates.safetensors, head.json and
-    provenance.json to --out (default: the shipped judge's folder, so `gdbench judge` and `score`
-    then use it)."""
+    from the same renders, reads each asset's own fixtures (whole, front everywhere, spun blob) as
+    its references, then fits its head (boosted trees over the turntable readings and the views'
+    look, and the same less the asset's references') on the consensus labels of v3's committed
+    sheets and the spent fresh sets' and the ground truth's fixtures. Writes eye.safetensors,
+    templates.safetensors, head.json and provenance.json to --out (default: the shipped judge's
+    folder, so `gdbench judge` and `score` then use it)."""
 
     out: Path | None = None
     """Where the judge goes (default: gdbench/metrics/judge/weights, the shipped judge)."""

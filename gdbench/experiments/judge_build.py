@@ -5,10 +5,12 @@
    (``EYE_DATA``), rendered by pyrender as the learned prior's data is (cached the same way).
 2. **The eye**: ``metrics/judge/train.py`` on those renders alone: no label of any result.
 3. **The sameness templates**: each caption's renders from the same data (``sameness.Templates``).
-4. **The head** (``HEAD``: boosted trees over the features and the look numbers): fitted on the
-   consensus results (both passes agree) of v3's committed sheets and the spent fresh sets'
-   (``fit_results``) and the ground truth's fixtures; the leave-kind-out evaluation (every kind held
-   out in turn) and the next fresh set say how it does out of sample.
+4. **The references**: each asset's own fixtures read as a result is (``reference.reference_rows``).
+5. **The head** (``HEAD``: boosted trees over the features and the look numbers and the same less
+   the asset's references, ``reference.against``): fitted on the consensus results (both passes
+   agree) of v3's committed sheets and the spent fresh sets' (``fit_results``) and the ground
+   truth's fixtures; the leave-kind-out evaluation (every kind held out in turn) and the next fresh
+   set say how it does out of sample.
 
 Writes ``out/eye.safetensors`` (the eye's weights in float16, its settings, the data's key and the
 commit as metadata), ``out/templates.safetensors``, ``out/head.json`` (the head and where it was
@@ -79,6 +81,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.judge.fixtures import HELD_OUT, fixture_rows
     from gdbench.metrics.judge.head import fit_head
+    from gdbench.metrics.judge.reference import REFERENCE, against, reference_rows
     from gdbench.metrics.judge.sameness import Templates
     from gdbench.metrics.judge.train import EyeTrainConfig, train_eye
     from gdbench.priors.learned.data import data_key
@@ -113,10 +116,14 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     x = sheet_features(eye, curves, results, templates)
     fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
     fx, fy, names = fixture_rows(eye, curves, templates, data.captions, progress=progress)
-    head = fit_head(torch.cat([x[fit_on], fx]), [results[i].consensus for i in fit_on] + fy, HEAD, seed=seed)
+    refs = reference_rows(eye, curves, templates, data.captions, known=dict(zip(names, fx)))
+    rx = against(x, [r.caption for r in results], refs)
+    rfx = against(fx, [n.rsplit("/", 1)[0] for n in names], refs)
+    head = fit_head(torch.cat([rx[fit_on], rfx]), [results[i].consensus for i in fit_on] + fy, HEAD, seed=seed)
     head_info = {"head": head.to_dict(),
                  "fitted_on": f"{where}: {len(fit_on)} consensus results; {len(fy)} fixtures of the ground truth",
                  "fixture_rows": {"names": names, "labels": fy, "features": fx.tolist(), "held_out": list(HELD_OUT)},
+                 "references": refs, "reference_kinds": list(REFERENCE),
                  "commit": code_commit(), "aspect_curves": curves}  # fmt: skip
     write_json(head_info, out / "head.json")
     prov = {"commit": code_commit(), "eye_data_key": meta["data_key"], "eye_views": len(data), "steps": steps,
@@ -130,7 +137,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
 
 def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
-    (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh5.md).
+    (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh6.md).
     A fresh set registered after this judge is never among them."""
     from gdbench.metrics.judge.sheets import fresh_results, v3_results
 
@@ -138,10 +145,10 @@ def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     return results, "v3 sheets C-F and the sheets of the fresh sets " + ", ".join(SPENT)
 
 
-SPENT = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5")
+SPENT = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6")
 """The fresh sets whose labels the head is fitted on: each was read by the judge before it (the
-first by the first judge, the second and third by the second and third, the fourth by the fourth,
-the fifth by the fifth) and is spent as a test. The sixth judge is the first fitted on the fifth."""
+first by the first judge, the second and third by the second and third, the fourth to the sixth by
+the fourth to the sixth) and is spent as a test. The seventh judge is the first fitted on the sixth."""
 
 
 def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
@@ -160,7 +167,7 @@ def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:
 
     judge = Judge(Path(folder))
     results = v3_results(root)
-    x = sheet_features(judge.eye, judge.curves, results, judge.templates)[:, : judge.n_features]
+    x = judge.head_rows(sheet_features(judge.eye, judge.curves, results, judge.templates), [r.caption for r in results])
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
     extra = judge_extra(judge)

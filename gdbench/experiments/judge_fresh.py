@@ -120,7 +120,7 @@ def pooled(root: Path = Path("."), which: str = "fresh", judge_dir: Path | None 
     fresh = fresh_results(root, which)
     results = v3_results(root) + fresh
     source = ["v3"] * (len(results) - len(fresh)) + [block_and_arm(r.run)[0] for r in fresh]
-    x = sheet_features(judge.eye, judge.curves, results, judge.templates)[:, : judge.n_features]
+    x = judge.head_rows(sheet_features(judge.eye, judge.curves, results, judge.templates), [r.caption for r in results])
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
     rows = []

@@ -91,4 +91,5 @@ def judge_extra(judge) -> tuple[Tensor, list[str]] | None:
     rows = judge.head_info.get("fixture_rows")
     if not rows:
         return None
-    return torch.tensor(rows["features"], dtype=torch.float32), list(rows["labels"])
+    x = torch.tensor(rows["features"], dtype=torch.float32)
+    return judge.head_rows(x, [n.rsplit("/", 1)[0] for n in rows["names"]]), list(rows["labels"])

@@ -61,9 +61,16 @@ class Judge:
         from gdbench.metrics.judge.sameness import ALIGNED, SAMENESS
 
         n, first, same = self.head.n_features, 2 * len(FEATURES), len(SAMENESS)
+        self.references = self.head_info.get("references")
+        """{caption: rows} of the asset's own fixtures the head reads a result against
+        (``reference.against``; the seventh judge on), None before."""
         known = (first,)
         if self.templates is not None:
             known = (first + same - ALIGNED, first + same, first + same + len(LOOK))
+        if self.references is not None:
+            from gdbench.metrics.judge.reference import REFERENCE
+
+            known = ((1 + len(REFERENCE)) * known[-1],)
         if n not in known:
             raise ValueError(
                 f"judge: {head_path} reads {n} features, the folder's parts give {' or '.join(map(str, known))} "
@@ -71,7 +78,8 @@ class Judge:
             )
         self.n_features = n
         """How many of the readings' features the head reads, in order: a judge reads the ones it was
-        fitted on (the first version 20, the second 26, the third 30, the fourth 50: the look too)."""
+        fitted on (the first version 20, the second 26, the third 30, the fourth 50: the look too; the
+        seventh 200: the 50 and the 50 less each of the asset's three reference fixtures')."""
         self.version = hashlib.sha256(b"".join(parts)).hexdigest()[:12]
 
     def knows(self, caption: str | None) -> bool:
@@ -87,15 +95,31 @@ class Judge:
         names = [*FEATURES, *(f"outline_{k}" for k in FEATURES)]
         if self.templates is not None:
             names += [*SAMENESS, *LOOK]
+        if self.references is not None:
+            from gdbench.metrics.judge.reference import names as against_names
+
+            return against_names(names)
         return names[: self.n_features]
 
     def features(self, views, azimuths, caption: str):
-        """(features [F], the eye's readings [V, BINS]) of one result (``reading.result_features``)."""
+        """(features [F], the eye's readings [V, BINS]) of one result (``reading.result_features``),
+        as the head reads them (``head_rows``)."""
         from gdbench.metrics.judge.reading import result_features
 
         x, q = result_features(self.eye, self.curves, torch.as_tensor(views), torch.as_tensor(azimuths),
                                caption, self.templates)  # fmt: skip
-        return x[: self.n_features], q
+        return self.head_rows(x[None], [caption])[0], q
+
+    def head_rows(self, x, captions: list[str]):
+        """The readings [N, F] (``reading.result_features``, as many as the folder's parts give) of
+        results of ``captions`` -> what the head reads: their first ``n_features``, or, for a judge
+        with references, the numbers and the numbers less the asset's reference fixtures'
+        (``reference.against``)."""
+        if self.references is None:
+            return x[:, : self.n_features]
+        from gdbench.metrics.judge.reference import against
+
+        return against(x, list(captions), self.references)
 
     def views(self, views, azimuths, caption: str) -> dict:
         """Judge one result from ``views`` [V, H, W, 3] (uint8 or float in [0, 1], white

@@ -1,0 +1,75 @@
+"""The judge's readings against the asset's own fixtures (from the seventh judge on).
+
+A result's numbers (``reading.result_features``) say how its views read; what they should read
+depends on the asset: a corgi's profile is long where a penguin's is not, a white duck's blob and
+its front differ less than a red chair's. The ground truth gives each asset's own yardsticks for
+free: its fixtures (``fixtures.py``) read the same way, six views each. The head reads a result's
+numbers and, beside them, the same numbers less each ``REFERENCE`` fixture's of its asset
+(``against``): how far the result is from the asset whole, from its front everywhere and from its
+spun blob.
+
+The fixtures' numbers (``reference_rows``) are kept in head.json (``references``), every asset
+with a front, the tests' duck included (its rows are never fitted on: ``fixtures.HELD_OUT``). An
+asset without a front has no front to repeat and no fixtures: its differences are zero, and
+``head.decide`` gives it blob or fine only.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+REFERENCE = ("asset", "front-everywhere", "blob")
+"""The fixtures a result is read against (``fixtures.RULE_CLASSES``' kinds): fine, front_everywhere
+and blob as the ground truth makes them."""
+
+
+def reference_rows(eye, curves: dict, templates, captions, known: dict | None = None) -> dict[str, list[list[float]]]:
+    """{caption: [len(REFERENCE)] rows of numbers} of every caption with a front: the ``REFERENCE``
+    fixtures' features (six sheet views, ``fixtures.fixture_views``), taken from ``known``
+    ({"caption/kind": row}, the fixture rows already read) where they are there."""
+    from gdbench.assets.library import has_front
+    from gdbench.metrics.judge.fixtures import fixture_views
+    from gdbench.metrics.judge.reading import result_features
+    from gdbench.metrics.judge.sameness import SHEET
+
+    known = known or {}
+    az = torch.tensor(SHEET)
+    out = {}
+    for caption in captions:
+        if not has_front(caption):
+            continue
+        rows = []
+        for kind in REFERENCE:
+            row = known.get(f"{caption}/{kind}")
+            if row is None:
+                row = result_features(eye, curves, fixture_views(caption, kind), az, caption, templates)[0]
+            rows.append([float(v) for v in row])
+        out[caption] = rows
+    return out
+
+
+def against(x: Tensor, captions: list[str], references: dict) -> Tensor:
+    """Features [N, F] of results of ``captions`` -> [N, (1 + len(REFERENCE)) F]: the numbers, then
+    the numbers less each reference fixture's of the result's asset (zeros for an asset without
+    one: no front)."""
+    if x.ndim != 2 or len(x) != len(captions):
+        raise ValueError(f"x: expected [N, F] features of the {len(captions)} captions, got {tuple(x.shape)}")
+    parts = [x]
+    ref = torch.stack(
+        [
+            torch.tensor(references[c], dtype=x.dtype)[:, : x.shape[1]]
+            if c in references
+            else x.new_zeros(len(REFERENCE), x.shape[1])
+            for c in captions
+        ]
+    )  # [N, K, F]; an asset without a front reads as its own reference
+    own = torch.tensor([c in references for c in captions])[:, None, None]
+    diff = torch.where(own, x[:, None] - ref, torch.zeros_like(ref))
+    parts += list(diff.unbind(1))
+    return torch.cat(parts, 1)
+
+
+def names(features: list[str]) -> list[str]:
+    """The names of ``against``'s numbers: ``features``, then ``vs_<kind>_<feature>`` per reference."""
+    return [*features, *(f"vs_{k.replace('-', '_')}_{f}" for k in REFERENCE for f in features)]
