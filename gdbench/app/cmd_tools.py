@@ -204,8 +204,9 @@ class TrainJudge:
     progress: bool = True
     """Report progress."""
     eye_from: Path | None = None
-    """Take this judge folder's eye as it is (byte for byte) instead of training one: only the
-    templates and the head are made again."""
+    """Take this judge folder's eye as it is (byte for byte) instead of training one, and its
+    templates and elongation curves where it has them (then no data is rendered): only the
+    references and the head are made again."""
 
 
 def run_train_judge(cmd: TrainJudge) -> dict:

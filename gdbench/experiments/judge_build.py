@@ -76,7 +76,10 @@ def data_curves(data) -> dict:
 def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers: int = 1, seed: int = 0,
                 root: Path = Path("."), progress: bool = True, eye_from: Path | None = None) -> dict:  # fmt: skip
     """Train the eye (or take ``eye_from``'s, byte for byte), draw the sameness templates, fit the
-    head on the labelled sheets (``fit_results``), write the three to ``out``; returns the provenance."""
+    head on the labelled sheets (``fit_results``), write the three to ``out``; returns the provenance.
+    With ``eye_from`` a judge folder that has templates (the fourth judge's on), its templates and
+    the assets' elongation curves are taken as they are too (they are drawn from the same renders,
+    so drawing them again gives the same numbers): the eye's data is not rendered at all."""
     from gdbench.core.io import atomic_write, write_json
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.judge.fixtures import HELD_OUT, fixture_rows
@@ -87,36 +90,50 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     from gdbench.priors.learned.data import data_key
 
     t0 = time.perf_counter()
-    crops, data = eye_crops(views, workers, progress)
-    t_data = time.perf_counter() - t0
-    cfg = replace(EyeTrainConfig(), steps=steps, seed=seed)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    if eye_from is not None:
+    meta, log = {"data_key": data_key(eye_data_config(views))}, []
+    if eye_from is not None and (Path(eye_from) / "templates.safetensors").is_file():
         from gdbench.metrics.judge.judge import Judge
 
-        eye_bytes = (Path(eye_from) / "eye.safetensors").read_bytes()
-        eye, log, meta = Judge(Path(eye_from)).eye, [], {"data_key": data_key(eye_data_config(views))}
-        atomic_write(out / "eye.safetensors", lambda f: f.write(eye_bytes))
+        src = Judge(Path(eye_from))
+        eye, curves, templates, captions = src.eye, src.curves, src.templates, src.eye.config.captions
+        for name in ("eye.safetensors", "templates.safetensors"):
+            blob = (Path(eye_from) / name).read_bytes()
+            atomic_write(out / name, lambda f, b=blob: f.write(b))
+        prov_from = Path(eye_from) / "provenance.json"
+        n_views = json.loads(prov_from.read_text()).get("eye_views") if prov_from.is_file() else None
+        t_data = t_eye = 0.0
     else:
-        eye, log = train_eye(crops, data.caption, data.azimuth, data.elevation, data.captions, cfg,
-                             progress=progress)  # fmt: skip
-        from safetensors.torch import save
+        crops, data = eye_crops(views, workers, progress)
+        captions, n_views = data.captions, len(data)
+        t_data = time.perf_counter() - t0
+        cfg = replace(EyeTrainConfig(), steps=steps, seed=seed)
+        if eye_from is not None:  # a folder without templates: its eye alone
+            from gdbench.metrics.judge.judge import Judge
 
-        meta = {"config": json.dumps(eye.config.to_dict()), "train": json.dumps(cfg.to_dict()),
-                "data_key": data_key(eye_data_config(views)), "commit": code_commit()}  # fmt: skip
-        state = {k: v.detach().to(torch.float16).contiguous() for k, v in eye.state_dict().items()}
-        blob = save(state, metadata=meta)
-        atomic_write(out / "eye.safetensors", lambda f: f.write(blob))
-    t_eye = time.perf_counter() - t0 - t_data
-    curves = data_curves(data)
-    templates = Templates.from_data(crops, data)
-    templates.save(out / "templates.safetensors", {"data_key": meta["data_key"], "commit": code_commit()})
+            eye_bytes = (Path(eye_from) / "eye.safetensors").read_bytes()
+            eye = Judge(Path(eye_from)).eye
+            atomic_write(out / "eye.safetensors", lambda f: f.write(eye_bytes))
+        else:
+            eye, log = train_eye(crops, data.caption, data.azimuth, data.elevation, data.captions, cfg,
+                                 progress=progress)  # fmt: skip
+            from safetensors.torch import save
+
+            meta |= {"config": json.dumps(eye.config.to_dict()), "train": json.dumps(cfg.to_dict()),
+                     "commit": code_commit()}  # fmt: skip
+            state = {k: v.detach().to(torch.float16).contiguous() for k, v in eye.state_dict().items()}
+            blob = save(state, metadata=meta)
+            atomic_write(out / "eye.safetensors", lambda f: f.write(blob))
+        t_eye = time.perf_counter() - t0 - t_data
+        curves = data_curves(data)
+        templates = Templates.from_data(crops, data)
+        templates.save(out / "templates.safetensors", {"data_key": meta["data_key"], "commit": code_commit()})
     results, where = fit_results(root)
     x = sheet_features(eye, curves, results, templates)
     fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
-    fx, fy, names = fixture_rows(eye, curves, templates, data.captions, progress=progress)
-    refs = reference_rows(eye, curves, templates, data.captions, known=dict(zip(names, fx)))
+    fx, fy, names = fixture_rows(eye, curves, templates, captions, progress=progress)
+    refs = reference_rows(eye, curves, templates, captions, known=dict(zip(names, fx)))
     rx = against(x, [r.caption for r in results], refs)
     rfx = against(fx, [n.rsplit("/", 1)[0] for n in names], refs)
     head = fit_head(torch.cat([rx[fit_on], rfx]), [results[i].consensus for i in fit_on] + fy, HEAD, seed=seed)
@@ -126,7 +143,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
                  "references": refs, "reference_kinds": list(REFERENCE),
                  "commit": code_commit(), "aspect_curves": curves}  # fmt: skip
     write_json(head_info, out / "head.json")
-    prov = {"commit": code_commit(), "eye_data_key": meta["data_key"], "eye_views": len(data), "steps": steps,
+    prov = {"commit": code_commit(), "eye_data_key": meta["data_key"], "eye_views": n_views, "steps": steps,
             "seed": seed, "eye_from": str(eye_from) if eye_from else None,
             "final_loss": log[-1]["loss"] if log else None, "seconds_data": round(t_data, 1),
             "seconds_eye": round(t_eye, 1), "seconds": round(time.perf_counter() - t0, 1),
