@@ -205,8 +205,8 @@ class TrainJudge:
     """Report progress."""
     eye_from: Path | None = None
     """Take this judge folder's eye as it is (byte for byte) instead of training one, and its
-    templates and elongation curves where it has them (then no data is rendered): only the
-    references and the head are made again."""
+    templates, elongation curves and fixture readings where it has them (then no data is rendered
+    and one fixture is read again as a check): only the references and the head are made again."""
 
 
 def run_train_judge(cmd: TrainJudge) -> dict:

@@ -79,7 +79,8 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     head on the labelled sheets (``fit_results``), write the three to ``out``; returns the provenance.
     With ``eye_from`` a judge folder that has templates (the fourth judge's on), its templates and
     the assets' elongation curves are taken as they are too (they are drawn from the same renders,
-    so drawing them again gives the same numbers): the eye's data is not rendered at all."""
+    so drawing them again gives the same numbers), and its fixtures' readings where one read again
+    agrees (``_known_fixture_rows``): the eye's data is not rendered at all."""
     from gdbench.core.io import atomic_write, write_json
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.judge.fixtures import HELD_OUT, fixture_rows
@@ -101,10 +102,12 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
         for name in ("eye.safetensors", "templates.safetensors"):
             blob = (Path(eye_from) / name).read_bytes()
             atomic_write(out / name, lambda f, b=blob: f.write(b))
+        known = _known_fixture_rows(src)
         prov_from = Path(eye_from) / "provenance.json"
         n_views = json.loads(prov_from.read_text()).get("eye_views") if prov_from.is_file() else None
         t_data = t_eye = 0.0
     else:
+        known = None
         crops, data = eye_crops(views, workers, progress)
         captions, n_views = data.captions, len(data)
         t_data = time.perf_counter() - t0
@@ -132,7 +135,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     results, where = fit_results(root)
     x = sheet_features(eye, curves, results, templates)
     fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
-    fx, fy, names = fixture_rows(eye, curves, templates, captions, progress=progress)
+    fx, fy, names = fixture_rows(eye, curves, templates, captions, progress=progress, known=known)
     refs = reference_rows(eye, curves, templates, captions, known=dict(zip(names, fx)))
     rx = against(x, [r.caption for r in results], refs)
     rfx = against(fx, [n.rsplit("/", 1)[0] for n in names], refs)
@@ -150,6 +153,27 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
             "threads": torch.get_num_threads()}  # fmt: skip
     write_json(prov, out / "provenance.json")
     return prov
+
+
+def _known_fixture_rows(judge) -> dict | None:
+    """{"caption/kind": features} of the fixture rows kept in ``judge``'s head.json, where one of
+    them read again by its eye, curves and templates gives the same numbers (then every one would:
+    the readings are deterministic); None otherwise."""
+    from gdbench.metrics.judge.fixtures import fixture_views
+    from gdbench.metrics.judge.reading import result_features
+    from gdbench.metrics.judge.sameness import SHEET
+
+    rows = judge.head_info.get("fixture_rows")
+    if not rows or not rows["names"]:
+        return None
+    caption, kind = rows["names"][0].rsplit("/", 1)
+    again = result_features(judge.eye, judge.curves, fixture_views(caption, kind), torch.tensor(SHEET), caption,
+                            judge.templates)[0]  # fmt: skip
+    stored = torch.tensor(rows["features"][0], dtype=torch.float32)
+    if again.shape != stored.shape or not torch.allclose(again, stored, atol=1e-5):
+        print(f"judge fixtures: {rows['names'][0]} reads otherwise than kept; reading every fixture again")
+        return None
+    return dict(zip(rows["names"], rows["features"]))
 
 
 def fit_results(root: Path = Path(".")) -> tuple[list, str]:
