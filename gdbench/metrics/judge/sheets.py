@@ -147,11 +147,13 @@ FRESH_SETS = {
     "fresh4": FreshSet("fresh4", Path("docs/results/judge/fresh4"), "docs/judge_fresh4.md"),
     "fresh5": FreshSet("fresh5", Path("docs/results/judge/fresh5"), "docs/judge_fresh5.md"),
     "fresh6": FreshSet("fresh6", Path("docs/results/judge/fresh6"), "docs/judge_fresh6.md"),
+    "fresh7": FreshSet("fresh7", Path("docs/results/judge/fresh7"), "docs/judge_fresh7.md"),
 }
 """The judge's fresh sets: the first (spent: the second and third judges are fitted on it), the
 second and the third (spent: read by the second and third judges; the fourth judge is fitted on all
 three), the fourth and the fifth (spent: read by the fourth and fifth judges; the sixth is fitted on
-all five) and the sixth (registered 2026-12-06, read by the sixth judge)."""
+all five), the sixth (spent: read by the sixth judge; the seventh is fitted on all six) and the
+seventh (registered 2026-12-06, read by the seventh judge)."""
 
 
 def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:
