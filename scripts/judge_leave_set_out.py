@@ -1,7 +1,7 @@
 """Why the judge's head is trees: the kinds of head on the labelled sets spent before the shipped
 judge (v3's sheets and the fresh sets in ``judge_build.SPENT``), held out two ways.
 
-    python scripts/judge_leave_set_out.py --out docs/results/judge/sixth [--judge DIR]
+    python scripts/judge_leave_set_out.py --out docs/results/judge/seventh [--judge DIR] [--heads trees:50 trees:200]
 
 - **leave-set-out** (``leave_set_out.csv``): each fresh set in turn is judged by a head fitted on
   v3's and the other sets' consensus results and the fixtures: what a fresh set measures (new
@@ -55,6 +55,9 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--judge", type=Path, default=None, help="a judge folder (default: the shipped judge)")
+    names = [f"{k}:{n}" for k, n in HEADS]
+    ap.add_argument("--heads", nargs="+", choices=names, default=names, metavar="HEAD:N",
+                    help=f"the heads to compare (default: all of {' '.join(names)})")  # fmt: skip
     ap.add_argument("--out", type=Path, required=True,
                     help="where the two tables go (each judge keeps its own: fourth, fifth, sixth)")  # fmt: skip
     args = ap.parse_args(argv)
@@ -74,7 +77,7 @@ def main(argv=None) -> int:
     truth = [r.consensus for r in results]
     fronts, kinds = [has_front(r.caption) for r in results], [PARTS[r.caption][0] for r in results]
     lso, lko = [], []
-    for kind, n in HEADS:
+    for kind, n in (h for h in HEADS if f"{h[0]}:{h[1]}" in args.heads):
         label: list[str | None] = [None] * len(results)
         for held in SETS:
             fit_on = [i for i in range(len(results)) if source[i] != held and truth[i]]

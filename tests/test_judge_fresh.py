@@ -116,7 +116,8 @@ def test_the_fresh_sets_read_back_whole_with_both_passes():
 def test_the_pooled_diagnostic_refits_the_head_on_both_sets_labels():
     """``judge_fresh --pooled``: the head refitted over v3's and the fresh set's consensus results
     (counted here from the label files themselves), by source; in sample it cannot do worse than
-    leave-kind-out on the results it was fitted on."""
+    leave-kind-out on the results it was fitted on. The regression is refitted (the shipped trees
+    take 22 fits of five forests over 200 numbers: minutes that the counts do not need)."""
     import csv
 
     from gdbench.experiments.judge_fresh import LABELS, pooled
@@ -126,7 +127,7 @@ def test_the_pooled_diagnostic_refits_the_head_on_both_sets_labels():
         return sum(a[k] == b[k] for k in a if k in b)
 
     fresh = consensus([LABELS["rater1"], LABELS["rater2"]])
-    rows = {(r["fit"], r["source"]): r for r in pooled()}
+    rows = {(r["fit"], r["source"]): r for r in pooled(head="linear")}
     n_all = rows[("in sample, pooled", "all")]["n"]
     assert n_all == rows[("in sample, pooled", "v3")]["n"] + fresh
     blocks = ("learned-janus", "learned-uniform", "empirical-janus")

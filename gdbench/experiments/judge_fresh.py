@@ -102,12 +102,14 @@ def agreement_rows(judged: list[dict], blocks: tuple[str, ...] = BLOCKS) -> list
     return rows
 
 
-def pooled(root: Path = Path("."), which: str = "fresh", judge_dir: Path | None = None) -> list[dict]:
+def pooled(root: Path = Path("."), which: str = "fresh", judge_dir: Path | None = None,
+           head: str | None = None) -> list[dict]:  # fmt: skip
     """After the fresh set was read (it is spent as a test): would more labelled results, the fresh
     set's pooled with v3's, let the head meet the bar? The head refitted leave-kind-out and in sample
     over the union (six views; the eye as shipped), a row per fit and source (v3, each fresh block).
     A diagnostic of the head's data against its features, not a test of a judge. ``judge_dir``: the
-    judge whose eye and features are read (default: the shipped one)."""
+    judge whose eye and features are read (default: the shipped one); ``head``: the kind of head
+    refitted (``head.HEADS``; default: the judge's own)."""
     from gdbench.assets.library import PARTS, has_front
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.judge_build import sheet_features
@@ -124,9 +126,9 @@ def pooled(root: Path = Path("."), which: str = "fresh", judge_dir: Path | None 
     kinds = [PARTS[r.caption][0] for r in results]
     fronts = [has_front(r.caption) for r in results]
     rows = []
-    extra = judge_extra(judge)
-    for fit, judged in (("leave-kind-out", leave_kind_out(x, results, kinds, fronts, extra, head_kind(judge.head))),
-                        ("in sample", in_sample(x, results, fronts, extra, head_kind(judge.head)))):  # fmt: skip
+    extra, kind = judge_extra(judge), head or head_kind(judge.head)
+    for fit, judged in (("leave-kind-out", leave_kind_out(x, results, kinds, fronts, extra, kind)),
+                        ("in sample", in_sample(x, results, fronts, extra, kind))):  # fmt: skip
         for part in ("all", "v3", *BLOCKS):
             idx = [i for i, r in enumerate(results) if r.consensus and part in ("all", source[i])]
             a = agreement([results[i].consensus for i in idx], [judged[i][0] for i in idx])

@@ -13,7 +13,8 @@ depends on the asset. The chimeras, the blurred asset and the floaters are not f
 
 Each fixture is read as a label sheet shows a result: six views at azimuths 0, 60, ..., 300 on the
 run turntable's orbit. ``HELD_OUT`` assets give no rows, so that the tests' fixtures (the duck's)
-stay out of the head's fit.
+stay out of the head's fit (their readings are still kept as the duck's references,
+``reference.py``, which the head reads against but was never fitted on).
 """
 
 from __future__ import annotations
