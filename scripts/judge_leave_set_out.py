@@ -76,8 +76,8 @@ def main(argv=None) -> int:
     fx = torch.cat([fx50, against(fx50, [n.rsplit("/", 1)[0] for n in rows["names"]], refs)[:, 50:]], 1)
     truth = [r.consensus for r in results]
     fronts, kinds = [has_front(r.caption) for r in results], [PARTS[r.caption][0] for r in results]
-    lso, lko = [], []
-    for kind, n in (h for h in HEADS if f"{h[0]}:{h[1]}" in args.heads):
+    lso, lko, heads = [], [], [h for h in HEADS if f"{h[0]}:{h[1]}" in args.heads]
+    for kind, n in heads:  # every head's leave-set-out first, written before the slower leave-kind-out
         label: list[str | None] = [None] * len(results)
         for held in SETS:
             fit_on = [i for i in range(len(results)) if source[i] != held and truth[i]]
@@ -93,6 +93,8 @@ def main(argv=None) -> int:
             print(f"{kind:10s} {n:3d} leave-set-out {held:6s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} (Janus), "
                   f"{a['kappa_four']:.2f} (four), recall fe {a['recall_front_everywhere']:.2f} "
                   f"blob {a['recall_blob']:.2f} fine {a['recall_fine']:.2f}", flush=True)  # fmt: skip
+    write_csv(lso, args.out / "leave_set_out.csv")
+    for kind, n in heads:
         if kind == "one forest":  # its leave-kind-out: the fourth judge's own table, docs/results/judge/fourth
             continue
         pooled = leave_kind_out(x[:, :n], results, kinds, fronts, (fx[:, :n], list(fy)), kind)
@@ -102,7 +104,6 @@ def main(argv=None) -> int:
             lko.append(row(kind, n, part, a, judge.version, commit))
             print(f"{kind:10s} {n:3d} leave-kind-out pooled {part:16s} n {a['n']:3d}: kappa {a['kappa_janus']:.2f} "
                   f"(Janus split), {a['kappa_four']:.2f} (four), blob {a['recall_blob']:.2f}", flush=True)  # fmt: skip
-    write_csv(lso, args.out / "leave_set_out.csv")
     write_csv(lko, args.out / "leave_kind_out_pooled.csv")
     print(f"-> {args.out}")
     return 0
