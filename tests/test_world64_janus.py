@@ -41,6 +41,22 @@ def test_shares_by_arm_and_the_sheets_by_rule():
     assert sheets_by_rule(list(prompts.values())) == {"highest": "a duck", "median": "a corgi", "lowest": "a sofa"}
 
 
+def test_without_run_folders_the_six_views_are_read_alone():
+    """No --runs: the run-folder reader has no rows, the prompts' table names the six views' labels,
+    and no sheet is chosen by a GT PSNR that was never read."""
+    cells = (("gd", 0, "fine"), ("gd", 1, "blob"), ("gd-no-sn", 0, "front_everywhere"), ("gd-no-sn", 1, "fine"))
+    rows = [_row("a corgi", arm, k, "fine", lab, "") for arm, k, lab in cells]
+    for r in rows:
+        r["run_folder"], r["gaussians"] = "", ""
+    arms = {(r["arm"], r["reader"]): r for r in by_arm(rows)}
+    assert ("gd", "run_folder") not in arms and arms[("gd", "six_views")]["blob"] == pytest.approx(1 / 2)
+    assert arms[("gd-no-sn", "six_views")]["janus"] == pytest.approx(1 / 2)
+    assert arms[("gd", "six_views")]["gt_psnr"] is None
+    prompts = by_prompt(rows)
+    assert prompts[0]["judge_gd"] == "fine blob" and prompts[0]["judge_gd-no-sn"] == "front_everywhere fine"
+    assert sheets_by_rule(prompts) == {}
+
+
 def test_the_committed_labels_read_back_with_their_sheets():
     """Every labelled number is a row on a committed sheet, both passes label all 124, and the
     consensus is where they agree."""

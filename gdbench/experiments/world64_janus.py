@@ -6,6 +6,9 @@ stands"). A description, not a verdict: no claim is tested.
 
     python -m gdbench.experiments.world64_janus --runs OUT/janus --to docs/results/learned_prior/world64/janus
 
+Without ``--runs`` the results are read from the committed sheets alone (six views; no run-folder
+mode, GT PSNR or Gaussians), so any machine can read the set with a new judge.
+
 Writes ``judged.csv`` (a row per result: the raters' labels, the consensus, the judge's in each
 mode, GT PSNR, Gaussians), ``agreement.csv`` (the judge against the raters by mode and arm, with
 the judge issue's thresholds), ``by_arm.csv`` (each label's share by arm and reader, GT PSNR and
@@ -37,28 +40,32 @@ def labelled_results(root: Path = Path(".")):
     return attach_labels(results, {k: root / v for k, v in LABELS.items()})
 
 
-def judged_rows(runs: Path, root: Path = Path("."), judge_folder: Path | None = None) -> list[dict]:
+def judged_rows(runs: Path | None, root: Path = Path("."), judge_folder: Path | None = None) -> list[dict]:
     """Every result judged from its sheet's six views and from its run folder under ``runs`` (the
     janus.sh sweep's janus/ folder: the key's run path below ``cells/``), with its cells.csv row's
-    GT PSNR and Gaussians."""
+    GT PSNR and Gaussians; ``runs`` None: the six views alone (the run-folder columns empty)."""
     from gdbench.core.provenance import code_commit
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.sheets import SHEET_AZIMUTHS
 
-    runs = Path(runs)
-    cells_csv = runs / "cells.csv"
-    if not cells_csv.is_file():
-        raise FileNotFoundError(f"runs: no cells.csv in {runs} (the janus.sh sweep's janus/ folder)")
-    with open(cells_csv, newline="") as f:
-        cells = {r["run_id"]: r for r in csv.DictReader(f)}
+    cells = {}
+    if runs is not None:
+        runs = Path(runs)
+        cells_csv = runs / "cells.csv"
+        if not cells_csv.is_file():
+            raise FileNotFoundError(f"runs: no cells.csv in {runs} (the janus.sh sweep's janus/ folder)")
+        with open(cells_csv, newline="") as f:
+            cells = {r["run_id"]: r for r in csv.DictReader(f)}
     judge, commit = load_judge(str(judge_folder) if judge_folder else None), code_commit()
     rows = []
     for r in labelled_results(root):
         parts = Path(r.run).parts
-        folder = runs.joinpath(*parts[parts.index("cells") :])
-        if not (folder / "scene.ply").is_file():
-            raise FileNotFoundError(f"runs: {folder} has no scene.ply (sheet number {r.number})")
-        six, whole = judge.views(r.views, SHEET_AZIMUTHS, r.caption), judge.run(folder)
+        six, whole = judge.views(r.views, SHEET_AZIMUTHS, r.caption), {"label": "", "confidence": ""}
+        if runs is not None:
+            folder = runs.joinpath(*parts[parts.index("cells") :])
+            if not (folder / "scene.ply").is_file():
+                raise FileNotFoundError(f"runs: {folder} has no scene.ply (sheet number {r.number})")
+            whole = judge.run(folder)
         cell = cells.get(r.run_id, {})
         rows.append({
             "number": r.number, "run_id": r.run_id, "caption": r.caption, "block": parts[-2], "seed": parts[-1],
@@ -84,6 +91,8 @@ def by_arm(judged: list[dict]) -> list[dict]:
         mine = [r for r in judged if r["block"] == arm]
         for reader in ("rater1", "rater2", "consensus", "six_views", "run_folder"):
             labelled = [r[reader] for r in mine if r[reader]]
+            if not labelled:  # no run folders read
+                continue
             out.append({"arm": arm, "reader": reader, "results": len(labelled),
                         **{c: sum(x == c for x in labelled) / len(labelled) for c in CLASSES},
                         "janus": sum(x in ("front_everywhere", "second_face") for x in labelled) / len(labelled),
@@ -94,22 +103,24 @@ def by_arm(judged: list[dict]) -> list[dict]:
 
 def by_prompt(judged: list[dict]) -> list[dict]:
     """Per prompt: the mean GT PSNR of its four results, each arm's consensus labels and the judge's."""
-    out = []
+    out, mode = [], "run_folder" if any(r["run_folder"] for r in judged) else "six_views"
     for caption in sorted({r["caption"] for r in judged}):
         mine = [r for r in judged if r["caption"] == caption]
         row = {"prompt": caption, "gt_psnr": _mean(r["gt_psnr"] for r in mine)}
         for arm in ARMS:
             a = sorted((r for r in mine if r["block"] == arm), key=lambda r: r["seed"])
             row[f"consensus_{arm}"] = " ".join(r["consensus"] or "-" for r in a)
-            row[f"judge_{arm}"] = " ".join(r["run_folder"] for r in a)
+            row[f"judge_{arm}"] = " ".join(r[mode] for r in a)
         out.append(row)
     return out
 
 
 def sheets_by_rule(prompts: list[dict]) -> dict[str, str]:
     """The prompts of the highest, the median and the lowest mean GT PSNR (the median: the lower
-    middle of an even count)."""
+    middle of an even count); none where no GT PSNR was read."""
     ranked = sorted((p for p in prompts if p["gt_psnr"] is not None), key=lambda p: -p["gt_psnr"])
+    if not ranked:
+        return {}
     return {"highest": ranked[0]["prompt"], "median": ranked[(len(ranked) - 1) // 2]["prompt"],
             "lowest": ranked[-1]["prompt"]}  # fmt: skip
 
@@ -120,7 +131,8 @@ def main(argv=None) -> int:
 
     doc = __doc__.split("\n\n")[0]
     p = argparse.ArgumentParser(prog="python -m gdbench.experiments.world64_janus", description=doc)
-    p.add_argument("--runs", type=Path, required=True, help="the janus.sh sweep's janus/ folder")
+    p.add_argument("--runs", type=Path, default=None,
+                   help="the janus.sh sweep's janus/ folder (without it: the committed sheets' six views)")  # fmt: skip
     p.add_argument("--to", type=Path, default=Path("docs/results/learned_prior/world64/janus"))
     p.add_argument("--judge", type=Path, default=None, help="another judge's folder (default: the shipped one)")
     a = p.parse_args(argv)
@@ -135,15 +147,17 @@ def main(argv=None) -> int:
              "| arm | reader | results | front_everywhere | second_face | blob | fine | Janus | GT PSNR | Gaussians |",
              "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['arm']} | {r['reader']} | {r['results']} | " + " | ".join(f(r[c]) for c in (*CLASSES, "janus"))
-              + f" | {f(r['gt_psnr'])} | {r['gaussians']:.0f} |" for r in arms]  # fmt: skip
+              + f" | {f(r['gt_psnr'])} | {'' if r['gaussians'] is None else round(r['gaussians'])} |"
+              for r in arms]  # fmt: skip
     lines += ["", "| mode | block | results | kappa Janus | kappa four | recall fe | recall blob | recall fine "
               "| fine warned | fails |", "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['mode']} | {r['block']} | {r['n']} | {f(r['kappa_janus'])} | {f(r['kappa_four'])} | "
               f"{f(r['recall_front_everywhere'])} | {f(r['recall_blob'])} | {f(r['recall_fine'])} | "
               f"{f(r['fine_warned'])} | {r['fails'] or 'none'} |"
               for r in agree if r["truth"] == "consensus"]  # fmt: skip
-    lines += ["", "Sheets by rule (mean GT PSNR of the prompt's four results): "
-              + "; ".join(f"{k}: {v}" for k, v in picks.items())]  # fmt: skip
+    if picks:
+        lines += ["", "Sheets by rule (mean GT PSNR of the prompt's four results): "
+                  + "; ".join(f"{k}: {v}" for k, v in picks.items())]  # fmt: skip
     text = "\n".join(lines) + "\n"
     atomic_write(a.to / "summary.md", lambda fh: fh.write(text.encode()))
     print(text)
