@@ -3,7 +3,7 @@ templates. Each view, cropped as the eye crops it and blurred, is correlated in 
 asset's own renders at every azimuth bin (the eye's training crops near the sheets' elevation);
 the softmax over bins is a second 'eye' whose turntable features join the twenty. Prints the
 head's agreement leave-kind-out and in sample on v3's sheets and pooled with the fresh set's
-(docs/scoring.md, "The next reading, explored", gives the numbers of 2026-12-05).
+(docs/judge_versions.md, "The next reading, explored", gives the numbers of 2026-12-05).
 
     python scripts/judge_template_reading.py [TEMPERATURE 0.05] [BLUR_PX 1.5] [L2]
     RELATIVE=1 python scripts/judge_template_reading.py 0.05 1.5 0.01      # + relative sameness

@@ -1,8 +1,8 @@
 """The judge's readings against the asset's own fixtures (from the seventh judge on).
 
 A result's numbers (``reading.result_features``) say how its views read; what they should read
-depends on the asset: a corgi's profile is long where a penguin's is not, a white duck's blob and
-its front differ less than a red chair's. The ground truth gives each asset's own yardsticks for
+depends on the asset: its outline, colours and shape set what its whole, its front everywhere and
+its blob look like. The ground truth gives each asset's own yardsticks for
 free: its fixtures (``fixtures.py``) read the same way, six views each. The head reads a result's
 numbers and, beside them, the same numbers less each ``REFERENCE`` fixture's of its asset
 (``against``): how far the result is from the asset whole, from its front everywhere and from its
