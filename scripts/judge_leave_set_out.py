@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     ap.add_argument("--heads", nargs="+", choices=names, default=names, metavar="HEAD:N",
                     help=f"the heads to compare (default: all of {' '.join(names)})")  # fmt: skip
     ap.add_argument("--out", type=Path, required=True,
-                    help="where the two tables go (each judge keeps its own: fourth, fifth, sixth)")  # fmt: skip
+                    help="where the two tables go (each judge keeps its own: fourth to seventh)")  # fmt: skip
     args = ap.parse_args(argv)
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
     if judge.templates is None or judge.head_info.get("fixture_rows") is None:

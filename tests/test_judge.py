@@ -126,7 +126,10 @@ def test_shipped_judge_on_renderable_fixtures(kind, want):
     """The 3D fixtures (metrics/failures3d.py: Gaussian scenes built from the asset, never labels)
     as results: the duck turned by 90 degrees is fine, and turned by that much; its front wedge
     repeated around it is front_everywhere; its spun, single-coloured solid is a blob. Both modes
-    agree: the 36 turntable frames and the six views a sheet shows."""
+    agree: the 36 turntable frames and the six views a sheet shows. The head never saw the duck,
+    but from the seventh judge its front-everywhere and blob fixtures are also its references
+    (reference.py): from six views they read at exactly zero from themselves, so the six-view case
+    checks how the head takes that, and the 36 frames (not exactly the references) the shape."""
     from gdbench.metrics.failures3d import failure_scene
     from gdbench.metrics.judge.judge import turntable_frames
 

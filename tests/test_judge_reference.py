@@ -32,6 +32,10 @@ def test_the_differences_are_the_numbers_less_each_reference():
     assert len(names(["p"] * 5)) == out.shape[1]
     with pytest.raises(ValueError, match="x: expected"):
         against(x, ["a duck"], refs)
+    with pytest.raises(ValueError, match="references: none for 'a yellow duck'"):
+        against(x, ["a duck", "a hamburger", "a yellow duck"], refs)  # a front, no references: never zeros
+    with pytest.raises(ValueError, match=r"shape \(3, 4\)"):
+        against(x, ["a duck", "a hamburger", "a duck"], {"a duck": [r[:4] for r in refs["a duck"]]})
 
 
 def _shipped():
@@ -75,8 +79,11 @@ def test_a_folder_whose_head_and_references_disagree_is_refused(tmp_path):
     info = json.loads((WEIGHTS / "head.json").read_text())
     without = {k: v for k, v in info.items() if k != "references"}
     (tmp_path / "head.json").write_text(json.dumps(without))
-    with pytest.raises(ValueError, match="reads 200 features"):
+    with pytest.raises(ValueError, match=r"reads 200 features.*references that head\.json does not keep"):
         Judge(tmp_path)  # a head over the differences with nothing to take them from
+    (tmp_path / "head.json").write_text(json.dumps(info | {"reference_kinds": list(reversed(REFERENCE))}))
+    with pytest.raises(ValueError, match="keeps references of"):
+        Judge(tmp_path)  # references in another order would be read against the wrong fixtures
     g = torch.Generator().manual_seed(0)
     info["head"] = fit(torch.randn(60, 50, generator=g), ["front_everywhere", "blob", "fine"] * 20).to_dict()
     (tmp_path / "head.json").write_text(json.dumps(info))

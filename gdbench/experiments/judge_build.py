@@ -77,7 +77,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
                 root: Path = Path("."), progress: bool = True, eye_from: Path | None = None) -> dict:  # fmt: skip
     """Train the eye (or take ``eye_from``'s, byte for byte), draw the sameness templates, fit the
     head on the labelled sheets (``fit_results``), write the three to ``out``; returns the provenance.
-    With ``eye_from`` a judge folder that has templates (the fourth judge's on), its templates and
+    With ``eye_from`` a judge folder that has templates (the second judge's on), its templates and
     the assets' elongation curves are taken as they are too (they are drawn from the same renders,
     so drawing them again gives the same numbers), and its fixtures' readings where one read again
     agrees (``_known_fixture_rows``): the eye's data is not rendered at all."""
@@ -99,6 +99,7 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
 
         src = Judge(Path(eye_from))
         eye, curves, templates, captions = src.eye, src.curves, src.templates, src.eye.config.captions
+        meta["data_key"] = src.meta.get("data_key", meta["data_key"])  # the data the eye was trained on
         for name in ("eye.safetensors", "templates.safetensors"):
             blob = (Path(eye_from) / name).read_bytes()
             atomic_write(out / name, lambda f, b=blob: f.write(b))
@@ -156,9 +157,10 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
 
 
 def _known_fixture_rows(judge) -> dict | None:
-    """{"caption/kind": features} of the fixture rows kept in ``judge``'s head.json, where one of
-    them read again by its eye, curves and templates gives the same numbers (then every one would:
-    the readings are deterministic); None otherwise."""
+    """{"caption/kind": features} of the fixture rows kept in ``judge``'s head.json, where the first
+    asset's rows, one per kind, read again by its eye, curves and templates give the same numbers
+    (the readings and the fixtures' scenes are deterministic: a change to either shows on every
+    kind); None otherwise."""
     from gdbench.metrics.judge.fixtures import fixture_views
     from gdbench.metrics.judge.reading import result_features
     from gdbench.metrics.judge.sameness import SHEET
@@ -166,13 +168,17 @@ def _known_fixture_rows(judge) -> dict | None:
     rows = judge.head_info.get("fixture_rows")
     if not rows or not rows["names"]:
         return None
-    caption, kind = rows["names"][0].rsplit("/", 1)
-    again = result_features(judge.eye, judge.curves, fixture_views(caption, kind), torch.tensor(SHEET), caption,
-                            judge.templates)[0]  # fmt: skip
-    stored = torch.tensor(rows["features"][0], dtype=torch.float32)
-    if again.shape != stored.shape or not torch.allclose(again, stored, atol=1e-5):
-        print(f"judge fixtures: {rows['names'][0]} reads otherwise than kept; reading every fixture again")
-        return None
+    first = rows["names"][0].rsplit("/", 1)[0]
+    for name, kept in zip(rows["names"], rows["features"]):
+        caption, kind = name.rsplit("/", 1)
+        if caption != first:
+            break
+        again = result_features(judge.eye, judge.curves, fixture_views(caption, kind), torch.tensor(SHEET), caption,
+                                judge.templates)[0]  # fmt: skip
+        stored = torch.tensor(kept, dtype=torch.float32)
+        if again.shape != stored.shape or not torch.allclose(again, stored, atol=1e-5):
+            print(f"judge fixtures: {name} reads otherwise than kept; reading every fixture again")
+            return None
     return dict(zip(rows["names"], rows["features"]))
 
 

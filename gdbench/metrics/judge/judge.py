@@ -67,14 +67,21 @@ class Judge:
         known = (first,)
         if self.templates is not None:
             known = (first + same - ALIGNED, first + same, first + same + len(LOOK))
-        if self.references is not None:
-            from gdbench.metrics.judge.reference import REFERENCE
+        from gdbench.metrics.judge.reference import REFERENCE
 
-            known = ((1 + len(REFERENCE)) * known[-1],)
+        against = (1 + len(REFERENCE)) * known[-1]
+        if self.references is not None:
+            kinds = self.head_info.get("reference_kinds", list(REFERENCE))
+            if list(kinds) != list(REFERENCE):
+                raise ValueError(f"judge: {head_path} keeps references of {kinds}, this code reads {list(REFERENCE)}")
+            known = (against,)
         if n not in known:
+            why = ("its head reads the readings against references that head.json does not keep"
+                   if self.references is None and n == against and self.templates is not None
+                   else "templates.safetensors missing or extra, or references kept for another head?")  # fmt: skip
             raise ValueError(
                 f"judge: {head_path} reads {n} features, the folder's parts give {' or '.join(map(str, known))} "
-                "(templates.safetensors missing or extra?); train it again with `gdbench train-judge`"
+                f"({why}); train it again with `gdbench train-judge`"
             )
         self.n_features = n
         """How many of the readings' features the head reads, in order: a judge reads the ones it was
@@ -87,7 +94,8 @@ class Judge:
 
     def feature_names(self) -> list[str]:
         """The names of ``features``' values: the eye's turntable features, the outline's
-        (``outline_`` before each) and, with templates, the sameness reading's and the look's."""
+        (``outline_`` before each) and, with templates, the sameness reading's and the look's; with
+        references, then each of them less each reference's (``vs_<kind>_<name>``)."""
         from gdbench.metrics.judge.look import LOOK
         from gdbench.metrics.judge.reading import FEATURES
         from gdbench.metrics.judge.sameness import SAMENESS

@@ -168,7 +168,8 @@ def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption:
     (``aspect_readings`` against ``curves[caption]``), then, with ``templates``, the views' sameness
     (``sameness.sameness_features``) and their look (``look.look_numbers``); and the eye's readings
     [V, BINS]. ``views`` [V, H, W, 3] at camera ``azimuths`` [V]. A judge reads the first of them
-    that its head was fitted on (``Judge.n_features``)."""
+    that its head was fitted on (``Judge.n_features``), or, from the seventh, all of them and the
+    same less the asset's references (``Judge.head_rows``)."""
     from gdbench.metrics.judge.net import crop_views
 
     crops = crop_views(views)

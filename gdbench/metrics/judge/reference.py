@@ -51,23 +51,26 @@ def reference_rows(eye, curves: dict, templates, captions, known: dict | None = 
 
 def against(x: Tensor, captions: list[str], references: dict) -> Tensor:
     """Features [N, F] of results of ``captions`` -> [N, (1 + len(REFERENCE)) F]: the numbers, then
-    the numbers less each reference fixture's of the result's asset (zeros for an asset without
-    one: no front)."""
+    the numbers less each reference fixture's of the result's asset (zeros for an asset without a
+    front, which has none). An asset with a front but no references, or references of another
+    shape, is an error, never a silent zero."""
+    from gdbench.assets.library import has_front
+
     if x.ndim != 2 or len(x) != len(captions):
         raise ValueError(f"x: expected [N, F] features of the {len(captions)} captions, got {tuple(x.shape)}")
-    parts = [x]
-    ref = torch.stack(
-        [
-            torch.tensor(references[c], dtype=x.dtype)[:, : x.shape[1]]
-            if c in references
-            else x.new_zeros(len(REFERENCE), x.shape[1])
-            for c in captions
-        ]
-    )  # [N, K, F]; an asset without a front reads as its own reference
-    own = torch.tensor([c in references for c in captions])[:, None, None]
-    diff = torch.where(own, x[:, None] - ref, torch.zeros_like(ref))
-    parts += list(diff.unbind(1))
-    return torch.cat(parts, 1)
+    shape = (len(REFERENCE), x.shape[1])
+    diffs = []
+    for xi, c in zip(x, captions):
+        if c not in references:
+            if has_front(c):
+                raise ValueError(f"references: none for {c!r}, an asset with a front")
+            diffs.append(x.new_zeros(shape))
+            continue
+        ref = torch.tensor(references[c], dtype=x.dtype)
+        if tuple(ref.shape) != shape:
+            raise ValueError(f"references: {c!r} has rows of shape {tuple(ref.shape)}, the readings need {shape}")
+        diffs.append(xi[None] - ref)
+    return torch.cat([x, *torch.stack(diffs).unbind(1)], 1)
 
 
 def names(features: list[str]) -> list[str]:
