@@ -72,8 +72,8 @@ def main(argv=None) -> int:
     fx50, fy = torch.tensor(rows["features"], dtype=torch.float32), list(rows["labels"])
     known = dict(zip(rows["names"], fx50))
     refs = judge.references or reference_rows(judge.eye, judge.curves, judge.templates, sorted(judge.curves), known)
-    x = torch.cat([x50, against(x50, [r.caption for r in results], refs)[:, 50:]], 1)
-    fx = torch.cat([fx50, against(fx50, [n.rsplit("/", 1)[0] for n in rows["names"]], refs)[:, 50:]], 1)
+    x = against(x50, [r.caption for r in results], refs)  # the 50, then the 50 less each reference's
+    fx = against(fx50, [n.rsplit("/", 1)[0] for n in rows["names"]], refs)
     truth = [r.consensus for r in results]
     fronts, kinds = [has_front(r.caption) for r in results], [PARTS[r.caption][0] for r in results]
     lso, lko, heads = [], [], [h for h in HEADS if f"{h[0]}:{h[1]}" in args.heads]

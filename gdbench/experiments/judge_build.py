@@ -161,9 +161,7 @@ def _known_fixture_rows(judge) -> dict | None:
     asset's rows, one per kind, read again by its eye, curves and templates give the same numbers
     (the readings and the fixtures' scenes are deterministic: a change to either shows on every
     kind); None otherwise."""
-    from gdbench.metrics.judge.fixtures import fixture_views
-    from gdbench.metrics.judge.reading import result_features
-    from gdbench.metrics.judge.sameness import SHEET
+    from gdbench.metrics.judge.fixtures import fixture_reading
 
     rows = judge.head_info.get("fixture_rows")
     if not rows or not rows["names"]:
@@ -173,8 +171,7 @@ def _known_fixture_rows(judge) -> dict | None:
         caption, kind = name.rsplit("/", 1)
         if caption != first:
             break
-        again = result_features(judge.eye, judge.curves, fixture_views(caption, kind), torch.tensor(SHEET), caption,
-                                judge.templates)[0]  # fmt: skip
+        again = fixture_reading(judge.eye, judge.curves, judge.templates, caption, kind)
         stored = torch.tensor(kept, dtype=torch.float32)
         if again.shape != stored.shape or not torch.allclose(again, stored, atol=1e-5):
             print(f"judge fixtures: {name} reads otherwise than kept; reading every fixture again")

@@ -44,24 +44,31 @@ def fixture_views(caption: str, kind: str, size: int = 128) -> Tensor:
     return torch.from_numpy(turntable_frames(failure_scene(caption, kind), size, frames=6))
 
 
+def fixture_reading(eye, curves: dict, templates, caption: str, kind: str, known: dict | None = None) -> Tensor:
+    """[F] features (``reading.result_features``) of the fixture ``kind`` of ``caption`` read from its
+    six sheet views, or taken from ``known`` ({"caption/kind": features}: rows read before by the
+    same eye, curves and templates) where it is there."""
+    x = (known or {}).get(f"{caption}/{kind}")
+    if x is None:
+        from gdbench.metrics.judge.reading import result_features
+        from gdbench.metrics.judge.sameness import SHEET
+
+        x = result_features(eye, curves, fixture_views(caption, kind), torch.tensor(SHEET), caption, templates)[0]
+    return torch.as_tensor(x, dtype=torch.float32)
+
+
 def fixture_rows(eye, curves: dict, templates, captions, progress: bool = False,
                  known: dict | None = None) -> tuple[Tensor, list[str], list[str]]:  # fmt: skip
     """(features [N, F], labels [N], names [N] "caption/kind") of every fixture of ``RULE_CLASSES``
-    for the ``captions`` that have a front and are not ``HELD_OUT``; a name in ``known`` ({name:
-    features}: rows read before by the same eye, curves and templates) is taken from it."""
+    for the ``captions`` that have a front and are not ``HELD_OUT`` (``fixture_reading``, from
+    ``known`` where there)."""
     from gdbench.assets.library import has_front
-    from gdbench.metrics.judge.reading import result_features
-    from gdbench.metrics.judge.sameness import SHEET
 
-    az = torch.tensor(SHEET)
     rows, labels, names = [], [], []
     todo = [c for c in captions if has_front(c) and c not in HELD_OUT]
     for i, caption in enumerate(todo):
         for kind, label in RULE_CLASSES.items():
-            x = (known or {}).get(f"{caption}/{kind}")
-            if x is None:
-                x = result_features(eye, curves, fixture_views(caption, kind), az, caption, templates)[0]
-            rows.append(torch.as_tensor(x, dtype=torch.float32))
+            rows.append(fixture_reading(eye, curves, templates, caption, kind, known))
             labels.append(label)
             names.append(f"{caption}/{kind}")
         if progress:

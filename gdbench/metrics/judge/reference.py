@@ -29,24 +29,13 @@ def reference_rows(eye, curves: dict, templates, captions, known: dict | None = 
     fixtures' features (six sheet views, ``fixtures.fixture_views``), taken from ``known``
     ({"caption/kind": row}, the fixture rows already read) where they are there."""
     from gdbench.assets.library import has_front
-    from gdbench.metrics.judge.fixtures import fixture_views
-    from gdbench.metrics.judge.reading import result_features
-    from gdbench.metrics.judge.sameness import SHEET
+    from gdbench.metrics.judge.fixtures import fixture_reading
 
-    known = known or {}
-    az = torch.tensor(SHEET)
-    out = {}
-    for caption in captions:
-        if not has_front(caption):
-            continue
-        rows = []
-        for kind in REFERENCE:
-            row = known.get(f"{caption}/{kind}")
-            if row is None:
-                row = result_features(eye, curves, fixture_views(caption, kind), az, caption, templates)[0]
-            rows.append([float(v) for v in row])
-        out[caption] = rows
-    return out
+    return {
+        caption: [fixture_reading(eye, curves, templates, caption, kind, known).tolist() for kind in REFERENCE]
+        for caption in captions
+        if has_front(caption)
+    }
 
 
 def against(x: Tensor, captions: list[str], references: dict) -> Tensor:
