@@ -175,3 +175,23 @@ def test_an_average_of_forests_scores_their_mean_plus_the_offset():
     assert Forest.from_dict(mean.to_dict()).scores(test).tolist() == mean.scores(test).tolist()
     with pytest.raises(ValueError, match="forests"):
         average([])
+
+
+def test_a_fit_without_a_class_still_scores_every_class():
+    """Labels with no fine row (a fold that holds out every fine result): the head still scores the
+    three classes, the absent one at the floor of its weighted share (log 1e-12), so never picked,
+    and it reads the two present classes by the rule that made them (the first feature's sign);
+    a class count below the labels' is an error."""
+    from gdbench.metrics.judge.head import fit_head
+
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(80, 3, generator=g)
+    labels = ["front_everywhere" if v > 0 else "blob" for v in x[:, 0].tolist()]
+    p = fit_head(x, labels, "trees").probabilities(x)
+    assert p.shape == (80, 3)
+    assert float(p[:, 2].max()) < 1e-9
+    clear = x[:, 0].abs() > 0.1
+    assert bool((p.argmax(1) == (x[:, 0] <= 0).long())[clear].all())
+    y = (x[:, 0] <= 0).long()
+    with pytest.raises(ValueError, match=r"classes: expected at least 2"):
+        fit_forest(x, y, torch.ones(80, dtype=torch.float64), classes=1)

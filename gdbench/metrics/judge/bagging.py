@@ -141,9 +141,10 @@ def _grow(x: np.ndarray, yw: np.ndarray, g: torch.Generator, min_leaf: int, max_
 
 
 def fit_bagged(x: Tensor, y: Tensor, weight: Tensor, *, trees: int = TREES, min_leaf: int = MIN_LEAF,
-               max_features: float = MAX_FEATURES, seed: int = 0) -> Bagged:  # fmt: skip
+               max_features: float = MAX_FEATURES, seed: int = 0, classes: int | None = None) -> Bagged:  # fmt: skip
     """A random forest of class indices ``y`` [N] (0 .. C-1) on features ``x`` [N, F] with row
-    weights ``weight`` [N]."""
+    weights ``weight`` [N]; ``classes`` C (default: the largest index plus one: give it where a
+    class may have no row, so that the forest still scores every class)."""
     if x.ndim != 2 or len(x) != len(y) or len(y) != len(weight):
         raise ValueError(f"x, y, weight: expected [N, F], [N], [N], got {tuple(x.shape)}, {tuple(y.shape)}, "
                          f"{tuple(weight.shape)}")  # fmt: skip
@@ -155,8 +156,8 @@ def fit_bagged(x: Tensor, y: Tensor, weight: Tensor, *, trees: int = TREES, min_
     if trees < 1 or min_leaf < 1 or not 0 < max_features <= 1:
         raise ValueError(f"trees, min_leaf, max_features: expected >= 1, >= 1, (0, 1], got {trees}, {min_leaf}, "
                          f"{max_features}")  # fmt: skip
+    classes = _classes(y, classes)
     xn = x.double().numpy()
-    classes = int(y.max()) + 1
     yw = (torch.nn.functional.one_hot(y, classes).double() * weight.double()[:, None]).numpy()
     k = max(1, round(max_features * x.shape[1]))
     g = torch.Generator().manual_seed(seed)
@@ -167,3 +168,13 @@ def fit_bagged(x: Tensor, y: Tensor, weight: Tensor, *, trees: int = TREES, min_
         grown.append(_grow(xn[rows], yw[rows] * counts.numpy()[rows, None], g, min_leaf, k))
     return Bagged.from_dict({"n_features": x.shape[1], "nodes": [len(t["feature"]) for t in grown],
                              **{key: [t[key] for t in grown] for key in grown[0]}})  # fmt: skip
+
+
+def _classes(y: Tensor, classes: int | None) -> int:
+    """C: ``classes``, checked to cover every index of ``y``, or ``y``'s largest index plus one."""
+    top = int(y.max()) + 1
+    if classes is None:
+        return top
+    if classes < top:
+        raise ValueError(f"classes: expected at least {top} (y's largest index plus one), got {classes}")
+    return classes

@@ -109,7 +109,7 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
     else:
         raise ValueError(f"kind: expected one of {HEADS}, got {kind!r}")
     y, w = class_weights(labels)
-    return fit_kind(x, y, w, seed=seed)
+    return fit_kind(x, y, w, seed=seed, classes=len(CLASSES3))
 
 
 def load_head(d: dict):

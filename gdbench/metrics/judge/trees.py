@@ -171,22 +171,26 @@ def _tree(x: Tensor, r: Tensor, w: Tensor, p: Tensor, depth: int, classes: int) 
     return nodes
 
 
-def fit_trees(x: Tensor, y: Tensor, weight: Tensor, seed: int = 0) -> Forest:
+def fit_trees(x: Tensor, y: Tensor, weight: Tensor, seed: int = 0, classes: int | None = None) -> Forest:
     """The judge's trees head: ``SEEDS`` forests (seeds ``seed``, ``seed`` + 1, ...) averaged, with
-    ``OFFSETS`` on the classes' scores."""
-    forests = [fit_forest(x, y, weight, seed=seed + i) for i in range(SEEDS)]
-    return average(forests, torch.tensor(OFFSETS[: int(y.max()) + 1], dtype=torch.float64))
+    ``OFFSETS`` on the classes' scores (``classes`` as ``fit_forest``'s)."""
+    forests = [fit_forest(x, y, weight, seed=seed + i, classes=classes) for i in range(SEEDS)]
+    return average(forests, torch.tensor(OFFSETS[: forests[0].classes], dtype=torch.float64))
 
 
 def fit_forest(x: Tensor, y: Tensor, weight: Tensor, *, rounds: int = ROUNDS, depth: int = DEPTH,
-               rate: float = RATE, subsample: float = SUBSAMPLE, seed: int = 0) -> Forest:  # fmt: skip
+               rate: float = RATE, subsample: float = SUBSAMPLE, seed: int = 0,
+               classes: int | None = None) -> Forest:  # fmt: skip
     """Boosted trees of class indices ``y`` [N] (0 .. C-1) on features ``x`` [N, F] with row
-    weights ``weight`` [N] (float64 sums throughout)."""
+    weights ``weight`` [N] (float64 sums throughout); ``classes`` C (default: the largest index plus
+    one: give it where a class may have no row, so that the forest still scores every class)."""
     if x.ndim != 2 or len(x) != len(y) or len(y) != len(weight):
         raise ValueError(f"x, y, weight: expected [N, F], [N], [N], got {tuple(x.shape)}, {tuple(y.shape)}, "
                          f"{tuple(weight.shape)}")  # fmt: skip
+    from gdbench.metrics.judge.bagging import _classes
+
     x, w = x.double(), weight.double()
-    classes = int(y.max()) + 1
+    classes = _classes(y, classes)
     onehot = torch.nn.functional.one_hot(y, classes).double()
     prior = (w[:, None] * onehot).sum(0) / w.sum()
     init = prior.clamp(min=1e-12).log()
