@@ -259,3 +259,23 @@ def test_the_re_reading_recomputes_v3s_registered_rows(tmp_path):
         mine = rows[f"{r['a']} vs {r['b']}"]
         for key in ("prompt_mean_diff", "prompt_ci_low", "prompt_ci_high", "p_prompts_holm"):
             assert mine[key] == pytest.approx(float(r[key]), rel=1e-9), (r["b"], key)
+
+
+def test_eye_from_provenance_names_the_source_judge_not_a_path(tmp_path):
+    """``train-judge --eye-from``'s provenance names the source by what it is (its judge version
+    and its eye's SHA-256, recomputed here with hashlib over the file), the same for the shipped
+    folder and a copy of it elsewhere: no machine path goes into the shipped weights' record."""
+    import hashlib
+    import shutil
+
+    from gdbench.experiments.judge_build import source_of
+    from gdbench.metrics.judge.judge import WEIGHTS, Judge
+
+    judge = _shipped()
+    copy = tmp_path / "elsewhere"
+    shutil.copytree(WEIGHTS, copy)
+    here, there = source_of(judge, WEIGHTS), source_of(Judge(copy), copy)
+    assert here == there
+    assert here["judge"] == judge.version
+    assert here["eye_sha256"] == hashlib.sha256((WEIGHTS / "eye.safetensors").read_bytes()).hexdigest()[:12]
+    assert str(tmp_path) not in json.dumps(there) and str(WEIGHTS) not in json.dumps(here)

@@ -93,11 +93,12 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     t0 = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    meta, log = {"data_key": data_key(eye_data_config(views))}, []
+    meta, log, came_from = {"data_key": data_key(eye_data_config(views))}, [], None
     if eye_from is not None and (Path(eye_from) / "templates.safetensors").is_file():
         from gdbench.metrics.judge.judge import Judge
 
         src = Judge(Path(eye_from))
+        came_from = source_of(src, Path(eye_from))
         eye, curves, templates, captions = src.eye, src.curves, src.templates, src.eye.config.captions
         meta["data_key"] = src.meta.get("data_key", meta["data_key"])  # the data the eye was trained on
         for name in ("eye.safetensors", "templates.safetensors"):
@@ -117,7 +118,8 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
             from gdbench.metrics.judge.judge import Judge
 
             eye_bytes = (Path(eye_from) / "eye.safetensors").read_bytes()
-            eye = Judge(Path(eye_from)).eye
+            src = Judge(Path(eye_from))
+            eye, came_from = src.eye, source_of(src, Path(eye_from))
             atomic_write(out / "eye.safetensors", lambda f: f.write(eye_bytes))
         else:
             eye, log = train_eye(crops, data.caption, data.azimuth, data.elevation, data.captions, cfg,
@@ -148,12 +150,23 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
                  "commit": code_commit(), "aspect_curves": curves}  # fmt: skip
     write_json(head_info, out / "head.json")
     prov = {"commit": code_commit(), "eye_data_key": meta["data_key"], "eye_views": n_views, "steps": steps,
-            "seed": seed, "eye_from": str(eye_from) if eye_from else None,
+            "seed": seed, "eye_from": came_from,
             "final_loss": log[-1]["loss"] if log else None, "seconds_data": round(t_data, 1),
             "seconds_eye": round(t_eye, 1), "seconds": round(time.perf_counter() - t0, 1),
             "threads": torch.get_num_threads()}  # fmt: skip
     write_json(prov, out / "provenance.json")
     return prov
+
+
+def source_of(judge, folder: Path) -> dict:
+    """What ``--eye-from`` took its eye from, for the provenance: the source judge's version and its
+    eye file's SHA-256 (12 hex digits), never a path of the machine that built it."""
+    import hashlib
+
+    return {
+        "judge": judge.version,
+        "eye_sha256": hashlib.sha256((folder / "eye.safetensors").read_bytes()).hexdigest()[:12],
+    }
 
 
 def _known_fixture_rows(judge) -> dict | None:
