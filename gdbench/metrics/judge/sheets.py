@@ -148,12 +148,14 @@ FRESH_SETS = {
     "fresh5": FreshSet("fresh5", Path("docs/results/judge/fresh5"), "docs/judge_fresh5.md"),
     "fresh6": FreshSet("fresh6", Path("docs/results/judge/fresh6"), "docs/judge_fresh6.md"),
     "fresh7": FreshSet("fresh7", Path("docs/results/judge/fresh7"), "docs/judge_fresh7.md"),
+    "fresh8": FreshSet("fresh8", Path("docs/results/judge/fresh8"), "docs/judge_fresh8.md"),
 }
 """The judge's fresh sets: the first (spent: the second and third judges are fitted on it), the
 second and the third (spent: read by the second and third judges; the fourth judge is fitted on all
 three), the fourth and the fifth (spent: read by the fourth and fifth judges; the sixth is fitted on
-all five), the sixth (spent: read by the sixth judge; the seventh is fitted on all six) and the
-seventh (registered 2026-12-06, read by the seventh judge)."""
+all five), the sixth (spent: read by the sixth judge; the seventh is fitted on all six), the
+seventh (spent: read by the seventh judge) and the eighth (registered 2026-12-06, read by the
+seventh judge again: no eighth judge was shipped before its sheets were drawn)."""
 
 
 def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:
