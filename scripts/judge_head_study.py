@@ -11,6 +11,9 @@ the fixtures alone (no label at all), read three ways on the labelled sheets.
 - **leave-set-out**: each fresh set judged by a head fitted on v3's and the other sets' results
   (what a fresh set measures: new results of kinds the head has seen).
 
+``end_on.csv``: how the consensus labels the results the eye reads end-on, mostly the back or mostly
+the front, for the fish and the teapot and for the other kinds.
+
 A fixtures-only head is fitted once on the fixtures and reads every result: it never saw a label,
 so each of its readings is out of sample for labels. The trees (the shipped head) are not refitted
 here (five forests per held-out fold take hours on two cores): their rows are in each judge's own
@@ -70,6 +73,35 @@ def blurred_fixture_rows(judge, names: list[str]) -> torch.Tensor:
     return torch.stack(rows)
 
 
+HARD = ("fish", "teapot")
+"""The two kinds that most of the seventh judge's leave-kind-out misses on v3 are (docs/scoring.md)."""
+
+
+def end_on_rows(x: torch.Tensor, truth: list, kinds: list[str], source: list[str], version: str,
+                commit: str) -> list[dict]:  # fmt: skip
+    """How the consensus labels results that the eye reads end-on (``end_on`` above 0.6) with the
+    front's share under 0.35 (mostly the back) or at least 0.5 (mostly the front), for ``HARD``'s
+    kinds and the others, over v3 and the fresh sets: what a head fitted on the other kinds learns
+    such a reading means."""
+    from collections import Counter
+
+    from gdbench.metrics.agreement import LABELS
+    from gdbench.metrics.judge.reading import FEATURES
+
+    end_on, front = FEATURES.index("end_on"), FEATURES.index("front")
+    reads = {"end-on, mostly the back": lambda v: v[end_on] > 0.6 and v[front] < 0.35,
+             "end-on, mostly the front": lambda v: v[end_on] > 0.6 and v[front] >= 0.5}  # fmt: skip
+    out = []
+    for read, ok in reads.items():
+        for group in ("fish and teapot", "the other kinds"):
+            idx = [i for i in range(len(truth)) if truth[i] and (kinds[i] in HARD) == (group != "the other kinds")
+                   and ok(x[i].tolist())]  # fmt: skip
+            n = Counter(truth[i] for i in idx)
+            out.append({"reading": read, "kinds": group, "results": len(idx), **{c: n[c] for c in LABELS},
+                        "of_v3": sum(source[i] == "v3" for i in idx), "judge": version, "commit": commit})  # fmt: skip
+    return out
+
+
 def main(argv=None) -> int:
     from gdbench.assets.library import PARTS, has_front
     from gdbench.core.io import write_csv
@@ -84,7 +116,7 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--judge", type=Path, default=None, help="a judge folder (default: the shipped judge)")
-    ap.add_argument("--out", type=Path, required=True, help="where study.csv goes")
+    ap.add_argument("--out", type=Path, required=True, help="where study.csv and end_on.csv go")
     args = ap.parse_args(argv)
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
     if judge.references is None or judge.head_info.get("fixture_rows") is None:
@@ -95,6 +127,7 @@ def main(argv=None) -> int:
     x = against(sheet_features(judge.eye, judge.curves, results, judge.templates), captions, judge.references)
     truth, kinds = [r.consensus for r in results], [PARTS[c][0] for c in captions]
     fronts = [has_front(c) for c in captions]
+    write_csv(end_on_rows(x, truth, kinds, source, judge.version, commit), args.out / "end_on.csv")
     rows = judge.head_info["fixture_rows"]
     names, fy = list(rows["names"]), list(rows["labels"])
     fcaps = [n.rsplit("/", 1)[0] for n in names]
