@@ -1,6 +1,9 @@
-"""What carries to a kind no head saw: the judge's regression head over four sets of its numbers,
-fitted with and without the ground truth's fixtures (sharp, or blurred as a result is soft), and on
-the fixtures alone (no label at all), read three ways on the labelled sheets.
+"""What carries to a kind whose labels no head saw: the judge's regression head over four sets of
+its numbers, fitted with and without the ground truth's fixtures (sharp, or blurred as a result is
+soft), and on the fixtures alone (no label at all), read three ways on the labelled sheets. As in
+``evaluate.leave_kind_out``, a held-out kind's labelled results are unseen but its fixtures (made
+from the ground truth, not from labels) stay in every fit, and the 200 numbers read each result
+against its own asset's reference fixtures.
 
     python scripts/judge_head_study.py --out docs/results/judge/head_study [--judge DIR]
 
@@ -177,7 +180,7 @@ def main(argv=None) -> int:
             for read, (label, idx) in reads.items():
                 idx = [i for i in idx if truth[i]]
                 a = agreement([truth[i] for i in idx], [label[i] for i in idx])
-                worst = sorted({kinds[i] for i in idx}, key=lambda k: -janus_misses(label, idx, k))[:3]
+                worst = sorted({kinds[i] for i in idx}, key=lambda k: (-janus_misses(label, idx, k), k))[:3]
                 out.append({"head": "linear", "features": fname, "fixtures": fixname, "read": read,
                             **{k: v for k, v in a.items() if k != "confusion"},
                             "worst_kinds_janus": ";".join(worst), "judge": judge.version,

@@ -183,6 +183,7 @@ def test_a_fit_without_a_class_still_scores_every_class():
     and it reads the two present classes by the rule that made them (the first feature's sign);
     a class count below the labels' is an error."""
     from gdbench.metrics.judge.head import fit_head
+    from gdbench.metrics.judge.trees import fit_trees
 
     g = torch.Generator().manual_seed(5)
     x = torch.randn(80, 3, generator=g)
@@ -195,3 +196,5 @@ def test_a_fit_without_a_class_still_scores_every_class():
     y = (x[:, 0] <= 0).long()
     with pytest.raises(ValueError, match=r"classes: expected at least 2"):
         fit_forest(x, y, torch.ones(80, dtype=torch.float64), classes=1)
+    with pytest.raises(ValueError, match=r"classes: expected at most 3"):
+        fit_trees(x, y, torch.ones(80, dtype=torch.float64), classes=4)

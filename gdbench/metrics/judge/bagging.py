@@ -156,7 +156,9 @@ def fit_bagged(x: Tensor, y: Tensor, weight: Tensor, *, trees: int = TREES, min_
     if trees < 1 or min_leaf < 1 or not 0 < max_features <= 1:
         raise ValueError(f"trees, min_leaf, max_features: expected >= 1, >= 1, (0, 1], got {trees}, {min_leaf}, "
                          f"{max_features}")  # fmt: skip
-    classes = _classes(y, classes)
+    from gdbench.metrics.judge.trees import class_count
+
+    classes = class_count(y, classes)
     xn = x.double().numpy()
     yw = (torch.nn.functional.one_hot(y, classes).double() * weight.double()[:, None]).numpy()
     k = max(1, round(max_features * x.shape[1]))
@@ -168,13 +170,3 @@ def fit_bagged(x: Tensor, y: Tensor, weight: Tensor, *, trees: int = TREES, min_
         grown.append(_grow(xn[rows], yw[rows] * counts.numpy()[rows, None], g, min_leaf, k))
     return Bagged.from_dict({"n_features": x.shape[1], "nodes": [len(t["feature"]) for t in grown],
                              **{key: [t[key] for t in grown] for key in grown[0]}})  # fmt: skip
-
-
-def _classes(y: Tensor, classes: int | None) -> int:
-    """C: ``classes``, checked to cover every index of ``y``, or ``y``'s largest index plus one."""
-    top = int(y.max()) + 1
-    if classes is None:
-        return top
-    if classes < top:
-        raise ValueError(f"classes: expected at least {top} (y's largest index plus one), got {classes}")
-    return classes

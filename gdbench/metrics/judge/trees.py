@@ -174,6 +174,8 @@ def _tree(x: Tensor, r: Tensor, w: Tensor, p: Tensor, depth: int, classes: int) 
 def fit_trees(x: Tensor, y: Tensor, weight: Tensor, seed: int = 0, classes: int | None = None) -> Forest:
     """The judge's trees head: ``SEEDS`` forests (seeds ``seed``, ``seed`` + 1, ...) averaged, with
     ``OFFSETS`` on the classes' scores (``classes`` as ``fit_forest``'s)."""
+    if classes is not None and classes > len(OFFSETS):
+        raise ValueError(f"classes: expected at most {len(OFFSETS)} (one offset each, OFFSETS), got {classes}")
     forests = [fit_forest(x, y, weight, seed=seed + i, classes=classes) for i in range(SEEDS)]
     return average(forests, torch.tensor(OFFSETS[: forests[0].classes], dtype=torch.float64))
 
@@ -187,10 +189,8 @@ def fit_forest(x: Tensor, y: Tensor, weight: Tensor, *, rounds: int = ROUNDS, de
     if x.ndim != 2 or len(x) != len(y) or len(y) != len(weight):
         raise ValueError(f"x, y, weight: expected [N, F], [N], [N], got {tuple(x.shape)}, {tuple(y.shape)}, "
                          f"{tuple(weight.shape)}")  # fmt: skip
-    from gdbench.metrics.judge.bagging import _classes
-
     x, w = x.double(), weight.double()
-    classes = _classes(y, classes)
+    classes = class_count(y, classes)
     onehot = torch.nn.functional.one_hot(y, classes).double()
     prior = (w[:, None] * onehot).sum(0) / w.sum()
     init = prior.clamp(min=1e-12).log()
@@ -213,6 +213,16 @@ def fit_forest(x: Tensor, y: Tensor, weight: Tensor, *, rounds: int = ROUNDS, de
     return Forest(init=init, rate=rate, n_features=x.shape[1],
                   **{k: torch.tensor(arrays[k], dtype=torch.long) for k in ints},
                   **{k: torch.tensor(arrays[k], dtype=torch.float64) for k in floats})  # fmt: skip
+
+
+def class_count(y: Tensor, classes: int | None) -> int:
+    """C: ``classes``, checked to cover every index of ``y``, or ``y``'s largest index plus one."""
+    top = int(y.max()) + 1
+    if classes is None:
+        return top
+    if classes < top:
+        raise ValueError(f"classes: expected at least {top} (y's largest index plus one), got {classes}")
+    return classes
 
 
 def _predict_one(tree: dict[str, list], x: Tensor) -> Tensor:
