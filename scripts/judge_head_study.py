@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     from gdbench.metrics.judge.head import fit as fit_linear
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.reference import against
-    from gdbench.metrics.judge.sheets import fresh_results, v3_results
+    from gdbench.metrics.judge.sheets import labelled_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--judge", type=Path, default=None, help="a judge folder (default: the shipped judge)")
@@ -124,8 +124,7 @@ def main(argv=None) -> int:
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
     if judge.references is None or judge.head_info.get("fixture_rows") is None:
         ap.error("--judge: expected a judge with fixture rows and references (the seventh or later)")
-    results = v3_results() + [r for s in SETS for r in fresh_results(which=s)]
-    source = [r.batch if r.batch in SETS else "v3" for r in results]
+    results, source = labelled_results(sets=SETS)
     captions = [r.caption for r in results]
     x = against(sheet_features(judge.eye, judge.curves, results, judge.templates), captions, judge.references)
     truth, kinds = [r.consensus for r in results], [PARTS[c][0] for c in captions]

@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     from gdbench.metrics.judge.head import decide
     from gdbench.metrics.judge.judge import load_judge
     from gdbench.metrics.judge.reference import against, reference_rows
-    from gdbench.metrics.judge.sheets import fresh_results, v3_results
+    from gdbench.metrics.judge.sheets import labelled_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--judge", type=Path, default=None, help="a judge folder (default: the shipped judge)")
@@ -64,8 +64,7 @@ def main(argv=None) -> int:
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
     if judge.templates is None or judge.head_info.get("fixture_rows") is None:
         ap.error("--judge: expected a judge with templates and fixture rows (the fourth or later)")
-    results = v3_results() + [r for s in SETS for r in fresh_results(which=s)]
-    source = [r.batch if r.batch in SETS else "v3" for r in results]
+    results, source = labelled_results(sets=SETS)
     block = [block_and_arm(r.run)[0] or "v3" for r in results]
     x50 = sheet_features(judge.eye, judge.curves, results, judge.templates)
     rows = judge.head_info["fixture_rows"]

@@ -29,13 +29,13 @@ def main(argv=None) -> int:
     from gdbench.experiments.judge_fresh import block_and_arm
     from gdbench.metrics.judge.evaluate import agreement, judge_extra, leave_kind_out
     from gdbench.metrics.judge.judge import load_judge
-    from gdbench.metrics.judge.sheets import fresh_results, v3_results
+    from gdbench.metrics.judge.sheets import labelled_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("docs/results/judge/third"))
     args = ap.parse_args(argv)
     judge, commit = load_judge(), code_commit()
-    results = v3_results() + [r for s in ("fresh", "fresh2", "fresh3") for r in fresh_results(which=s)]
+    results, _ = labelled_results(sets=("fresh", "fresh2", "fresh3"))
     block = [block_and_arm(r.run)[0] or "v3" for r in results]
     x = judge.head_rows(sheet_features(judge.eye, judge.curves, results, judge.templates), [r.caption for r in results])
     truth = [r.consensus for r in results]

@@ -196,10 +196,9 @@ def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
     (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh6.md).
     A fresh set registered after this judge is never among them."""
-    from gdbench.metrics.judge.sheets import fresh_results, v3_results
+    from gdbench.metrics.judge.sheets import labelled_results
 
-    results = v3_results(root) + [r for which in SPENT for r in fresh_results(root, which)]
-    return results, "v3 sheets C-F and the sheets of the fresh sets " + ", ".join(SPENT)
+    return labelled_results(root, SPENT)[0], "v3 sheets C-F and the sheets of the fresh sets " + ", ".join(SPENT)
 
 
 SPENT = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6")

@@ -163,3 +163,10 @@ def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetRes
     root, fs = Path(root), FRESH_SETS[which]
     results = read_batch(root / fs.folder / "sheets", root / fs.key, batch=fs.name)
     return attach_labels(results, {k: root / v for k, v in fs.labels.items()})
+
+
+def labelled_results(root: Path = Path("."), sets: tuple[str, ...] = ()) -> tuple[list[SheetResult], list[str]]:
+    """(results, their sources): v3's committed results (``v3_results``), then each fresh set of
+    ``sets`` in order (``fresh_results``); a result's source is its fresh set's name, or "v3"."""
+    results = v3_results(root) + [r for which in sets for r in fresh_results(root, which)]
+    return results, [r.batch if r.batch in sets else "v3" for r in results]
