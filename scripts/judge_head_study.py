@@ -110,7 +110,7 @@ def main(argv=None) -> int:
     from gdbench.core.io import write_csv
     from gdbench.core.provenance import code_commit
     from gdbench.experiments.judge_build import sheet_features
-    from gdbench.metrics.judge.evaluate import agreement, janus
+    from gdbench.metrics.judge.evaluate import agreement, janus, leave_kind_out
     from gdbench.metrics.judge.head import decide
     from gdbench.metrics.judge.head import fit as fit_linear
     from gdbench.metrics.judge.judge import load_judge
@@ -143,35 +143,41 @@ def main(argv=None) -> int:
     def fitted(fit_on: list[int], cols: list[int], fix: tuple):
         return fit_linear(torch.cat([x[fit_on][:, cols], fix[0][:, cols]]), [truth[i] for i in fit_on] + fix[1])
 
-    def held_out(cols: list[int], fix: tuple, groups: list, fit_ok) -> list[str | None]:
-        """Each result of ``groups`` [(group name, result indices)] read by a head fitted on the
-        consensus results that ``fit_ok(i, group)`` allows and the fixtures ``fix``."""
+    def leave_set_out(cols: list[int], fix: tuple) -> list[str | None]:
+        """Each fresh result read by a head fitted on the consensus results of v3 and the other
+        sets, and the fixtures ``fix``."""
         label: list[str | None] = [None] * len(results)
-        for g, mine in groups:
-            head = fitted([i for i in range(len(results)) if truth[i] and fit_ok(i, g)], cols, fix)
+        for s in SETS:
+            mine = [i for i in fresh if source[i] == s]
+            head = fitted([i for i in range(len(results)) if truth[i] and source[i] != s], cols, fix)
             for i, lab in zip(mine, judged(head.probabilities(x[mine][:, cols]), mine)):
                 label[i] = lab
         return label
 
+    def by_kind(idx: list[int], cols: list[int], fix: tuple) -> list[str | None]:
+        """Each result of ``idx`` read leave-kind-out among the results ``idx`` (``evaluate``'s
+        folds: a head per kind, fitted on the other kinds' consensus results and the fixtures)."""
+        read = leave_kind_out(x[idx][:, cols], [results[i] for i in idx], [kinds[i] for i in idx],
+                              [fronts[i] for i in idx], (fix[0][:, cols], fix[1]), "linear")  # fmt: skip
+        label: list[str | None] = [None] * len(results)
+        for i, (lab, _) in zip(idx, read):
+            label[i] = lab
+        return label
+
     v3 = [i for i in range(len(results)) if source[i] == "v3"]
     fresh = [i for i in range(len(results)) if source[i] != "v3"]
-    v3_set = set(v3)
-
-    def by_kind(idx: list[int]) -> list:
-        return [(k, [i for i in idx if kinds[i] == k]) for k in sorted({kinds[i] for i in idx})]
 
     def janus_misses(label: list, idx: list[int], kind: str) -> int:
         return sum(janus(label[i]) != janus(truth[i]) for i in idx if kinds[i] == kind)
 
-    by_set = [(s, [i for i in fresh if source[i] == s]) for s in SETS]
     out = []
     for fname, cols in FEATURES.items():
         for fixname, fix in fixtures.items():
             reads = {
-                "v3 leave-kind-out": (held_out(cols, fix, by_kind(v3), lambda i, k: i in v3_set and kinds[i] != k), v3),
-                "fresh sets leave-kind-out": (held_out(cols, fix, by_kind(fresh), lambda i, k: kinds[i] != k), fresh),
-                "leave-set-out": (held_out(cols, fix, by_set, lambda i, s: source[i] != s), fresh),
-            }  # fmt: skip
+                "v3 leave-kind-out": (by_kind(v3, cols, fix), v3),
+                "fresh sets leave-kind-out": (by_kind(list(range(len(results))), cols, fix), fresh),
+                "leave-set-out": (leave_set_out(cols, fix), fresh),
+            }
             if fixname != "none":  # the fixtures alone: one head, no label
                 head = fit_linear(fix[0][:, cols], fix[1])
                 alone = judged(head.probabilities(x[:, cols]), list(range(len(results))))
