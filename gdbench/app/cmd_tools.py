@@ -183,11 +183,11 @@ def run_train_prior(cmd: TrainPrior) -> dict:
 class TrainJudge:
     """Train the Janus judge (docs/scoring.md, "The Janus judge"): its eye, which reads which side of the
     asset a view shows, on the assets' own renders (every caption, rendered on first use and
-    cached; no label of any result), draws the templates its sameness reading compares views with
-    from the same renders, reads each asset's own fixtures (whole, front everywhere, spun blob) as
-    its references, then fits its head (boosted trees over the turntable readings and the views'
-    look, and the same less the asset's references') on the consensus labels of v3's committed
-    sheets and the spent fresh sets' and the ground truth's fixtures. Writes eye.safetensors,
+    cached; no label of any result), draws the templates its sameness, marking and outline readings
+    compare views with from the same renders, then fits its head (a regression and boosted trees
+    over the turntable readings, the views' sameness, look, front marking and outline, their
+    probabilities averaged) on the consensus labels of v3's committed sheets and the spent fresh
+    sets'. Writes eye.safetensors,
     templates.safetensors, head.json and provenance.json to --out (default: the shipped judge's
     folder, so `gdbench judge` and `score` then use it)."""
 
@@ -205,8 +205,8 @@ class TrainJudge:
     """Report progress."""
     eye_from: Path | None = None
     """Take this judge folder's eye as it is (byte for byte) instead of training one, and its
-    templates, elongation curves and fixture readings where it has them (then no data is rendered
-    and one fixture is read again as a check): only the references and the head are made again."""
+    templates and elongation curves where it has them (then no data is rendered): only the head is
+    fitted again."""
 
 
 def run_train_judge(cmd: TrainJudge) -> dict:

@@ -4,13 +4,14 @@
    and the hamburger included), each variant at ``views`` cameras about the turntables' elevation
    (``EYE_DATA``), rendered by pyrender as the learned prior's data is (cached the same way).
 2. **The eye**: ``metrics/judge/train.py`` on those renders alone: no label of any result.
-3. **The sameness templates**: each caption's renders from the same data (``sameness.Templates``).
-4. **The references**: each asset's own fixtures read as a result is (``reference.reference_rows``).
-5. **The head** (``HEAD``: boosted trees over the features and the look numbers and the same less
-   the asset's references, ``reference.against``): fitted on the consensus results (both passes
-   agree) of v3's committed sheets and the spent fresh sets' (``fit_results``) and the ground
-   truth's fixtures; the leave-kind-out evaluation (every kind held out in turn) and the next fresh
-   set say how it does out of sample.
+3. **The templates**: each caption's renders from the same data (``sameness.Templates``), which
+   the sameness, front marking and outline readings compare views with.
+4. **The head** (``HEAD``: the regression and boosted trees over the 57 numbers, their
+   probabilities averaged, fine weighed against a false warning, ``blend.py``): fitted on the
+   consensus results (both passes agree) of v3's committed sheets and the spent fresh sets'
+   (``fit_results``); the leave-kind-out evaluation (every kind held out in turn) and the next
+   fresh set say how it does out of sample. The seventh judge's references and the ground truth's
+   fixtures (``reference.py``, ``fixtures.py``) are not read by the eighth's head.
 
 Writes ``out/eye.safetensors`` (the eye's weights in float16, its settings, the data's key and the
 commit as metadata), ``out/templates.safetensors``, ``out/head.json`` (the head and where it was
@@ -29,9 +30,9 @@ import torch
 
 EYE_VIEWS = 256
 """Cameras per (caption, variant) of the eye's data."""
-HEAD = "trees"
-"""The head's kind (``head.HEADS``): boosted trees over the features and the look numbers from the
-fourth judge on (the first three: the regression)."""
+HEAD = "blend"
+"""The head's kind (``head.HEADS``): the regression and the trees averaged from the eighth judge
+(the first three: the regression; the fourth to the seventh: boosted trees)."""
 
 
 def eye_data_config(views: int = EYE_VIEWS):
@@ -79,13 +80,10 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     head on the labelled sheets (``fit_results``), write the three to ``out``; returns the provenance.
     With ``eye_from`` a judge folder that has templates (the second judge's on), its templates and
     the assets' elongation curves are taken as they are too (they are drawn from the same renders,
-    so drawing them again gives the same numbers), and its fixtures' readings where one read again
-    agrees (``_known_fixture_rows``): the eye's data is not rendered at all."""
+    so drawing them again gives the same numbers): the eye's data is not rendered at all."""
     from gdbench.core.io import atomic_write, write_json
     from gdbench.core.provenance import code_commit
-    from gdbench.metrics.judge.fixtures import HELD_OUT, fixture_rows
     from gdbench.metrics.judge.head import fit_head
-    from gdbench.metrics.judge.reference import REFERENCE, against, reference_rows
     from gdbench.metrics.judge.sameness import Templates
     from gdbench.metrics.judge.train import EyeTrainConfig, train_eye
     from gdbench.priors.learned.data import data_key
@@ -99,19 +97,17 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
 
         src = Judge(Path(eye_from))
         came_from = source_of(src, Path(eye_from))
-        eye, curves, templates, captions = src.eye, src.curves, src.templates, src.eye.config.captions
+        eye, curves, templates = src.eye, src.curves, src.templates
         meta["data_key"] = src.meta.get("data_key", meta["data_key"])  # the data the eye was trained on
         for name in ("eye.safetensors", "templates.safetensors"):
             blob = (Path(eye_from) / name).read_bytes()
             atomic_write(out / name, lambda f, b=blob: f.write(b))
-        known = _known_fixture_rows(src)
         prov_from = Path(eye_from) / "provenance.json"
         n_views = json.loads(prov_from.read_text()).get("eye_views") if prov_from.is_file() else None
         t_data = t_eye = 0.0
     else:
-        known = None
         crops, data = eye_crops(views, workers, progress)
-        captions, n_views = data.captions, len(data)
+        n_views = len(data)
         t_data = time.perf_counter() - t0
         cfg = replace(EyeTrainConfig(), steps=steps, seed=seed)
         if eye_from is not None:  # a folder without templates: its eye alone
@@ -138,15 +134,8 @@ def build_judge(out: Path, *, steps: int = 3000, views: int = EYE_VIEWS, workers
     results, where = fit_results(root)
     x = sheet_features(eye, curves, results, templates)
     fit_on = [i for i, r in enumerate(results) if r.consensus is not None]
-    fx, fy, names = fixture_rows(eye, curves, templates, captions, progress=progress, known=known)
-    refs = reference_rows(eye, curves, templates, captions, known=dict(zip(names, fx)))
-    rx = against(x, [r.caption for r in results], refs)
-    rfx = against(fx, [n.rsplit("/", 1)[0] for n in names], refs)
-    head = fit_head(torch.cat([rx[fit_on], rfx]), [results[i].consensus for i in fit_on] + fy, HEAD, seed=seed)
-    head_info = {"head": head.to_dict(),
-                 "fitted_on": f"{where}: {len(fit_on)} consensus results; {len(fy)} fixtures of the ground truth",
-                 "fixture_rows": {"names": names, "labels": fy, "features": fx.tolist(), "held_out": list(HELD_OUT)},
-                 "references": refs, "reference_kinds": list(REFERENCE),
+    head = fit_head(x[fit_on], [results[i].consensus for i in fit_on], HEAD, seed=seed)
+    head_info = {"head": head.to_dict(), "fitted_on": f"{where}: {len(fit_on)} consensus results",
                  "commit": code_commit(), "aspect_curves": curves}  # fmt: skip
     write_json(head_info, out / "head.json")
     prov = {"commit": code_commit(), "eye_data_key": meta["data_key"], "eye_views": n_views, "steps": steps,
@@ -169,42 +158,20 @@ def source_of(judge, folder: Path) -> dict:
     }
 
 
-def _known_fixture_rows(judge) -> dict | None:
-    """{"caption/kind": features} of the fixture rows kept in ``judge``'s head.json, where the first
-    asset's rows, one per kind, read again by its eye, curves and templates give the same numbers
-    (the readings and the fixtures' scenes are deterministic: a change to either shows on every
-    kind); None otherwise."""
-    from gdbench.metrics.judge.fixtures import fixture_reading
-
-    rows = judge.head_info.get("fixture_rows")
-    if not rows or not rows["names"]:
-        return None
-    first = rows["names"][0].rsplit("/", 1)[0]
-    for name, kept in zip(rows["names"], rows["features"]):
-        caption, kind = name.rsplit("/", 1)
-        if caption != first:
-            break
-        again = fixture_reading(judge.eye, judge.curves, judge.templates, caption, kind)
-        stored = torch.tensor(kept, dtype=torch.float32)
-        if again.shape != stored.shape or not torch.allclose(again, stored, atol=1e-5):
-            print(f"judge fixtures: {name} reads otherwise than kept; reading every fixture again")
-            return None
-    return dict(zip(rows["names"], rows["features"]))
-
-
 def fit_results(root: Path = Path(".")) -> tuple[list, str]:
     """The labelled results the shipped head is fitted on, and what they are: v3's committed sheets
-    (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh6.md).
+    (batches C-F) and the spent fresh sets' (``SPENT``: docs/judge_fresh.md to judge_fresh8.md).
     A fresh set registered after this judge is never among them."""
     from gdbench.metrics.judge.sheets import labelled_results
 
     return labelled_results(root, SPENT)[0], "v3 sheets C-F and the sheets of the fresh sets " + ", ".join(SPENT)
 
 
-SPENT = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6")
+SPENT = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6", "fresh7", "fresh8")
 """The fresh sets whose labels the head is fitted on: each was read by the judge before it (the
 first by the first judge, the second and third by the second and third, the fourth to the sixth by
-the fourth to the sixth) and is spent as a test. The seventh judge is the first fitted on the sixth."""
+the fourth to the sixth, the seventh and eighth by the seventh) and is spent as a test. The eighth
+judge is the first fitted on the seventh and eighth."""
 
 
 def evaluate_v3(folder: Path, out: Path, root: Path = Path(".")) -> list[dict]:

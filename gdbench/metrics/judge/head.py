@@ -90,11 +90,12 @@ def class_weights(labels: list[str]) -> tuple[Tensor, Tensor]:
     return y, w / w.sum()
 
 
-HEADS = ("linear", "trees", "bagged")
+HEADS = ("linear", "trees", "bagged", "blend")
 """The kinds of head: the regression (``fit``; the first three judges), boosted trees over the
-features and the look numbers (``trees.fit_trees``: the fourth judge one forest, the fifth and
-sixth five averaged with the blob offset) and a random forest over the same (``bagging.fit_bagged``:
-compared for the sixth judge by holding each spent set out, not shipped)."""
+features and the look numbers (``trees.fit_trees``: the fourth judge one forest, the fifth to
+seventh five averaged with the blob offset), a random forest over the same (``bagging.fit_bagged``:
+compared for the sixth judge by holding each spent set out, not shipped) and the regression and the
+trees averaged, fine weighed against a false warning (``blend.fit_blend``: the eighth judge)."""
 
 
 def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
@@ -102,6 +103,10 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
     weighted equally."""
     if kind == "linear":
         return fit(x, labels)
+    if kind == "blend":
+        from gdbench.metrics.judge.blend import fit_blend
+
+        return fit_blend(x, labels, seed=seed)
     if kind == "trees":
         from gdbench.metrics.judge.trees import fit_trees as fit_kind
     elif kind == "bagged":
@@ -113,9 +118,13 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
 
 
 def load_head(d: dict):
-    """A head from its ``to_dict``: a ``Head`` (no kind, or linear), a ``trees.Forest`` (trees) or a
-    ``bagging.Bagged`` (bagged)."""
+    """A head from its ``to_dict``: a ``Head`` (no kind, or linear), a ``trees.Forest`` (trees), a
+    ``bagging.Bagged`` (bagged) or a ``blend.Blend`` (blend)."""
     kind = d.get("kind", "linear")
+    if kind == "blend":
+        from gdbench.metrics.judge.blend import Blend
+
+        return Blend.from_dict(d)
     if kind == "bagged":
         from gdbench.metrics.judge.bagging import Bagged
 
@@ -132,9 +141,10 @@ def load_head(d: dict):
 def head_kind(head) -> str:
     """The ``HEADS`` kind of a fitted head."""
     from gdbench.metrics.judge.bagging import Bagged
+    from gdbench.metrics.judge.blend import Blend
     from gdbench.metrics.judge.trees import Forest
 
-    for kind, cls in (("linear", Head), ("trees", Forest), ("bagged", Bagged)):
+    for kind, cls in (("linear", Head), ("trees", Forest), ("bagged", Bagged), ("blend", Blend)):
         if isinstance(head, cls):
             return kind
     raise ValueError(f"head: expected a fitted head of one of {HEADS}, got {type(head).__name__}")

@@ -57,6 +57,7 @@ class Judge:
             self.templates = Templates.load(folder / "templates.safetensors")
             parts.append((folder / "templates.safetensors").read_bytes())
         from gdbench.metrics.judge.look import LOOK
+        from gdbench.metrics.judge.marking import FRONT
         from gdbench.metrics.judge.reading import FEATURES
         from gdbench.metrics.judge.sameness import ALIGNED, SAMENESS
 
@@ -66,10 +67,12 @@ class Judge:
         (``reference.against``; the seventh judge on), None before."""
         known = (first,)
         if self.templates is not None:
-            known = (first + same - ALIGNED, first + same, first + same + len(LOOK))
+            known = (first + same - ALIGNED, first + same, first + same + len(LOOK),
+                     first + same + len(LOOK) + len(FRONT))  # fmt: skip
         from gdbench.metrics.judge.reference import REFERENCE
 
-        against = (1 + len(REFERENCE)) * known[-1]
+        # the seventh's: the 50 against its references (no templates: the readings cannot give them)
+        against = (1 + len(REFERENCE)) * (first + same + len(LOOK) if self.templates is not None else first)
         if self.references is not None:
             kinds = self.head_info.get("reference_kinds", list(REFERENCE))
             if list(kinds) != list(REFERENCE):
@@ -86,7 +89,8 @@ class Judge:
         self.n_features = n
         """How many of the readings' features the head reads, in order: a judge reads the ones it was
         fitted on (the first version 20, the second 26, the third 30, the fourth 50: the look too; the
-        seventh 200: the 50 and the 50 less each of the asset's three reference fixtures')."""
+        seventh 200: the 50 and the 50 less each of the asset's three reference fixtures'; the eighth
+        57: the 50, the front marking and the outline's match, ``marking.FRONT``)."""
         self.version = hashlib.sha256(b"".join(parts)).hexdigest()[:12]
 
     def knows(self, caption: str | None) -> bool:
@@ -97,6 +101,7 @@ class Judge:
         (``outline_`` before each) and, with templates, the sameness reading's and the look's; with
         references, then each of them less each reference's (``vs_<kind>_<name>``)."""
         from gdbench.metrics.judge.look import LOOK
+        from gdbench.metrics.judge.marking import FRONT
         from gdbench.metrics.judge.reading import FEATURES
         from gdbench.metrics.judge.sameness import SAMENESS
 
@@ -107,6 +112,7 @@ class Judge:
             from gdbench.metrics.judge.reference import names as against_names
 
             return against_names(names)
+        names += list(FRONT) if self.templates is not None else []
         return names[: self.n_features]
 
     def features(self, views, azimuths, caption: str):
@@ -121,13 +127,13 @@ class Judge:
     def head_rows(self, x, captions: list[str]):
         """The readings [N, F] (``reading.result_features``, as many as the folder's parts give) of
         results of ``captions`` -> what the head reads: their first ``n_features``, or, for a judge
-        with references, the numbers and the numbers less the asset's reference fixtures'
-        (``reference.against``)."""
+        with references (the seventh), the numbers its references hold (the first 50) and the same
+        less the asset's reference fixtures' (``reference.against``)."""
         if self.references is None:
             return x[:, : self.n_features]
-        from gdbench.metrics.judge.reference import against
+        from gdbench.metrics.judge.reference import REFERENCE, against
 
-        return against(x, list(captions), self.references)
+        return against(x[:, : self.n_features // (1 + len(REFERENCE))], list(captions), self.references)
 
     def views(self, views, azimuths, caption: str) -> dict:
         """Judge one result from ``views`` [V, H, W, 3] (uint8 or float in [0, 1], white

@@ -166,10 +166,11 @@ def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption:
                     templates=None) -> tuple[Tensor, Tensor]:  # fmt: skip
     """One result's features: ``turntable_features`` of the eye's readings, then of the outline's
     (``aspect_readings`` against ``curves[caption]``), then, with ``templates``, the views' sameness
-    (``sameness.sameness_features``) and their look (``look.look_numbers``); and the eye's readings
-    [V, BINS]. ``views`` [V, H, W, 3] at camera ``azimuths`` [V]. A judge reads the first of them
-    that its head was fitted on (``Judge.n_features``), or, from the seventh, all of them and the
-    same less the asset's references (``Judge.head_rows``)."""
+    (``sameness.sameness_features``), their look (``look.look_numbers``) and their front marking
+    and outline (``marking.front_features``); and the eye's readings [V, BINS]. ``views`` [V, H, W, 3] at
+    camera ``azimuths`` [V]. A judge reads the first of them that its head was fitted on
+    (``Judge.n_features``), or, the seventh, the first 50 and the same less the asset's references
+    (``Judge.head_rows``)."""
     from gdbench.metrics.judge.net import crop_views
 
     crops = crop_views(views)
@@ -179,10 +180,12 @@ def result_features(eye, curves: dict, views: Tensor, azimuths: Tensor, caption:
     parts = [turntable_features(q, azimuths), turntable_features(qa, azimuths)]
     if templates is not None:
         from gdbench.metrics.judge.look import look_numbers
+        from gdbench.metrics.judge.marking import front_features
         from gdbench.metrics.judge.sameness import sameness_features
 
         six = sheet_views(azimuths)
-        parts += [sameness_features(crops, azimuths, templates, caption), look_numbers(views[six], crops[six])]
+        parts += [sameness_features(crops, azimuths, templates, caption), look_numbers(views[six], crops[six]),
+                  front_features(crops[six], templates, caption)]  # fmt: skip
     return torch.cat(parts), q
 
 
