@@ -1,6 +1,8 @@
-"""The judge's readings against the asset's own fixtures (gdbench/metrics/judge/reference.py): the
-differences against a closed form, the shipped references against a fresh reading of the fixtures
-they stand for, and a judge folder whose head and references disagree refused."""
+"""The judge's readings against the asset's own fixtures (gdbench/metrics/judge/reference.py, the
+seventh judge's): the differences against a closed form, the seventh's references against a fresh
+reading of the fixtures they stand for, and a judge folder whose head and references disagree
+refused. The seventh is made again from the shipped eye and templates and its kept head
+(``judge.with_head``), and must come out as the version its fresh sets recorded."""
 
 from __future__ import annotations
 
@@ -38,16 +40,20 @@ def test_the_differences_are_the_numbers_less_each_reference():
         against(x, ["a duck", "a hamburger", "a duck"], {"a duck": [r[:4] for r in refs["a duck"]]})
 
 
-def _shipped():
-    from gdbench.metrics.judge.judge import WEIGHTS, load_judge
+SEVENTH = "c18485a29831"
+"""The seventh judge's version, as its fresh sets' agreement.csv record it."""
 
-    judge = load_judge()
-    if judge.references is None:
-        pytest.fail(f"the shipped judge in {WEIGHTS} keeps no references: run `gdbench train-judge`")
+
+@pytest.fixture(scope="module")
+def seventh(tmp_path_factory):
+    from gdbench.metrics.judge.judge import SEVENTH_HEAD, Judge, with_head
+
+    judge = Judge(with_head(SEVENTH_HEAD, tmp_path_factory.mktemp("seventh")))
+    assert judge.version == SEVENTH and judge.references is not None
     return judge
 
 
-def test_the_shipped_references_are_the_fixtures_read_afresh():
+def test_the_seventh_references_are_the_fixtures_read_afresh(seventh):
     """The duck's references (kept in head.json though the duck is never fitted on) are its asset,
     front-everywhere and blob fixtures read as a sheet shows them: the judge reading the duck's
     asset fixture finds itself at zero from the asset and, from the blob, the difference of the
@@ -55,7 +61,7 @@ def test_the_shipped_references_are_the_fixtures_read_afresh():
     from gdbench.metrics.judge.fixtures import HELD_OUT, fixture_views
     from gdbench.metrics.judge.reading import result_features
 
-    judge = _shipped()
+    judge = seventh
     caption = HELD_OUT[0]
     assert caption in judge.references and all(f"{caption}/" not in n for n in judge.head_info["fixture_rows"]["names"])
     x, _ = judge.features(fixture_views(caption, "asset"), SIX, caption)
@@ -73,14 +79,13 @@ def test_the_shipped_references_are_the_fixtures_read_afresh():
     assert float((asset - blob).abs().max()) > 0.05  # the blob reads otherwise than the asset
 
 
-def test_a_folder_whose_head_and_references_disagree_is_refused(tmp_path):
+def test_a_folder_whose_head_and_references_disagree_is_refused(tmp_path, seventh):
     from gdbench.metrics.judge.head import fit
-    from gdbench.metrics.judge.judge import WEIGHTS, Judge
+    from gdbench.metrics.judge.judge import SEVENTH_HEAD, WEIGHTS, Judge
 
-    _shipped()
     for name in ("eye.safetensors", "templates.safetensors"):
         shutil.copy(WEIGHTS / name, tmp_path / name)
-    info = json.loads((WEIGHTS / "head.json").read_text())
+    info = json.loads(SEVENTH_HEAD.read_text())
     without = {k: v for k, v in info.items() if k != "references"}
     (tmp_path / "head.json").write_text(json.dumps(without))
     with pytest.raises(ValueError, match=r"reads 200 features.*references that head\.json does not keep"):

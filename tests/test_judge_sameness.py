@@ -165,9 +165,8 @@ def test_a_judge_folder_whose_parts_do_not_fit_its_head_is_refused(tmp_path):
 
 def test_an_earlier_judges_head_reads_the_features_it_was_fitted_on(tmp_path):
     """Regression heads over 26 and 30 features (the second and third versions' shapes) read the
-    first 26 and 30 of the readings, the same numbers the shipped (seventh, 200: the look too, and
-    the 50 against the references) judge's first ones are; a head over a count no version had is
-    refused."""
+    first 26 and 30 of the readings, the same numbers the shipped (eighth, 57: the look and the
+    front reading too) judge's first ones are; a head over a count no version had is refused."""
     import json
 
     from gdbench.metrics.judge.head import fit
@@ -176,7 +175,7 @@ def test_an_earlier_judges_head_reads_the_features_it_was_fitted_on(tmp_path):
     for name in ("eye.safetensors", "templates.safetensors"):
         shutil.copy(WEIGHTS / name, tmp_path / name)
     info = json.loads((WEIGHTS / "head.json").read_text())
-    info.pop("references", None)  # the earlier versions read no references
+    info.pop("references", None)  # the earlier versions (the seventh aside) read no references
     g = torch.Generator().manual_seed(0)
     labels = ["front_everywhere", "blob", "fine"] * 20
     info["head"] = fit(torch.randn(60, 30, generator=g), labels).to_dict()
@@ -185,7 +184,7 @@ def test_an_earlier_judges_head_reads_the_features_it_was_fitted_on(tmp_path):
     info["head"] = {k: v[:26] if k in ("mean", "scale", "weight") else v for k, v in info["head"].items()}
     (tmp_path / "head.json").write_text(json.dumps(info))
     second, shipped = Judge(tmp_path), Judge(WEIGHTS)
-    assert second.n_features == 26 and third.n_features == 30 and shipped.n_features == 200
+    assert second.n_features == 26 and third.n_features == 30 and shipped.n_features == 57
     assert second.feature_names() == shipped.feature_names()[:26]
     assert third.feature_names() == shipped.feature_names()[:30]
     g = torch.Generator().manual_seed(1)

@@ -216,6 +216,27 @@ def turntable_frames(scene, size: int = 128, frames: int = TURNTABLE_FRAMES) -> 
     return to_uint8(render_views(scene.to("cpu"), cams, (1.0, 1.0, 1.0)))
 
 
+SEVENTH_HEAD = Path(__file__).resolve().parents[3] / "docs/results/judge/seventh/head.json"
+"""The seventh judge's head (c18485a29831), fitted on the same eye and templates as the eighth:
+``with_head(SEVENTH_HEAD, folder)`` makes the seventh judge again, byte for byte."""
+
+
+def with_head(head: Path, folder: Path) -> Path:
+    """A judge folder at ``folder``: the shipped eye and templates with the head.json ``head`` (an
+    earlier judge's head fitted on the same eye, ``SEVENTH_HEAD``); where the eye and templates are
+    that judge's bytes, the folder's judge has that judge's version."""
+    import shutil
+
+    head, folder = Path(head), Path(folder)
+    if not head.is_file():
+        raise FileNotFoundError(f"head: {head} is missing")
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("eye.safetensors", "templates.safetensors"):
+        shutil.copyfile(WEIGHTS / name, folder / name)
+    shutil.copyfile(head, folder / "head.json")
+    return folder
+
+
 @functools.lru_cache(maxsize=2)
 def load_judge(folder: str | None = None) -> Judge:
     """The judge in ``folder`` (default: the shipped one), loaded once per process."""
