@@ -49,7 +49,7 @@ def _read(path):
         return list(csv.DictReader(f))
 
 
-SETS = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6", "fresh7", "fresh8")
+SETS = ("fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6", "fresh7", "fresh8", "fresh9")
 
 
 def _judged_or_skip(name):

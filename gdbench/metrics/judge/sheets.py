@@ -149,6 +149,7 @@ FRESH_SETS = {
     "fresh6": FreshSet("fresh6", Path("docs/results/judge/fresh6"), "docs/judge_fresh6.md"),
     "fresh7": FreshSet("fresh7", Path("docs/results/judge/fresh7"), "docs/judge_fresh7.md"),
     "fresh8": FreshSet("fresh8", Path("docs/results/judge/fresh8"), "docs/judge_fresh8.md"),
+    "fresh9": FreshSet("fresh9", Path("docs/results/judge/fresh9"), "docs/judge_fresh9.md"),
 }
 """The judge's fresh sets: the first (spent: the second and third judges are fitted on it), the
 second and the third (spent: read by the second and third judges; the fourth judge is fitted on all
