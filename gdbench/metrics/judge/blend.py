@@ -31,7 +31,15 @@ PARTS = ("linear", "trees")
 class Blend:
     parts: list
     """The fitted heads (``PARTS``' kinds), each reading the same features."""
+    kinds: tuple[str, ...] = PARTS
+    """Each part's kind (``head.HEADS``), for ``to_dict``."""
     fine_odds: float = FINE_ODDS
+
+    def __post_init__(self):
+        if len(self.parts) != len(self.kinds) or not self.parts:
+            raise ValueError(f"parts: expected one fitted head per kind of {self.kinds}, got {len(self.parts)}")
+        if not math.isfinite(self.fine_odds) or self.fine_odds <= 0:
+            raise ValueError(f"fine_odds: expected a positive number, got {self.fine_odds!r}")
 
     def probabilities(self, x: Tensor) -> Tensor:
         """[N, F] -> [N, 3] the parts' mean probabilities (Janus, blob, fine), fine's weighed by
@@ -45,24 +53,6 @@ class Blend:
         return self.parts[0].n_features
 
     def to_dict(self) -> dict:
-        from gdbench.metrics.judge.head import head_kind
-
+        """The blend as ``head.load_head`` reads it (each part with its kind)."""
         return {"kind": "blend", "fine_odds": self.fine_odds,
-                "parts": [{"kind": head_kind(h), **h.to_dict()} for h in self.parts]}  # fmt: skip
-
-    @classmethod
-    def from_dict(cls, d: dict) -> Blend:
-        from gdbench.metrics.judge.head import load_head
-
-        odds = float(d["fine_odds"])
-        if not math.isfinite(odds) or odds <= 0:
-            raise ValueError(f"fine_odds: expected a positive number, got {d['fine_odds']!r}")
-        return cls([load_head(p) for p in d["parts"]], odds)
-
-
-def fit_blend(x: Tensor, labels: list[str], seed: int = 0, fine_odds: float = FINE_ODDS) -> Blend:
-    """The ``PARTS`` heads fitted to ``labels`` on ``x`` [N, F] (classes weighted equally, the
-    trees' seeds from ``seed``), blended with ``fine_odds``."""
-    from gdbench.metrics.judge.head import fit_head
-
-    return Blend([fit_head(x, labels, kind, seed=seed) for kind in PARTS], fine_odds)
+                "parts": [{"kind": k, **h.to_dict()} for k, h in zip(self.kinds, self.parts)]}  # fmt: skip

@@ -103,10 +103,10 @@ def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):
     weighted equally."""
     if kind == "linear":
         return fit(x, labels)
-    if kind == "blend":
-        from gdbench.metrics.judge.blend import fit_blend
+    if kind == "blend":  # the regression and the trees, fitted on the same rows (blend.py)
+        from gdbench.metrics.judge.blend import PARTS, Blend
 
-        return fit_blend(x, labels, seed=seed)
+        return Blend([fit_head(x, labels, part, seed=seed) for part in PARTS], PARTS)
     if kind == "trees":
         from gdbench.metrics.judge.trees import fit_trees as fit_kind
     elif kind == "bagged":
@@ -124,7 +124,9 @@ def load_head(d: dict):
     if kind == "blend":
         from gdbench.metrics.judge.blend import Blend
 
-        return Blend.from_dict(d)
+        parts = d["parts"]
+        kinds = tuple(p.get("kind", "linear") for p in parts)
+        return Blend([load_head(p) for p in parts], kinds, float(d["fine_odds"]))
     if kind == "bagged":
         from gdbench.metrics.judge.bagging import Bagged
 

@@ -64,7 +64,7 @@ class Judge:
         n, first, same = self.head.n_features, 2 * len(FEATURES), len(SAMENESS)
         self.references = self.head_info.get("references")
         """{caption: rows} of the asset's own fixtures the head reads a result against
-        (``reference.against``; the seventh judge on), None before."""
+        (``reference.against``; the seventh judge's), None for the others."""
         known = (first,)
         if self.templates is not None:
             known = (first + same - ALIGNED, first + same, first + same + len(LOOK),

@@ -1,4 +1,4 @@
-"""The judge's readings against the asset's own fixtures (from the seventh judge on).
+"""The judge's readings against the asset's own fixtures (the seventh judge's; the eighth reads none).
 
 A result's numbers (``reading.result_features``) say how its views read; what they should read
 depends on the asset: its outline, colours and shape set what its whole, its front everywhere and

@@ -155,8 +155,8 @@ FRESH_SETS = {
 second and the third (spent: read by the second and third judges; the fourth judge is fitted on all
 three), the fourth and the fifth (spent: read by the fourth and fifth judges; the sixth is fitted on
 all five), the sixth (spent: read by the sixth judge; the seventh is fitted on all six), the
-seventh (spent: read by the seventh judge) and the eighth (registered 2026-12-06, read by the
-seventh judge again: no eighth judge was shipped before its sheets were drawn)."""
+seventh and the eighth (spent: read by the seventh judge; the eighth is fitted on all eight) and
+the ninth (registered 2026-12-06, read by the eighth judge, the seventh beside it)."""
 
 
 def fresh_results(root: Path = Path("."), which: str = "fresh") -> list[SheetResult]:
