@@ -63,10 +63,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
     if judge.templates is None or judge.head_info.get("fixture_rows") is None:
-        ap.error("--judge: expected a judge with templates and fixture rows (the fourth or later)")
+        ap.error("--judge: expected a judge with templates and fixture rows (the fourth to the seventh)")
     results, source = labelled_results(sets=SETS)
     block = [block_and_arm(r.run)[0] or "v3" for r in results]
-    x50 = sheet_features(judge.eye, judge.curves, results, judge.templates)
+    x50 = sheet_features(judge.eye, judge.curves, results, judge.templates)[:, :50]  # the 50 its fixtures hold
     rows = judge.head_info["fixture_rows"]
     fx50, fy = torch.tensor(rows["features"], dtype=torch.float32), list(rows["labels"])
     known = dict(zip(rows["names"], fx50))

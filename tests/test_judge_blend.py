@@ -52,3 +52,8 @@ def test_bad_odds_and_mismatched_parts_are_refused(odds, fitted):
         Blend(blend.parts, blend.kinds, odds)
     with pytest.raises(ValueError, match="parts"):
         Blend(blend.parts[:1], blend.kinds)
+    narrow = fit_head(torch.randn(60, 3, generator=torch.Generator().manual_seed(2)), LABELS, "linear")
+    with pytest.raises(ValueError, match="parts"):
+        Blend([blend.parts[0], narrow], blend.kinds)  # heads over different features
+    with pytest.raises(ValueError, match="fine_odds"):
+        load_head({k: v for k, v in blend.to_dict().items() if k != "fine_odds"})

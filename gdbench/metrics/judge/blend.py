@@ -38,6 +38,9 @@ class Blend:
     def __post_init__(self):
         if len(self.parts) != len(self.kinds) or not self.parts:
             raise ValueError(f"parts: expected one fitted head per kind of {self.kinds}, got {len(self.parts)}")
+        counts = [h.n_features for h in self.parts]
+        if len(set(counts)) != 1:
+            raise ValueError(f"parts: expected heads that read the same features, got {counts}")
         if not math.isfinite(self.fine_odds) or self.fine_odds <= 0:
             raise ValueError(f"fine_odds: expected a positive number, got {self.fine_odds!r}")
 

@@ -124,6 +124,8 @@ def load_head(d: dict):
     if kind == "blend":
         from gdbench.metrics.judge.blend import Blend
 
+        if "fine_odds" not in d or not d.get("parts"):
+            raise ValueError(f"head: a blend needs its fine_odds and parts, got the keys {sorted(d)}")
         parts = d["parts"]
         kinds = tuple(p.get("kind", "linear") for p in parts)
         return Blend([load_head(p) for p in parts], kinds, float(d["fine_odds"]))

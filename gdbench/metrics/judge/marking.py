@@ -13,7 +13,8 @@ asset's renders, ``sameness.Templates``), never from a label:
   duck's beak, the owl's face);
 - each view's **marking**: the share of its object pixels in the front colours, scaled so that the
   asset's sides and back read 0 and its front 1 (``scaled``);
-- four numbers (``MARKING``) over the six sheet views: the mean, the largest, the smallest and the
+- four numbers (``MARKING``) over the six sheet views (``reading.sheet_views``: every view where
+  the cameras are not a sheet's six): the mean, the largest, the smallest and the
   share of views marked more than half as much as the front. A front everywhere reads high on all
   of them, a whole result high at its front only, a blob low everywhere. An asset whose front has
   no colour of its own reads 0 throughout: the other readings decide.
@@ -97,22 +98,31 @@ def front_colours(crops: Tensor, azimuth: Tensor) -> tuple[Tensor, float, float]
 
 
 _ASSETS: dict = {}
+"""(id(templates), caption) -> (the templates, their ``front_colours``): the object is kept beside
+its answer, so that another templates object given the same id after the first is freed is never
+handed the first one's colours."""
+
+
+def _known(templates, caption: str) -> None:
+    if caption not in templates.crops:
+        raise ValueError(f"caption: the templates hold no renders of {caption!r}")
 
 
 def asset_marking(templates, caption: str) -> tuple[Tensor, float, float]:
-    """``front_colours`` of ``caption``'s templates, computed once per templates and caption."""
+    """``front_colours`` of ``caption``'s templates, computed once per templates object and caption."""
+    _known(templates, caption)
     key = (id(templates), caption)
-    if key not in _ASSETS:
-        if caption not in templates.crops:
-            raise ValueError(f"caption: the templates hold no renders of {caption!r}")
-        _ASSETS[key] = front_colours(templates.crops[caption], templates.azimuth[caption])
-    return _ASSETS[key]
+    kept = _ASSETS.get(key)
+    if kept is None or kept[0] is not templates:
+        kept = _ASSETS[key] = (templates, front_colours(templates.crops[caption], templates.azimuth[caption]))
+    return kept[1]
 
 
 def scaled(share: Tensor, front: float, other: float) -> Tensor:
     """Views' ``marked_share`` -> 0 at the asset's sides' and back's level, 1 at its front's
-    (``FLOOR`` added to the difference), within ``CLIP``."""
-    return ((share - other) / (front - other + FLOOR)).clamp(*CLIP)
+    (``FLOOR`` added to the difference, which counts as 0 where the front marks less than the
+    sides), within ``CLIP``."""
+    return ((share - other) / (max(front - other, 0.0) + FLOOR)).clamp(*CLIP)
 
 
 def marking_features(crops: Tensor, templates, caption: str) -> Tensor:
@@ -130,6 +140,7 @@ def outline_features(crops: Tensor, templates, caption: str) -> Tensor:
     ``FRONT_DEG`` of its front, averaged over the views; with any render, averaged and the least."""
     from gdbench.metrics.judge.sameness import _colour_and_outline, _wrap
 
+    _known(templates, caption)
     _, views = _colour_and_outline(crops.float())
     _, renders = _colour_and_outline(templates.crops[caption].float() / 255.0)
     front = _wrap(templates.azimuth[caption].float()).abs() <= FRONT_DEG
