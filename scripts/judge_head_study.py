@@ -123,7 +123,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     judge, commit = load_judge(str(args.judge) if args.judge else None), code_commit()
     if judge.references is None or judge.head_info.get("fixture_rows") is None:
-        ap.error("--judge: expected a judge with fixture rows and references (the seventh or later)")
+        ap.error(
+            "--judge: expected a judge with fixture rows and references: the seventh "
+            "(judge.with_head(SEVENTH_HEAD, DIR) makes its folder)"
+        )
     results, source = labelled_results(sets=SETS)
     captions = [r.caption for r in results]
     # the 50 numbers the seventh's references hold (the readings now give the front's seven after them)

@@ -95,7 +95,7 @@ HEADS = ("linear", "trees", "bagged", "blend")
 features and the look numbers (``trees.fit_trees``: the fourth judge one forest, the fifth to
 seventh five averaged with the blob offset), a random forest over the same (``bagging.fit_bagged``:
 compared for the sixth judge by holding each spent set out, not shipped) and the regression and the
-trees averaged, fine weighed against a false warning (``blend.fit_blend``: the eighth judge)."""
+trees averaged, fine weighed against a false warning (``blend.Blend``: the eighth judge)."""
 
 
 def fit_head(x: Tensor, labels: list[str], kind: str = "linear", seed: int = 0):

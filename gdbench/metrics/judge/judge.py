@@ -65,14 +65,13 @@ class Judge:
         self.references = self.head_info.get("references")
         """{caption: rows} of the asset's own fixtures the head reads a result against
         (``reference.against``; the seventh judge's), None for the others."""
-        known = (first,)
+        known, look = (first,), first + same + len(LOOK)  # the readings up to the look: the 50
         if self.templates is not None:
-            known = (first + same - ALIGNED, first + same, first + same + len(LOOK),
-                     first + same + len(LOOK) + len(FRONT))  # fmt: skip
+            known = (first + same - ALIGNED, first + same, look, look + len(FRONT))
         from gdbench.metrics.judge.reference import REFERENCE
 
         # the seventh's: the 50 against its references (no templates: the readings cannot give them)
-        against = (1 + len(REFERENCE)) * (first + same + len(LOOK) if self.templates is not None else first)
+        against = (1 + len(REFERENCE)) * (look if self.templates is not None else first)
         if self.references is not None:
             kinds = self.head_info.get("reference_kinds", list(REFERENCE))
             if list(kinds) != list(REFERENCE):

@@ -82,9 +82,11 @@ def front_colours(crops: Tensor, azimuth: Tensor) -> tuple[Tensor, float, float]
     """An asset's renders (crops [K, 3, H, W] uint8 or [0, 1], at ``azimuth`` [K] degrees) -> (its
     front colours [LEVELS ** 3] bool, the front renders' mean ``marked_share``, the sides' and
     back's)."""
+    from gdbench.metrics.judge.sameness import _wrap
+
     x = crops.float() / 255.0 if crops.dtype == torch.uint8 else crops.float()
     colour, ink = colour_index(x)
-    off = ((azimuth.float() + 180.0) % 360.0 - 180.0).abs()
+    off = _wrap(azimuth.float()).abs()
     front, other = off <= FRONT_DEG, off >= OTHER_DEG
     if not bool(front.any()) or not bool(other.any()):
         raise ValueError(f"azimuth: expected renders within {FRONT_DEG:g} degrees of the front and "
@@ -97,25 +99,19 @@ def front_colours(crops: Tensor, azimuth: Tensor) -> tuple[Tensor, float, float]
     return mask, float(s[front].mean()), float(s[other].mean())
 
 
-_ASSETS: dict = {}
-"""(id(templates), caption) -> (the templates, their ``front_colours``): the object is kept beside
-its answer, so that another templates object given the same id after the first is freed is never
-handed the first one's colours."""
-
-
 def _known(templates, caption: str) -> None:
     if caption not in templates.crops:
         raise ValueError(f"caption: the templates hold no renders of {caption!r}")
 
 
 def asset_marking(templates, caption: str) -> tuple[Tensor, float, float]:
-    """``front_colours`` of ``caption``'s templates, computed once per templates object and caption."""
+    """``front_colours`` of ``caption``'s templates, computed once per caption and kept on the
+    templates object itself (so it lives and goes with them, and no other object is handed it)."""
     _known(templates, caption)
-    key = (id(templates), caption)
-    kept = _ASSETS.get(key)
-    if kept is None or kept[0] is not templates:
-        kept = _ASSETS[key] = (templates, front_colours(templates.crops[caption], templates.azimuth[caption]))
-    return kept[1]
+    kept = templates.__dict__.setdefault("_front_colours", {})
+    if caption not in kept:
+        kept[caption] = front_colours(templates.crops[caption], templates.azimuth[caption])
+    return kept[caption]
 
 
 def scaled(share: Tensor, front: float, other: float) -> Tensor:
